@@ -1,0 +1,44 @@
+# Two commands on a fresh machine (README): `make demo` and `make test`.
+# Both create the virtual environment on first use; nothing is installed globally
+# except the system library open3d needs (libusb-1.0-0, via apt when run as root).
+
+PYTHON ?= python3
+VENV ?= .venv
+CORES ?= 2
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: install demo test dry-run report clean-results
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "sellip needs Python >= 3.11")'
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing libusb-1.0-0 (needed by open3d)"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	  else \
+	    echo "open3d needs the system library libusb-1.0-0: install it (e.g. 'sudo apt-get install libusb-1.0-0') and re-run" >&2; exit 1; \
+	  fi; \
+	fi
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e ".[test]"
+	@touch $(STAMP)
+
+# The main job: the whole workflow on the built-in demo capture (generated on first use).
+demo: $(STAMP)
+	$(BIN)/snakemake --cores $(CORES) --workflow-profile workflow/profiles/default
+
+dry-run: $(STAMP)
+	$(BIN)/snakemake -n --workflow-profile workflow/profiles/default
+
+report: $(STAMP)
+	$(BIN)/snakemake --workflow-profile workflow/profiles/default --report results/report.html
+
+test: $(STAMP)
+	$(BIN)/python -m pytest
+
+clean-results:
+	rm -rf results .snakemake

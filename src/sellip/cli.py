@@ -1,0 +1,47 @@
+"""The ``sellip`` command line: one sub-command per stage, each a thin wrapper over ``sellip.stages``.
+
+Every stage module ``sellip.stages.<name>`` exposes ``configure_parser(parser)`` (adds its
+arguments) and ``main(args) -> int``. Modules are imported only when their command runs,
+so ``sellip --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+# command name -> (module under sellip.stages, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+}
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser; only ``command``'s stage module is imported (all of them when None)."""
+    parser = argparse.ArgumentParser(prog="sellip", description="Sparse ellipsometry workflow stages.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (module, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(_module=module)
+        if command in (None, name):
+            importlib.import_module(f"sellip.stages.{module}").configure_parser(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = next((a for a in argv if not a.startswith("-")), None)
+    args = build_parser(command if command in COMMANDS else None).parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    module = importlib.import_module(f"sellip.stages.{args._module}")
+    return int(module.main(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

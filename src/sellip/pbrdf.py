@@ -1,0 +1,202 @@
+"""The three-lobe polarimetric BRDF of Hwang et al. 2022 (JAX, batched, channels last).
+
+Two forms:
+
+- :func:`full_mueller` / :func:`full_stokes`: the complete model of DESIGN §6
+  (paper Eqs. 5-11): diffuse = exit transmission o depolarizer o entry
+  transmission about the normal; specular and single scattering = Fresnel
+  reflection about the half vector, each with its own GGX lobe. Exact
+  incident and exitant frames, no coaxial shortcut. Used by the renderer and
+  the simulator.
+- :func:`coaxial_observations`: the practical model of DESIGN §5 (paper
+  Eqs. 12-18) that the fit inverts: I_d, I_alpha, I_s.
+
+Geometry per (vertex, view): ``normal`` n, ``to_light`` w_i (surface -> flash),
+``to_camera`` w_o (surface -> camera), all unit (..., 3) in world
+coordinates; ``light_distance`` d (...,) in metres. The flash emits Stokes
+[1, 1, 0, 0] in its own frame, x = its polarizer axis (``light_axis``,
+projected orthogonal to the beam). Camera-side Stokes vectors are in the
+camera frame of the ray (:mod:`sellip.conventions`). The shading term
+S = (n . w_i) / d^2 is included (unit flash intensity); everything is 0 where
+n . w_i <= 0 or n . w_o <= 0.
+
+Shapes: RGB Stokes arrays are ``(..., 4, 3)`` (Stokes component, then colour
+last); RGB Mueller matrices are ``(..., 3, 4, 4)``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+
+from sellip import polar
+from sellip.fresnel import fresnel, reflection_mueller, transmission_mueller
+from sellip.microfacet import ggx_d, smith_g
+
+
+class PBRDFParams(NamedTuple):
+    """Per-point pBRDF parameters with a common batch shape (...)."""
+
+    eta: jnp.ndarray  # (...,) refractive index
+    rho_d: jnp.ndarray  # (..., 3) diffuse albedo (no 1/pi; relative: one global scale is free)
+    rho_s: jnp.ndarray  # (...,) specular albedo (monochrome: dielectric reflection keeps the light's colour)
+    sigma_s: jnp.ndarray  # (...,) specular GGX roughness (alpha = sigma)
+    rho_ss: jnp.ndarray  # (..., 3) single-scattering albedo
+    sigma_ss: jnp.ndarray  # (...,) single-scattering GGX roughness
+
+
+class Observations(NamedTuple):
+    """The three observations of DESIGN §5, each (..., 3)."""
+
+    diffuse: jnp.ndarray  # I_d = 2 I90
+    diffuse_pol: jnp.ndarray  # I_alpha = I135 - I45
+    specular: jnp.ndarray  # I_s = I0 - I90
+
+
+class _Geometry(NamedTuple):
+    cos_i: jnp.ndarray
+    cos_o: jnp.ndarray
+    cos_h: jnp.ndarray
+    cos_d: jnp.ndarray
+    lit: jnp.ndarray  # n.w_i > 0 and n.w_o > 0
+    shading: jnp.ndarray  # S = cos_i / d^2, 0 where not lit
+
+
+def _dot(a, b):
+    return jnp.sum(a * b, axis=-1)
+
+
+def _geometry(normal, to_light, to_camera, light_distance) -> _Geometry:
+    half = polar.safe_normalize(to_light + to_camera, fallback=normal)
+    cos_i = _dot(normal, to_light)
+    cos_o = _dot(normal, to_camera)
+    lit = (cos_i > 0) & (cos_o > 0)
+    shading = jnp.where(lit, cos_i / (light_distance * light_distance), 0)
+    return _Geometry(
+        cos_i=jnp.clip(cos_i, 0, 1),
+        cos_o=jnp.clip(cos_o, 0, 1),
+        cos_h=jnp.clip(_dot(normal, half), 0, 1),
+        cos_d=jnp.clip(_dot(half, to_light), 0, 1),
+        lit=lit,
+        shading=shading,
+    )
+
+
+def _lobe_weight(geom: _Geometry, rho, sigma):
+    """The lobe term kappa = rho D G / (4 cos_i cos_o), 0 where unlit; rho (...,) or (..., 3) like the result."""
+    safe_i = jnp.where(geom.lit, geom.cos_i, 1)
+    safe_o = jnp.where(geom.lit, geom.cos_o, 1)
+    dg = ggx_d(geom.cos_h, sigma) * smith_g(geom.cos_i, geom.cos_o, sigma) / (4 * safe_i * safe_o)
+    dg = jnp.where(geom.lit, dg, 0)
+    return dg[..., None] * rho if rho.ndim == dg.ndim + 1 else dg * rho
+
+
+def _unit_muellers(normal, to_light, to_camera, light_axis, camera_up, eta, geom: _Geometry):
+    """Mueller matrices (..., 4, 4) of the diffuse and the reflection lobes for unit albedo,
+    from the flash frame to the camera frame, without shading or lobe weights."""
+    beam_in = -to_light  # the flash's beam travels towards the surface
+    x_light = polar.orthogonal_x_axis(beam_in, light_axis)
+    x_camera = polar.frame_x_axis(to_camera, camera_up)
+
+    # Diffuse: the s axes are perpendicular to the planes (n, w_i) and (n, w_o). At normal
+    # incidence the plane is undefined and any axis orthogonal to the beam gives the same result.
+    s_in = polar.safe_normalize(jnp.cross(normal, to_light), fallback=x_light)
+    s_out = polar.safe_normalize(jnp.cross(normal, to_camera), fallback=x_camera)
+    entry = transmission_mueller(geom.cos_i, eta) @ polar.frame_rotation(beam_in, x_light, s_in)
+    exit_column = transmission_mueller(geom.cos_o, eta)[..., :, 0]
+    # exit o depolarizer o entry: only s0 survives the depolarizer.
+    diffuse = polar.frame_rotation(to_camera, s_out, x_camera) @ (exit_column[..., :, None] * entry[..., None, 0, :])
+
+    # Reflection about the half vector: s is perpendicular to the plane (w_i, w_o). For exact
+    # retro-reflection (w_i = w_o) the plane is undefined; by symmetry any axis serves.
+    s_refl = polar.safe_normalize(jnp.cross(to_camera, to_light), fallback=x_light)
+    reflection = (
+        polar.frame_rotation(to_camera, s_refl, x_camera)
+        @ reflection_mueller(geom.cos_d, eta)
+        @ polar.frame_rotation(beam_in, x_light, s_refl)
+    )
+    return diffuse, reflection
+
+
+def full_mueller(normal, to_light, to_camera, light_distance, light_axis, camera_up, params: PBRDFParams):
+    """The full pBRDF as RGB Mueller matrices S * P, (..., 3, 4, 4), flash frame -> camera frame.
+
+    normal, to_light, to_camera, light_axis, camera_up: (..., 3) world coordinates (the first
+    three unit); light_distance: (...,) metres. params: batch shape (...).
+    """
+    geom = _geometry(normal, to_light, to_camera, light_distance)
+    diffuse, reflection = _unit_muellers(normal, to_light, to_camera, light_axis, camera_up, params.eta, geom)
+    shading = geom.shading[..., None]
+    w_diffuse = shading * params.rho_d  # (..., 3)
+    w_reflect = shading * (
+        _lobe_weight(geom, params.rho_s, params.sigma_s)[..., None]
+        + _lobe_weight(geom, params.rho_ss, params.sigma_ss)
+    )
+    return (
+        w_diffuse[..., :, None, None] * diffuse[..., None, :, :]
+        + w_reflect[..., :, None, None] * reflection[..., None, :, :]
+    )
+
+
+def full_stokes(normal, to_light, to_camera, light_distance, light_axis, camera_up, params: PBRDFParams):
+    """Stokes vectors (..., 4, 3) reaching the camera from a unit flash emitting [1, 1, 0, 0].
+
+    Same arguments as :func:`full_mueller`. Cheaper than forming the Mueller matrices.
+    """
+    geom = _geometry(normal, to_light, to_camera, light_distance)
+    diffuse, reflection = _unit_muellers(normal, to_light, to_camera, light_axis, camera_up, params.eta, geom)
+    stokes_d = diffuse[..., :, 0] + diffuse[..., :, 1]  # (..., 4)
+    stokes_r = reflection[..., :, 0] + reflection[..., :, 1]
+    shading = geom.shading[..., None]
+    w_diffuse = shading * params.rho_d
+    w_reflect = shading * (
+        _lobe_weight(geom, params.rho_s, params.sigma_s)[..., None]
+        + _lobe_weight(geom, params.rho_ss, params.sigma_ss)
+    )
+    return stokes_d[..., :, None] * w_diffuse[..., None, :] + stokes_r[..., :, None] * w_reflect[..., None, :]
+
+
+def normal_azimuth_terms(normal, to_camera, camera_up):
+    """(sin 2phi_o, cos 2phi_o) of the normal's azimuth phi_o in the camera frame of the ray.
+
+    phi_o = atan2(n . y, n . x) with (x, y) the camera Stokes frame of w_o. Where the normal
+    points straight at the camera the azimuth is undefined; (0, 1) is returned there (every
+    term it multiplies vanishes at normal exitance). Each (...,).
+    """
+    x_camera = polar.frame_x_axis(to_camera, camera_up)
+    y_camera = jnp.cross(to_camera, x_camera)
+    a = _dot(normal, x_camera)
+    b = _dot(normal, y_camera)
+    r2 = a * a + b * b
+    ok = r2 > jnp.finfo(r2.dtype).eps ** 2
+    r2_safe = jnp.where(ok, r2, 1)
+    return jnp.where(ok, 2 * a * b / r2_safe, 0), jnp.where(ok, (a * a - b * b) / r2_safe, 1)
+
+
+def coaxial_observations(normal, to_light, to_camera, light_distance, camera_up, params: PBRDFParams) -> Observations:
+    """The practical near-coaxial model of DESIGN §5 (paper Eqs. 15-18).
+
+    I_d = S rho_d T+_i T+_o;  I_alpha = S rho_d T-_o T+_i sin 2phi_o;
+    I_s = S (kappa_s R+ + kappa_ss R+ - rho_d T-_o T+_i cos 2phi_o),
+    with T at the incident and exitant angles, R+ at theta_d, and kappa_x = rho_x D G / (4 cos_i cos_o).
+    Same geometry arguments as :func:`full_mueller` (no light axis: the flash is assumed co-polarized
+    with the camera's 0-degree analyzer). Returns :class:`Observations`, each (..., 3).
+    """
+    geom = _geometry(normal, to_light, to_camera, light_distance)
+    f_i = fresnel(geom.cos_i, params.eta)
+    f_o = fresnel(geom.cos_o, params.eta)
+    r_plus = fresnel(geom.cos_d, params.eta).r_plus
+    sin_2phi, cos_2phi = normal_azimuth_terms(normal, to_camera, camera_up)
+    shading = geom.shading[..., None]
+    diffuse = shading * params.rho_d * (f_i.t_plus * f_o.t_plus)[..., None]
+    polarized = shading * params.rho_d * (f_o.t_minus * f_i.t_plus)[..., None]
+    specular = shading * r_plus[..., None] * (
+        _lobe_weight(geom, params.rho_s, params.sigma_s)[..., None]
+        + _lobe_weight(geom, params.rho_ss, params.sigma_ss)
+    )
+    return Observations(
+        diffuse=diffuse,
+        diffuse_pol=polarized * sin_2phi[..., None],
+        specular=specular - polarized * cos_2phi[..., None],
+    )

@@ -1,0 +1,33 @@
+# Config validation, wildcard constraints and the input functions every rule family shares.
+from pathlib import Path
+
+from snakemake.utils import validate
+
+
+validate(config, "../../config/config.schema.yaml")
+
+
+wildcard_constraints:
+    name=r"[A-Za-z0-9_.-]+",
+    scene=r"[A-Za-z0-9_]+",
+
+
+DEMO_CAPTURE = f"captures/{config['demo']['scene']}"
+
+
+def capture_dir():
+    """The capture folder: config `capture`, or the built-in demo (made by rule synth_capture)."""
+    return config["capture"] or DEMO_CAPTURE
+
+
+def capture_file(name):
+    """A file of the capture; for the built-in demo it is an output of synth_capture."""
+    return str(Path(capture_dir()) / name)
+
+
+RESULTS = f"results/{config['name']}"
+
+
+def get_final_outputs():
+    """What `rule all` builds: every stage that exists so far, on the configured capture."""
+    return [capture_file("capture.yaml")]
