@@ -1,4 +1,7 @@
 # Config validation, wildcard constraints and the input functions every rule family shares.
+import shlex
+import shutil
+import sys
 from pathlib import Path
 
 from snakemake.utils import validate
@@ -27,7 +30,11 @@ def capture_file(name):
 
 RESULTS = f"results/{config['name']}"
 
+# The command every rule runs: `sellip` when it is on PATH (an activated venv, or a conda env
+# made with --sdm conda), else the sellip of the Python that runs Snakemake (.venv/bin/snakemake).
+SELLIP = "sellip" if shutil.which("sellip") else f"{shlex.quote(sys.executable)} -m sellip.cli"
+
 
 def get_final_outputs():
     """What `rule all` builds: every stage that exists so far, on the configured capture."""
-    return [capture_file("capture.yaml")]
+    return [capture_file("capture.yaml"), f"{RESULTS}/hdr.zarr", f"{RESULTS}/previews"]

@@ -1,0 +1,302 @@
+"""Procedural test scenes with known ground truth (no downloads) and handheld camera orbits.
+
+Public API::
+
+    SCENES: tuple of scene names ("demo", "sphere_ior", "tiny")
+    build_scene(name) -> Scene                       # mesh with per-vertex pBRDF parameters, fixed per name
+    handheld_orbit(views, width, height, rng, ...) -> list[Camera]
+    device_intrinsics(width, height) -> (3, 3) K    # the 25 mm lens on the IMX250 scaled to width
+
+World frame: metres, z up, the object centred near the origin. Each scene's
+geometry and materials are fixed by its name (an internal seed), so "demo" is
+always the same object; the capture seed only moves the cameras and the noise.
+
+Scenes:
+
+- ``demo``: an owl-like blob about 12 cm tall: ear tufts, eye sockets and a
+  beak, a facial disc, wing creases (concavities that cast flash shadows) and
+  feather-scale bumps (~0.3 mm). Three materials (DEMO_MATERIALS): plumage
+  (eta 1.48, sigma_s 0.28), facial disc and belly with single scattering
+  (eta 1.36, sigma_s 0.42), glossy eyes and beak (eta 1.62, sigma_s 0.09).
+  The albedo is a cellular "feather" texture with detail at a few pixels.
+- ``sphere_ior``: a 6 cm-radius textured sphere split into seven wedges with
+  the refractive indices of the paper's Table 1 (SPHERE_IOR_ETAS).
+- ``tiny``: a 4 cm-radius sphere with two materials, coarse mesh, for tests.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from sellip.pbrdf import PBRDFParams
+from sellip.render import Camera, ParamMesh
+
+SCENES = ("demo", "sphere_ior", "tiny")
+
+DEVICE_WIDTH_PX = 2448
+DEVICE_FX_PX = 7246.0
+"""IMX250 (3.45 um pixels) behind a 25 mm lens: fx at the full sensor width (DESIGN §4 notes)."""
+
+SPHERE_IOR_ETAS = (1.463, 1.485, 1.503, 1.462, 2.295, 1.303, 1.663)
+"""Refractive indices of the paper's Table 1, one per wedge of the sphere_ior scene."""
+
+
+@dataclass(frozen=True)
+class Material:
+    """pBRDF parameters shared by one region; rho_d is the region's mean diffuse albedo (RGB)."""
+
+    name: str
+    eta: float
+    rho_d: tuple[float, float, float]
+    rho_s: float
+    sigma_s: float
+    rho_ss: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    sigma_ss: float = 0.5
+
+
+DEMO_MATERIALS = (
+    Material("plumage", eta=1.48, rho_d=(0.22, 0.14, 0.075), rho_s=1.0, sigma_s=0.28),
+    Material("facial_disc", eta=1.36, rho_d=(0.28, 0.25, 0.19), rho_s=0.8, sigma_s=0.42,
+             rho_ss=(0.30, 0.18, 0.09), sigma_ss=0.55),
+    Material("eyes_beak", eta=1.62, rho_d=(0.20, 0.13, 0.02), rho_s=1.0, sigma_s=0.09),
+)
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A ground-truth object and how to photograph it.
+
+    mesh: the object; materials: the region list (mesh.material indexes it);
+    flash_power: raw DN above black per unit of full_stokes intensity at flash_level 1
+    (chosen so that the brightest highlights saturate at flash 1/4 in some views);
+    distance_m: (min, max) camera distance of the orbit; elevation_deg: (min, max) orbit elevation.
+    """
+
+    name: str
+    mesh: ParamMesh
+    materials: tuple[Material, ...]
+    flash_power: float
+    distance_m: tuple[float, float] = (0.8, 1.0)
+    elevation_deg: tuple[float, float] = (-15.0, 65.0)
+
+
+# --------------------------------------------------------------------------- geometry helpers
+
+
+def icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unit icosphere: vertices (V, 3) on the unit sphere and faces (F, 3), counter-clockwise from outside."""
+    import open3d as o3d
+
+    mesh = o3d.geometry.TriangleMesh.create_icosahedron(1.0)
+    if subdivisions:
+        mesh = mesh.subdivide_midpoint(subdivisions)
+    vertices = np.asarray(mesh.vertices, np.float64)
+    vertices /= np.linalg.norm(vertices, axis=1, keepdims=True)
+    faces = np.asarray(mesh.triangles, np.int64)
+    # Orient outward: the signed volume must be positive.
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    if np.einsum("ij,ij->i", a, np.cross(b, c)).sum() < 0:
+        faces = faces[:, ::-1]
+    return vertices, np.ascontiguousarray(faces)
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (V, 3) of a triangle mesh."""
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    face_normals = np.cross(b - a, c - a)  # length = twice the area
+    normals = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(normals, faces[:, k], face_normals)
+    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+def random_unit_vectors(count: int, rng: np.random.Generator) -> np.ndarray:
+    v = rng.normal(size=(count, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def cellular(directions: np.ndarray, cells: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Worley noise on the unit sphere: (F1, F2 - F1, cell index), distances in radians, for (N, 3) unit directions."""
+    sites = random_unit_vectors(cells, rng)
+    distance, index = cKDTree(sites).query(directions, k=2)
+    angle = 2 * np.arcsin(np.clip(distance / 2, 0, 1))
+    return angle[:, 0], angle[:, 1] - angle[:, 0], index[:, 0]
+
+
+def bump(directions: np.ndarray, center, width_rad: float) -> np.ndarray:
+    """Gaussian of the angle between each direction (N, 3) and ``center`` (3,), 1 at the centre."""
+    center = np.asarray(center, np.float64)
+    center = center / np.linalg.norm(center)
+    angle = np.arccos(np.clip(directions @ center, -1, 1))
+    return np.exp(-0.5 * (angle / width_rad) ** 2)
+
+
+def _direction(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    """Unit vector at an azimuth from +x towards +y and an elevation towards +z (degrees)."""
+    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
+    return np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+
+
+def _params_from_regions(materials, region: np.ndarray, rho_d: np.ndarray) -> PBRDFParams:
+    """Per-vertex PBRDFParams (numpy, float64) from region labels and a per-vertex diffuse albedo (V, 3)."""
+    def column(attr):
+        return np.array([getattr(m, attr) for m in materials], np.float64)[region]
+
+    return PBRDFParams(eta=column("eta"), rho_d=rho_d, rho_s=column("rho_s"), sigma_s=column("sigma_s"),
+                       rho_ss=np.array([m.rho_ss for m in materials], np.float64)[region],
+                       sigma_ss=column("sigma_ss"))
+
+
+# --------------------------------------------------------------------------- scenes
+
+
+def _demo() -> Scene:
+    """The owl-like blob (see the module docstring). Facing +x, z up, about 12 cm tall."""
+    rng = np.random.default_rng(20220804)
+    d, faces = icosphere(7)
+    x, y, z = d[:, 0], d[:, 1], d[:, 2]
+
+    # Egg-shaped body: wider at the bottom, a slightly flattened face.
+    radius = 0.046 / np.sqrt((x / 1.0) ** 2 + (y / 0.96) ** 2 + (z / 1.28) ** 2)
+    radius *= 1 - 0.06 * z - 0.05 * np.clip(x, 0, None) ** 3
+    ears = [_direction(30, 52), _direction(-30, 52)]
+    eyes = [_direction(24, 22), _direction(-24, 22)]
+    beak = _direction(0, 8)
+    radius += sum(0.017 * bump(d, e, 0.13) for e in ears)
+    radius -= sum(0.0065 * bump(d, e, 0.16) for e in eyes)           # eye sockets
+    radius += sum(0.0022 * bump(d, e, 0.05) for e in eyes)           # eyeballs inside the sockets
+    radius += 0.006 * bump(d, beak, 0.07)
+    radius += sum(0.002 * bump(d, e, 0.33) - 0.0025 * bump(d, e, 0.22) for e in eyes)  # facial disc rim
+    for side in (1, -1):  # wing creases: a concave groove along each flank
+        wing = np.arccos(np.clip(d @ _direction(side * 100, -10), -1, 1))
+        radius -= 0.0035 * np.exp(-0.5 * ((wing - 0.75) / 0.06) ** 2) * (z < 0.5)
+    radius += sum(0.004 * bump(d, _direction(side * 25, -72), 0.12) for side in (1, -1))  # feet
+
+    # Feathers: cellular bumps (~5 mm cells) with grooves between them.
+    f1, edge, cell = cellular(d, 2500, rng)
+    cell_size = np.sqrt(4 * np.pi / 2500)
+    radius += 0.00035 * np.clip(edge / (0.35 * cell_size), 0, 1) - 0.0002 * np.exp(-(f1 / (0.25 * cell_size)) ** 2)
+    vertices = d * radius[:, None]
+
+    # Regions: 0 plumage, 1 facial disc and belly, 2 eyes and beak.
+    region = np.zeros(len(d), np.int64)
+    disc = sum(bump(d, e, 0.3) for e in eyes) > 0.45
+    belly = (bump(d, _direction(0, -25), 0.55) > 0.55) & (x > 0)
+    region[disc | belly] = 1
+    region[(sum(bump(d, e, 0.075) for e in eyes) > 0.5) | (bump(d, beak, 0.06) > 0.5)] = 2
+
+    # Albedo: per-material base colour, per-feather brightness, darker feather edges and fine speckle.
+    base = np.array([m.rho_d for m in DEMO_MATERIALS])[region]
+    feather_gain = rng.uniform(0.6, 1.35, size=2500)[cell]
+    _, fine_edge, fine_cell = cellular(d, 12000, rng)
+    speckle = rng.uniform(0.75, 1.2, size=12000)[fine_cell]
+    edge_shade = 0.55 + 0.45 * np.clip(edge / (0.25 * cell_size), 0, 1)
+    pattern = feather_gain * edge_shade * speckle
+    pupils = sum(bump(d, e, 0.03) for e in eyes) > 0.5
+    albedo = base * np.where(region == 2, speckle, pattern)[:, None]
+    albedo[pupils] = 0.01
+    albedo[region == 1] *= (0.8 + 0.35 * np.cos(40 * z[region == 1]) ** 2)[:, None]  # chevron bars
+    albedo = np.clip(albedo, 0.005, 0.6)
+
+    mesh = ParamMesh(vertices=vertices, faces=faces, normals=vertex_normals(vertices, faces),
+                     params=_params_from_regions(DEMO_MATERIALS, region, albedo), material=region)
+    return Scene("demo", mesh, DEMO_MATERIALS, flash_power=64000.0)
+
+
+def _sphere_ior() -> Scene:
+    """A textured 6 cm sphere with seven wedges (about the z axis), one per index of SPHERE_IOR_ETAS."""
+    rng = np.random.default_rng(1303)
+    d, faces = icosphere(6)
+    hues = np.array([[0.25, 0.08, 0.05], [0.06, 0.2, 0.08], [0.06, 0.09, 0.25], [0.24, 0.2, 0.06],
+                     [0.2, 0.2, 0.2], [0.22, 0.08, 0.2], [0.05, 0.2, 0.22]])
+    materials = tuple(Material(f"eta_{eta:.3f}", eta=eta, rho_d=tuple(hue), rho_s=1.0, sigma_s=0.2)
+                      for eta, hue in zip(SPHERE_IOR_ETAS, hues))
+    azimuth = np.mod(np.arctan2(d[:, 1], d[:, 0]), 2 * np.pi)
+    region = np.minimum((azimuth / (2 * np.pi) * len(materials)).astype(np.int64), len(materials) - 1)
+    _, edge, cell = cellular(d, 3000, rng)
+    gain = rng.uniform(0.55, 1.4, size=3000)[cell] * (0.6 + 0.4 * np.clip(edge / 0.02, 0, 1))
+    albedo = np.clip(hues[region] * gain[:, None], 0.005, 0.6)
+    vertices = 0.06 * d
+    mesh = ParamMesh(vertices=vertices, faces=faces, normals=d.copy(),
+                     params=_params_from_regions(materials, region, albedo), material=region)
+    return Scene("sphere_ior", mesh, materials, flash_power=20000.0)
+
+
+def _tiny() -> Scene:
+    """A 4 cm sphere, coarse mesh, two materials (top and bottom halves) with a checker texture."""
+    d, faces = icosphere(4)
+    materials = (Material("glossy", eta=1.6, rho_d=(0.2, 0.12, 0.08), rho_s=1.0, sigma_s=0.12),
+                 Material("rough", eta=1.4, rho_d=(0.1, 0.18, 0.22), rho_s=0.6, sigma_s=0.35,
+                          rho_ss=(0.1, 0.06, 0.03), sigma_ss=0.5))
+    region = (d[:, 2] < 0).astype(np.int64)
+    azimuth = np.arctan2(d[:, 1], d[:, 0])
+    checker = ((np.floor(azimuth / (np.pi / 6)) + np.floor(d[:, 2] / 0.25)) % 2).astype(np.float64)
+    albedo = np.array([m.rho_d for m in materials])[region] * (0.6 + 0.6 * checker)[:, None]
+    vertices = 0.04 * d
+    mesh = ParamMesh(vertices=vertices, faces=faces, normals=d.copy(),
+                     params=_params_from_regions(materials, region, albedo), material=region)
+    return Scene("tiny", mesh, materials, flash_power=30000.0)
+
+
+_BUILDERS = {"demo": _demo, "sphere_ior": _sphere_ior, "tiny": _tiny}
+
+
+def build_scene(name: str) -> Scene:
+    """The named scene (one of SCENES); the same object every time."""
+    if name not in _BUILDERS:
+        raise ValueError(f"unknown scene {name!r}; expected one of {list(SCENES)}")
+    return _BUILDERS[name]()
+
+
+# --------------------------------------------------------------------------- cameras
+
+
+def device_intrinsics(width: int, height: int) -> np.ndarray:
+    """(3, 3) K of the capture device's 25 mm lens scaled to a ``width`` x ``height`` raw mosaic."""
+    f = DEVICE_FX_PX * width / DEVICE_WIDTH_PX
+    return np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+
+
+def look_at_rotation(center: np.ndarray, target: np.ndarray, roll_rad: float = 0.0) -> np.ndarray:
+    """cam_from_world rotation (3, 3) of an OpenCV camera at ``center`` looking at ``target``, world z up,
+    rolled by ``roll_rad`` about its optical axis."""
+    forward = target - center
+    forward /= np.linalg.norm(forward)
+    right = np.cross(np.array([0.0, 0.0, -1.0]), forward)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    c, s = np.cos(roll_rad), np.sin(roll_rad)
+    return np.stack([c * right + s * down, -s * right + c * down, forward])
+
+
+def handheld_orbit(views: int, width: int, height: int, rng: np.random.Generator,
+                   distance_m: tuple[float, float] = (0.8, 1.0),
+                   elevation_deg: tuple[float, float] = (-15.0, 65.0),
+                   roll_deg: float = 20.0, target_jitter_m: float = 0.008,
+                   distortion=None) -> list[Camera]:
+    """Cameras on an irregular handheld loop around the origin.
+
+    Azimuths advance by 360/views with jitter; elevations wander between ``elevation_deg``
+    (three slow up-and-down sweeps plus noise) so that top and sides are covered; distances are
+    uniform in ``distance_m``; roll is uniform in +-``roll_deg``; the aim point is jittered.
+    """
+    step = 360.0 / views
+    azimuth = np.arange(views) * step + rng.uniform(-0.35, 0.35, views) * step + rng.uniform(0, 360)
+    low, high = elevation_deg
+    sweep = 0.5 + 0.5 * np.sin(2 * np.pi * 3 * np.arange(views) / views + rng.uniform(0, 2 * np.pi))
+    elevation = np.clip(low + (high - low) * sweep + rng.normal(0, 6, views), low, high)
+    distance = rng.uniform(*distance_m, views)
+    roll = np.radians(rng.uniform(-roll_deg, roll_deg, views))
+    target = rng.uniform(-target_jitter_m, target_jitter_m, (views, 3))
+    intrinsics = device_intrinsics(width, height)
+    cameras = []
+    for k in range(views):
+        center = distance[k] * _direction(azimuth[k], elevation[k])
+        rotation = look_at_rotation(center, target[k], roll[k])
+        cameras.append(Camera(intrinsics=intrinsics, rotation=rotation, translation=-rotation @ center,
+                              width=width, height=height,
+                              distortion=None if distortion is None else np.asarray(distortion, np.float64)))
+    return cameras

@@ -1,0 +1,144 @@
+"""Synthetic captures: the CLI end to end on a tiny scene, determinism, atomic writes, scene and orbit properties."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from sellip import io
+from sellip.render import Camera, Renderer, flash_light
+from sellip.scenes import SPHERE_IOR_ETAS, build_scene, device_intrinsics, handheld_orbit, look_at_rotation
+from sellip.sensor import SensorModel, simulate_raw
+from sellip.stages import synth
+
+TINY = dict(views=3, width=64, height=48, supersample=1, progress=False)
+
+
+@pytest.fixture(scope="module")
+def demo_scene():
+    return build_scene("demo")
+
+
+def _files(root):
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_cli_writes_a_valid_capture_with_ground_truth(tmp_path):
+    out = tmp_path / "captures" / "tiny"
+    subprocess.run([sys.executable, "-m", "sellip.cli", "synth", "--scene", "tiny", "--out", str(out), "--views", "3",
+                    "--width", "64", "--height", "48", "--seed", "1", "--no-progress"], check=True)
+    capture = io.read_capture(out, check_raw=True)
+    assert len(capture.frames) == 9 and capture.view_ids == ["v000", "v001", "v002"]
+    assert sorted(capture.frames["flash_level"].unique()) == [0.0625, 0.125, 0.25]
+    assert capture.config["synthetic"]["scene"] == "tiny"
+    assert capture.config["light"]["position_m"] == [0.0, 0.05, 0.0]
+    assert list(capture.poses["view_id"]) == capture.view_ids
+    raw = io.read_raw_frame(capture, "v000_f0")
+    assert raw.dtype == np.uint16 and raw.max() > 200 + 64  # the object is visible
+    vertex, faces = io.read_ply(out / io.GROUND_TRUTH_MESH)
+    assert all(vertex[name].dtype == np.float32 for name in io.MODEL_VERTEX_PROPERTIES)
+    mesh = io.read_param_mesh(out / io.GROUND_TRUTH_MESH)
+    # The object projects where the poses say: the ground-truth centre lands inside the image.
+    k = capture.intrinsics()
+    rotation, translation = capture.pose("v001")
+    centre = k @ (rotation @ mesh.vertices.mean(0) + translation)
+    assert 0 < centre[0] / centre[2] < 64 and 0 < centre[1] / centre[2] < 48
+
+
+def test_same_seed_gives_byte_identical_files(tmp_path):
+    a = synth.synthesize_capture("tiny", tmp_path / "a", seed=3, **TINY)
+    b = synth.synthesize_capture("tiny", tmp_path / "b", seed=3, **TINY)
+    c = synth.synthesize_capture("tiny", tmp_path / "c", seed=4, **TINY)
+    files_a, files_b, files_c = _files(a), _files(b), _files(c)
+    assert files_a == files_b
+    assert files_a["raw/v000_f0.dng"] != files_c["raw/v000_f0.dng"]
+    assert files_a["poses.csv"] != files_c["poses.csv"]
+
+
+def test_a_failed_run_leaves_no_capture(tmp_path, monkeypatch):
+    calls = []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 4:
+            raise RuntimeError("simulated crash")
+        return simulate_raw(*args, **kwargs)
+
+    monkeypatch.setattr(synth, "simulate_raw", failing)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        synth.synthesize_capture("tiny", tmp_path / "cap", seed=0, **TINY)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_demo_scene_meets_the_brief(demo_scene):
+    scene = demo_scene
+    mesh = scene.mesh
+    extent = np.ptp(mesh.vertices, axis=0)
+    assert 0.10 <= extent.max() <= 0.15
+    etas = {m.eta for m in scene.materials}
+    assert len(scene.materials) >= 3 and all(1.3 <= eta <= 1.7 for eta in etas) and len(etas) == len(scene.materials)
+    assert len({m.sigma_s for m in scene.materials}) == len(scene.materials)
+    assert sum(max(m.rho_ss) > 0 for m in scene.materials) == 1
+    assert set(np.unique(mesh.material)) == set(range(len(scene.materials)))
+    # Concavities: some vertices lie inside the convex hull by more than 3 mm.
+    import open3d as o3d
+
+    hull, _ = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
+                                        o3d.utility.Vector3iVector(mesh.faces)).compute_convex_hull()
+    inside = o3d.t.geometry.RaycastingScene()
+    inside.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(hull))
+    depth = inside.compute_distance(o3d.core.Tensor(mesh.vertices.astype(np.float32))).numpy()
+    assert depth.max() > 0.003
+    # Texture: neighbouring vertices of the plumage differ in albedo (detail for SIFT).
+    edges = mesh.faces[:, :2]
+    contrast = np.abs(np.log(mesh.params.rho_d[edges[:, 0], 1] / mesh.params.rho_d[edges[:, 1], 1]))
+    assert np.median(contrast) > 0.02
+
+
+def test_sphere_ior_has_the_table_1_indices():
+    scene = build_scene("sphere_ior")
+    assert sorted(np.unique(np.round(scene.mesh.params.eta, 3))) == sorted(SPHERE_IOR_ETAS)
+
+
+def test_handheld_orbit_is_irregular_and_frames_the_object():
+    cameras = handheld_orbit(24, 612, 512, np.random.default_rng(0))
+    centres = np.array([c.center for c in cameras])
+    distance = np.linalg.norm(centres, axis=1)
+    assert distance.min() >= 0.8 and distance.max() <= 1.0
+    elevation = np.degrees(np.arcsin(centres[:, 2] / distance))
+    assert elevation.min() < 10 and elevation.max() > 45
+    rolls = [np.degrees(np.arctan2(c.rotation[0, 2], -c.rotation[1, 2])) for c in cameras]  # image angle of world up
+    assert np.ptp(rolls) > 10
+    for camera in cameras:
+        u, v = camera.project(np.zeros(3))
+        assert 0.35 * 612 < u < 0.65 * 612 and 0.35 * 512 < v < 0.65 * 512
+
+
+def test_demo_highlights_saturate_at_the_strongest_flash_while_diffuse_stays_in_range(demo_scene):
+    """Looking straight at the owl's face: the glossy eyes saturate at flash 1/4; at 1/16 the object is mid-range."""
+    scene = demo_scene
+    width, height = 612, 512  # the default demo size: smaller pixels average the eye highlights away
+    centre = np.array([0.9, 0.0, 0.25])
+    rotation = look_at_rotation(centre, np.array([0.0, 0.0, 0.02]))
+    camera = Camera(device_intrinsics(width, height), rotation, -rotation @ centre, width, height)
+    analyzers = Renderer(scene.mesh).render(camera, flash_light(camera), supersample=2).analyzers
+    sensor = SensorModel(width=width, height=height)
+    strong = simulate_raw(analyzers, sensor, scene.flash_power / 4, np.random.default_rng(0))
+    weak = simulate_raw(analyzers, sensor, scene.flash_power / 16, np.random.default_rng(1))
+    assert np.sum(strong >= sensor.white_level) >= 2
+    on_object = analyzers[..., 2, 1] > 0
+    level = np.median(weak[on_object].astype(float) - 64)
+    assert 50 < level < 1000
+    assert np.mean(weak[on_object] >= sensor.white_level) == 0
+
+
+def test_png_frames_and_lens_distortion(tmp_path):
+    distortion = [-0.1, 0.02, 0.0, 0.0, 0.0]
+    path = synth.synthesize_capture("tiny", tmp_path / "cap", seed=0, raw_format="png", distortion=distortion,
+                                    **{**TINY, "views": 1})
+    capture = io.read_capture(path, check_raw=True)
+    assert capture.config["camera"]["distortion"] == distortion
+    assert capture.frames["file"].str.endswith(".png").all()

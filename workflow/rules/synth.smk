@@ -1,0 +1,22 @@
+# Synthetic captures with ground truth (sellip synth, DESIGN §3). The built-in demo capture
+# (config `demo`) is made here when `capture` is empty; any scene can be built by asking for
+# captures/<scene>/capture.yaml. capture.yaml appears last: the folder is written whole or not at all.
+
+rule synth_capture:
+    output:
+        capture="captures/{scene}/capture.yaml",
+        frames="captures/{scene}/frames.csv",
+        poses="captures/{scene}/poses.csv",
+    params:
+        views=config["demo"]["views"],
+        width=config["demo"]["width"],
+        height=config["demo"]["height"],
+        seed=config["demo"]["seed"],
+    log:
+        "results/logs/synth_capture/{scene}.log",
+    benchmark:
+        "results/benchmarks/synth_capture/{scene}.tsv"
+    shell:
+        SELLIP + " synth --scene {wildcards.scene} --out captures/{wildcards.scene}"
+        " --views {params.views} --width {params.width} --height {params.height}"
+        " --seed {params.seed} --no-progress > {log} 2>&1"
