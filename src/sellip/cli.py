@@ -14,6 +14,13 @@ import sys
 
 # command name -> (module under sellip.stages, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
+    "synth": ("synth", "generate a synthetic capture"),
+    "linearize": ("linearize", "raw frames -> linear, demosaiced, undistorted analyzer images"),
+    "merge-hdr": ("merge_hdr", "merge the flash levels of each view into HDR analyzer images"),
+    "hdr-previews": ("hdr_previews", "PNG previews (s0, DoLP, AoLP, diffuse, specular) of the HDR images"),
+    "observe": ("observe", "per-vertex, per-view observations (visibility, HDR samples, geometry) of a mesh"),
+    "sfm": ("sfm", "camera poses: known poses.csv, SfM (pycolmap), or SfM verified against poses.csv"),
+    "init-mesh": ("init_mesh", "initial mesh from silhouettes and SfM points (screened Poisson)"),
 }
 
 

@@ -1,0 +1,198 @@
+"""``sellip linearize``: every raw frame of a capture -> linear analyzer images (rule ``linearize_frames``).
+
+    sellip linearize --capture CAPTURE --output results/NAME/ingest/linear.zarr [--threads 2]
+
+Per frame (:func:`sellip.ingest.process_frame`): black level, white level,
+saturated/dead pixels, demosaic, colour matrix, undistortion, on the output
+grid of one pixel per polarizer cell. Written store (read by ``sellip merge-hdr``):
+
+``linear``
+    (F, H/2, W/2, 4, C) float32, frames in frames.csv order, one frame per
+    chunk, NaN where invalid; C = 3 (linear sRGB) or 1 (mono).
+attrs
+    ``frame_id``, ``view_id``, ``flash_level``, ``exposure_s`` (lists, frames.csv
+    order), ``intrinsics`` (output grid, :func:`sellip.ingest.output_intrinsics`),
+    ``analyzer_angles_deg``, ``channels``, ``raw_shape``, ``capture``, ``saturation``,
+    ``black_level_from``.
+
+Frames are processed in a pool of ``--threads`` threads (numpy releases the
+GIL), one frame per task, so memory stays at a few frames. The store is
+written under a temporary name and renamed when complete: a failure leaves
+no output.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import shutil
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from sellip import ingest
+from sellip.conventions import ANALYZER_ANGLES_DEG
+from sellip.io import RAWPY_SUFFIXES, CaptureError, read_capture, read_raw_frame
+
+log = logging.getLogger(__name__)
+
+BLACK_LEVEL_SOURCES = ("capture", "file")
+"""Where black levels come from: capture.yaml (all formats), or a RAW file's own (rawpy) levels."""
+
+
+@contextmanager
+def atomic_directory(output: str | Path):
+    """Yield a temporary sibling of ``output`` to write into; rename it to ``output`` on success, delete it on error."""
+    output = Path(output)
+    tmp = output.parent / f".{output.name}.tmp-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        yield tmp
+        if output.exists():
+            shutil.rmtree(output)
+        tmp.rename(output)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def progress_logger(total: int, what: str, logger: logging.Logger = log,
+                    every_s: float = 5.0) -> Callable[[int], None]:
+    """A callback ``done(count)`` that logs progress with throughput at most every ``every_s`` seconds and at the end."""
+    started = time.perf_counter()
+    last = [started]
+
+    def done(count: int) -> None:
+        now = time.perf_counter()
+        if count == total or now - last[0] >= every_s:
+            last[0] = now
+            logger.info("%s %d/%d (%.2f /s)", what, count, total, count / max(now - started, 1e-9))
+
+    return done
+
+
+def map_in_threads(function: Callable[[int], object], count: int, threads: int,
+                   done: Callable[[int], None]) -> list:
+    """``[function(i) for i in range(count)]`` on ``threads`` threads, calling ``done(n)`` as results arrive in order.
+
+    On the first error the tasks not yet started are cancelled and the error is raised.
+    """
+    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        futures = [pool.submit(function, i) for i in range(count)]
+        results = []
+        try:
+            for future in futures:
+                results.append(future.result())
+                done(len(results))
+        except BaseException:
+            for future in futures:
+                future.cancel()
+            raise
+    return results
+
+
+def _frame_black(path: Path, plan: ingest.IngestPlan, black_level_from: str) -> np.ndarray | None:
+    """The black level to use for one frame file: None for the plan's (capture.yaml) levels."""
+    if black_level_from == "file" and path.suffix.lower() in RAWPY_SUFFIXES:
+        black = ingest.rawpy_black_level(path)
+        if black.shape != plan.raw_shape:
+            raise CaptureError(str(path), None, f"rawpy's black-level map has shape {black.shape}, "
+                                                f"expected the mosaic shape {plan.raw_shape}")
+        return black
+    return None
+
+
+def _check_file_black_level(path: Path, plan: ingest.IngestPlan) -> None:
+    """Warn when a RAW file declares black levels other than capture.yaml's (the ones used)."""
+    declared = ingest.rawpy_black_level(path)
+    if declared.shape == plan.raw_shape and not np.allclose(declared, plan.black, atol=0.5):
+        log.warning("%s declares black levels %s (rawpy, per position) but capture.yaml gives %s; using "
+                    "capture.yaml's (run with --black-level-from file to use the file's)", path,
+                    np.unique(declared).tolist(), np.unique(plan.black).tolist())
+
+
+def linearize_capture(capture_dir: str | Path, output: str | Path, threads: int = 1,
+                      saturation: float = ingest.DEFAULT_SATURATION, black_level_from: str = "capture") -> Path:
+    """Linearize every frame of a capture into a zarr store at ``output`` (layout in the module docstring).
+
+    Raises :class:`sellip.io.CaptureError` (naming the file) for a bad capture or frame; nothing is
+    written then.
+    """
+    if black_level_from not in BLACK_LEVEL_SOURCES:
+        raise ValueError(f"black_level_from must be one of {BLACK_LEVEL_SOURCES}, got {black_level_from!r}")
+    import zarr
+
+    started = time.perf_counter()
+    capture = read_capture(capture_dir)
+    frames = capture.frames
+    plan = ingest.make_ingest_plan(capture.sensor, capture.config["camera"], capture.layout, saturation)
+    out = plan.intrinsics
+    channels = plan.demosaic.channels
+    paths = [capture.root / rel for rel in frames["file"]]
+    raw_paths = [p for p in paths if p.suffix.lower() in RAWPY_SUFFIXES]
+    if black_level_from == "capture" and raw_paths:
+        _check_file_black_level(raw_paths[0], plan)
+    log.info("%s: %d frames of %d views, raw %dx%d -> %dx%d x 4 analyzers x %d channels, %d thread(s)",
+             capture.root, len(frames), len(capture.view_ids), plan.raw_shape[1], plan.raw_shape[0],
+             out["width"], out["height"], channels, threads)
+
+    with atomic_directory(output) as tmp:
+        group = zarr.open_group(str(tmp), mode="w")
+        shape = (len(frames), out["height"], out["width"], len(ANALYZER_ANGLES_DEG), channels)
+        linear = group.create_array("linear", shape=shape, chunks=(1,) + shape[1:], dtype="float32",
+                                    fill_value=np.nan, compressors=None)
+
+        def run(index: int) -> int:
+            row = frames.iloc[index]
+            raw = read_raw_frame(capture, row)
+            black = _frame_black(paths[index], plan, black_level_from)
+            try:
+                linear[index] = ingest.process_frame(raw, plan, black)
+            except ingest.IngestError as exc:
+                raise ingest.IngestError(f"{paths[index]}: {exc}") from None
+            return index
+
+        map_in_threads(run, len(frames), threads, progress_logger(len(frames), "linearized frames"))
+        group.attrs.update({
+            "frame_id": frames["frame_id"].tolist(),
+            "view_id": frames["view_id"].tolist(),
+            "flash_level": [float(v) for v in frames["flash_level"]],
+            "exposure_s": [float(v) for v in frames["exposure_s"]],
+            "intrinsics": out,
+            "analyzer_angles_deg": list(ANALYZER_ANGLES_DEG),
+            "channels": "RGB" if channels == 3 else "mono",
+            "raw_shape": list(plan.raw_shape),
+            "capture": str(capture.root),
+            "saturation": float(saturation),
+            "black_level_from": black_level_from,
+        })
+    log.info("wrote %s in %.1f s", output, time.perf_counter() - started)
+    return Path(output)
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--capture", required=True, type=Path, help="capture folder (DESIGN §3)")
+    parser.add_argument("--output", required=True, type=Path, help="zarr store to write (a directory)")
+    parser.add_argument("--threads", type=int, default=1, help="frames processed in parallel (default: 1)")
+    parser.add_argument("--saturation", type=float, default=ingest.DEFAULT_SATURATION,
+                        help="fraction of a pixel's range (white - black) from which it counts as saturated "
+                             f"(default: {ingest.DEFAULT_SATURATION})")
+    parser.add_argument("--black-level-from", choices=BLACK_LEVEL_SOURCES, default="capture",
+                        help="black levels from capture.yaml (default) or, for RAW files, the file's own")
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        linearize_capture(args.capture, args.output, threads=args.threads, saturation=args.saturation,
+                          black_level_from=args.black_level_from)
+    except (CaptureError, ingest.IngestError) as exc:
+        log.error("%s", exc)
+        return 1
+    return 0

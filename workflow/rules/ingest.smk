@@ -1,0 +1,62 @@
+# Ingest (DESIGN §2): raw frames -> linear analyzer images -> one HDR image per view, plus previews.
+# The numerics live in sellip.ingest; each rule calls one `sellip` command (sellip.stages.*).
+
+
+rule linearize_frames:
+    input:
+        capture=capture_file("capture.yaml"),
+        frames=capture_file("frames.csv"),
+    output:
+        temp(directory(f"{RESULTS}/ingest/linear.zarr")),
+    params:
+        capture=lambda wildcards, input: Path(input.capture).parent,
+        saturation=config["ingest"]["saturation"],
+        black_level_from=config["ingest"]["black_level_from"],
+    threads: config["ingest"]["threads"]
+    conda:
+        "../../envs/sellip.yaml"
+    log:
+        f"{RESULTS}/logs/linearize_frames.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/linearize_frames.tsv"
+    shell:
+        SELLIP + " linearize --capture {params.capture} --output {output} --threads {threads}"
+        " --saturation {params.saturation} --black-level-from {params.black_level_from} > {log} 2>&1"
+
+
+rule merge_hdr:
+    input:
+        f"{RESULTS}/ingest/linear.zarr",
+    output:
+        directory(f"{RESULTS}/hdr.zarr"),
+    threads: config["ingest"]["threads"]
+    conda:
+        "../../envs/sellip.yaml"
+    log:
+        f"{RESULTS}/logs/merge_hdr.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/merge_hdr.tsv"
+    shell:
+        SELLIP + " merge-hdr --linear {input} --output {output} --threads {threads} > {log} 2>&1"
+
+
+rule plot_hdr_previews:
+    input:
+        f"{RESULTS}/hdr.zarr",
+    output:
+        report(
+            directory(f"{RESULTS}/previews"),
+            patterns=["{view}_{kind}.png"],
+            caption="../report/hdr_previews.rst",
+            category="Ingest",
+            subcategory="{kind}",
+            labels={"view": "{view}", "image": "{kind}"},
+        ),
+    conda:
+        "../../envs/sellip.yaml"
+    log:
+        f"{RESULTS}/logs/plot_hdr_previews.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/plot_hdr_previews.tsv"
+    shell:
+        SELLIP + " hdr-previews --hdr {input} --output {output} > {log} 2>&1"
