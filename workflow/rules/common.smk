@@ -35,6 +35,13 @@ RESULTS = f"results/{config['name']}"
 SELLIP = "sellip" if shutil.which("sellip") else f"{shlex.quote(sys.executable)} -m sellip.cli"
 
 
+def get_mesh(wildcards):
+    """The mesh of iteration `it`: the initial mesh at 0, else the Poisson mesh of iteration it-1."""
+    it = int(wildcards.it)
+    return f"{RESULTS}/mesh/init.ply" if it == 0 else f"{RESULTS}/iter/{it - 1}/mesh.ply"
+
+
 def get_final_outputs():
     """What `rule all` builds: every stage that exists so far, on the configured capture."""
-    return [capture_file("capture.yaml"), f"{RESULTS}/hdr.zarr", f"{RESULTS}/previews"]
+    return [capture_file("capture.yaml"), f"{RESULTS}/hdr.zarr", f"{RESULTS}/previews",
+            f"{RESULTS}/cameras.csv", f"{RESULTS}/mesh/init.ply"]

@@ -1,0 +1,673 @@
+"""Geometry kernels of the bootstrap stages (DESIGN §2 sfm, mesh_init; §8 geometry figures).
+
+Public API::
+
+    Similarity(scale, rotation, translation)          # x' = s R x + t; .apply(points), .apply_to_poses(R, t)
+    umeyama(source, target, with_scale=True, weights=None) -> Similarity
+    align_cameras(rotations, translations, ref_rotations, ref_translations, with_scale=True,
+                  trim=3.0) -> Similarity                  # robust Umeyama on camera centres
+    pose_errors(rotations, translations, ref_rotations, ref_translations) -> (rotation_deg (N,), centre (N,))
+    surface_samples(vertices, faces, count, seed=0) -> (count, 3)
+    mesh_distances(vertices_a, faces_a, vertices_b, faces_b, count=50000, seed=0) -> MeshDistances
+    silhouette_masks(images, valid=None, threshold=0.03, ...) -> (V, H, W) bool
+    VoxelGrid(origin, voxel_size, shape)                 # .centers(), .from_bounds(lo, hi, resolution)
+    view_volume_bounds(intrinsics, rotations, translations, width, height) -> (lo (3,), hi (3,))
+    carve(masks, intrinsics, rotations, translations, grid, min_inside_fraction=0.9, min_views=3) -> Carving
+    visual_hull(masks, intrinsics, rotations, translations, resolution=128, ...) -> Carving
+    surface_points(occupancy, grid, smoothing_voxels=1.0) -> (points (N, 3), normals (N, 3))
+    occluding_points(points, sparse_points, sparse_views, intrinsics, rotations, translations, ...) -> (N,) bool
+    estimate_normals(points, towards, neighbours=12) -> (N, 3)
+    poisson_surface(points, normals, depth=7, trim_density=..., threads=-1) -> (vertices, faces)
+    largest_component(vertices, faces) -> (vertices, faces)
+    remesh_to_count(vertices, faces, target_vertices, iterations=6) -> (vertices, faces)
+    depth_vertex_count(vertices_at_depth, depth, target_depth) -> int
+    mesh_area(vertices, faces) -> float
+    vertex_normals(vertices, faces) -> (V, 3)
+    InitMeshOptions(...); initial_mesh(masks, intrinsics, rotations, translations, options, sparse_points=None,
+                                       sparse_views=None, sparse_errors=None, extra_points=None) -> InitialMesh
+
+Conventions: metres; poses are COLMAP cam_from_world ``x_cam = R x_world + t`` (sellip.conventions);
+intrinsics are OpenCV K with pixel centres at integer coordinates; images are (V, H, W[, C]),
+batch first. Every function is pure (no I/O); open3d and pymeshlab are used as numerical libraries.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from sellip.conventions import camera_center, camera_forward
+
+# --------------------------------------------------------------------------- Sim(3)
+
+
+@dataclass(frozen=True)
+class Similarity:
+    """A similarity transform of world points: ``x' = scale * rotation @ x + translation``."""
+
+    scale: float
+    rotation: np.ndarray
+    translation: np.ndarray
+
+    @staticmethod
+    def identity() -> Similarity:
+        return Similarity(1.0, np.eye(3), np.zeros(3))
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Transformed points (..., 3)."""
+        return self.scale * np.einsum("ij,...j->...i", self.rotation, points) + self.translation
+
+    def apply_to_poses(self, rotations: np.ndarray, translations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """cam_from_world poses (..., 3, 3), (..., 3) expressed in the transformed world.
+
+        Camera coordinates are scaled with the world (projections are unchanged):
+        ``R' = R S^T``, ``t' = s t - R' T`` for the similarity (s, S, T).
+        """
+        new_rotations = np.einsum("...ij,kj->...ik", rotations, self.rotation)
+        new_translations = self.scale * translations - np.einsum("...ij,j->...i", new_rotations, self.translation)
+        return new_rotations, new_translations
+
+    def inverse(self) -> Similarity:
+        rotation = self.rotation.T
+        return Similarity(1.0 / self.scale, rotation, -rotation @ self.translation / self.scale)
+
+    def compose(self, first: Similarity) -> Similarity:
+        """The transform that applies ``first``, then ``self``."""
+        return Similarity(self.scale * first.scale, self.rotation @ first.rotation,
+                          self.scale * self.rotation @ first.translation + self.translation)
+
+
+def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = True,
+            weights: np.ndarray | None = None) -> Similarity:
+    """Least-squares similarity with ``target ≈ s R source + t`` (Umeyama 1991). source, target (N, 3), N >= 3.
+
+    weights: optional (N,) non-negative weights. Without scale, s = 1 (a rigid fit).
+    """
+    source = np.asarray(source, np.float64)
+    target = np.asarray(target, np.float64)
+    w = np.ones(len(source)) if weights is None else np.asarray(weights, np.float64)
+    w = w / w.sum()
+    mu_s, mu_t = w @ source, w @ target
+    xs, xt = source - mu_s, target - mu_t
+    covariance = (w[:, None] * xt).T @ xs
+    u, d, vt = np.linalg.svd(covariance)
+    sign = np.ones(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        sign[2] = -1.0
+    rotation = (u * sign) @ vt
+    variance = w @ np.sum(xs * xs, axis=1)
+    scale = float((d * sign).sum() / variance) if with_scale else 1.0
+    return Similarity(scale, rotation, mu_t - scale * rotation @ mu_s)
+
+
+def align_cameras(rotations: np.ndarray, translations: np.ndarray, ref_rotations: np.ndarray,
+                  ref_translations: np.ndarray, with_scale: bool = True, trim: float = 3.0) -> Similarity:
+    """The similarity that maps the world of the first poses onto the reference world.
+
+    Umeyama on camera centres, refit once without the centres whose residual exceeds ``trim``
+    times the median residual (a few grossly wrong poses do not bias it). Poses (N, 3, 3), (N, 3).
+    """
+    centers = camera_center(np.asarray(rotations, np.float64), np.asarray(translations, np.float64))
+    ref_centers = camera_center(np.asarray(ref_rotations, np.float64), np.asarray(ref_translations, np.float64))
+    transform = umeyama(centers, ref_centers, with_scale)
+    residual = np.linalg.norm(transform.apply(centers) - ref_centers, axis=1)
+    keep = residual <= trim * max(np.median(residual), 1e-12)
+    if 3 <= keep.sum() < len(keep):
+        transform = umeyama(centers[keep], ref_centers[keep], with_scale)
+    return transform
+
+
+def pose_errors(rotations: np.ndarray, translations: np.ndarray, ref_rotations: np.ndarray,
+                ref_translations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per camera: rotation error (deg, angle of R R_ref^T) and camera-centre distance (world units). (N,) each."""
+    # ||R - R_ref||_F = 2 sqrt(2) sin(angle / 2): accurate for small angles, unlike arccos of the trace.
+    chord = np.linalg.norm(rotations - ref_rotations, axis=(-2, -1)) / (2 * np.sqrt(2))
+    centers = camera_center(rotations, translations)
+    ref_centers = camera_center(ref_rotations, ref_translations)
+    return np.degrees(2 * np.arcsin(np.clip(chord, 0.0, 1.0))), np.linalg.norm(centers - ref_centers, axis=-1)
+
+
+# --------------------------------------------------------------------------- mesh distances
+
+
+def surface_samples(vertices: np.ndarray, faces: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
+    """(count, 3) points drawn uniformly (by area) on a triangle mesh."""
+    rng = np.random.default_rng(seed)
+    a, b, c = (np.asarray(vertices, np.float64)[faces[:, k]] for k in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    face = rng.choice(len(faces), size=count, p=area / area.sum())
+    r1, r2 = np.sqrt(rng.random(count)), rng.random(count)
+    return ((1 - r1)[:, None] * a[face] + (r1 * (1 - r2))[:, None] * b[face] + (r1 * r2)[:, None] * c[face])
+
+
+def _distance_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(N,) unsigned distance of each point to the nearest point of a triangle mesh (exact, open3d)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(faces, np.uint32)))
+    return scene.compute_distance(o3d.core.Tensor(np.asarray(points, np.float32))).numpy().astype(np.float64)
+
+
+@dataclass(frozen=True)
+class MeshDistances:
+    """Surface-to-surface distances between meshes A and B (world units).
+
+    a_to_b / b_to_a: mean distance of samples of one surface to the other surface;
+    chamfer: their average; hausdorff: the largest sample distance either way;
+    b_to_a_p95: 95th percentile of B-to-A distances.
+    """
+
+    a_to_b: float
+    b_to_a: float
+    chamfer: float
+    hausdorff: float
+    b_to_a_p95: float
+
+
+def mesh_distances(vertices_a: np.ndarray, faces_a: np.ndarray, vertices_b: np.ndarray, faces_b: np.ndarray,
+                   count: int = 50000, seed: int = 0) -> MeshDistances:
+    """Chamfer (mean of both directed mean distances) and Hausdorff distance between two meshes.
+
+    ``count`` area-uniform samples per surface are measured against the other surface exactly.
+    """
+    from_a = _distance_to_mesh(surface_samples(vertices_a, faces_a, count, seed), vertices_b, faces_b)
+    from_b = _distance_to_mesh(surface_samples(vertices_b, faces_b, count, seed + 1), vertices_a, faces_a)
+    return MeshDistances(a_to_b=float(from_a.mean()), b_to_a=float(from_b.mean()),
+                         chamfer=float(0.5 * (from_a.mean() + from_b.mean())),
+                         hausdorff=float(max(from_a.max(), from_b.max())),
+                         b_to_a_p95=float(np.percentile(from_b, 95)))
+
+
+# --------------------------------------------------------------------------- silhouettes
+
+
+def _disk(radius: int) -> np.ndarray:
+    r = np.arange(-radius, radius + 1)
+    return (r[:, None] ** 2 + r[None, :] ** 2) <= radius * radius
+
+
+def silhouette_masks(images: np.ndarray, valid: np.ndarray | None = None, threshold: float = 0.03,
+                     percentile: float = 99.0, open_px: int = 1, close_px: int = 2,
+                     max_hole_fraction: float = 0.02, min_blob_fraction: float = 0.01) -> np.ndarray:
+    """Object silhouettes of flash photographs (the lit object against a dark background).
+
+    images: (V, H, W) or (V, H, W, C) linear intensities (e.g. I_d); valid: optional (V, H, W) bool
+    (invalid pixels, e.g. saturated highlights, count as object when a neighbour is object).
+    A pixel is object when its mean over channels exceeds ``threshold`` times the view's robust
+    maximum (the ``percentile`` of its non-zero valid pixels). Cleanup per view: opening with a
+    disk of ``open_px`` (noise specks), closing with ``close_px`` (cracks), background holes
+    smaller than ``max_hole_fraction`` of the object area filled (dark texture inside the object;
+    larger holes such as a torus's are kept), object blobs smaller than ``min_blob_fraction`` of
+    the largest removed. Returns (V, H, W) bool.
+    """
+    images = np.asarray(images)
+    luminance = images.mean(axis=-1) if images.ndim == 4 else images
+    luminance = np.nan_to_num(luminance.astype(np.float32), nan=0.0)
+    masks = np.zeros(luminance.shape, bool)
+    for k, image in enumerate(luminance):
+        usable = image > 0 if valid is None else (image > 0) & valid[k]
+        if not usable.any():
+            continue
+        level = threshold * np.percentile(image[usable], percentile)
+        mask = image > level
+        if valid is not None:
+            mask |= ~valid[k] & ndimage.binary_dilation(mask)
+        if open_px:
+            mask = ndimage.binary_opening(mask, _disk(open_px))
+        if close_px:
+            mask = ndimage.binary_closing(np.pad(mask, close_px), _disk(close_px))[close_px:-close_px,
+                                                                                   close_px:-close_px]
+        masks[k] = _clean_components(mask, max_hole_fraction, min_blob_fraction)
+    return masks
+
+
+def _clean_components(mask: np.ndarray, max_hole_fraction: float, min_blob_fraction: float) -> np.ndarray:
+    """Fill small enclosed background holes and drop small object blobs of one (H, W) mask."""
+    labels, count = ndimage.label(mask)
+    if count == 0:
+        return mask
+    sizes = ndimage.sum_labels(np.ones_like(mask), labels, index=np.arange(1, count + 1))
+    keep = np.concatenate([[False], sizes >= min_blob_fraction * sizes.max()])
+    mask = keep[labels]
+    holes, hole_count = ndimage.label(~mask)
+    if hole_count:
+        hole_sizes = ndimage.sum_labels(np.ones_like(mask), holes, index=np.arange(1, hole_count + 1))
+        border = np.unique(np.concatenate([holes[0], holes[-1], holes[:, 0], holes[:, -1]]))
+        small = np.concatenate([[False], hole_sizes < max_hole_fraction * mask.sum()])
+        small[border] = False
+        mask = mask | small[holes]
+    return mask
+
+
+# --------------------------------------------------------------------------- visual hull
+
+
+@dataclass(frozen=True)
+class VoxelGrid:
+    """A regular grid: voxel (i, j, k) is centred at ``origin + voxel_size * (i, j, k)``. shape (3,) ints."""
+
+    origin: np.ndarray
+    voxel_size: float
+    shape: tuple[int, int, int]
+
+    @staticmethod
+    def from_bounds(lo: np.ndarray, hi: np.ndarray, resolution: int) -> VoxelGrid:
+        """A grid covering the box [lo, hi] with ``resolution`` voxels along its longest side."""
+        lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+        size = float((hi - lo).max()) / resolution
+        shape = tuple(int(n) for n in np.maximum(np.ceil((hi - lo) / size), 1))
+        center = 0.5 * (lo + hi)
+        origin = center - 0.5 * size * (np.array(shape) - 1)
+        return VoxelGrid(origin, size, shape)
+
+    def centers(self) -> np.ndarray:
+        """(X, Y, Z, 3) voxel centres."""
+        axes = [self.origin[d] + self.voxel_size * np.arange(self.shape[d]) for d in range(3)]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+
+    def bounds_of(self, occupancy: np.ndarray, margin_voxels: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+        """Box (lo, hi) around the occupied voxels' extents, widened by ``margin_voxels`` voxels."""
+        index = np.argwhere(occupancy)
+        lo = self.origin + self.voxel_size * (index.min(axis=0) - 0.5 - margin_voxels)
+        hi = self.origin + self.voxel_size * (index.max(axis=0) + 0.5 + margin_voxels)
+        return lo, hi
+
+
+def view_volume_bounds(intrinsics: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
+                       width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """A box (lo, hi) that contains what all cameras look at.
+
+    The centre is the least-squares intersection of the optical axes; the half-size is the
+    largest half-width of a view's frustum at its distance to that point. intrinsics (V, 3, 3) or (3, 3).
+    """
+    rotations = np.asarray(rotations, np.float64)
+    centers = camera_center(rotations, np.asarray(translations, np.float64))
+    axes = camera_forward(rotations)
+    projector = np.eye(3) - axes[:, :, None] * axes[:, None, :]  # (V, 3, 3)
+    target = np.linalg.solve(projector.sum(axis=0), np.einsum("vij,vj->i", projector, centers))
+    k = np.broadcast_to(np.asarray(intrinsics, np.float64), (len(rotations), 3, 3))
+    half_fov = np.maximum(width / (2 * k[:, 0, 0]), height / (2 * k[:, 1, 1]))
+    distance = np.einsum("vi,vi->v", target - centers, axes)
+    half = float(np.max(distance * half_fov))
+    return target - half, target + half
+
+
+def _project(points: np.ndarray, intrinsics: np.ndarray, rotation: np.ndarray, translation: np.ndarray):
+    """Pixel coordinates (N, 2) and depth (N,) of world points (N, 3) in one camera."""
+    cam = points @ rotation.T.astype(points.dtype) + translation.astype(points.dtype)
+    depth = cam[:, 2]
+    safe = np.where(depth > 0, depth, 1.0)
+    k = intrinsics.astype(points.dtype)
+    u = k[0, 0] * cam[:, 0] / safe + k[0, 1] * cam[:, 1] / safe + k[0, 2]
+    v = k[1, 1] * cam[:, 1] / safe + k[1, 2]
+    return np.stack([u, v], axis=-1), depth
+
+
+@dataclass(frozen=True)
+class Carving:
+    """Result of silhouette carving.
+
+    grid: the VoxelGrid; occupancy: (X, Y, Z) bool, kept voxels; inside_fraction: (X, Y, Z) float32,
+    fraction of the views that see a voxel in frame and have it inside their silhouette;
+    disagreement: (V,) float, per view the fraction of kept voxels it sees in frame but outside its mask.
+    """
+
+    grid: VoxelGrid
+    occupancy: np.ndarray
+    inside_fraction: np.ndarray
+    disagreement: np.ndarray
+
+
+def carve(masks: np.ndarray, intrinsics: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
+          grid: VoxelGrid, min_inside_fraction: float = 0.9, min_views: int = 3) -> Carving:
+    """Keep the voxels whose centre projects inside the silhouette in at least ``min_inside_fraction``
+    of the views that see it in frame (and that at least ``min_views`` views see in frame).
+
+    masks (V, H, W) bool; intrinsics (V, 3, 3) or (3, 3); rotations (V, 3, 3); translations (V, 3).
+    A fraction below 1 makes the hull robust to a few bad masks (a dark patch cut out of one view).
+    """
+    count, height, width = masks.shape
+    k = np.broadcast_to(np.asarray(intrinsics, np.float64), (count, 3, 3))
+    centers = grid.centers().reshape(-1, 3).astype(np.float32)
+    in_frame = np.zeros(len(centers), np.int32)
+    inside = np.zeros(len(centers), np.int32)
+    for view in range(count):
+        pixels, depth = _project(centers, k[view], rotations[view], translations[view])
+        col, row = np.rint(pixels[:, 0]).astype(np.int64), np.rint(pixels[:, 1]).astype(np.int64)
+        seen = (depth > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+        in_frame += seen
+        inside[seen] += masks[view][row[seen], col[seen]]
+    fraction = inside / np.maximum(in_frame, 1)
+    occupancy = (in_frame >= min(min_views, count)) & (fraction >= min_inside_fraction - 1e-9)
+    disagreement = np.zeros(count)
+    kept = centers[occupancy]
+    for view in range(count):
+        pixels, depth = _project(kept, k[view], rotations[view], translations[view])
+        col, row = np.rint(pixels[:, 0]).astype(np.int64), np.rint(pixels[:, 1]).astype(np.int64)
+        seen = (depth > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+        if seen.any():
+            disagreement[view] = 1.0 - masks[view][row[seen], col[seen]].mean()
+    return Carving(grid, occupancy.reshape(grid.shape), fraction.reshape(grid.shape).astype(np.float32),
+                   disagreement)
+
+
+def visual_hull(masks: np.ndarray, intrinsics: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
+                resolution: int = 128, coarse_resolution: int = 48, min_inside_fraction: float = 0.9,
+                min_views: int = 3, bounds: tuple[np.ndarray, np.ndarray] | None = None,
+                margin_voxels: float = 2.0) -> Carving:
+    """Silhouette carving in two passes: a coarse grid over ``bounds`` (default: the cameras' common
+    view volume), then ``resolution`` voxels along the longest side of the coarse hull's box.
+
+    See :func:`carve` for the arguments. Raises ValueError when nothing survives the coarse pass.
+    """
+    height, width = masks.shape[1:]
+    lo, hi = bounds if bounds is not None else view_volume_bounds(intrinsics, rotations, translations, width, height)
+    coarse = carve(masks, intrinsics, rotations, translations, VoxelGrid.from_bounds(lo, hi, coarse_resolution),
+                   min_inside_fraction, min_views)
+    if not coarse.occupancy.any():
+        raise ValueError("silhouette carving removed every voxel: the masks and the poses disagree")
+    lo, hi = coarse.grid.bounds_of(coarse.occupancy, margin_voxels)
+    return carve(masks, intrinsics, rotations, translations, VoxelGrid.from_bounds(lo, hi, resolution),
+                 min_inside_fraction, min_views)
+
+
+def surface_points(occupancy: np.ndarray, grid: VoxelGrid, smoothing_voxels: float = 1.0) -> tuple[np.ndarray,
+                                                                                                 np.ndarray]:
+    """Oriented points on the boundary of an occupancy grid.
+
+    The occupancy is smoothed with a Gaussian of ``smoothing_voxels``; points are the 0.5 crossings on
+    the grid edges (the vertices marching cubes would make), normals the normalized negative gradient
+    there (pointing out of the object). Returns points (N, 3) and unit normals (N, 3).
+    """
+    field = ndimage.gaussian_filter(np.pad(occupancy.astype(np.float32), 2), smoothing_voxels)
+    gradient = np.stack(np.gradient(field), axis=-1)
+    points, normals = [], []
+    for axis in range(3):
+        a = [slice(None)] * 3
+        b = [slice(None)] * 3
+        a[axis], b[axis] = slice(None, -1), slice(1, None)
+        fa, fb = field[tuple(a)], field[tuple(b)]
+        crossing = (fa - 0.5) * (fb - 0.5) < 0
+        index = np.argwhere(crossing)
+        t = ((0.5 - fa[crossing]) / (fb[crossing] - fa[crossing]))[:, None]
+        step = np.zeros(3)
+        step[axis] = 1.0
+        position = index + t * step
+        grad = (1 - t) * gradient[tuple(a)][crossing] + t * gradient[tuple(b)][crossing]
+        points.append(grid.origin + grid.voxel_size * (position - 2))
+        normals.append(-grad)
+    points, normals = np.concatenate(points), np.concatenate(normals)
+    length = np.linalg.norm(normals, axis=1)
+    ok = length > 1e-6
+    return points[ok], normals[ok] / length[ok, None]
+
+
+# --------------------------------------------------------------------------- fusion with sparse points
+
+
+def occluding_points(points: np.ndarray, sparse_points: np.ndarray, sparse_views: list[np.ndarray],
+                     intrinsics: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
+                     radius_px: float = 2.0, depth_margin: float = 0.0, min_views: int = 2) -> np.ndarray:
+    """Which points hide an observed sparse point: (N,) bool.
+
+    A point occludes a sparse point in view v when v observed that sparse point, the point projects
+    within ``radius_px`` of it and lies more than ``depth_margin`` in front of it. Points that occlude
+    in at least ``min_views`` views are free space that the silhouettes could not carve (a concavity).
+    sparse_views[j]: the view indices that observed sparse point j.
+    """
+    count = len(rotations)
+    k = np.broadcast_to(np.asarray(intrinsics, np.float64), (count, 3, 3))
+    observed_in = [[] for _ in range(count)]
+    for j, views in enumerate(sparse_views):
+        for view in views:
+            observed_in[int(view)].append(j)
+    votes = np.zeros(len(points), np.int32)
+    for view in range(count):
+        if not observed_in[view]:
+            continue
+        index = np.asarray(observed_in[view])
+        sparse_px, sparse_depth = _project(sparse_points[index], k[view], rotations[view], translations[view])
+        px, depth = _project(points, k[view], rotations[view], translations[view])
+        tree = cKDTree(sparse_px)
+        neighbours = tree.query_ball_point(px, radius_px)
+        nearest_depth = np.array([sparse_depth[n].max() if n else -np.inf for n in neighbours])
+        votes += (depth > 0) & (depth < nearest_depth - depth_margin)
+    return votes >= min_views
+
+
+def estimate_normals(points: np.ndarray, towards: np.ndarray, neighbours: int = 12) -> np.ndarray:
+    """Unit normals (N, 3) by PCA of each point's ``neighbours`` nearest points, flipped to face ``towards`` (N, 3)
+    (e.g. the mean direction to the cameras that observed the point)."""
+    count = min(neighbours, len(points))
+    _, index = cKDTree(points).query(points, k=count)
+    local = points[index] - points[index].mean(axis=1, keepdims=True)
+    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
+    normals = vectors[:, :, 0]
+    flip = np.einsum("ni,ni->n", normals, towards) < 0
+    normals[flip] *= -1
+    return normals
+
+
+# --------------------------------------------------------------------------- meshing
+
+
+def poisson_surface(points: np.ndarray, normals: np.ndarray, depth: int = 7, trim_density: float = 2.0,
+                    point_weight: float = 4.0, threads: int = -1) -> tuple[np.ndarray, np.ndarray]:
+    """Screened Poisson reconstruction (open3d, Kazhdan & Hoppe 2013) of oriented points.
+
+    Vertices whose Poisson density (about log2 of the local sample support) is more than ``trim_density``
+    below the median are removed with their faces: surface the points do not support (2: less than a
+    quarter of the typical support; SfM-only regions are sparser than hull points and must survive).
+    Returns vertices (V, 3) float64 and faces (F, 3) int64.
+    """
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    cloud.normals = o3d.utility.Vector3dVector(np.asarray(normals, np.float64))
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+            cloud, depth=depth, point_weight=point_weight, n_threads=threads)
+    density = np.asarray(density)
+    if trim_density is not None and len(density):
+        mesh.remove_vertices_by_mask(density < np.median(density) - trim_density)
+    return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.triangles, np.int64)
+
+
+def largest_component(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The connected component with the most faces; unreferenced vertices removed."""
+    labels, count = _face_components(faces, len(vertices))
+    if count > 1:
+        faces = faces[labels == np.bincount(labels).argmax()]
+    used = np.unique(faces)
+    remap = np.full(len(vertices), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return vertices[used], remap[faces]
+
+
+def _face_components(faces: np.ndarray, vertex_count: int) -> tuple[np.ndarray, int]:
+    """Per-face component label (F,) of faces connected through shared vertices, and the count."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(vertex_count, vertex_count))
+    _, vertex_labels = connected_components(graph, directed=False)
+    labels = vertex_labels[faces[:, 0]]
+    _, labels = np.unique(labels, return_inverse=True)
+    return labels, int(labels.max()) + 1 if len(labels) else 0
+
+
+def depth_vertex_count(vertices_at_depth: int, depth: int, target_depth: int) -> int:
+    """Vertex count of a surface reconstructed at ``target_depth`` given the count at ``depth``:
+    one octree level halves the cell size, so a surface has four times the vertices."""
+    return int(round(vertices_at_depth * 4.0 ** (target_depth - depth)))
+
+
+def mesh_area(vertices: np.ndarray, faces: np.ndarray) -> float:
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+
+
+def remesh_to_count(vertices: np.ndarray, faces: np.ndarray, target_vertices: int,
+                    iterations: int = 6, attempts: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Isotropic remeshing (pymeshlab) to about ``target_vertices`` vertices of near-equilateral triangles.
+
+    The edge length comes from the area (a regular triangulation has about two faces per vertex:
+    ``L = sqrt(2 A / (sqrt(3) V))``) and is corrected once from the count actually reached.
+    Returns vertices (V, 3) float64 and faces (F, 3) int64.
+    """
+    import pymeshlab
+
+    area = mesh_area(vertices, faces)
+    length = np.sqrt(2 * area / (np.sqrt(3) * target_vertices))
+    out_vertices, out_faces = vertices, faces
+    for _ in range(attempts):
+        meshes = pymeshlab.MeshSet()
+        meshes.add_mesh(pymeshlab.Mesh(vertex_matrix=np.asarray(vertices, np.float64),
+                                       face_matrix=np.asarray(faces, np.int32)))
+        meshes.meshing_isotropic_explicit_remeshing(iterations=iterations,
+                                                    targetlen=pymeshlab.PureValue(float(length)),
+                                                    featuredeg=180.0)
+        mesh = meshes.current_mesh()
+        out_vertices = mesh.vertex_matrix().astype(np.float64)
+        out_faces = mesh.face_matrix().astype(np.int64)
+        ratio = len(out_vertices) / target_vertices
+        if abs(ratio - 1) < 0.1:
+            break
+        length *= np.sqrt(ratio)
+    return out_vertices, out_faces
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit vertex normals (V, 3) of a mesh with counter-clockwise faces seen from outside (open3d)."""
+    import open3d as o3d
+
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(vertices, np.float64)),
+                                     o3d.utility.Vector3iVector(np.asarray(faces, np.int32)))
+    mesh.compute_vertex_normals()
+    return np.asarray(mesh.vertex_normals, np.float64)
+
+
+# --------------------------------------------------------------------------- the initial mesh
+
+
+@dataclass(frozen=True)
+class InitMeshOptions:
+    """Settings of :func:`initial_mesh` (config section ``init``).
+
+    hull_resolution: voxels along the longest side of the hull's box; min_inside_fraction: share of
+    the in-frame views whose silhouette must contain a voxel; poisson_depth: octree depth of the
+    screened Poisson solve; target_depth: the mesh is remeshed to the vertex density a solve at this
+    depth would give (4x the vertices per level), capped at ``max_vertices``; trim_density: Poisson
+    density trim (see :func:`poisson_surface`); sparse_max_error_px / sparse_min_track: which SfM
+    points are fused; sparse_margin_voxels: SfM points farther outside the hull are background.
+    """
+
+    hull_resolution: int = 128
+    min_inside_fraction: float = 0.9
+    min_views: int = 3
+    poisson_depth: int = 7
+    target_depth: int = 9
+    max_vertices: int = 30000
+    trim_density: float = 2.0
+    sparse_max_error_px: float = 2.0
+    sparse_min_track: int = 3
+    sparse_margin_voxels: float = 3.0
+    threads: int = -1
+
+
+@dataclass
+class InitialMesh:
+    """vertices (V, 3), faces (F, 3), normals (V, 3), the carving, and statistics for the report."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray
+    carving: Carving
+    stats: dict
+
+
+def initial_mesh(masks: np.ndarray, intrinsics: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
+                 options: InitMeshOptions = InitMeshOptions(), sparse_points: np.ndarray | None = None,
+                 sparse_views: list[np.ndarray] | None = None, sparse_errors: np.ndarray | None = None,
+                 extra_points: tuple[np.ndarray, np.ndarray] | None = None) -> InitialMesh:
+    """The initial mesh of DESIGN §2 mesh_init from silhouettes, fused with SfM points.
+
+    1. visual hull (:func:`visual_hull`) and its oriented surface points (:func:`surface_points`);
+    2. SfM points (``sparse_points`` (P, 3), observing view indices ``sparse_views``, reprojection
+       errors ``sparse_errors`` (P,) px) near or inside the hull are added with PCA normals facing
+       their cameras, and hull points that hide an SfM point in two or more views (a concavity the
+       silhouettes cannot carve) are dropped (:func:`occluding_points`);
+       ``extra_points``: further oriented points (points, normals), e.g. from dense stereo;
+    3. screened Poisson at ``poisson_depth``, density trim, largest component;
+    4. isotropic remeshing to the vertex count of ``target_depth``, at most ``max_vertices``.
+    """
+    timings = {}
+    start = time.perf_counter()
+    carving = visual_hull(masks, intrinsics, rotations, translations, resolution=options.hull_resolution,
+                          min_inside_fraction=options.min_inside_fraction, min_views=options.min_views)
+    points, normals = surface_points(carving.occupancy, carving.grid)
+    timings["hull_s"] = time.perf_counter() - start
+    stats = {"hull_voxels": int(carving.occupancy.sum()), "voxel_size_m": carving.grid.voxel_size,
+             "hull_points": len(points), "sparse_points_used": 0, "hull_points_removed": 0}
+
+    start = time.perf_counter()
+    if sparse_points is not None and len(sparse_points):
+        keep = np.array([len(v) >= options.sparse_min_track for v in sparse_views])
+        if sparse_errors is not None:
+            keep &= np.asarray(sparse_errors) <= options.sparse_max_error_px
+        keep &= _near_occupancy(sparse_points, carving, options.sparse_margin_voxels)
+        chosen = sparse_points[keep]
+        chosen_views = [v for v, k in zip(sparse_views, keep) if k]
+        if len(chosen) >= 20:
+            centers = camera_center(rotations, translations)
+            towards = np.stack([_mean_direction(centers[v] - p) for p, v in zip(chosen, chosen_views)])
+            occluding = occluding_points(points, chosen, chosen_views, intrinsics, rotations, translations,
+                                         depth_margin=2 * carving.grid.voxel_size)
+            points = np.concatenate([points[~occluding], chosen])
+            normals = np.concatenate([normals[~occluding], estimate_normals(chosen, towards)])
+            stats.update(sparse_points_used=len(chosen), hull_points_removed=int(occluding.sum()))
+    if extra_points is not None:
+        points = np.concatenate([points, extra_points[0]])
+        normals = np.concatenate([normals, extra_points[1]])
+    timings["fusion_s"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    vertices, faces = poisson_surface(points, normals, depth=options.poisson_depth,
+                                      trim_density=options.trim_density, threads=options.threads)
+    vertices, faces = largest_component(vertices, faces)
+    stats["poisson_vertices"] = len(vertices)
+    timings["poisson_s"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    target = min(depth_vertex_count(len(vertices), options.poisson_depth, options.target_depth),
+                 options.max_vertices)
+    vertices, faces = remesh_to_count(vertices, faces, target)
+    vertices, faces = largest_component(vertices, faces)
+    timings["remesh_s"] = time.perf_counter() - start
+    stats.update(target_vertices=target, vertices=len(vertices), faces=len(faces), timings=timings)
+    return InitialMesh(vertices, faces, vertex_normals(vertices, faces), carving, stats)
+
+
+def _mean_direction(offsets: np.ndarray) -> np.ndarray:
+    """Unit mean of the unit vectors (N, 3)."""
+    units = offsets / np.linalg.norm(offsets, axis=1, keepdims=True)
+    mean = units.sum(axis=0)
+    return mean / np.linalg.norm(mean)
+
+
+def _near_occupancy(points: np.ndarray, carving: Carving, margin_voxels: float) -> np.ndarray:
+    """(N,) bool: points inside the occupancy grown by ``margin_voxels`` voxels."""
+    grid = carving.grid
+    grown = ndimage.binary_dilation(carving.occupancy, iterations=max(int(np.ceil(margin_voxels)), 1))
+    index = np.rint((points - grid.origin) / grid.voxel_size).astype(np.int64)
+    inside = np.all((index >= 0) & (index < np.array(grid.shape)), axis=1)
+    result = np.zeros(len(points), bool)
+    result[inside] = grown[tuple(index[inside].T)]
+    return result

@@ -1,0 +1,170 @@
+"""``sellip init-mesh``: the initial mesh (rule ``init_mesh``, DESIGN §2 mesh_init).
+
+    sellip init-mesh --hdr results/NAME/hdr.zarr --cameras results/NAME/cameras.csv --sfm results/NAME/sfm
+                     --output results/NAME/mesh/init.ply [--mode hull|mvs] [--max-vertices 30000] [options]
+
+``hull`` (default, CPU): silhouettes of the flash-lit object (:func:`sellip.geometry.silhouette_masks`),
+a visual hull robust to a few bad masks, fused with the SfM points when ``sfm/sparse`` exists, screened
+Poisson at depth 7, cleaned, remeshed to the density of depth 9 (at most ``--max-vertices``), see
+:func:`sellip.geometry.initial_mesh`. ``mvs`` (needs pycolmap built with CUDA and an SfM model): COLMAP
+PatchMatch stereo and fusion give the oriented points instead of the hull surface.
+
+Written (atomically): the mesh PLY (x y z nx ny nz float32, triangles) in the cameras.csv world, and
+beside it ``<stem>.json``: vertex and face counts, hull and fusion statistics, per-view silhouette
+disagreement, timings. A warning names the views whose silhouette disagrees with the hull.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sellip import geometry, sfm
+from sellip.io import read_ply, write_ply
+from sellip.stages.sfm import add_image_arguments, diffuse_view, intrinsics_matrix, read_cameras, view_masks
+
+log = logging.getLogger(__name__)
+
+MODES = ("hull", "mvs")
+
+
+class InitMeshError(RuntimeError):
+    """The initial mesh cannot be built with the given inputs (e.g. mvs without CUDA)."""
+
+
+def sparse_observations(sfm_dir: Path, view_ids: list[str]) -> tuple[np.ndarray, list[np.ndarray], np.ndarray] | None:
+    """SfM points (P, 3), their observing view indices (into ``view_ids``) and errors (P,) in px of the
+    hdr images, from ``sfm_dir/sparse`` (None when the folder has no model, e.g. sfm.mode known)."""
+    import pycolmap
+
+    if not (sfm_dir / "sparse" / "points3D.bin").is_file():
+        return None
+    report = json.loads((sfm_dir / "report.json").read_text())
+    upscale = float(report.get("upscale", 1))
+    index_of_view = {v: i for i, v in enumerate(view_ids)}
+    reconstruction = pycolmap.Reconstruction(sfm_dir / "sparse")
+    view_of_image = {image_id: index_of_view.get(report["image_names"][image.name])
+                     for image_id, image in reconstruction.images.items()}
+    points, views, errors = [], [], []
+    for point in reconstruction.points3D.values():
+        observers = {view_of_image[e.image_id] for e in point.track.elements} - {None}
+        if observers:
+            points.append(point.xyz)
+            views.append(np.array(sorted(observers)))
+            errors.append(point.error / upscale)
+    return np.asarray(points, np.float64).reshape(-1, 3), views, np.asarray(errors)
+
+
+def mvs_points(hdr, sfm_dir: Path, view_ids: list[str], masks: np.ndarray, threads: int) -> tuple[np.ndarray,
+                                                                                                  np.ndarray]:
+    """Oriented points (N, 3), (N, 3) from COLMAP PatchMatch stereo + fusion on the SfM model (CUDA only)."""
+    import pycolmap
+
+    if not pycolmap.has_cuda:
+        raise InitMeshError("init.mode 'mvs' needs pycolmap built with CUDA (pycolmap.has_cuda is False); "
+                            "use init.mode 'hull' (CPU)")
+    if not (sfm_dir / "sparse" / "points3D.bin").is_file():
+        raise InitMeshError(f"init.mode 'mvs' needs an SfM model in {sfm_dir}/sparse; run with sfm.mode sfm or verify")
+    report = json.loads((sfm_dir / "report.json").read_text())
+    upscale = int(report.get("upscale", 1))
+    index_of_view = {v: i for i, v in enumerate(view_ids)}
+    with tempfile.TemporaryDirectory(prefix="sellip-mvs-") as work:
+        work = Path(work)
+        image_dir = work / "images"
+        image_dir.mkdir()
+        import imageio.v3 as iio
+
+        for name, view in report["image_names"].items():
+            if view in index_of_view:
+                diffuse, _ = diffuse_view(hdr, hdr.view_ids.index(view))
+                image, _ = sfm.feature_image(diffuse, masks[index_of_view[view]], upscale)
+                iio.imwrite(image_dir / name, image)
+        pycolmap.undistort_images(work / "dense", sfm_dir / "sparse", image_dir, num_threads=threads)
+        pycolmap.patch_match_stereo(work / "dense")
+        pycolmap.stereo_fusion(work / "fused.ply", work / "dense", output_type="PLY")
+        vertex, _ = read_ply(work / "fused.ply")
+    points = np.stack([vertex[k] for k in ("x", "y", "z")], axis=1).astype(np.float64)
+    normals = np.stack([vertex[k] for k in ("nx", "ny", "nz")], axis=1).astype(np.float64)
+    return points, normals
+
+
+def run_stage(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: str | Path, output: str | Path,
+              mode: str = "hull", options: geometry.InitMeshOptions = geometry.InitMeshOptions(),
+              mask_options: dict | None = None, disagreement_warn: float = 0.05) -> dict:
+    """Run the stage (see the module docstring); returns the report written beside the mesh."""
+    from sellip.stages.merge_hdr import read_hdr
+
+    started = time.perf_counter()
+    hdr = read_hdr(hdr_path)
+    view_ids, rotations, translations = read_cameras(cameras_path)
+    unknown = [v for v in view_ids if v not in hdr.view_ids]
+    if unknown:
+        raise InitMeshError(f"{cameras_path}: views {unknown[:10]} are not in {hdr_path}")
+    all_masks = view_masks(hdr, mask_options or {})
+    masks = all_masks[[hdr.view_ids.index(v) for v in view_ids]]
+    intrinsics = intrinsics_matrix(hdr.intrinsics)
+    sfm_dir = Path(sfm_dir)
+    sparse = sparse_observations(sfm_dir, view_ids)
+    extra = mvs_points(hdr, sfm_dir, view_ids, masks, options.threads) if mode == "mvs" else None
+    mesh = geometry.initial_mesh(masks, intrinsics, rotations, translations, options,
+                                 *(sparse if sparse is not None else (None, None, None)), extra_points=extra)
+
+    disagreement = mesh.carving.disagreement
+    disagreeing = [v for v, d in zip(view_ids, disagreement) if d > disagreement_warn]
+    if disagreeing:
+        log.warning("%d of %d silhouettes disagree with the visual hull (more than %.0f%% of the hull outside the "
+                    "mask): %s. Check the poses of these views or the mask threshold (init.mask_threshold); "
+                    "min_inside_fraction %.2f tolerates a few bad masks.", len(disagreeing), len(view_ids),
+                    100 * disagreement_warn, ", ".join(disagreeing[:30]), options.min_inside_fraction)
+    report = dict(mesh.stats, mode=mode, views=len(view_ids),
+                  silhouette_disagreement={v: float(d) for v, d in zip(view_ids, disagreement)},
+                  disagreeing_views=disagreeing, total_s=time.perf_counter() - started)
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    tmp_mesh = output.with_name(f".{output.name}.tmp-{os.getpid()}")
+    info = output.with_suffix(".json")
+    tmp_info = info.with_name(f".{info.name}.tmp-{os.getpid()}")
+    vertices, normals = mesh.vertices.astype(np.float32), mesh.normals.astype(np.float32)
+    write_ply(tmp_mesh, {"x": vertices[:, 0], "y": vertices[:, 1], "z": vertices[:, 2],
+                         "nx": normals[:, 0], "ny": normals[:, 1], "nz": normals[:, 2]}, mesh.faces)
+    tmp_info.write_text(json.dumps(report, indent=2))
+    tmp_info.rename(info)
+    tmp_mesh.rename(output)
+    log.info("initial mesh: %d vertices, %d faces (%s, %.1f s)", len(vertices), len(mesh.faces), mode,
+             report["total_s"])
+    return report
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    defaults = geometry.InitMeshOptions()
+    add_image_arguments(parser)
+    parser.add_argument("--cameras", required=True, type=Path, help="cameras.csv (sellip sfm)")
+    parser.add_argument("--sfm", required=True, type=Path, help="the sfm folder (sparse model, report)")
+    parser.add_argument("--output", required=True, type=Path, help="mesh PLY to write (+ .json beside it)")
+    parser.add_argument("--mode", choices=MODES, default="hull")
+    parser.add_argument("--hull-resolution", type=int, default=defaults.hull_resolution)
+    parser.add_argument("--min-inside-fraction", type=float, default=defaults.min_inside_fraction)
+    parser.add_argument("--poisson-depth", type=int, default=defaults.poisson_depth)
+    parser.add_argument("--target-depth", type=int, default=defaults.target_depth)
+    parser.add_argument("--max-vertices", type=int, default=defaults.max_vertices)
+
+
+def main(args: argparse.Namespace) -> int:
+    options = geometry.InitMeshOptions(hull_resolution=args.hull_resolution,
+                                       min_inside_fraction=args.min_inside_fraction,
+                                       poisson_depth=args.poisson_depth, target_depth=args.target_depth,
+                                       max_vertices=args.max_vertices, threads=args.threads)
+    try:
+        run_stage(args.hdr, args.cameras, args.sfm, args.output, mode=args.mode, options=options,
+                  mask_options={"threshold": args.mask_threshold})
+    except (InitMeshError, ValueError) as exc:
+        log.error("%s", exc)
+        return 1
+    return 0

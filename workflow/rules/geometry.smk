@@ -1,0 +1,72 @@
+# Geometry bootstrap (DESIGN §2 sfm, mesh_init): camera poses, then the initial mesh.
+# The numerics live in sellip.sfm and sellip.geometry; each rule calls one `sellip` command
+# (sellip.stages.sfm, sellip.stages.init_mesh). sfm.mode decides whether poses.csv is used
+# as is (known), checked against SfM (verify), or ignored (sfm); see docs/geometry.md.
+
+
+rule run_sfm:
+    input:
+        hdr=f"{RESULTS}/hdr.zarr",
+        capture=capture_file("capture.yaml"),
+    output:
+        cameras=f"{RESULTS}/cameras.csv",
+        sfm=directory(f"{RESULTS}/sfm"),
+    params:
+        capture=lambda wildcards, input: Path(input.capture).parent,
+        mode=config["sfm"]["mode"],
+        matching=config["sfm"]["matching"],
+        exhaustive_max_views=config["sfm"]["exhaustive_max_views"],
+        retrieval_neighbors=config["sfm"]["retrieval_neighbors"],
+        max_features=config["sfm"]["max_features"],
+        feature_object_px=config["sfm"]["feature_object_px"],
+        max_upscale=config["sfm"]["max_upscale"],
+        refine_intrinsics="--refine-intrinsics" if config["sfm"]["refine_intrinsics"] else "",
+        min_registered_fraction=config["sfm"]["min_registered_fraction"],
+        mask_threshold=config["sfm"]["mask_threshold"],
+        seed=config["seed"],
+    threads: config["sfm"]["threads"]
+    conda:
+        "../../envs/sellip.yaml"
+    log:
+        f"{RESULTS}/logs/run_sfm.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/run_sfm.tsv"
+    shell:
+        SELLIP + " sfm --hdr {input.hdr} --capture {params.capture} --cameras {output.cameras}"
+        " --output {output.sfm} --mode {params.mode} --matching {params.matching}"
+        " --exhaustive-max-views {params.exhaustive_max_views} --retrieval-neighbors {params.retrieval_neighbors}"
+        " --max-features {params.max_features} --feature-object-px {params.feature_object_px}"
+        " --max-upscale {params.max_upscale} {params.refine_intrinsics}"
+        " --min-registered-fraction {params.min_registered_fraction} --mask-threshold {params.mask_threshold}"
+        " --seed {params.seed} --threads {threads} > {log} 2>&1"
+
+
+rule init_mesh:
+    input:
+        hdr=f"{RESULTS}/hdr.zarr",
+        cameras=f"{RESULTS}/cameras.csv",
+        sfm=f"{RESULTS}/sfm",
+    output:
+        mesh=f"{RESULTS}/mesh/init.ply",
+        info=f"{RESULTS}/mesh/init.json",
+    params:
+        mode=config["init"]["mode"],
+        hull_resolution=config["init"]["hull_resolution"],
+        min_inside_fraction=config["init"]["min_inside_fraction"],
+        poisson_depth=config["init"]["poisson_depth"],
+        target_depth=config["init"]["target_depth"],
+        max_vertices=config["init"]["max_vertices"],
+        mask_threshold=config["sfm"]["mask_threshold"],
+    threads: config["init"]["threads"]
+    conda:
+        "../../envs/sellip.yaml"
+    log:
+        f"{RESULTS}/logs/init_mesh.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/init_mesh.tsv"
+    shell:
+        SELLIP + " init-mesh --hdr {input.hdr} --cameras {input.cameras} --sfm {input.sfm}"
+        " --output {output.mesh} --mode {params.mode} --hull-resolution {params.hull_resolution}"
+        " --min-inside-fraction {params.min_inside_fraction} --poisson-depth {params.poisson_depth}"
+        " --target-depth {params.target_depth} --max-vertices {params.max_vertices}"
+        " --mask-threshold {params.mask_threshold} --threads {threads} > {log} 2>&1"

@@ -1,0 +1,37 @@
+# Observations (DESIGN §2 observe, per iteration): for every vertex of iteration {it}'s mesh and
+# every view, visibility, bilinear HDR samples (I_d, I_alpha, I_s) and the geometry the fit needs.
+# The numerics live in sellip.observe; the rule calls `sellip observe` (sellip.stages.observe).
+# The store is bulky (65 B per vertex and view before compression) and cheap to rebuild: temp().
+
+
+rule gather_observations:
+    input:
+        mesh=get_mesh,
+        cameras=f"{RESULTS}/cameras.csv",
+        hdr=f"{RESULTS}/hdr.zarr",
+        capture=capture_file("capture.yaml"),
+    output:
+        temp(directory(f"{RESULTS}/iter/{{it}}/observations.zarr")),
+    wildcard_constraints:
+        it=r"\d+",
+    params:
+        capture=lambda wildcards, input: Path(input.capture).parent,
+        vertex_chunk=config["observe"]["vertex_chunk"],
+        view_chunk=config["observe"]["view_chunk"],
+        occlusion_tolerance=config["observe"]["occlusion_tolerance"],
+        shadow_offset=config["observe"]["shadow_offset"],
+        min_cos=config["observe"]["min_cos"],
+        missing_poses=config["observe"]["missing_poses"],
+    threads: config["observe"]["threads"]
+    conda:
+        "../../envs/sellip.yaml"
+    log:
+        f"{RESULTS}/logs/gather_observations/{{it}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/gather_observations/{{it}}.tsv"
+    shell:
+        SELLIP + " observe --mesh {input.mesh} --cameras {input.cameras} --hdr {input.hdr}"
+        " --capture {params.capture} --output {output} --vertex-chunk {params.vertex_chunk}"
+        " --view-chunk {params.view_chunk} --occlusion-tolerance {params.occlusion_tolerance}"
+        " --shadow-offset {params.shadow_offset} --min-cos {params.min_cos}"
+        " --missing-poses {params.missing_poses} --threads {threads} > {log} 2>&1"
