@@ -92,31 +92,71 @@ def _lobe_weight(geom: _Geometry, rho, sigma):
     return dg[..., None] * rho if rho.ndim == dg.ndim + 1 else dg * rho
 
 
+class _Frames(NamedTuple):
+    """The Stokes bases of one (vertex, view): x axes, each (..., 3)."""
+
+    beam_in: jnp.ndarray  # propagation direction of the flash's beam (towards the surface)
+    light: jnp.ndarray  # flash frame: its polarizer axis
+    camera: jnp.ndarray  # camera frame of the ray: camera up made orthogonal, x = y x w_o
+    diffuse_in: jnp.ndarray  # s axis of the plane (n, w_i)
+    diffuse_out: jnp.ndarray  # s axis of the plane (n, w_o)
+    reflection: jnp.ndarray  # s axis of the plane (w_i, w_o), incoming and outgoing
+
+
+def _frames(normal, to_light, to_camera, light_axis, camera_up) -> _Frames:
+    beam_in = -to_light
+    x_light = polar.orthogonal_x_axis(beam_in, light_axis)
+    x_camera = polar.frame_x_axis(to_camera, camera_up)
+    # At normal incidence (or exact retro-reflection) a plane is undefined and any axis
+    # orthogonal to the beam gives the same result: fall back to the flash/camera axis.
+    return _Frames(
+        beam_in=beam_in, light=x_light, camera=x_camera,
+        diffuse_in=polar.safe_normalize(jnp.cross(normal, to_light), fallback=x_light),
+        diffuse_out=polar.safe_normalize(jnp.cross(normal, to_camera), fallback=x_camera),
+        reflection=polar.safe_normalize(jnp.cross(to_camera, to_light), fallback=x_light),
+    )
+
+
 def _unit_muellers(normal, to_light, to_camera, light_axis, camera_up, eta, geom: _Geometry):
     """Mueller matrices (..., 4, 4) of the diffuse and the reflection lobes for unit albedo,
     from the flash frame to the camera frame, without shading or lobe weights."""
-    beam_in = -to_light  # the flash's beam travels towards the surface
-    x_light = polar.orthogonal_x_axis(beam_in, light_axis)
-    x_camera = polar.frame_x_axis(to_camera, camera_up)
-
-    # Diffuse: the s axes are perpendicular to the planes (n, w_i) and (n, w_o). At normal
-    # incidence the plane is undefined and any axis orthogonal to the beam gives the same result.
-    s_in = polar.safe_normalize(jnp.cross(normal, to_light), fallback=x_light)
-    s_out = polar.safe_normalize(jnp.cross(normal, to_camera), fallback=x_camera)
-    entry = transmission_mueller(geom.cos_i, eta) @ polar.frame_rotation(beam_in, x_light, s_in)
+    f = _frames(normal, to_light, to_camera, light_axis, camera_up)
+    # Diffuse: exit transmission o depolarizer o entry transmission; only s0 survives the depolarizer.
+    entry = transmission_mueller(geom.cos_i, eta) @ polar.frame_rotation(f.beam_in, f.light, f.diffuse_in)
     exit_column = transmission_mueller(geom.cos_o, eta)[..., :, 0]
-    # exit o depolarizer o entry: only s0 survives the depolarizer.
-    diffuse = polar.frame_rotation(to_camera, s_out, x_camera) @ (exit_column[..., :, None] * entry[..., None, 0, :])
-
-    # Reflection about the half vector: s is perpendicular to the plane (w_i, w_o). For exact
-    # retro-reflection (w_i = w_o) the plane is undefined; by symmetry any axis serves.
-    s_refl = polar.safe_normalize(jnp.cross(to_camera, to_light), fallback=x_light)
-    reflection = (
-        polar.frame_rotation(to_camera, s_refl, x_camera)
-        @ reflection_mueller(geom.cos_d, eta)
-        @ polar.frame_rotation(beam_in, x_light, s_refl)
-    )
+    diffuse = (polar.frame_rotation(to_camera, f.diffuse_out, f.camera)
+               @ (exit_column[..., :, None] * entry[..., None, 0, :]))
+    # Reflection about the half vector, in the s/p frame of the plane (w_i, w_o).
+    reflection = (polar.frame_rotation(to_camera, f.reflection, f.camera)
+                  @ reflection_mueller(geom.cos_d, eta)
+                  @ polar.frame_rotation(f.beam_in, f.light, f.reflection))
     return diffuse, reflection
+
+
+def _unit_stokes(normal, to_light, to_camera, light_axis, camera_up, eta, geom: _Geometry):
+    """What :func:`_unit_muellers` does to the flash's [1, 1, 0, 0], as vectors (s0, s1, s2) (..., 3).
+
+    Same chain of frames and Fresnel terms, applied to one Stokes vector instead of composing
+    4x4 matrices (a few times cheaper; the fit evaluates it in every iteration). s3 stays 0:
+    dielectric interfaces without total internal reflection introduce no retardance but 0 or pi.
+    """
+    f = _frames(normal, to_light, to_camera, light_axis, camera_up)
+    # Diffuse: the flash's (1, 1, 0) in the entry s/p frame, transmitted, depolarized, re-emitted.
+    cos_in, _ = polar.frame_rotation_terms(f.beam_in, f.light, f.diffuse_in)
+    f_i = fresnel(geom.cos_i, eta)
+    f_o = fresnel(geom.cos_o, eta)
+    inside = f_i.t_plus + f_i.t_minus * cos_in
+    s1, s2 = polar.rotate_linear_stokes(f_o.t_minus, jnp.zeros_like(inside),
+                                        *polar.frame_rotation_terms(to_camera, f.diffuse_out, f.camera))
+    diffuse = inside[..., None] * jnp.stack([f_o.t_plus, s1, s2], axis=-1)
+    # Reflection: (1, 1, 0) in the s/p frame of the plane (w_i, w_o), F^R, then the camera frame.
+    cos_r, sin_r = polar.frame_rotation_terms(f.beam_in, f.light, f.reflection)
+    f_d = fresnel(geom.cos_d, eta)
+    r0 = f_d.r_plus + f_d.r_minus * cos_r
+    r1 = f_d.r_minus + f_d.r_plus * cos_r
+    r2 = -f_d.r_s_r_p * sin_r
+    r1, r2 = polar.rotate_linear_stokes(r1, r2, *polar.frame_rotation_terms(to_camera, f.reflection, f.camera))
+    return diffuse, jnp.stack([r0, r1, r2], axis=-1)
 
 
 def full_mueller(normal, to_light, to_camera, light_distance, light_axis, camera_up, params: PBRDFParams):
@@ -139,22 +179,36 @@ def full_mueller(normal, to_light, to_camera, light_distance, light_axis, camera
     )
 
 
+def lobe_stokes(normal, to_light, to_camera, light_distance, light_axis, camera_up, eta):
+    """Stokes vectors (..., 4) of the two lobe shapes for unit albedo and unit lobe factor, with S.
+
+    Returns ``(diffuse, reflection, geometry)``: the diffuse lobe for rho_d = 1; the reflection
+    lobe (specular and single scattering share it) before its factor kappa / rho = D G / (4 cos_i cos_o),
+    which :func:`lobe_factor` gives; and the geometry record for :func:`lobe_factor`.
+    The full model is ``rho_d diffuse + (rho_s kappa_s + rho_ss kappa_ss) reflection``.
+    """
+    geom = _geometry(normal, to_light, to_camera, light_distance)
+    diffuse, reflection = _unit_stokes(normal, to_light, to_camera, light_axis, camera_up, eta, geom)
+    shading = geom.shading[..., None]
+    zero = jnp.zeros_like(diffuse[..., :1])
+    return (shading * jnp.concatenate([diffuse, zero], -1), shading * jnp.concatenate([reflection, zero], -1), geom)
+
+
+def lobe_factor(geom: _Geometry, sigma):
+    """D G / (4 cos_i cos_o) of a GGX lobe of roughness sigma at the geometry of :func:`lobe_stokes`; (...,)."""
+    return _lobe_weight(geom, jnp.ones_like(sigma), sigma)
+
+
 def full_stokes(normal, to_light, to_camera, light_distance, light_axis, camera_up, params: PBRDFParams):
     """Stokes vectors (..., 4, 3) reaching the camera from a unit flash emitting [1, 1, 0, 0].
 
     Same arguments as :func:`full_mueller`. Cheaper than forming the Mueller matrices.
     """
-    geom = _geometry(normal, to_light, to_camera, light_distance)
-    diffuse, reflection = _unit_muellers(normal, to_light, to_camera, light_axis, camera_up, params.eta, geom)
-    stokes_d = diffuse[..., :, 0] + diffuse[..., :, 1]  # (..., 4)
-    stokes_r = reflection[..., :, 0] + reflection[..., :, 1]
-    shading = geom.shading[..., None]
-    w_diffuse = shading * params.rho_d
-    w_reflect = shading * (
-        _lobe_weight(geom, params.rho_s, params.sigma_s)[..., None]
-        + _lobe_weight(geom, params.rho_ss, params.sigma_ss)
-    )
-    return stokes_d[..., :, None] * w_diffuse[..., None, :] + stokes_r[..., :, None] * w_reflect[..., None, :]
+    stokes_d, stokes_r, geom = lobe_stokes(normal, to_light, to_camera, light_distance, light_axis, camera_up,
+                                           params.eta)
+    w_reflect = lobe_factor(geom, params.sigma_s)[..., None] * params.rho_s[..., None] + (
+        lobe_factor(geom, params.sigma_ss)[..., None] * params.rho_ss)
+    return stokes_d[..., :, None] * params.rho_d[..., None, :] + stokes_r[..., :, None] * w_reflect[..., None, :]
 
 
 def normal_azimuth_terms(normal, to_camera, camera_up):

@@ -88,6 +88,17 @@ def aolp(stokes):
     return 0.5 * jnp.arctan2(stokes[..., 2], stokes[..., 1])
 
 
+def frame_rotation_terms(forward, basis_current, basis_target):
+    """(cos 2theta, sin 2theta) of the rotation from one Stokes basis to another; each (...,).
+
+    theta is the angle from ``basis_current`` to ``basis_target``, positive counter-clockwise
+    about ``forward`` (all (..., 3), unit, bases orthogonal to ``forward``).
+    """
+    cos_t = jnp.sum(basis_current * basis_target, axis=-1)
+    sin_t = jnp.sum(forward * jnp.cross(basis_current, basis_target), axis=-1)
+    return cos_t * cos_t - sin_t * sin_t, 2 * sin_t * cos_t
+
+
 def frame_rotation(forward, basis_current, basis_target):
     """Mueller matrix re-expressing a Stokes vector from one frame in another (Mitsuba's ``rotate_stokes_basis``).
 
@@ -95,9 +106,12 @@ def frame_rotation(forward, basis_current, basis_target):
     (..., 3) unit x axes of the two frames, both orthogonal to ``forward``.
     Returns (..., 4, 4) M with ``s_target = M @ s_current``.
     """
-    cos_t = jnp.sum(basis_current * basis_target, axis=-1)
-    sin_t = jnp.sum(forward * jnp.cross(basis_current, basis_target), axis=-1)
-    return rotator_from_cos_sin(cos_t * cos_t - sin_t * sin_t, 2 * sin_t * cos_t)
+    return rotator_from_cos_sin(*frame_rotation_terms(forward, basis_current, basis_target))
+
+
+def rotate_linear_stokes(s1, s2, cos_2theta, sin_2theta):
+    """The linear components (s1, s2) after a frame rotation (the middle block of C(theta))."""
+    return cos_2theta * s1 + sin_2theta * s2, -sin_2theta * s1 + cos_2theta * s2
 
 
 def frame_x_axis(forward, reference_y):

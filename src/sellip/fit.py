@@ -1,0 +1,669 @@
+"""Per-vertex polarimetric fit: batched Levenberg-Marquardt with variable projection (JAX).
+
+Each vertex is an independent small problem (paper §4.3, DESIGN §5 and §7):
+
+- nonlinear unknowns (5): the normal (2 degrees of freedom, a tangent-plane
+  offset from the starting normal), eta, sigma_s and sigma_ss; bounds by
+  reparameterization (scaled sigmoids; sigma_s <= sigma_ss keeps the two
+  lobes apart);
+- linear unknowns (7): rho_d (RGB), rho_s and rho_ss (RGB), solved in closed
+  form with non-negativity inside the residual (exact small NNLS), so the
+  solver sees only the nonlinear ones.
+
+Loss per vertex (DESIGN §5), with view weights w_k = v_k / sum(v) and every
+intensity divided by the vertex's own diffuse level (dimensionless, so the
+weights lambda mean the same in every scene):
+
+    lambda_psi  sum_k w_k (psi_hat(theta_o, eta) - psi_k)^2          (DoP)
+  + lambda_d    sum_k w_k sum_c (I_d_hat - I_d)^2                   (diffuse)
+  + lambda_s    sum_k w_k sum_c (I_s_hat - I_s)^2                   (specular)
+  + lambda_phi  sum_k w_k [(I_a + G sin 2phi)^2 + (I_b - G cos 2phi)^2]   (azimuth)
+
+where psi_k = G_k / I_d,k with G = sqrt(I_alpha^2 + I_beta^2) on the
+colour-weighted mono signals and I_beta = I_s minus the predicted specular
+lobes (both lobes, DESIGN §7). The azimuth term equals the paper's
+2 w Gamma^2 (1 - cos(2 phi_hat - 2 phi_I)).
+
+Arrays are batch-first: a batch of N vertices with K view slots each; unused
+slots have weight 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sellip import polar
+from sellip.conventions import observations_from_analyzers, stokes_to_analyzers
+from sellip.pbrdf import PBRDFParams, lobe_factor, lobe_stokes
+
+STATUS_FITTED = 0
+STATUS_TOO_FEW_VIEWS = 1
+STATUS_FAILED = 2
+STATUS_NAMES = {STATUS_FITTED: "fitted", STATUS_TOO_FEW_VIEWS: "too few views", STATUS_FAILED: "failed"}
+
+ETA_BOUNDS = (1.05, 3.0)
+SIGMA_BOUNDS = (0.01, 1.0)
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """Settings of the per-vertex fit (config section ``fit``)."""
+
+    lambda_psi: float = 1.0
+    lambda_d: float = 100.0
+    lambda_s: float = 1.0
+    lambda_phi: float = 100.0
+    max_iterations: int = 30  # per stage
+    normal_stage_iterations: int = 10  # the first stage (normal and eta, roughness held)
+    tolerance: float = 1e-6  # relative loss decrease at which LM stops
+    gradient_tolerance: float = 1e-5  # ... or when the residual is this close to orthogonal to the Jacobian
+    min_views: int = 8
+    dark_threshold: float = 0.02  # a view is too dark below this fraction of the vertex's median diffuse level
+    chroma_threshold: float = 0.2  # colour outlier: distance of the unit-norm colour to the robust mean colour
+    outlier_threshold: float = 4.0  # a view is an outlier when its residual exceeds this many robust sigmas ...
+    outlier_floor: float = 0.05  # ... and this relative error
+    sigma_ss_fixed: float | None = None  # fix sigma_ss (paper §6: 0.9 or 1.0) instead of fitting it
+    round_iterations: int = 4  # LM iterations between compactions of the still-running vertices
+    lm_batch: int = 512  # vertices advanced together by one compiled LM kernel
+    chunk_size: int = 8192  # vertices prepared and finalized together (bounds memory)
+
+
+class Observations(NamedTuple):
+    """Observations of N vertices in K view slots (unused slots: weight 0).
+
+    diffuse, diffuse_pol, specular: (N, K, 3) I_d, I_alpha, I_s (exposure-normalized linear RGB).
+    to_light, to_camera, camera_up, light_axis: (N, K, 3) unit vectors (world): surface -> flash,
+    surface -> camera, the camera's up axis, the flash polarizer axis; light_distance: (N, K) metres.
+    usable: (N, K) bool, the view sees the vertex and its pixels are valid (not saturated).
+    """
+
+    diffuse: jnp.ndarray
+    diffuse_pol: jnp.ndarray
+    specular: jnp.ndarray
+    to_light: jnp.ndarray
+    to_camera: jnp.ndarray
+    light_distance: jnp.ndarray
+    camera_up: jnp.ndarray
+    light_axis: jnp.ndarray
+    usable: jnp.ndarray
+
+
+class FitResult(NamedTuple):
+    """Per-vertex results, each batch-first: normal (N, 3), params (PBRDFParams with batch N),
+    status (N,) int, confidence (N,) in [0, 1], loss (N,), views_used (N,), iterations (N,)."""
+
+    normal: jnp.ndarray
+    params: PBRDFParams
+    status: jnp.ndarray
+    confidence: jnp.ndarray
+    loss: jnp.ndarray
+    views_used: jnp.ndarray
+    iterations: jnp.ndarray
+
+
+# --- reparameterization -------------------------------------------------------------------
+
+def _to_unit_interval(x, lo, hi):
+    return jnp.clip((x - lo) / (hi - lo), 1e-4, 1 - 1e-4)
+
+
+def _logit(p):
+    return jnp.log(p) - jnp.log1p(-p)
+
+
+def tangent_basis(normal):
+    """Two unit tangents (..., 3) orthogonal to ``normal`` and to each other (continuous away from -z)."""
+    helper = jnp.where(jnp.abs(normal[..., 2:3]) < 0.9, jnp.array([0.0, 0.0, 1.0], normal.dtype),
+                       jnp.array([1.0, 0.0, 0.0], normal.dtype))
+    t1 = polar.safe_normalize(jnp.cross(helper, normal))
+    return t1, jnp.cross(normal, t1)
+
+
+class _Frame(NamedTuple):
+    """Per-vertex constants of the reparameterization."""
+
+    normal0: jnp.ndarray  # (3,)
+    t1: jnp.ndarray
+    t2: jnp.ndarray
+
+
+def _decode(z, frame: _Frame, sigma_ss_fixed):
+    """Unconstrained z (5,) -> (normal (3,), eta, sigma_s, sigma_ss)."""
+    normal = polar.safe_normalize(frame.normal0 + z[0] * frame.t1 + z[1] * frame.t2, fallback=frame.normal0)
+    eta = ETA_BOUNDS[0] + (ETA_BOUNDS[1] - ETA_BOUNDS[0]) * jax.nn.sigmoid(z[2])
+    sigma_s = SIGMA_BOUNDS[0] + (SIGMA_BOUNDS[1] - SIGMA_BOUNDS[0]) * jax.nn.sigmoid(z[3])
+    if sigma_ss_fixed is None:
+        sigma_ss = sigma_s + (SIGMA_BOUNDS[1] - sigma_s) * jax.nn.sigmoid(z[4])
+    else:
+        sigma_ss = jnp.asarray(sigma_ss_fixed, z.dtype)
+    return normal, eta, sigma_s, sigma_ss
+
+
+def _encode(eta, sigma_s, sigma_ss, dtype):
+    """Inverse of :func:`_decode` for the scalar parameters (the normal offset starts at 0)."""
+    z_eta = _logit(_to_unit_interval(eta, *ETA_BOUNDS))
+    z_s = _logit(_to_unit_interval(sigma_s, *SIGMA_BOUNDS))
+    z_ss = _logit(jnp.clip((sigma_ss - sigma_s) / jnp.maximum(SIGMA_BOUNDS[1] - sigma_s, 1e-6), 1e-4, 1 - 1e-4))
+    zeros = jnp.zeros_like(z_eta)
+    return jnp.stack([zeros, zeros, z_eta, z_s, z_ss], axis=-1).astype(dtype)
+
+
+# --- closed-form linear parameters ---------------------------------------------------------
+
+def solve_spd(matrix, rhs):
+    """Solve ``matrix @ x = rhs`` for one small symmetric positive-definite (n, n) matrix.
+
+    An unrolled Cholesky written with elementwise operations only: under ``vmap`` it becomes
+    a few fused array operations instead of one LAPACK call per vertex. rhs: (n,) or (n, m).
+    """
+    n = matrix.shape[-1]
+    tiny = jnp.finfo(matrix.dtype).tiny ** 0.5
+    low = [[None] * n for _ in range(n)]
+    for i in range(n):
+        for j in range(i + 1):
+            acc = matrix[i, j] - sum(low[i][k] * low[j][k] for k in range(j))
+            low[i][j] = jnp.sqrt(jnp.maximum(acc, tiny)) if i == j else acc / low[j][j]
+    y = []
+    for i in range(n):
+        y.append((rhs[i] - sum(low[i][k] * y[k] for k in range(i))) / low[i][i])
+    x = [None] * n
+    for i in reversed(range(n)):
+        x[i] = (y[i] - sum(low[k][i] * x[k] for k in range(i + 1, n))) / low[i][i]
+    return jnp.stack(x)
+
+
+def _nnls_specular(a, b, y, weight, prior, ridge):
+    """Exact non-negative least squares for (rho_s, rho_ss RGB) with a small ridge towards ``prior``.
+
+    Minimizes sum_k weight_k sum_c (rho_s a_k + rho_ss_c b_k - y_kc)^2 + ridge |x - prior|^2 over x >= 0.
+    a, b: (K,), y: (K, 3), weight: (K,), prior: (4,). Returns (4,) = (rho_s, rho_ss RGB).
+
+    The normal matrix has an arrow shape (rho_s couples to each channel, channels are independent),
+    so every active set has a closed-form solution; the 9 candidates (rho_s = 0 with clamped
+    channels, or rho_s free with any subset of free channels) are evaluated and the best feasible
+    one is exact. Elementwise operations only.
+    """
+    wa, wb = weight * a, weight * b
+    g00 = 3 * jnp.sum(wa * a) + ridge
+    g0c = jnp.sum(wa * b)
+    gcc = jnp.sum(wb * b) + ridge
+    r0 = jnp.sum(wa @ y) + ridge * prior[0]
+    rc = wb @ y + ridge * prior[1:]  # (3,)
+
+    def objective(rho_s, rho_ss):
+        return (g00 * rho_s**2 + 2 * g0c * rho_s * jnp.sum(rho_ss) + gcc * jnp.sum(rho_ss**2)
+                - 2 * (r0 * rho_s + jnp.sum(rc * rho_ss)))
+
+    subsets = ((jnp.arange(8)[:, None] >> jnp.arange(3)[None, :]) & 1).astype(a.dtype)  # (8, 3), 1 = free
+    n_free = jnp.sum(subsets, -1)
+    rho_s = (r0 - g0c * (subsets @ rc) / gcc) / (g00 - n_free * g0c**2 / gcc)  # (8,)
+    rho_ss = subsets * (rc[None, :] - g0c * rho_s[:, None]) / gcc  # (8, 3)
+    feasible = (rho_s >= 0) & jnp.all(rho_ss >= 0, -1)
+    rho_ss_only = jnp.maximum(rc / gcc, 0)  # rho_s = 0: channels independent
+    cand_s = jnp.concatenate([jnp.zeros(1, a.dtype), rho_s])
+    cand_ss = jnp.concatenate([rho_ss_only[None], rho_ss])
+    cost = jax.vmap(objective)(cand_s, cand_ss)
+    best = jnp.argmin(jnp.where(jnp.concatenate([jnp.ones(1, bool), feasible]), cost, jnp.inf))
+    return jnp.concatenate([cand_s[best][None], cand_ss[best]])
+
+
+# --- residuals ---------------------------------------------------------------------------
+
+class _Vertex(NamedTuple):
+    """One vertex's prepared data (K view slots)."""
+
+    obs_d: jnp.ndarray  # (K, 3) I_d / scale
+    obs_a: jnp.ndarray  # (K, 3) I_alpha / scale
+    obs_s: jnp.ndarray  # (K, 3) I_s / scale
+    to_light: jnp.ndarray
+    to_camera: jnp.ndarray
+    light_distance: jnp.ndarray
+    camera_up: jnp.ndarray
+    light_axis: jnp.ndarray
+    weight: jnp.ndarray  # (K,) view weights w_k (sum 1 over used views)
+    color: jnp.ndarray  # (3,) channel weights for the mono DoP / azimuth signals (sum 1)
+    scale: jnp.ndarray  # () the vertex's diffuse level (intensity units)
+    prior: jnp.ndarray  # (4,) rho_s, rho_ss RGB warm start (already divided by scale)
+
+
+def _model_terms(normal, eta, sigma_s, sigma_ss, v: _Vertex):
+    """Per-view design terms for unit albedos, from the full model (exact frames, 3.5 deg flash offset
+    included): the observations (I_d, I_alpha, I_s) of the diffuse lobe and of the reflection lobe,
+    and the two lobe factors. Each (K,)."""
+    stokes_d, stokes_r, geom = lobe_stokes(normal, v.to_light, v.to_camera, v.light_distance, v.light_axis,
+                                           v.camera_up, eta)
+    d_id, d_ia, d_is = observations_from_analyzers(stokes_to_analyzers(stokes_d), axis=-1)
+    r_id, r_ia, r_is = observations_from_analyzers(stokes_to_analyzers(stokes_r), axis=-1)
+    lit = geom.lit & (geom.cos_i > 1e-4) & (geom.cos_o > 1e-4)
+    gamma = polar.safe_sqrt(d_ia**2 + d_is**2)
+    safe_gamma = jnp.where(gamma > 0, gamma, 1)
+    return dict(
+        d_id=d_id, d_ia=d_ia, d_is=d_is, r_id=r_id, r_ia=r_ia, r_is=r_is,
+        lobe_s=lobe_factor(geom, sigma_s), lobe_ss=lobe_factor(geom, sigma_ss),
+        dop=gamma / jnp.where(lit, d_id, 1),
+        dir_a=jnp.where(gamma > 0, d_ia / safe_gamma, 0),  # unit direction of the diffuse (I_alpha, I_beta)
+        dir_b=jnp.where(gamma > 0, d_is / safe_gamma, 1),
+        lit=lit,
+    )
+
+
+def _linear_solution(terms, v: _Vertex, settings: FitSettings):
+    """Closed-form rho_d (3,) and (rho_s, rho_ss RGB) (4,) for given nonlinear parameters.
+
+    rho_d from the diffuse loss (non-negative, per channel), rho_s and rho_ss from the specular
+    loss (exact small NNLS). The two couple weakly (the diffuse lobe's share of I_s, the
+    reflection lobes' small share of I_d at the flash offset): two alternations settle them.
+    """
+    w = v.weight * terms["lit"]
+    a_d = terms["d_id"]
+    norm_d = jnp.maximum(jnp.sum(w * a_d * a_d), 1e-20)
+    basis_s = terms["lobe_s"] * terms["r_is"]
+    basis_ss = terms["lobe_ss"] * terms["r_is"]
+    ridge = 1e-6 * jnp.maximum(jnp.sum(w * (basis_s**2 + basis_ss**2)), 1e-12)
+    target_d = v.obs_d
+    for _ in range(2):
+        rho_d = jnp.maximum((w * a_d) @ target_d / norm_d, 0)
+        spec = _nnls_specular(basis_s, basis_ss, v.obs_s - rho_d[None, :] * terms["d_is"][:, None], w, v.prior, ridge)
+        reflect = terms["lobe_s"][:, None] * spec[0] + terms["lobe_ss"][:, None] * spec[None, 1:]
+        target_d = v.obs_d - reflect * terms["r_id"][:, None]
+    return rho_d, spec
+
+
+def _predictions(terms, rho_d, spec):
+    """Predicted (I_d, I_alpha, I_s) (K, 3) and the reflection-lobe part (K, 3) of the weights."""
+    reflect = terms["lobe_s"][:, None] * spec[0] + terms["lobe_ss"][:, None] * spec[None, 1:]
+    pred = [rho_d[None, :] * terms[f"d_{o}"][:, None] + reflect * terms[f"r_{o}"][:, None] for o in ("id", "ia", "is")]
+    return pred, reflect
+
+
+def _residuals(z, v: _Vertex, frame: _Frame, settings: FitSettings):
+    """Weighted residual vector (9K,) of one vertex; its squared norm is the loss."""
+    normal, eta, sigma_s, sigma_ss = _decode(z, frame, settings.sigma_ss_fixed)
+    terms = _model_terms(normal, eta, sigma_s, sigma_ss, v)
+    rho_d, spec = _linear_solution(terms, v, settings)
+    (pred_d, _, pred_s), reflect = _predictions(terms, rho_d, spec)
+    w = v.weight * terms["lit"]
+    # Mono diffuse signals: the observations minus the predicted reflection lobes (paper Eq. 22).
+    i_d = (v.obs_d - reflect * terms["r_id"][:, None]) @ v.color
+    i_alpha = (v.obs_a - reflect * terms["r_ia"][:, None]) @ v.color
+    i_beta = (v.obs_s - reflect * terms["r_is"][:, None]) @ v.color
+    gamma = polar.safe_sqrt(i_alpha**2 + i_beta**2)
+    dop_measured = gamma / jnp.maximum(i_d, 1e-6)
+    sqrt_w = jnp.sqrt(w)
+    res_psi = jnp.sqrt(settings.lambda_psi) * sqrt_w * (terms["dop"] - dop_measured)
+    res_d = jnp.sqrt(settings.lambda_d) * sqrt_w[:, None] * (pred_d - v.obs_d)
+    res_s = jnp.sqrt(settings.lambda_s) * sqrt_w[:, None] * (pred_s - v.obs_s)
+    res_phi = jnp.sqrt(settings.lambda_phi) * sqrt_w[:, None] * jnp.stack(
+        [i_alpha - gamma * terms["dir_a"], i_beta - gamma * terms["dir_b"]], -1)
+    return jnp.concatenate([res_psi, res_d.ravel(), res_s.ravel(), res_phi.ravel()])
+
+
+def per_view_error(z, v: _Vertex, frame: _Frame, settings: FitSettings):
+    """Relative RMS model error of each view (K,): diffuse and specular residuals over the diffuse level."""
+    normal, eta, sigma_s, sigma_ss = _decode(z, frame, settings.sigma_ss_fixed)
+    terms = _model_terms(normal, eta, sigma_s, sigma_ss, v)
+    rho_d, spec = _linear_solution(terms, v, settings)
+    (pred_d, _, pred_s), _ = _predictions(terms, rho_d, spec)
+    return jnp.sqrt(jnp.sum((pred_d - v.obs_d) ** 2 + (pred_s - v.obs_s) ** 2, -1) / 6)
+
+
+# --- Levenberg-Marquardt --------------------------------------------------------------------
+
+class _LMState(NamedTuple):
+    """Per-vertex solver state, batch-first."""
+
+    z: jnp.ndarray  # (N, 5) unconstrained parameters
+    loss: jnp.ndarray  # (N,)
+    damping: jnp.ndarray  # (N,)
+    iterations: jnp.ndarray  # (N,) int32, in the current stage
+    done: jnp.ndarray  # (N,) bool
+
+
+def _free_parameters(settings: FitSettings, lobes: bool = True) -> tuple[int, ...]:
+    """Indices into z of the parameters LM moves: normal (0, 1), eta (2), sigma_s (3), sigma_ss (4).
+
+    ``lobes=False`` holds both roughnesses: the first stage, while the normal may still be a few
+    degrees off (a sharp lobe would otherwise collapse onto one bright view). A fixed sigma_ss
+    is never moved.
+    """
+    if not lobes:
+        return (0, 1, 2)
+    return (0, 1, 2, 3) if settings.sigma_ss_fixed is not None else (0, 1, 2, 3, 4)
+
+
+def _lm_step(z, loss, damping, v: _Vertex, frame: _Frame, settings: FitSettings, free: tuple[int, ...]):
+    """One Levenberg-Marquardt step of one vertex over the parameters ``free``.
+
+    Returns (z, loss, damping, converged).
+    """
+    residual = lambda zz: _residuals(zz, v, frame, settings)  # noqa: E731
+    basis = jnp.eye(5, dtype=z.dtype)[np.asarray(free)]  # (F, 5)
+    r, jvp = jax.linearize(residual, z)
+    jac = jax.vmap(jvp, out_axes=1)(basis)  # (M, F): only the free columns are computed
+    grad = jac.T @ r
+    hess = jac.T @ jac
+    diag = jnp.diag(hess) + 1e-9
+    step = -solve_spd(hess + damping * jnp.diag(diag), grad) @ basis
+    z_new = z + step
+    loss_new = jnp.sum(residual(z_new) ** 2)
+    better = jnp.isfinite(loss_new) & (loss_new < loss)
+    # Relative loss decrease below which the fit has converged: settings.tolerance, but never
+    # below what the dtype resolves (float32 losses stop improving near 1e-6).
+    tolerance = max(settings.tolerance, 30 * float(jnp.finfo(z.dtype).eps))
+    rel_gain = (loss - loss_new) / jnp.maximum(loss, jnp.finfo(z.dtype).tiny)
+    # Stationarity (MINPACK's gtol): the largest cosine between the residual and a Jacobian column.
+    cosine = jnp.max(jnp.abs(grad) / jnp.sqrt(diag * jnp.maximum(jnp.sum(r * r), jnp.finfo(z.dtype).tiny)))
+    stationary = cosine < max(settings.gradient_tolerance, 10 * float(jnp.finfo(z.dtype).eps) ** 0.5)
+    # A small gain only counts near Gauss-Newton steps (a heavily damped step is small anyway).
+    flat = better & (rel_gain < tolerance) & (damping < 1e-2)
+    converged = stationary | flat | (loss_new < 1e-14)
+    stalled = (~better) & (damping > 1e8)
+    return (jnp.where(better, z_new, z), jnp.where(better, loss_new, loss),
+            jnp.where(better, damping * 0.3, damping * 4.0), converged | stalled)
+
+
+@partial(jax.jit, static_argnames=("settings", "steps", "free", "max_iterations"))
+def _lm_rounds(state: _LMState, records: _Vertex, frames: _Frame, settings: FitSettings, steps: int,
+               free: tuple[int, ...], max_iterations: int) -> _LMState:
+    """Up to ``steps`` LM iterations for a batch, stopping early when every vertex is done."""
+    step = jax.vmap(lambda z, loss, damping, v, f: _lm_step(z, loss, damping, v, f, settings, free))
+
+    def body(carry):
+        st, count = carry
+        z, loss, damping, converged = step(st.z, st.loss, st.damping, records, frames)
+        active = ~st.done
+        pick = lambda new, old: jnp.where(active.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)  # noqa: E731
+        iterations = st.iterations + active.astype(jnp.int32)
+        st = _LMState(pick(z, st.z), pick(loss, st.loss), pick(damping, st.damping), iterations,
+                      st.done | (active & (converged | (iterations >= max_iterations))))
+        return st, count + 1
+
+    def cond(carry):
+        st, count = carry
+        return (count < steps) & jnp.any(~st.done)
+
+    return jax.lax.while_loop(cond, body, (state, jnp.asarray(0)))[0]
+
+
+@partial(jax.jit, static_argnames=("settings",))
+def _initial_loss(z, records: _Vertex, frames: _Frame, settings: FitSettings):
+    return jax.vmap(lambda zz, v, f: jnp.sum(_residuals(zz, v, f, settings) ** 2))(z, records, frames)
+
+
+ROUGHNESS_GRID = ((0.05, 0.6), (0.1, 0.6), (0.2, 0.6), (0.3, 0.6), (0.45, 0.6),
+                  (0.05, 0.9), (0.1, 0.9), (0.2, 0.9), (0.3, 0.9), (0.45, 0.9))
+"""(sigma_s, sigma_ss) starting points tried besides the warm start: GGX lobes make the loss
+non-convex in roughness."""
+
+
+@partial(jax.jit, static_argnames=("settings",))
+def _best_start(z0, records: _Vertex, frames: _Frame, settings: FitSettings):
+    """Per vertex, the lowest-loss start among the warm start and :data:`ROUGHNESS_GRID`. (N, 5)."""
+    grid = jnp.asarray(ROUGHNESS_GRID, z0.dtype)
+    eta = ETA_BOUNDS[0] + (ETA_BOUNDS[1] - ETA_BOUNDS[0]) * jax.nn.sigmoid(z0[:, 2])
+    grid_starts = jax.vmap(lambda e: _encode(jnp.full(len(ROUGHNESS_GRID), e), grid[:, 0], grid[:, 1], z0.dtype))(eta)
+    starts = jnp.concatenate([z0[:, None], grid_starts.at[:, :, :2].set(z0[:, None, :2])], axis=1)
+    loss = jax.vmap(lambda zs, v, f: jax.vmap(lambda z: jnp.sum(_residuals(z, v, f, settings) ** 2))(zs))(
+        starts, records, frames)
+    loss = jnp.where(jnp.isfinite(loss), loss, jnp.inf)
+    return jnp.take_along_axis(starts, jnp.argmin(loss, axis=1)[:, None, None], 1)[:, 0]
+
+
+def _bucket(count: int, minimum: int = 16) -> int:
+    """Sizes are rounded up to powers of two so that a few compiled shapes serve every call."""
+    return max(minimum, 1 << int(np.ceil(np.log2(max(count, 1)))))
+
+
+def _take(tree, index):
+    return jax.tree_util.tree_map(lambda x: x[index], tree)
+
+
+def _run_lm(z, records: _Vertex, frames: _Frame, settings: FitSettings, free: tuple[int, ...],
+            run: np.ndarray, max_iterations: int):
+    """LM to convergence for the vertices where ``run`` is set, with compaction.
+
+    The vertices still running are gathered into batches of one fixed size (one compiled shape)
+    and advanced ``round_iterations`` steps at a time, so the cost follows the mean number of
+    iterations, not the slowest vertex of a chunk. Returns (z, loss, iterations) as numpy arrays.
+    """
+    z = np.asarray(z)
+    n = z.shape[0]
+    dtype = z.dtype
+    state = _LMState(z, np.asarray(_initial_loss(jnp.asarray(z), records, frames, settings)),
+                     np.full(n, 1e-3, dtype), np.zeros(n, np.int32), ~np.asarray(run, bool))
+    batch = min(settings.lm_batch, _bucket(n))
+    while True:
+        active = np.flatnonzero(~state.done)
+        if active.size == 0:
+            return state.z, state.loss, state.iterations
+        fields = [x.copy() for x in state]
+        for start in range(0, active.size, batch):
+            index = np.resize(active[start:start + batch], batch)  # repeats: identical work, harmless writes
+            part = _lm_rounds(_take(state, index), _take(records, index), _take(frames, index), settings,
+                              steps=settings.round_iterations, free=free, max_iterations=max_iterations)
+            for full, new in zip(fields, part):
+                full[index] = np.asarray(new)
+        state = _LMState(*fields)
+
+
+# --- sample selection ---------------------------------------------------------------------
+
+def select_views(obs: Observations, settings: FitSettings):
+    """Usable views per vertex: visible and valid, not too dark, not a colour outlier. (N, K) bool.
+
+    Colour outliers: the unit-norm RGB of I_d far (> chroma_threshold) from the vertex's robust
+    mean colour, refined three times (anchor notes §2.2).
+    """
+    usable = obs.usable
+    mono = jnp.mean(obs.diffuse, -1)
+    level = _masked_median(mono, usable)
+    usable = usable & (mono > settings.dark_threshold * level[:, None]) & jnp.all(jnp.isfinite(obs.diffuse), -1)
+    unit_color = obs.diffuse / jnp.maximum(jnp.linalg.norm(obs.diffuse, axis=-1, keepdims=True), 1e-20)
+    keep = usable
+    for _ in range(4):
+        mean = jnp.sum(unit_color * keep[..., None], 1) / jnp.maximum(jnp.sum(keep, 1), 1)[:, None]
+        mean = mean / jnp.maximum(jnp.linalg.norm(mean, axis=-1, keepdims=True), 1e-20)
+        keep = usable & (jnp.linalg.norm(unit_color - mean[:, None, :], axis=-1) < settings.chroma_threshold)
+    return keep
+
+
+def _masked_median(x, mask):
+    """Median over the last axis of x where mask, per row; 0 for empty rows."""
+    big = jnp.where(mask, x, jnp.inf)
+    ordered = jnp.sort(big, axis=-1)
+    count = jnp.sum(mask, -1)
+    idx = jnp.clip((count - 1) // 2, 0, x.shape[-1] - 1)
+    return jnp.where(count > 0, jnp.take_along_axis(ordered, idx[:, None], -1)[:, 0], 0)
+
+
+# --- the batched fit ----------------------------------------------------------------------
+
+def _prepare(obs: Observations, keep, prior: PBRDFParams):
+    """Normalize intensities by each vertex's diffuse level and build the per-vertex records."""
+    mono = jnp.mean(obs.diffuse, -1)
+    scale = jnp.maximum(_masked_median(mono, keep), 1e-12)
+    count = jnp.sum(keep, -1)
+    weight = keep / jnp.maximum(count, 1)[:, None]
+    mean_color = jnp.sum(obs.diffuse * keep[..., None], 1)
+    color = mean_color / jnp.maximum(jnp.sum(mean_color, -1, keepdims=True), 1e-20)
+    color = jnp.where(jnp.sum(mean_color, -1, keepdims=True) > 0, color, 1.0 / 3)
+    s = scale[:, None, None]
+    # Unused slots may hold anything (NaN, zeros): give them harmless finite values; their weight is 0.
+    clean = lambda x, fill: jnp.where(keep.reshape(keep.shape + (1,) * (x.ndim - 2)), jnp.nan_to_num(x), fill)  # noqa: E731
+    obs = Observations(
+        diffuse=clean(obs.diffuse, 0.0), diffuse_pol=clean(obs.diffuse_pol, 0.0), specular=clean(obs.specular, 0.0),
+        to_light=clean(obs.to_light, 0.0), to_camera=clean(obs.to_camera, 0.0),
+        light_distance=clean(obs.light_distance, 1.0), camera_up=clean(obs.camera_up, 0.0),
+        light_axis=clean(obs.light_axis, 0.0), usable=keep)
+    spec_prior = jnp.concatenate([prior.rho_s[:, None], prior.rho_ss], -1) / scale[:, None]
+    return _Vertex(obs.diffuse / s, obs.diffuse_pol / s, obs.specular / s, obs.to_light, obs.to_camera,
+                   obs.light_distance, obs.camera_up, obs.light_axis, weight.astype(obs.diffuse.dtype), color,
+                   scale, spec_prior)
+
+
+def _robust_weights(z, v: _Vertex, frame: _Frame, settings: FitSettings):
+    """View weights with outlier views removed: per-view error above the median by
+    ``outlier_threshold`` robust sigmas (MAD) and above ``outlier_floor``. Returns (weight (K,), changed)."""
+    err = per_view_error(z, v, frame, settings)
+    used = v.weight > 0
+    med = _masked_median(err[None], used[None])[0]
+    mad = _masked_median(jnp.abs(err - med)[None], used[None])[0]
+    outlier = used & (err > med + settings.outlier_threshold * 1.4826 * mad) & (err > settings.outlier_floor)
+    keep = used & ~outlier
+    return (keep / jnp.maximum(jnp.sum(keep), 1)).astype(v.weight.dtype), jnp.any(outlier)
+
+
+def _finalize(z, loss, v: _Vertex, frame: _Frame, settings: FitSettings):
+    """Decoded parameters, linear solution and Gauss-Newton uncertainties at the solution of one vertex."""
+    normal, eta, sigma_s, sigma_ss = _decode(z, frame, settings.sigma_ss_fixed)
+    terms = _model_terms(normal, eta, sigma_s, sigma_ss, v)
+    rho_d, spec = _linear_solution(terms, v, settings)
+    free = np.zeros(5)
+    free[list(_free_parameters(settings))] = 1
+    jac = jax.jacfwd(lambda zz: _residuals(zz, v, frame, settings))(z) * free[None, :]
+    views = jnp.sum(v.weight > 0)
+    dof = jnp.maximum(9 * views - int(free.sum()), 1)
+    normal_matrix = jac.T @ jac
+    regular = normal_matrix + 1e-9 * jnp.diag(jnp.diag(normal_matrix)) + (1 - free) * jnp.eye(5, dtype=z.dtype)
+    cov = (loss / dof) * solve_spd(regular + 1e-12 * jnp.eye(5, dtype=z.dtype), jnp.eye(5, dtype=z.dtype))
+    deta_dz = (ETA_BOUNDS[1] - ETA_BOUNDS[0]) * jax.nn.sigmoid(z[2]) * (1 - jax.nn.sigmoid(z[2]))
+    eta_std = jnp.sqrt(jnp.maximum(cov[2, 2], 0)) * deta_dz
+    # A tangent offset dz rotates the normal by about |dz| / (1 + |z|^2) radians.
+    normal_std = jnp.sqrt(jnp.maximum(cov[0, 0] + cov[1, 1], 0)) / (1 + z[0] ** 2 + z[1] ** 2)
+    return dict(normal=normal, eta=eta, sigma_s=sigma_s, sigma_ss=sigma_ss, rho_d=rho_d * v.scale,
+                rho_s=spec[0] * v.scale, rho_ss=spec[1:] * v.scale, views_used=views,
+                eta_std=eta_std, normal_std_deg=jnp.degrees(normal_std))
+
+
+@partial(jax.jit, static_argnames=("settings",))
+def _robust_weights_batch(z, records, frames, settings):
+    return jax.vmap(lambda zz, v, f: _robust_weights(zz, v, f, settings))(z, records, frames)
+
+
+@partial(jax.jit, static_argnames=("settings",))
+def _finalize_batch(z, loss, records, frames, settings):
+    return jax.vmap(lambda zz, ll, v, f: _finalize(zz, ll, v, f, settings))(z, loss, records, frames)
+
+
+@partial(jax.jit, static_argnames=("settings",))
+def _select_and_prepare(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings):
+    keep = select_views(obs, settings)
+    records = _prepare(obs, keep, prior)
+    dtype = obs.diffuse.dtype
+    normal0 = polar.safe_normalize(normal0, fallback=jnp.array([0.0, 0.0, 1.0], dtype))
+    t1, t2 = tangent_basis(normal0)
+    z0 = _encode(prior.eta, prior.sigma_s, prior.sigma_ss, dtype)
+    return keep, records, _Frame(normal0, t1, t2), z0
+
+
+def _view_bucket(count: int) -> int:
+    """16, 24, 32, 48, 64, 96, 128, ...: at most 50 % padding, few distinct shapes."""
+    size = 16
+    while size < count:
+        size = size * 3 // 2 if (size & (size - 1)) == 0 else size * 4 // 3
+    return size
+
+
+def _compact_views(obs: Observations, usable: np.ndarray) -> Observations:
+    """Move each vertex's usable views to the front and drop the slots no vertex uses.
+
+    K shrinks to the largest usable count (rounded up to a few sizes to limit recompilation),
+    e.g. from 100 views to ~64 when each vertex sees half of them.
+    """
+    order = np.argsort(~usable, axis=1, kind="stable")
+    width = min(_view_bucket(int(usable.sum(1).max(initial=1))), usable.shape[1])
+    order = order[:, :width]
+    gather = lambda x: np.take_along_axis(np.asarray(x), order.reshape(order.shape + (1,) * (np.ndim(x) - 2)), 1)  # noqa: E731
+    return Observations(*[gather(x) for x in obs._replace(usable=usable)])
+
+
+def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings):
+    dtype = obs.diffuse.dtype
+    keep, _, _, _ = _select_and_prepare(obs, normal0, prior, settings)
+    obs = _compact_views(obs, np.asarray(keep))
+    keep, records, frames, z0 = _select_and_prepare(Observations(*[jnp.asarray(x) for x in obs]),
+                                                    jnp.asarray(normal0, dtype), prior, settings)
+    n = z0.shape[0]
+    everyone = np.ones(n, bool)
+    z = _best_start(z0, records, frames, settings)
+    # Stage 1: normal and eta with the roughnesses held; stage 2: everything.
+    z, _, it_normal = _run_lm(z, records, frames, settings, _free_parameters(settings, lobes=False), everyone,
+                              settings.normal_stage_iterations)
+    z, loss, it_all = _run_lm(z, records, frames, settings, _free_parameters(settings), everyone,
+                              settings.max_iterations)
+    iterations = it_normal + it_all
+    # Robust pass: drop outlier views and continue only the vertices that had any.
+    weight, changed = _robust_weights_batch(jnp.asarray(z), records, frames, settings)
+    records = records._replace(weight=weight)
+    changed = np.asarray(changed)
+    if changed.any():
+        z_new, loss_new, it_robust = _run_lm(z, records, frames, settings, _free_parameters(settings), changed,
+                                             settings.max_iterations)
+        z = np.where(changed[:, None], z_new, z)
+        loss = np.where(changed, loss_new, loss)
+        iterations = iterations + it_robust
+    out = _finalize_batch(jnp.asarray(z), jnp.asarray(loss), records, frames, settings)
+    out = {k: np.asarray(v) for k, v in out.items()}
+    out.update(loss=loss, iterations=iterations, enough=np.asarray(keep).sum(1) >= settings.min_views)
+    return out
+
+
+def confidence_from_uncertainty(normal_std_deg, eta_std, normal_scale_deg=3.0, eta_scale=0.03):
+    """Confidence in [0, 1] from the Gauss-Newton standard deviations of the normal (deg) and eta."""
+    return jnp.exp(-0.5 * ((normal_std_deg / normal_scale_deg) ** 2 + (eta_std / eta_scale) ** 2))
+
+
+def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings = FitSettings()) -> FitResult:
+    """Fit the pBRDF and normal of N vertices.
+
+    obs: :class:`Observations` with batch (N, K). normal0: (N, 3) starting normals (e.g. the mesh
+    normals). prior: warm-start parameters (batch N): eta, sigma_s, sigma_ss start the LM; rho_s and
+    rho_ss are the ridge target of the linear solve. Returns a :class:`FitResult` of numpy arrays;
+    vertices with fewer than ``settings.min_views`` usable views keep the prior (status "too few
+    views", confidence 0), non-finite fits keep the prior (status "failed", confidence 0). Never NaN.
+    Vertices are processed in chunks of ``settings.chunk_size``; the result does not depend on it.
+    """
+    dtype = np.asarray(obs.diffuse).dtype
+    n = np.shape(obs.diffuse)[0]
+    normal0 = np.asarray(normal0, dtype)
+    prior = PBRDFParams(*[np.asarray(x, dtype) for x in prior])
+    chunks = []
+    for start in range(0, n, settings.chunk_size):
+        stop = min(n, start + settings.chunk_size)
+        # Pad every chunk to a power of two (repeating its last vertex): few compiled shapes.
+        index = np.minimum(np.arange(start, start + _bucket(stop - start)), stop - 1)
+        index = index[:min(index.size, settings.chunk_size)]
+        out = _fit_chunk(Observations(*[np.asarray(x)[index] for x in obs]), normal0[index],
+                         PBRDFParams(*[x[index] for x in prior]), settings)
+        chunks.append({k: v[:stop - start] for k, v in out.items()})
+    out = {k: np.concatenate([c[k] for c in chunks]) if chunks else np.zeros(0) for k in chunks[0]} if chunks else None
+    if out is None:
+        raise ValueError("fit_vertices needs at least one vertex")
+    values = [out[k] for k in ("normal", "eta", "sigma_s", "sigma_ss", "rho_d", "rho_s", "rho_ss")]
+    finite = np.all(np.stack([np.all(np.isfinite(x.reshape(n, -1)), -1) for x in values]), 0)
+    ok = out["enough"] & finite
+    status = np.where(~out["enough"], STATUS_TOO_FEW_VIEWS, np.where(finite, STATUS_FITTED, STATUS_FAILED))
+    pick = lambda new, old: np.where(ok.reshape((-1,) + (1,) * (new.ndim - 1)), new, old).astype(dtype)  # noqa: E731
+    params = PBRDFParams(
+        eta=pick(out["eta"], prior.eta), rho_d=pick(out["rho_d"], prior.rho_d), rho_s=pick(out["rho_s"], prior.rho_s),
+        sigma_s=pick(out["sigma_s"], prior.sigma_s), rho_ss=pick(out["rho_ss"], prior.rho_ss),
+        sigma_ss=pick(out["sigma_ss"], prior.sigma_ss))
+    confidence = np.asarray(confidence_from_uncertainty(out["normal_std_deg"], out["eta_std"]))
+    confidence = np.where(ok & np.isfinite(confidence), confidence, 0.0).astype(dtype)
+    normal0 = np.asarray(polar.safe_normalize(jnp.asarray(normal0), fallback=jnp.array([0.0, 0.0, 1.0], dtype)))
+    return FitResult(normal=pick(out["normal"], normal0), params=params, status=status.astype(np.int32),
+                     confidence=confidence, loss=np.where(ok, out["loss"], 0.0).astype(dtype),
+                     views_used=out["views_used"].astype(np.int32), iterations=out["iterations"])
+
+
+def default_prior(n, dtype=np.float32) -> PBRDFParams:
+    """The starting parameters of the first iteration (DESIGN §5: eta = 1.5)."""
+    full = lambda value, *shape: jnp.full((n,) + shape, value, dtype)  # noqa: E731
+    return PBRDFParams(eta=full(1.5), rho_d=full(0.5, 3), rho_s=full(0.0), sigma_s=full(0.3),
+                       rho_ss=full(0.0, 3), sigma_ss=full(0.6))
