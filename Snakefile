@@ -11,11 +11,18 @@ configfile: "config/config.yaml"
 report: "workflow/report/workflow.rst"
 
 
+# Vertex shards of the per-vertex fit: a fixed count (override with --set-scatter fit=N);
+# each shard job derives its vertex range at run time.
+scattergather:
+    fit=config["fit"]["shards"],
+
+
 include: "workflow/rules/common.smk"
 include: "workflow/rules/synth.smk"
 include: "workflow/rules/ingest.smk"
 include: "workflow/rules/geometry.smk"
 include: "workflow/rules/observe.smk"
+include: "workflow/rules/fit.smk"
 
 
 rule all:

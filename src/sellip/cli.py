@@ -21,6 +21,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "observe": ("observe", "per-vertex, per-view observations (visibility, HDR samples, geometry) of a mesh"),
     "sfm": ("sfm", "camera poses: known poses.csv, SfM (pycolmap), or SfM verified against poses.csv"),
     "init-mesh": ("init_mesh", "initial mesh from silhouettes and SfM points (screened Poisson)"),
+    "fit": ("fit", "per-vertex pBRDF and normal fit of one vertex shard"),
+    "gather-fit": ("gather_fit", "assemble the fit shards of an iteration into params.zarr"),
 }
 
 

@@ -49,6 +49,7 @@ STATUS_NAMES = {STATUS_FITTED: "fitted", STATUS_TOO_FEW_VIEWS: "too few views", 
 
 ETA_BOUNDS = (1.05, 3.0)
 SIGMA_BOUNDS = (0.01, 1.0)
+LOBE_GAP = 0.1  # sigma_ss >= sigma_s + LOBE_GAP
 
 
 @dataclass(frozen=True)
@@ -61,13 +62,14 @@ class FitSettings:
     lambda_phi: float = 100.0
     max_iterations: int = 30  # per stage
     normal_stage_iterations: int = 10  # the first stage (normal and eta, roughness held)
-    tolerance: float = 1e-6  # relative loss decrease at which LM stops
-    gradient_tolerance: float = 1e-5  # ... or when the residual is this close to orthogonal to the Jacobian
+    tolerance: float = 1e-3  # relative loss decrease (of a near Gauss-Newton step) at which LM stops
+    gradient_tolerance: float = 1e-3  # ... or when the residual is this close to orthogonal to the Jacobian
     min_views: int = 8
     dark_threshold: float = 0.02  # a view is too dark below this fraction of the vertex's median diffuse level
     chroma_threshold: float = 0.2  # colour outlier: distance of the unit-norm colour to the robust mean colour
     outlier_threshold: float = 4.0  # a view is an outlier when its residual exceeds this many robust sigmas ...
     outlier_floor: float = 0.05  # ... and this relative error
+    shading_outlier_floor: float = 0.9  # a shading outlier is also > e^0.9 = 2.5x off the median apparent albedo
     sigma_ss_fixed: float | None = None  # fix sigma_ss (paper §6: 0.9 or 1.0) instead of fitting it
     round_iterations: int = 4  # LM iterations between compactions of the still-running vertices
     lm_batch: int = 512  # vertices advanced together by one compiled LM kernel
@@ -134,12 +136,17 @@ class _Frame(NamedTuple):
 
 
 def _decode(z, frame: _Frame, sigma_ss_fixed):
-    """Unconstrained z (5,) -> (normal (3,), eta, sigma_s, sigma_ss)."""
+    """Unconstrained z (5,) -> (normal (3,), eta, sigma_s, sigma_ss).
+
+    sigma_s in [0.01, 1 - LOBE_GAP]; sigma_ss in [sigma_s + LOBE_GAP, 1]: single scattering is the
+    broader lobe, and two lobes of equal roughness are one lobe (a flat, degenerate valley).
+    """
     normal = polar.safe_normalize(frame.normal0 + z[0] * frame.t1 + z[1] * frame.t2, fallback=frame.normal0)
     eta = ETA_BOUNDS[0] + (ETA_BOUNDS[1] - ETA_BOUNDS[0]) * jax.nn.sigmoid(z[2])
-    sigma_s = SIGMA_BOUNDS[0] + (SIGMA_BOUNDS[1] - SIGMA_BOUNDS[0]) * jax.nn.sigmoid(z[3])
+    sigma_s = SIGMA_BOUNDS[0] + (SIGMA_BOUNDS[1] - LOBE_GAP - SIGMA_BOUNDS[0]) * jax.nn.sigmoid(z[3])
     if sigma_ss_fixed is None:
-        sigma_ss = sigma_s + (SIGMA_BOUNDS[1] - sigma_s) * jax.nn.sigmoid(z[4])
+        low = sigma_s + LOBE_GAP
+        sigma_ss = low + (SIGMA_BOUNDS[1] - low) * jax.nn.sigmoid(z[4])
     else:
         sigma_ss = jnp.asarray(sigma_ss_fixed, z.dtype)
     return normal, eta, sigma_s, sigma_ss
@@ -148,8 +155,9 @@ def _decode(z, frame: _Frame, sigma_ss_fixed):
 def _encode(eta, sigma_s, sigma_ss, dtype):
     """Inverse of :func:`_decode` for the scalar parameters (the normal offset starts at 0)."""
     z_eta = _logit(_to_unit_interval(eta, *ETA_BOUNDS))
-    z_s = _logit(_to_unit_interval(sigma_s, *SIGMA_BOUNDS))
-    z_ss = _logit(jnp.clip((sigma_ss - sigma_s) / jnp.maximum(SIGMA_BOUNDS[1] - sigma_s, 1e-6), 1e-4, 1 - 1e-4))
+    z_s = _logit(_to_unit_interval(sigma_s, SIGMA_BOUNDS[0], SIGMA_BOUNDS[1] - LOBE_GAP))
+    sigma_s = jnp.clip(sigma_s, SIGMA_BOUNDS[0], SIGMA_BOUNDS[1] - LOBE_GAP)
+    z_ss = _logit(_to_unit_interval(sigma_ss, sigma_s + LOBE_GAP, SIGMA_BOUNDS[1]))
     zeros = jnp.zeros_like(z_eta)
     return jnp.stack([zeros, zeros, z_eta, z_s, z_ss], axis=-1).astype(dtype)
 
@@ -415,7 +423,7 @@ def _best_start(z0, records: _Vertex, frames: _Frame, settings: FitSettings):
     return jnp.take_along_axis(starts, jnp.argmin(loss, axis=1)[:, None, None], 1)[:, 0]
 
 
-def _bucket(count: int, minimum: int = 16) -> int:
+def _bucket(count: int, minimum: int = 64) -> int:
     """Sizes are rounded up to powers of two so that a few compiled shapes serve every call."""
     return max(minimum, 1 << int(np.ceil(np.log2(max(count, 1)))))
 
@@ -454,23 +462,40 @@ def _run_lm(z, records: _Vertex, frames: _Frame, settings: FitSettings, free: tu
 
 # --- sample selection ---------------------------------------------------------------------
 
-def select_views(obs: Observations, settings: FitSettings):
-    """Usable views per vertex: visible and valid, not too dark, not a colour outlier. (N, K) bool.
+def select_views(obs: Observations, normal, settings: FitSettings):
+    """Usable views per vertex: visible and valid, not too dark, not a colour or shading outlier. (N, K) bool.
 
-    Colour outliers: the unit-norm RGB of I_d far (> chroma_threshold) from the vertex's robust
-    mean colour, refined three times (anchor notes §2.2).
+    - too dark: mono I_d below ``dark_threshold`` times the vertex's median;
+    - colour outliers: the unit-norm RGB of I_d far from the vertex's robust mean colour (more
+      than ``chroma_threshold`` and ``outlier_threshold`` times the robust spread of the
+      vertex's own colour distances), refined three times (anchor notes §2.2);
+    - shading outliers: I_d divided by the shading cos(theta_i) / d^2 of the starting ``normal``
+      (N, 3) is an apparent albedo, the same in every view up to the Fresnel terms and the
+      normal's error; views whose log apparent albedo is more than ``outlier_threshold`` robust
+      sigmas (MAD) and ``shading_outlier_floor`` from the median are dropped (inter-reflections,
+      mis-registered pixels, corrupt frames).
     """
-    usable = obs.usable
-    mono = jnp.mean(obs.diffuse, -1)
+    usable = obs.usable & jnp.all(jnp.isfinite(obs.diffuse), -1)
+    mono = jnp.mean(jnp.where(usable[..., None], obs.diffuse, 0), -1)
     level = _masked_median(mono, usable)
-    usable = usable & (mono > settings.dark_threshold * level[:, None]) & jnp.all(jnp.isfinite(obs.diffuse), -1)
+    usable = usable & (mono > settings.dark_threshold * level[:, None])
     unit_color = obs.diffuse / jnp.maximum(jnp.linalg.norm(obs.diffuse, axis=-1, keepdims=True), 1e-20)
     keep = usable
     for _ in range(4):
-        mean = jnp.sum(unit_color * keep[..., None], 1) / jnp.maximum(jnp.sum(keep, 1), 1)[:, None]
+        mean = jnp.sum(jnp.where(keep[..., None], unit_color, 0), 1) / jnp.maximum(jnp.sum(keep, 1), 1)[:, None]
         mean = mean / jnp.maximum(jnp.linalg.norm(mean, axis=-1, keepdims=True), 1e-20)
-        keep = usable & (jnp.linalg.norm(unit_color - mean[:, None, :], axis=-1) < settings.chroma_threshold)
-    return keep
+        distance = jnp.linalg.norm(unit_color - mean[:, None, :], axis=-1)
+        # The fixed threshold, widened where the vertex's own colours spread more (texture finer
+        # than a pixel, noise in dark vertices): only outliers of its own distribution go.
+        spread = 1.4826 * _masked_median(distance, keep)
+        keep = usable & (distance < jnp.maximum(settings.chroma_threshold, settings.outlier_threshold * spread)[:, None])
+    cos_i = jnp.clip(jnp.sum(normal[:, None, :] * obs.to_light, -1), 0.05, 1)
+    distance = jnp.where(keep, obs.light_distance, 1)
+    log_albedo = jnp.log(jnp.maximum(mono, 1e-30) * distance**2 / cos_i)
+    center = _masked_median(log_albedo, keep)
+    spread = 1.4826 * _masked_median(jnp.abs(log_albedo - center[:, None]), keep)
+    limit = jnp.maximum(settings.outlier_threshold * spread, settings.shading_outlier_floor)
+    return keep & (jnp.abs(log_albedo - center[:, None]) < limit[:, None])
 
 
 def _masked_median(x, mask):
@@ -553,10 +578,10 @@ def _finalize_batch(z, loss, records, frames, settings):
 
 @partial(jax.jit, static_argnames=("settings",))
 def _select_and_prepare(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings):
-    keep = select_views(obs, settings)
-    records = _prepare(obs, keep, prior)
     dtype = obs.diffuse.dtype
     normal0 = polar.safe_normalize(normal0, fallback=jnp.array([0.0, 0.0, 1.0], dtype))
+    keep = select_views(obs, normal0, settings)
+    records = _prepare(obs, keep, prior)
     t1, t2 = tangent_basis(normal0)
     z0 = _encode(prior.eta, prior.sigma_s, prior.sigma_ss, dtype)
     return keep, records, _Frame(normal0, t1, t2), z0
@@ -595,6 +620,7 @@ def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSett
     # Stage 1: normal and eta with the roughnesses held; stage 2: everything.
     z, _, it_normal = _run_lm(z, records, frames, settings, _free_parameters(settings, lobes=False), everyone,
                               settings.normal_stage_iterations)
+    z = _best_start(jnp.asarray(z), records, frames, settings)  # lobes again, now that the normal is close
     z, loss, it_all = _run_lm(z, records, frames, settings, _free_parameters(settings), everyone,
                               settings.max_iterations)
     iterations = it_normal + it_all
@@ -619,7 +645,8 @@ def confidence_from_uncertainty(normal_std_deg, eta_std, normal_scale_deg=3.0, e
     return jnp.exp(-0.5 * ((normal_std_deg / normal_scale_deg) ** 2 + (eta_std / eta_scale) ** 2))
 
 
-def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings = FitSettings()) -> FitResult:
+def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings = FitSettings(),
+                 progress=None) -> FitResult:
     """Fit the pBRDF and normal of N vertices.
 
     obs: :class:`Observations` with batch (N, K). normal0: (N, 3) starting normals (e.g. the mesh
@@ -627,7 +654,7 @@ def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSe
     rho_ss are the ridge target of the linear solve. Returns a :class:`FitResult` of numpy arrays;
     vertices with fewer than ``settings.min_views`` usable views keep the prior (status "too few
     views", confidence 0), non-finite fits keep the prior (status "failed", confidence 0). Never NaN.
-    Vertices are processed in chunks of ``settings.chunk_size``; the result does not depend on it.
+    Vertices are processed in chunks of ``settings.chunk_size``; ``progress(done)`` is called after each.
     """
     dtype = np.asarray(obs.diffuse).dtype
     n = np.shape(obs.diffuse)[0]
@@ -642,6 +669,8 @@ def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSe
         out = _fit_chunk(Observations(*[np.asarray(x)[index] for x in obs]), normal0[index],
                          PBRDFParams(*[x[index] for x in prior]), settings)
         chunks.append({k: v[:stop - start] for k, v in out.items()})
+        if progress is not None:
+            progress(stop)
     out = {k: np.concatenate([c[k] for c in chunks]) if chunks else np.zeros(0) for k in chunks[0]} if chunks else None
     if out is None:
         raise ValueError("fit_vertices needs at least one vertex")

@@ -13,6 +13,7 @@ validate(config, "../../config/config.schema.yaml")
 wildcard_constraints:
     name=r"[A-Za-z0-9_.-]+",
     scene=r"[A-Za-z0-9_]+",
+    it=r"\d+",
 
 
 DEMO_CAPTURE = f"captures/{config['demo']['scene']}"
@@ -41,7 +42,13 @@ def get_mesh(wildcards):
     return f"{RESULTS}/mesh/init.ply" if it == 0 else f"{RESULTS}/iter/{it - 1}/mesh.ply"
 
 
+def get_prior(wildcards):
+    """The previous iteration's parameters (warm start), or nothing at iteration 0."""
+    it = int(wildcards.it)
+    return [] if it == 0 else [f"{RESULTS}/iter/{it - 1}/params.zarr"]
+
+
 def get_final_outputs():
     """What `rule all` builds: every stage that exists so far, on the configured capture."""
     return [capture_file("capture.yaml"), f"{RESULTS}/hdr.zarr", f"{RESULTS}/previews",
-            f"{RESULTS}/cameras.csv", f"{RESULTS}/mesh/init.ply"]
+            f"{RESULTS}/cameras.csv", f"{RESULTS}/mesh/init.ply", f"{RESULTS}/iter/0/params.zarr"]

@@ -1,0 +1,101 @@
+"""Per-vertex parameter stores (``params.zarr``) and carrying parameters between meshes.
+
+A store holds, for N vertices (DESIGN §4 names, float32 unless noted), chunked by vertex:
+
+    vertices (N, 3), normals (N, 3), eta (N,), rho_d (N, 3), rho_s (N,), sigma_s (N,),
+    rho_ss (N, 3), sigma_ss (N,), confidence (N,), status (N,) int8, loss (N,),
+    views_used (N,) int16, iterations (N,) int16
+
+``status`` is 0 fitted, 1 too few views, 2 failed (:data:`sellip.fit.STATUS_NAMES`). Vertices
+that could not be fitted hold parameters interpolated from their fitted neighbours and
+confidence 0 (DESIGN §7): never NaN, never another vertex's stale values.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import zarr
+from scipy.spatial import cKDTree
+
+from sellip.pbrdf import PBRDFParams
+
+PARAM_FIELDS = ("eta", "rho_d", "rho_s", "sigma_s", "rho_ss", "sigma_ss")
+EXTRA_FIELDS = {"confidence": np.float32, "status": np.int8, "loss": np.float32, "views_used": np.int16,
+                "iterations": np.int16}
+
+
+class ParamsError(ValueError):
+    """A parameter store that is missing, incomplete or inconsistent (the message names it)."""
+
+
+def fill_from_neighbours(vertices: np.ndarray, values: np.ndarray, known: np.ndarray, k: int = 8) -> np.ndarray:
+    """Replace the rows of ``values`` where ``known`` is False by the inverse-distance mean of the
+    ``k`` nearest known vertices. vertices (N, 3), values (N, ...), known (N,) bool.
+
+    Rows stay as they are when no vertex is known.
+    """
+    values = np.array(values, copy=True)
+    unknown = np.flatnonzero(~known)
+    if unknown.size == 0 or not known.any():
+        return values
+    source = np.flatnonzero(known)
+    tree = cKDTree(vertices[source])
+    distance, index = tree.query(vertices[unknown], k=min(k, source.size))
+    distance = distance.reshape(unknown.size, -1)
+    index = index.reshape(unknown.size, -1)
+    weight = 1.0 / np.maximum(distance, 1e-9)
+    weight /= weight.sum(1, keepdims=True)
+    neighbours = values[source][index]  # (U, k, ...)
+    values[unknown] = np.einsum("uk,uk...->u...", weight, neighbours)
+    return values
+
+
+def transfer_nearest(from_vertices: np.ndarray, to_vertices: np.ndarray) -> np.ndarray:
+    """Index (M,) of the nearest ``from_vertices`` row for each of ``to_vertices`` (M, 3)."""
+    return cKDTree(from_vertices).query(to_vertices, k=1)[1]
+
+
+def write_params(path: str | Path, arrays: dict, chunk: int = 65536, attrs: dict | None = None) -> Path:
+    """Write a parameter store atomically (temporary name, then rename). ``arrays``: name -> (N, ...)."""
+    path = Path(path)
+    missing = [n for n in ("vertices", "normals", *PARAM_FIELDS) if n not in arrays]
+    if missing:
+        raise ParamsError(f"{path}: cannot write a parameter store without {missing}")
+    n = len(arrays["vertices"])
+    tmp = path.with_name(path.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    group = zarr.open_group(str(tmp), mode="w")
+    for name, value in arrays.items():
+        value = np.asarray(value)
+        if len(value) != n:
+            raise ParamsError(f"{path}: array {name!r} has {len(value)} rows, expected {n}")
+        dtype = EXTRA_FIELDS.get(name, np.float32)
+        group.create_array(name, data=value.astype(dtype), chunks=(min(chunk, max(n, 1)),) + value.shape[1:])
+    group.attrs.update({"num_vertices": n, **(attrs or {})})
+    shutil.rmtree(path, ignore_errors=True)
+    tmp.rename(path)
+    return path
+
+
+def read_params(path: str | Path, start: int = 0, stop: int | None = None) -> dict:
+    """Rows [start, stop) of a parameter store as a dict of numpy arrays (plus ``attrs``)."""
+    path = Path(path)
+    try:
+        group = zarr.open_group(str(path), mode="r")
+    except Exception as error:  # zarr raises several types for a missing or broken store
+        raise ParamsError(f"{path}: not a parameter store ({error})") from error
+    missing = [n for n in ("vertices", "normals", *PARAM_FIELDS) if n not in group]
+    if missing:
+        raise ParamsError(f"{path}: missing arrays {missing}")
+    rows = slice(start, stop)
+    out = {name: np.asarray(group[name][rows]) for name in group.array_keys()}
+    out["attrs"] = dict(group.attrs)
+    return out
+
+
+def params_from(arrays: dict, dtype=np.float32) -> PBRDFParams:
+    """The PBRDFParams held in a dict of arrays (e.g. from :func:`read_params`)."""
+    return PBRDFParams(*[np.asarray(arrays[name], dtype) for name in PARAM_FIELDS])

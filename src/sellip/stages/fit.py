@@ -1,0 +1,153 @@
+"""``sellip fit``: the per-vertex pBRDF and normal fit of one vertex shard (rule ``fit_pbrdf``).
+
+    sellip fit --observations results/NAME/iter/0/observations.zarr --shard 2-of-4
+               --output results/NAME/iter/0/fit/2-of-4.npz
+               [--prior results/NAME/iter/-1/params.zarr] [--dtype float32]
+               [--set lambda_d=100 --set sigma_ss_fixed=0.9 ...] [--compilation-cache DIR]
+
+The shard's vertex range is derived at run time from the store's vertex count and chunking
+(shard i of n takes an equal share of whole vertex chunks, so it reads only its own chunks).
+With ``--prior`` (the previous iteration's params.zarr) every parameter is warm-started from
+the nearest previous vertex (DESIGN §7); without it the fit starts from eta = 1.5 and the
+defaults of :func:`sellip.fit.default_prior`. The starting normals are the mesh normals.
+``--set`` overrides a field of :class:`sellip.fit.FitSettings`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """'i-of-n' (Snakemake's scatteritem, 1-based) -> (i - 1, n)."""
+    try:
+        index, total = text.split("-of-")
+        index, total = int(index), int(total)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"--shard expects 'i-of-n' (e.g. 2-of-4), got {text!r}") from error
+    if not 1 <= index <= total:
+        raise argparse.ArgumentTypeError(f"--shard {text!r}: i must be in 1..n")
+    return index - 1, total
+
+
+def shard_rows(num_vertices: int, chunk: int, index: int, total: int) -> tuple[int, int]:
+    """Vertex range [start, stop) of shard ``index`` (0-based) of ``total``, in whole chunks."""
+    blocks = -(-num_vertices // chunk)
+    first, last = index * blocks // total, (index + 1) * blocks // total
+    return min(first * chunk, num_vertices), min(last * chunk, num_vertices)
+
+
+def settings_from_pairs(pairs: list[str]):
+    """FitSettings with ``key=value`` overrides (types from the dataclass; 'null'/'none' -> None)."""
+    from sellip.fit import FitSettings
+
+    fields = {f.name: f for f in dataclasses.fields(FitSettings)}
+    values = {}
+    for pair in pairs:
+        key, sep, text = pair.partition("=")
+        if not sep or key not in fields:
+            raise ValueError(f"--set expects KEY=VALUE with KEY one of {sorted(fields)}, got {pair!r}")
+        if text.lower() in ("null", "none", ""):
+            values[key] = None
+        else:
+            kind = int if fields[key].type in ("int", int) else float
+            values[key] = kind(text)
+    return FitSettings(**values)
+
+
+def enable_compilation_cache(directory: str | Path | None) -> None:
+    """Reuse XLA compilations across processes (every shard job compiles the same kernels)."""
+    if not directory:
+        return
+    import jax
+
+    Path(directory).mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(Path(directory).resolve()))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
+def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: Path | None = None,
+              dtype: str = "float32", settings=None, compilation_cache: str | None = None) -> dict:
+    """Fit one shard and write ``output`` (.npz, atomically). Returns a summary dict."""
+    import jax
+
+    if dtype == "float64":
+        jax.config.update("jax_enable_x64", True)
+    enable_compilation_cache(compilation_cache)
+    from sellip.fit import STATUS_NAMES, FitSettings, default_prior, fit_vertices
+    from sellip.observe import load_observations, open_observations
+    from sellip.params import params_from, read_params, transfer_nearest
+
+    settings = settings or FitSettings()
+    group = open_observations(observations)
+    total = int(group.attrs["num_vertices"])
+    chunk = int(group["diffuse"].chunks[0])
+    start, stop = shard_rows(total, chunk, *shard)
+    log.info("shard %d of %d: vertices [%d, %d) of %d", shard[0] + 1, shard[1], start, stop, total)
+    data = load_observations(observations, start, stop)
+    float_type = np.dtype(dtype)
+    obs = type(data.observations)(*[np.asarray(x, float_type) if np.asarray(x).dtype.kind == "f" else np.asarray(x)
+                                    for x in data.observations])
+    n = stop - start
+    if prior is not None:
+        previous = read_params(prior)
+        nearest = transfer_nearest(previous["vertices"], data.vertices)
+        start_params = params_from({k: previous[k][nearest] for k in ("eta", "rho_d", "rho_s", "sigma_s", "rho_ss",
+                                                                      "sigma_ss")}, float_type)
+        log.info("warm start from %s (nearest of %d vertices)", prior, len(previous["vertices"]))
+    else:
+        start_params = default_prior(n, float_type)
+    began = time.perf_counter()
+    if n:
+        result = fit_vertices(obs, data.normals.astype(float_type), start_params, settings,
+                              progress=lambda done: log.info("fitted %d / %d vertices (%.0f s)", done, n,
+                                                             time.perf_counter() - began))
+    seconds = time.perf_counter() - began
+    arrays = {"start": np.asarray(start), "stop": np.asarray(stop)}
+    if n:
+        arrays.update(normal=result.normal, status=result.status, confidence=result.confidence, loss=result.loss,
+                      views_used=result.views_used, iterations=result.iterations,
+                      **{name: getattr(result.params, name) for name in result.params._fields})
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    tmp = output.with_name(output.name + ".tmp.npz")
+    np.savez(tmp, **arrays)
+    tmp.replace(output)
+    counts = {STATUS_NAMES[s]: int(np.sum(result.status == s)) for s in STATUS_NAMES} if n else {}
+    summary = {"vertices": n, "seconds": seconds, "vertex_fits_per_second": n / seconds if seconds > 0 else 0.0,
+               "status": counts}
+    log.info("shard done: %d vertices in %.1f s (%.0f vertex-fits/s); %s", n, seconds,
+             summary["vertex_fits_per_second"], counts)
+    return summary
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--observations", type=Path, required=True, help="observations.zarr of this iteration")
+    parser.add_argument("--shard", type=parse_shard, default=(0, 1), help="i-of-n (default 1-of-1: all vertices)")
+    parser.add_argument("--output", type=Path, required=True, help="shard result (.npz)")
+    parser.add_argument("--prior", type=Path, default=None, help="previous iteration's params.zarr (warm start)")
+    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a FitSettings field (repeatable)")
+    parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
+
+
+def main(args: argparse.Namespace) -> int:
+    from sellip.observe import ObserveError
+
+    try:
+        settings = settings_from_pairs(args.overrides)
+        run_stage(args.observations, args.shard, args.output, args.prior, args.dtype, settings,
+                  args.compilation_cache)
+    except (ObserveError, ValueError) as error:
+        log.error("%s", error)
+        return 1
+    return 0
