@@ -56,7 +56,7 @@ LOBE_GAP = 0.1  # sigma_ss >= sigma_s + LOBE_GAP
 class FitSettings:
     """Settings of the per-vertex fit (config section ``fit``)."""
 
-    lambda_psi: float = 1.0
+    lambda_psi: float = 100.0  # DESIGN §5 starts at 1; 100 with dimensionless residuals (docs/fit.md)
     lambda_d: float = 100.0
     lambda_s: float = 1.0
     lambda_phi: float = 100.0

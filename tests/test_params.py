@@ -1,0 +1,58 @@
+"""Parameter stores, neighbour filling, and how the fit stage splits vertices into shards."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sellip.params import ParamsError, fill_from_neighbours, read_params, transfer_nearest, write_params
+from sellip.stages.fit import parse_shard, settings_from_pairs, shard_rows
+
+
+@pytest.mark.parametrize("total,chunk,shards", [(10, 4, 3), (29169, 4096, 2), (5, 4096, 4), (100, 7, 100)])
+def test_shards_cover_every_vertex_once_in_whole_chunks(total, chunk, shards):
+    ranges = [shard_rows(total, chunk, i, shards) for i in range(shards)]
+    covered = np.concatenate([np.arange(a, b) for a, b in ranges])
+    np.testing.assert_array_equal(covered, np.arange(total))
+    assert all(a % chunk == 0 for a, b in ranges if b > a)
+
+
+def test_shard_argument_and_settings_overrides():
+    assert parse_shard("2-of-4") == (1, 4)
+    with pytest.raises(Exception):
+        parse_shard("5-of-4")
+    settings = settings_from_pairs(["lambda_d=10", "max_iterations=12", "sigma_ss_fixed=null"])
+    assert settings.lambda_d == 10.0 and settings.max_iterations == 12 and settings.sigma_ss_fixed is None
+    assert settings_from_pairs(["sigma_ss_fixed=0.9"]).sigma_ss_fixed == 0.9
+    with pytest.raises(ValueError, match="lambda_q"):
+        settings_from_pairs(["lambda_q=1"])
+
+
+def test_unfitted_vertices_take_their_neighbours_values():
+    rng = np.random.default_rng(0)
+    vertices = rng.normal(size=(200, 3))
+    values = vertices @ np.array([1.0, -2.0, 0.5])  # a smooth field
+    known = rng.random(200) > 0.2
+    filled = fill_from_neighbours(vertices, np.where(known, values, np.nan), known)
+    assert np.all(np.isfinite(filled))
+    np.testing.assert_array_equal(filled[known], values[known])
+    assert np.median(np.abs(filled[~known] - values[~known])) < 0.5 * np.std(values)
+
+
+def test_params_round_trip_and_errors(tmp_path):
+    n = 50
+    rng = np.random.default_rng(1)
+    arrays = {"vertices": rng.normal(size=(n, 3)), "normals": rng.normal(size=(n, 3)), "eta": np.full(n, 1.5),
+              "rho_d": rng.random((n, 3)), "rho_s": rng.random(n), "sigma_s": rng.random(n),
+              "rho_ss": rng.random((n, 3)), "sigma_ss": rng.random(n), "status": np.zeros(n, int),
+              "confidence": rng.random(n)}
+    write_params(tmp_path / "p.zarr", arrays, chunk=16)
+    back = read_params(tmp_path / "p.zarr", 10, 20)
+    np.testing.assert_allclose(back["rho_d"], arrays["rho_d"][10:20].astype(np.float32))
+    assert back["status"].dtype == np.int8 and back["attrs"]["num_vertices"] == n
+    assert not (tmp_path / "p.zarr.tmp").exists()
+    with pytest.raises(ParamsError, match="eta"):
+        write_params(tmp_path / "q.zarr", {k: v for k, v in arrays.items() if k != "eta"})
+    with pytest.raises(ParamsError, match="nothing.zarr"):
+        read_params(tmp_path / "nothing.zarr")
+    np.testing.assert_array_equal(transfer_nearest(arrays["vertices"], arrays["vertices"][[3, 7]]), [3, 7])
