@@ -11,7 +11,7 @@ from scipy import integrate
 from sellip import conventions, polar
 from sellip.fresnel import brewster_angle, diffuse_dop, fresnel, reflection_mueller, transmission_mueller
 from sellip.microfacet import ggx_d, smith_g
-from sellip.pbrdf import PBRDFParams, coaxial_observations, full_mueller, full_stokes, normal_azimuth_terms
+from sellip.pbrdf import coaxial_observations, full_mueller, full_stokes, normal_azimuth_terms
 
 from helpers import camera_geometry, make_params
 

@@ -71,7 +71,7 @@ def enable_compilation_cache(directory: str | Path | None) -> None:
 
     Path(directory).mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(Path(directory).resolve()))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 
 def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: Path | None = None,
