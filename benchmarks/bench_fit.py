@@ -103,10 +103,7 @@ def main() -> int:
     m = min(args.baseline, n)
     sub = type(obs)(*[jnp.asarray(x[:m]) for x in obs])
     sub_prior = type(prior)(*[jnp.asarray(x[:m]) for x in prior])
-    keep, records, frames, z0 = fit._select_and_prepare(sub, jnp.asarray(start[:m]), sub_prior, settings)
-    compact = fit._compact_views(type(obs)(*[np.asarray(x) for x in sub]), np.asarray(keep))
-    keep, records, frames, z0 = fit._select_and_prepare(type(obs)(*[jnp.asarray(x) for x in compact]),
-                                                        jnp.asarray(start[:m]), sub_prior, settings)
+    keep, records, frames, z0 = fit._select_and_prepare(sub, start[:m], sub_prior, settings)
     z0 = np.asarray(fit._best_start(z0, records, frames, settings), np.float64)
     as64 = lambda tree: jax.tree_util.tree_map(  # noqa: E731
         lambda x: jnp.asarray(x, jnp.float64) if jnp.issubdtype(x.dtype, jnp.floating) else x, tree)

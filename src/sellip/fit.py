@@ -577,14 +577,30 @@ def _finalize_batch(z, loss, records, frames, settings):
 
 
 @partial(jax.jit, static_argnames=("settings",))
-def _select_and_prepare(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings):
+def _select(obs: Observations, normal0, settings: FitSettings):
+    normal0 = polar.safe_normalize(normal0, fallback=jnp.array([0.0, 0.0, 1.0], obs.diffuse.dtype))
+    return select_views(obs, normal0, settings)
+
+
+@jax.jit
+def _prepare_batch(obs: Observations, keep, normal0, prior: PBRDFParams):
     dtype = obs.diffuse.dtype
     normal0 = polar.safe_normalize(normal0, fallback=jnp.array([0.0, 0.0, 1.0], dtype))
-    keep = select_views(obs, normal0, settings)
-    records = _prepare(obs, keep, prior)
     t1, t2 = tangent_basis(normal0)
     z0 = _encode(prior.eta, prior.sigma_s, prior.sigma_ss, dtype)
-    return keep, records, _Frame(normal0, t1, t2), z0
+    return _prepare(obs, keep, prior), _Frame(normal0, t1, t2), z0
+
+
+def _select_and_prepare(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings):
+    """Select each vertex's views once, move them to the front (:func:`_compact_views`) and build
+    the per-vertex records. Returns (keep (N, K'), records, frames, z0) with K' <= K view slots."""
+    dtype = np.asarray(obs.diffuse).dtype
+    normal0 = jnp.asarray(normal0, dtype)
+    keep = np.asarray(_select(Observations(*[jnp.asarray(x) for x in obs]), normal0, settings))
+    obs = _compact_views(Observations(*[np.asarray(x) for x in obs]), keep)
+    records, frames, z0 = _prepare_batch(Observations(*[jnp.asarray(x) for x in obs]), jnp.asarray(obs.usable),
+                                         normal0, prior)
+    return obs.usable, records, frames, z0
 
 
 def _view_bucket(count: int) -> int:
@@ -609,11 +625,7 @@ def _compact_views(obs: Observations, usable: np.ndarray) -> Observations:
 
 
 def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings):
-    dtype = obs.diffuse.dtype
-    keep, _, _, _ = _select_and_prepare(obs, normal0, prior, settings)
-    obs = _compact_views(obs, np.asarray(keep))
-    keep, records, frames, z0 = _select_and_prepare(Observations(*[jnp.asarray(x) for x in obs]),
-                                                    jnp.asarray(normal0, dtype), prior, settings)
+    keep, records, frames, z0 = _select_and_prepare(obs, normal0, prior, settings)
     n = z0.shape[0]
     everyone = np.ones(n, bool)
     z = _best_start(z0, records, frames, settings)
@@ -671,9 +683,9 @@ def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSe
         chunks.append({k: v[:stop - start] for k, v in out.items()})
         if progress is not None:
             progress(stop)
-    out = {k: np.concatenate([c[k] for c in chunks]) if chunks else np.zeros(0) for k in chunks[0]} if chunks else None
-    if out is None:
+    if not chunks:
         raise ValueError("fit_vertices needs at least one vertex")
+    out = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
     values = [out[k] for k in ("normal", "eta", "sigma_s", "sigma_ss", "rho_d", "rho_s", "rho_ss")]
     finite = np.all(np.stack([np.all(np.isfinite(x.reshape(n, -1)), -1) for x in values]), 0)
     ok = out["enough"] & finite
