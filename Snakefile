@@ -23,6 +23,7 @@ include: "workflow/rules/ingest.smk"
 include: "workflow/rules/geometry.smk"
 include: "workflow/rules/observe.smk"
 include: "workflow/rules/fit.smk"
+include: "workflow/rules/final.smk"
 
 
 rule all:

@@ -193,3 +193,20 @@ def test_float32_fit_runs_and_is_accurate():
     assert result.normal.dtype == np.float32 and result.params.eta.dtype == np.float32
     angle, eta, albedo = _errors(result, params, normals)
     assert np.median(angle) < 0.2 and np.median(eta) < 0.01 and np.median(albedo) < 0.01
+
+
+def test_zero_weight_virtual_samples_change_nothing():
+    """Virtual samples of weight 0 add zero rows: the same loss and linear solution as none (to round-off)."""
+    from sellip.fit import VirtualSamples
+
+    _, _, obs, start = _scene(2, seed=12, noise=0.01)
+    settings = FitSettings()
+    virtual = VirtualSamples(theta_h=np.tile(np.radians(np.arange(180) * 0.5), (2, 1)),
+                             reflectance=np.full((2, 180, 3), 0.3), weight=np.zeros((2, 180)))
+    _, plain, frames, z0 = fit._select_and_prepare(obs, jnp.asarray(start), default_prior(2, np.float64), settings)
+    _, zero, _, _ = fit._select_and_prepare(obs, jnp.asarray(start), default_prior(2, np.float64), settings, virtual)
+    v, w, f = (jax.tree_util.tree_map(lambda x: x[0], r) for r in (plain, zero, frames))
+    r_plain, r_zero = fit._residuals(z0[0], v, f, settings), fit._residuals(z0[0], w, f, settings)
+    np.testing.assert_allclose(r_zero[:r_plain.size], r_plain, rtol=1e-12, atol=1e-15)  # sums reordered: round-off
+    np.testing.assert_array_equal(r_zero[r_plain.size:], 0)
+    assert fit._free_parameters(FitSettings(fit_normal=False)) == (2, 3, 4)

@@ -343,6 +343,18 @@ def test_cameras_missing_a_view_of_the_hdr_store(tmp_path, rendered):
     assert zarr.open_group(str(output), mode="r").attrs["view_ids"] == ["v000", "v002"]
 
 
+def test_held_out_views_are_left_out_of_the_store(tmp_path, rendered):
+    import zarr
+
+    paths = _write_inputs(tmp_path, rendered)
+    output = tmp_path / "observations.zarr"
+    run_stage(paths["mesh"], paths["cameras"], paths["hdr"], paths["capture"], output, exclude_views=("v001",))
+    assert zarr.open_group(str(output), mode="r").attrs["view_ids"] == ["v000", "v002"]
+    with pytest.raises(ObserveError, match=r"hdr\.zarr.*v009"):
+        run_stage(paths["mesh"], paths["cameras"], paths["hdr"], paths["capture"], tmp_path / "o2.zarr",
+                  exclude_views=("v009",))
+
+
 def test_bad_inputs_raise_errors_naming_the_file(tmp_path, rendered, caplog):
     from sellip.cli import main
 

@@ -215,3 +215,24 @@ def test_distorted_rays_project_back_to_their_pixels():
     uv = camera.project(origin + 0.7 * directions[:, :, 0])
     v, u = np.mgrid[0:60, 0:80]
     np.testing.assert_allclose(uv, np.stack([u, v], -1), atol=1e-6)
+
+
+def test_incident_stokes_option_is_linear_and_agrees_with_the_flash_path():
+    """Light.stokes goes through full_mueller; [1, 1, 0, 0] (the default, full_stokes) must agree with it."""
+    from dataclasses import replace
+
+    camera = _camera()
+    mesh = _sphere(subdivisions=4, eta=1.5, rho_s=0.8, sigma_s=0.15, rho_ss=(0.1, 0.05, 0.02))
+    renderer = Renderer(mesh)
+    flash = flash_light(camera, FLASH_CAM, polarizer_deg=20.0)
+    default = renderer.render(camera, flash, supersample=1).stokes
+    doubled = renderer.render(camera, replace(flash, stokes=(2.0, 2.0, 0.0, 0.0)), supersample=1).stokes
+    crossed = renderer.render(camera, replace(flash, stokes=(1.0, -1.0, 0.0, 0.0)), supersample=1).stokes
+    unpolarized = renderer.render(camera, replace(flash, stokes=(1.0, 0.0, 0.0, 0.0)), supersample=1).stokes
+    scale = np.abs(default).max()
+    np.testing.assert_allclose(doubled, 2 * default, atol=1e-5 * scale)
+    np.testing.assert_allclose(unpolarized, 0.5 * (default + crossed), atol=1e-5 * scale)
+    # At the highlight (reflection dominates, polarization kept) the crossed light's AoLP is 90 deg from the flash's.
+    peak = np.unravel_index(np.argmax(default[..., 0, 1]), default.shape[:2])
+    angle = [0.5 * np.arctan2(s[peak][2, 1], s[peak][1, 1]) for s in (default, crossed)]
+    assert np.degrees(abs(np.angle(np.exp(2j * (angle[0] - angle[1]))) / 2)) > 85

@@ -1,39 +1,52 @@
-"""The Snakemake workflow end to end: a real `snakemake --cores 2` run on a tiny synthetic capture
-(synth -> ingest -> known poses -> initial mesh -> observations -> sharded fit -> gather), with
-the fitted parameters checked against the ground truth."""
+"""The Snakemake workflow end to end: real `snakemake --cores 2` runs on a tiny synthetic capture
+(synth -> ingest -> known poses -> initial mesh -> two iterations of observe / sharded fit /
+clusters / refit / Poisson remesh -> final refit -> model, renders, metrics), checked against
+the ground truth; resumability after SIGKILL; one fit job per shard, pass and iteration."""
 
 from __future__ import annotations
 
+import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
-from scipy.spatial import cKDTree
 
 REPO = Path(__file__).resolve().parents[1]
+ITERATIONS = 2
+SHARDS = 2
 
 
 def tiny_config(workdir: Path) -> dict:
     """Overrides of config/config.yaml for a run of a few minutes on 2 cores."""
     return {
         "name": "tiny",
+        "iterations": ITERATIONS,
         "demo": {"scene": "tiny", "views": 24, "width": 320, "height": 256, "seed": 3},
         "init": {"hull_resolution": 64, "max_vertices": 2500},
-        "fit": {"shards": 2, "compilation_cache": str(workdir / "jax_cache"), "settings": {"min_views": 6}},
+        "remesh": {"depth": 6},
+        "fit": {"shards": SHARDS, "compilation_cache": str(workdir / "jax_cache"), "settings": {"min_views": 6}},
+        "evaluate": {"held_out_views": ["v005", "v017"], "render_views": ["v000"], "supersample": 1},
     }
 
 
-def _snakemake(workdir: Path, *args: str) -> subprocess.CompletedProcess:
-    """Run snakemake on the repository's workflow in ``workdir`` with the tiny-scene config on top."""
+def _command(workdir: Path, *args: str) -> tuple[list[str], dict]:
     override = workdir / "tiny.yaml"
     override.write_text(yaml.safe_dump(tiny_config(workdir)))
     command = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir),
                "--configfile", str(REPO / "config" / "config.yaml"), str(override), *args]
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    return command, env
+
+
+def _snakemake(workdir: Path, *args: str) -> subprocess.CompletedProcess:
+    """Run snakemake on the repository's workflow in ``workdir`` with the tiny-scene config on top."""
+    command, env = _command(workdir, *args)
     result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=1500)
     if result.returncode != 0:
         raise AssertionError(f"snakemake failed:\n{result.stdout[-4000:]}\n{result.stderr[-4000:]}")
@@ -47,35 +60,74 @@ def tiny_run(tmp_path_factory):
     return workdir
 
 
-def test_dry_run_has_one_fit_job_per_shard(tmp_path):
+def test_dry_run_has_one_fit_job_per_shard_pass_and_iteration(tmp_path):
+    passes = 2 * (ITERATIONS + 1)  # fit and refit, iterations 0..ITERATIONS (the last is the final pass)
     for shards in (2, 3):
         out = _snakemake(tmp_path, "-n", "--set-scatter", f"fit={shards}").stdout
-        counts = dict(line.split()[:2] for line in out.splitlines()
-                      if line.strip() and line.split()[0] in ("fit_pbrdf", "gather_fit"))
-        assert counts == {"fit_pbrdf": str(shards), "gather_fit": "1"}, out[-2000:]
+        counts = {line.split()[0]: int(line.split()[1]) for line in out.splitlines()
+                  if len(line.split()) == 2 and line.split()[1].isdigit()}
+        assert counts["fit_pbrdf"] == shards * passes, out[-2000:]
+        assert counts["gather_fit"] == passes and counts["cluster_lobes"] == ITERATIONS + 1
+        assert counts["remesh_poisson"] == ITERATIONS and counts["gather_observations"] == ITERATIONS + 1
 
 
-def test_tiny_capture_fits_close_to_the_ground_truth(tiny_run):
-    from sellip.fit import STATUS_FITTED
-    from sellip.io import read_param_mesh
-    from sellip.observe import read_mesh
+def test_tiny_capture_reconstructs_close_to_the_ground_truth(tiny_run):
+    from sellip.io import read_param_mesh, read_ply
     from sellip.params import read_params
 
-    params = read_params(tiny_run / "results" / "tiny" / "iter" / "0" / "params.zarr")
-    truth = read_param_mesh(tiny_run / "captures" / "tiny" / "ground_truth" / "model.ply")
-    for name in ("normals", "eta", "rho_d", "sigma_s", "confidence"):
-        assert np.all(np.isfinite(params[name])), name
-    fitted = params["status"] == STATUS_FITTED
-    assert fitted.mean() > 0.85
-    nearest = cKDTree(truth.vertices).query(params["vertices"])[1]
-    angle = np.degrees(np.arccos(np.clip(np.sum(params["normals"] * truth.normals[nearest], -1), -1, 1)))
-    eta_error = np.abs(params["eta"] / np.asarray(truth.params.eta)[nearest] - 1)
-    mesh = read_mesh(tiny_run / "results" / "tiny" / "mesh" / "init.ply")
-    before = np.degrees(np.arccos(np.clip(np.sum(mesh.normals * truth.normals[nearest], -1), -1, 1)))
-    print(f"tiny capture, iteration 0: normal error median {np.median(angle[fitted]):.2f} deg "
-          f"(initial mesh {np.median(before[fitted]):.2f} deg), eta error median {100 * np.median(eta_error[fitted]):.2f} %")
-    # Measured 2026-11-21: 3.2 deg (initial mesh 3.6 deg), eta 8.8 % (24 views of 160x128 demosaiced
-    # pixels, a 4 cm sphere, the visual-hull mesh 1.6 mm off): bounds catch regressions, not targets.
-    assert np.median(angle[fitted]) < min(4.0, np.median(before[fitted]))
-    assert np.median(eta_error[fitted]) < 0.12
-    assert np.all(params["confidence"][~fitted] == 0)
+    results = tiny_run / "results" / "tiny"
+    metrics = json.loads((results / "metrics.json").read_text())
+    print("tiny capture metrics:", json.dumps(metrics, indent=1)[:3000])
+    model = read_param_mesh(results / "final" / "model.ply")
+    vertex, _ = read_ply(results / "final" / "model.ply")
+    store = read_params(results / "final" / "params.zarr")
+    assert model.num_vertices == len(store["vertices"]) and {"confidence", "model"} <= set(vertex)
+    for name in ("normals", "eta", "rho_d", "rho_s", "sigma_s", "rho_ss", "sigma_ss", "confidence"):
+        assert np.all(np.isfinite(store[name])), name
+    assert (results / "final" / "renders").is_dir() and any((results / "final" / "renders").glob("*.png"))
+    # Measured 2026-11-21 on this scene (24 views of 160x128 demosaiced pixels, a 4 cm sphere):
+    # bounds that catch regressions, not targets (see docs/reconstruction.md).
+    assert metrics["normal_error_deg"]["all"]["median"] < 4.0
+    assert metrics["eta_relative_error_pct"]["median"] < 12.0
+    assert metrics["geometry"]["chamfer_mm"] < 1.5
+    assert metrics["psnr_held_out"]["mean_db"] > 20.0
+    assert metrics["timings"]["rules"]["fit_pbrdf"]["jobs"] == SHARDS * 2 * (ITERATIONS + 1)
+
+
+def _kill_when(command, env, ready: Path, timeout: float = 900) -> None:
+    """Start ``command``; SIGKILL its whole process group as soon as ``ready`` exists."""
+    process = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                               start_new_session=True)
+    began = time.monotonic()
+    try:
+        while not ready.exists():
+            if process.poll() is not None:
+                raise AssertionError(f"snakemake ended (exit {process.returncode}) before {ready} appeared")
+            if time.monotonic() - began > timeout:
+                raise AssertionError(f"{ready} did not appear within {timeout} s")
+            time.sleep(0.5)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+        process.wait()
+
+
+def test_killed_run_resumes_without_redoing_finished_jobs(tiny_run, tmp_path):
+    from sellip.params import read_params
+
+    results = tmp_path / "results" / "tiny"
+    command, env = _command(tmp_path, "--cores", "2")
+    _kill_when(command, env, results / "iter" / "1" / "fit.zarr")
+    finished = {path: path.stat().st_mtime_ns for path in
+                [results / "mesh" / "init.ply", results / "hdr.zarr" / "zarr.json", results / "iter" / "0" / "mesh.ply",
+                 results / "iter" / "1" / "fit.zarr" / "zarr.json"]}
+    assert not (results / "final" / "model.ply").exists()
+    _snakemake(tmp_path, "--unlock")
+    out = _snakemake(tmp_path, "--cores", "2", "--rerun-incomplete").stdout
+    for path, mtime in finished.items():
+        assert path.stat().st_mtime_ns == mtime, f"{path} was made again"
+    assert "rule init_mesh:" not in out and "rule merge_hdr:" not in out
+    resumed = read_params(results / "final" / "params.zarr")
+    uninterrupted = read_params(tiny_run / "results" / "tiny" / "final" / "params.zarr")
+    for name in ("vertices", "normals", "eta", "rho_d", "sigma_s", "confidence"):
+        np.testing.assert_allclose(resumed[name], uninterrupted[name], rtol=1e-5, atol=1e-6, err_msg=name)

@@ -23,6 +23,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "init-mesh": ("init_mesh", "initial mesh from silhouettes and SfM points (screened Poisson)"),
     "fit": ("fit", "per-vertex pBRDF and normal fit of one vertex shard"),
     "gather-fit": ("gather_fit", "assemble the fit shards of an iteration into params.zarr"),
+    "cluster-lobes": ("cluster_lobes", "material clusters and per-cluster specular lobes (augmentation)"),
+    "remesh": ("remesh", "screened Poisson mesh from fitted normals; parameters carried to the new vertices"),
+    "finalize": ("finalize", "the final model: model.ply and params.zarr"),
+    "render-outputs": ("render_outputs", "renders, Mueller images, AoLP/DoP and parameter maps of a model"),
+    "evaluate": ("evaluate", "figures of merit against the ground truth (metrics.json)"),
 }
 
 

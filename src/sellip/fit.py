@@ -30,6 +30,7 @@ slots have weight 0.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from functools import partial
 from typing import NamedTuple
@@ -40,6 +41,7 @@ import numpy as np
 
 from sellip import polar
 from sellip.conventions import observations_from_analyzers, stokes_to_analyzers
+from sellip.fresnel import fresnel
 from sellip.pbrdf import PBRDFParams, lobe_factor, lobe_stokes
 
 STATUS_FITTED = 0
@@ -74,6 +76,10 @@ class FitSettings:
     round_iterations: int = 4  # LM iterations between compactions of the still-running vertices
     lm_batch: int = 512  # vertices advanced together by one compiled LM kernel
     chunk_size: int = 8192  # vertices prepared and finalized together (bounds memory)
+    fit_normal: bool = True  # False holds the normal at normal0 (the augmented refit, docs/augment.md)
+    lambda_g: float = 0.1  # weight of the virtual specular samples against the real views (paper Eq. 24)
+    virtual_count: int = 180  # M virtual samples per vertex, at theta_h = 0, step, ..., (M - 1) step
+    virtual_step_deg: float = 0.5  # their theta_h spacing (degrees)
 
 
 class Observations(NamedTuple):
@@ -96,9 +102,26 @@ class Observations(NamedTuple):
     usable: jnp.ndarray
 
 
+class VirtualSamples(NamedTuple):
+    """Virtual specular observations of N vertices (paper Eq. 24, docs/augment.md), M per vertex.
+
+    Each is an exactly coaxial view (theta_i = theta_o = theta_h, theta_d = 0) at the vertex's
+    median flash distance. theta_h: (N, M) radians. reflectance: (N, M, 3) the reflection lobes
+    per unit shading, R+(0; eta) (rho_s kappa_s + rho_ss kappa_ss) (:func:`virtual_reflectance`),
+    in the units of the fitted albedos. weight: (N, M) w^a, normalized cos theta_h (sum 1 per
+    vertex; all 0 for a vertex without virtual samples); the fit scales it by ``lambda_g``.
+    """
+
+    theta_h: jnp.ndarray
+    reflectance: jnp.ndarray
+    weight: jnp.ndarray
+
+
 class FitResult(NamedTuple):
     """Per-vertex results, each batch-first: normal (N, 3), params (PBRDFParams with batch N),
-    status (N,) int, confidence (N,) in [0, 1], loss (N,), views_used (N,), iterations (N,)."""
+    status (N,) int, confidence (N,) in [0, 1], loss (N,), views_used (N,), iterations (N,), and the
+    Gauss-Newton standard deviations normal_std_deg (N,) and eta_std (N,) the confidence comes from
+    (inf where the vertex was not fitted)."""
 
     normal: jnp.ndarray
     params: PBRDFParams
@@ -107,6 +130,8 @@ class FitResult(NamedTuple):
     loss: jnp.ndarray
     views_used: jnp.ndarray
     iterations: jnp.ndarray
+    normal_std_deg: jnp.ndarray
+    eta_std: jnp.ndarray
 
 
 # --- reparameterization -------------------------------------------------------------------
@@ -160,6 +185,43 @@ def _encode(eta, sigma_s, sigma_ss, dtype):
     z_ss = _logit(_to_unit_interval(sigma_ss, sigma_s + LOBE_GAP, SIGMA_BOUNDS[1]))
     zeros = jnp.zeros_like(z_eta)
     return jnp.stack([zeros, zeros, z_eta, z_s, z_ss], axis=-1).astype(dtype)
+
+
+# --- virtual samples (specular augmentation) ----------------------------------------------
+
+def virtual_geometry(theta_h, light_distance):
+    """The geometry record of exactly coaxial views at half angles theta_h (..., M) radians and flash
+    distance light_distance (...,) metres: theta_i = theta_o = theta_h, theta_d = 0. Independent of
+    the vertex's normal (a canonical frame), so virtual samples inform the lobes only."""
+    theta_h = jnp.asarray(theta_h)
+    sin, cos, zero = jnp.sin(theta_h), jnp.cos(theta_h), jnp.zeros_like(theta_h)
+    direction = jnp.stack([sin, zero, cos], -1)
+    normal = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], theta_h.dtype), direction.shape)
+    distance = jnp.broadcast_to(jnp.asarray(light_distance, theta_h.dtype)[..., None], theta_h.shape)
+    # Only the geometry record is used; the Stokes part is dead code under jit.
+    _, _, geom = lobe_stokes(normal, direction, direction, distance, jnp.broadcast_to(
+        jnp.array([0.0, 1.0, 0.0], theta_h.dtype), direction.shape), jnp.stack([-cos, zero, sin], -1),
+        jnp.ones_like(theta_h))
+    return geom
+
+
+def virtual_reflectance(theta_h, eta, rho_s, sigma_s, rho_ss, sigma_ss):
+    """Reflection lobes per unit shading at coaxial views, R+(0; eta) (rho_s kappa_s + rho_ss kappa_ss):
+    the I_s of the lobes divided by S = cos(theta_i) / d^2. theta_h (..., M) radians; eta, rho_s,
+    sigma_s, sigma_ss (...,); rho_ss (..., 3). Returns (..., M, 3)."""
+    geom = virtual_geometry(theta_h, jnp.ones(jnp.shape(theta_h)[:-1], jnp.asarray(theta_h).dtype))
+    r_plus = fresnel(jnp.ones_like(eta), eta).r_plus[..., None]
+    lobe_s = lobe_factor(geom, sigma_s[..., None]) * r_plus
+    lobe_ss = lobe_factor(geom, sigma_ss[..., None]) * r_plus
+    return lobe_s[..., None] * rho_s[..., None, None] + lobe_ss[..., None] * rho_ss[..., None, :]
+
+
+class _Virtual(NamedTuple):
+    """One vertex's virtual samples, prepared (M of them)."""
+
+    geom: object  # pbrdf geometry record, each field (M,): coaxial views at the vertex's flash distance
+    target: jnp.ndarray  # (M, 3) virtual I_s / scale
+    weight: jnp.ndarray  # (M,) lambda_g w^a
 
 
 # --- closed-form linear parameters ---------------------------------------------------------
@@ -238,27 +300,38 @@ class _Vertex(NamedTuple):
     color: jnp.ndarray  # (3,) channel weights for the mono DoP / azimuth signals (sum 1)
     scale: jnp.ndarray  # () the vertex's diffuse level (intensity units)
     prior: jnp.ndarray  # (4,) rho_s, rho_ss RGB warm start (already divided by scale)
+    virtual: _Virtual | None = None  # virtual specular samples (augmentation), or none
 
 
-def _model_terms(normal, eta, sigma_s, sigma_ss, v: _Vertex):
+def _model_terms(normal, eta, sigma_s, sigma_ss, v: _Vertex, theta_h_offset=None):
     """Per-view design terms for unit albedos, from the full model (exact frames, 3.5 deg flash offset
     included): the observations (I_d, I_alpha, I_s) of the diffuse lobe and of the reflection lobe,
-    and the two lobe factors. Each (K,)."""
+    and the two lobe factors. Each (K,). ``theta_h_offset`` (K,) radians, optional: the lobe factors
+    are evaluated at theta_h + offset (the per-sample Delta theta_h of the cluster fit, paper Eq. 25)."""
     stokes_d, stokes_r, geom = lobe_stokes(normal, v.to_light, v.to_camera, v.light_distance, v.light_axis,
                                            v.camera_up, eta)
+    if theta_h_offset is not None:
+        theta_h = jnp.arccos(jnp.clip(geom.cos_h, 0.0, 1.0))
+        geom = geom._replace(cos_h=jnp.clip(jnp.cos(theta_h + theta_h_offset), 0.0, 1.0))
     d_id, d_ia, d_is = observations_from_analyzers(stokes_to_analyzers(stokes_d), axis=-1)
     r_id, r_ia, r_is = observations_from_analyzers(stokes_to_analyzers(stokes_r), axis=-1)
     lit = geom.lit & (geom.cos_i > 1e-4) & (geom.cos_o > 1e-4)
     gamma = polar.safe_sqrt(d_ia**2 + d_is**2)
     safe_gamma = jnp.where(gamma > 0, gamma, 1)
-    return dict(
-        d_id=d_id, d_ia=d_ia, d_is=d_is, r_id=r_id, r_ia=r_ia, r_is=r_is,
-        lobe_s=lobe_factor(geom, sigma_s), lobe_ss=lobe_factor(geom, sigma_ss),
-        dop=gamma / jnp.where(lit, d_id, 1),
-        dir_a=jnp.where(gamma > 0, d_ia / safe_gamma, 0),  # unit direction of the diffuse (I_alpha, I_beta)
-        dir_b=jnp.where(gamma > 0, d_is / safe_gamma, 1),
-        lit=lit,
-    )
+    terms = {
+        "d_id": d_id, "d_ia": d_ia, "d_is": d_is, "r_id": r_id, "r_ia": r_ia, "r_is": r_is,
+        "lobe_s": lobe_factor(geom, sigma_s), "lobe_ss": lobe_factor(geom, sigma_ss),
+        "dop": gamma / jnp.where(lit, d_id, 1),
+        "dir_a": jnp.where(gamma > 0, d_ia / safe_gamma, 0),  # unit direction of the diffuse (I_alpha, I_beta)
+        "dir_b": jnp.where(gamma > 0, d_is / safe_gamma, 1),
+        "lit": lit,
+    }
+    if v.virtual is not None:
+        # Virtual I_s of unit rho_s / rho_ss: S R+(0; eta) kappa / rho at the coaxial views, (M,) each.
+        shaded = v.virtual.geom.shading * fresnel(jnp.ones_like(eta), eta).r_plus
+        terms.update(virt_s=shaded * lobe_factor(v.virtual.geom, sigma_s),
+                     virt_ss=shaded * lobe_factor(v.virtual.geom, sigma_ss))
+    return terms
 
 
 def _linear_solution(terms, v: _Vertex, settings: FitSettings):
@@ -273,11 +346,19 @@ def _linear_solution(terms, v: _Vertex, settings: FitSettings):
     norm_d = jnp.maximum(jnp.sum(w * a_d * a_d), 1e-20)
     basis_s = terms["lobe_s"] * terms["r_is"]
     basis_ss = terms["lobe_ss"] * terms["r_is"]
-    ridge = 1e-6 * jnp.maximum(jnp.sum(w * (basis_s**2 + basis_ss**2)), 1e-12)
+    w_s = w
+    if v.virtual is not None:  # the virtual samples are more rows of the specular loss (no diffuse part)
+        basis_s = jnp.concatenate([basis_s, terms["virt_s"]])
+        basis_ss = jnp.concatenate([basis_ss, terms["virt_ss"]])
+        w_s = jnp.concatenate([w, v.virtual.weight])
+    ridge = 1e-6 * jnp.maximum(jnp.sum(w_s * (basis_s**2 + basis_ss**2)), 1e-12)
     target_d = v.obs_d
     for _ in range(2):
         rho_d = jnp.maximum((w * a_d) @ target_d / norm_d, 0)
-        spec = _nnls_specular(basis_s, basis_ss, v.obs_s - rho_d[None, :] * terms["d_is"][:, None], w, v.prior, ridge)
+        target_s = v.obs_s - rho_d[None, :] * terms["d_is"][:, None]
+        if v.virtual is not None:
+            target_s = jnp.concatenate([target_s, v.virtual.target])
+        spec = _nnls_specular(basis_s, basis_ss, target_s, w_s, v.prior, ridge)
         reflect = terms["lobe_s"][:, None] * spec[0] + terms["lobe_ss"][:, None] * spec[None, 1:]
         target_d = v.obs_d - reflect * terms["r_id"][:, None]
     return rho_d, spec
@@ -309,7 +390,11 @@ def _residuals(z, v: _Vertex, frame: _Frame, settings: FitSettings):
     res_s = jnp.sqrt(settings.lambda_s) * sqrt_w[:, None] * (pred_s - v.obs_s)
     res_phi = jnp.sqrt(settings.lambda_phi) * sqrt_w[:, None] * jnp.stack(
         [i_alpha - gamma * terms["dir_a"], i_beta - gamma * terms["dir_b"]], -1)
-    return jnp.concatenate([res_psi, res_d.ravel(), res_s.ravel(), res_phi.ravel()])
+    parts = [res_psi, res_d.ravel(), res_s.ravel(), res_phi.ravel()]
+    if v.virtual is not None:  # lambda_s lambda_g sum_m w^a_m sum_c (I_s_hat - I_s_virtual)^2 (paper Eq. 24)
+        pred_virtual = terms["virt_s"][:, None] * spec[0] + terms["virt_ss"][:, None] * spec[None, 1:]
+        parts.append((jnp.sqrt(settings.lambda_s * v.virtual.weight)[:, None] * (pred_virtual - v.virtual.target)).ravel())
+    return jnp.concatenate(parts)
 
 
 def per_view_error(z, v: _Vertex, frame: _Frame, settings: FitSettings):
@@ -338,11 +423,12 @@ def _free_parameters(settings: FitSettings, lobes: bool = True) -> tuple[int, ..
 
     ``lobes=False`` holds both roughnesses: the first stage, while the normal may still be a few
     degrees off (a sharp lobe would otherwise collapse onto one bright view). A fixed sigma_ss
-    is never moved.
+    is never moved; with ``settings.fit_normal`` False the normal stays at normal0.
     """
+    normal = (0, 1) if settings.fit_normal else ()
     if not lobes:
-        return (0, 1, 2)
-    return (0, 1, 2, 3) if settings.sigma_ss_fixed is not None else (0, 1, 2, 3, 4)
+        return normal + (2,)
+    return normal + ((2, 3) if settings.sigma_ss_fixed is not None else (2, 3, 4))
 
 
 def _lm_step(z, loss, damping, v: _Vertex, frame: _Frame, settings: FitSettings, free: tuple[int, ...]):
@@ -509,8 +595,12 @@ def _masked_median(x, mask):
 
 # --- the batched fit ----------------------------------------------------------------------
 
-def _prepare(obs: Observations, keep, prior: PBRDFParams):
-    """Normalize intensities by each vertex's diffuse level and build the per-vertex records."""
+def _prepare(obs: Observations, keep, prior: PBRDFParams, virtual: VirtualSamples | None = None,
+             lambda_g: float = 0.0):
+    """Normalize intensities by each vertex's diffuse level and build the per-vertex records.
+
+    Virtual samples are placed at each vertex's median flash distance, so that they weigh like
+    its real views in the dimensionless residuals."""
     mono = jnp.mean(obs.diffuse, -1)
     scale = jnp.maximum(_masked_median(mono, keep), 1e-12)
     count = jnp.sum(keep, -1)
@@ -527,9 +617,15 @@ def _prepare(obs: Observations, keep, prior: PBRDFParams):
         light_distance=clean(obs.light_distance, 1.0), camera_up=clean(obs.camera_up, 0.0),
         light_axis=clean(obs.light_axis, 0.0), usable=keep)
     spec_prior = jnp.concatenate([prior.rho_s[:, None], prior.rho_ss], -1) / scale[:, None]
+    prepared = None
+    if virtual is not None:
+        distance = jnp.where(count > 0, _masked_median(obs.light_distance, keep), 1.0)
+        geom = virtual_geometry(virtual.theta_h.astype(scale.dtype), distance)
+        prepared = _Virtual(geom, geom.shading[..., None] * virtual.reflectance / s,
+                            (lambda_g * virtual.weight).astype(scale.dtype))
     return _Vertex(obs.diffuse / s, obs.diffuse_pol / s, obs.specular / s, obs.to_light, obs.to_camera,
                    obs.light_distance, obs.camera_up, obs.light_axis, weight.astype(obs.diffuse.dtype), color,
-                   scale, spec_prior)
+                   scale, spec_prior, prepared)
 
 
 def _robust_weights(z, v: _Vertex, frame: _Frame, settings: FitSettings):
@@ -549,8 +645,10 @@ def _finalize(z, loss, v: _Vertex, frame: _Frame, settings: FitSettings):
     normal, eta, sigma_s, sigma_ss = _decode(z, frame, settings.sigma_ss_fixed)
     terms = _model_terms(normal, eta, sigma_s, sigma_ss, v)
     rho_d, spec = _linear_solution(terms, v, settings)
+    # The uncertainties (hence the confidence) always treat the normal as unknown: holding it
+    # fixed does not make it better known.
     free = np.zeros(5)
-    free[list(_free_parameters(settings))] = 1
+    free[list(_free_parameters(dataclasses.replace(settings, fit_normal=True)))] = 1
     jac = jax.jacfwd(lambda zz: _residuals(zz, v, frame, settings))(z) * free[None, :]
     views = jnp.sum(v.weight > 0)
     dof = jnp.maximum(9 * views - int(free.sum()), 1)
@@ -582,24 +680,28 @@ def _select(obs: Observations, normal0, settings: FitSettings):
     return select_views(obs, normal0, settings)
 
 
-@jax.jit
-def _prepare_batch(obs: Observations, keep, normal0, prior: PBRDFParams):
+@partial(jax.jit, static_argnames=("lambda_g",))
+def _prepare_batch(obs: Observations, keep, normal0, prior: PBRDFParams, virtual: VirtualSamples | None = None,
+                   lambda_g: float = 0.0):
     dtype = obs.diffuse.dtype
     normal0 = polar.safe_normalize(normal0, fallback=jnp.array([0.0, 0.0, 1.0], dtype))
     t1, t2 = tangent_basis(normal0)
     z0 = _encode(prior.eta, prior.sigma_s, prior.sigma_ss, dtype)
-    return _prepare(obs, keep, prior), _Frame(normal0, t1, t2), z0
+    return _prepare(obs, keep, prior, virtual, lambda_g), _Frame(normal0, t1, t2), z0
 
 
-def _select_and_prepare(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings):
+def _select_and_prepare(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings,
+                        virtual: VirtualSamples | None = None):
     """Select each vertex's views once, move them to the front (:func:`_compact_views`) and build
     the per-vertex records. Returns (keep (N, K'), records, frames, z0) with K' <= K view slots."""
     dtype = np.asarray(obs.diffuse).dtype
     normal0 = jnp.asarray(normal0, dtype)
     keep = np.asarray(_select(Observations(*[jnp.asarray(x) for x in obs]), normal0, settings))
     obs = _compact_views(Observations(*[np.asarray(x) for x in obs]), keep)
+    if virtual is not None:
+        virtual = VirtualSamples(*[jnp.asarray(x, dtype) for x in virtual])
     records, frames, z0 = _prepare_batch(Observations(*[jnp.asarray(x) for x in obs]), jnp.asarray(obs.usable),
-                                         normal0, prior)
+                                         normal0, prior, virtual, lambda_g=float(settings.lambda_g))
     return obs.usable, records, frames, z0
 
 
@@ -624,22 +726,26 @@ def _compact_views(obs: Observations, usable: np.ndarray) -> Observations:
     return Observations(*[gather(x) for x in obs._replace(usable=usable)])
 
 
-def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings):
-    keep, records, frames, z0 = _select_and_prepare(obs, normal0, prior, settings)
+def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings,
+               virtual: VirtualSamples | None = None, valid: int | None = None):
+    """Fit one chunk; rows from ``valid`` on are padding (copies of a real row): LM skips them, and
+    the vertices with too few usable views."""
+    keep, records, frames, z0 = _select_and_prepare(obs, normal0, prior, settings, virtual)
     n = z0.shape[0]
-    everyone = np.ones(n, bool)
+    enough = np.asarray(keep).sum(1) >= settings.min_views
+    active = enough & (np.arange(n) < (n if valid is None else valid))
     z = _best_start(z0, records, frames, settings)
     # Stage 1: normal and eta with the roughnesses held; stage 2: everything.
-    z, _, it_normal = _run_lm(z, records, frames, settings, _free_parameters(settings, lobes=False), everyone,
+    z, _, it_normal = _run_lm(z, records, frames, settings, _free_parameters(settings, lobes=False), active,
                               settings.normal_stage_iterations)
     z = _best_start(jnp.asarray(z), records, frames, settings)  # lobes again, now that the normal is close
-    z, loss, it_all = _run_lm(z, records, frames, settings, _free_parameters(settings), everyone,
+    z, loss, it_all = _run_lm(z, records, frames, settings, _free_parameters(settings), active,
                               settings.max_iterations)
     iterations = it_normal + it_all
     # Robust pass: drop outlier views and continue only the vertices that had any.
     weight, changed = _robust_weights_batch(jnp.asarray(z), records, frames, settings)
     records = records._replace(weight=weight)
-    changed = np.asarray(changed)
+    changed = np.asarray(changed) & active
     if changed.any():
         z_new, loss_new, it_robust = _run_lm(z, records, frames, settings, _free_parameters(settings), changed,
                                              settings.max_iterations)
@@ -648,22 +754,28 @@ def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSett
         iterations = iterations + it_robust
     out = _finalize_batch(jnp.asarray(z), jnp.asarray(loss), records, frames, settings)
     out = {k: np.asarray(v) for k, v in out.items()}
-    out.update(loss=loss, iterations=iterations, enough=np.asarray(keep).sum(1) >= settings.min_views)
+    out.update(loss=loss, iterations=iterations, enough=enough)
     return out
 
 
-def confidence_from_uncertainty(normal_std_deg, eta_std, normal_scale_deg=3.0, eta_scale=0.03):
-    """Confidence in [0, 1] from the Gauss-Newton standard deviations of the normal (deg) and eta."""
+def confidence_from_uncertainty(normal_std_deg, eta_std, normal_scale_deg=3.0, eta_scale=0.15):
+    """Confidence in [0, 1] from the Gauss-Newton standard deviations of the normal (deg) and eta.
+
+    The scales are where each factor is exp(-1/2): 3 deg of normal, 0.15 (10 %) of eta. (0.03 left
+    nearly every vertex of the demo at 0: sparse views leave eta uncertain by 0.1-0.2, median 0.16.)"""
     return jnp.exp(-0.5 * ((normal_std_deg / normal_scale_deg) ** 2 + (eta_std / eta_scale) ** 2))
 
 
 def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings = FitSettings(),
-                 progress=None) -> FitResult:
+                 progress=None, virtual: VirtualSamples | None = None) -> FitResult:
     """Fit the pBRDF and normal of N vertices.
 
     obs: :class:`Observations` with batch (N, K). normal0: (N, 3) starting normals (e.g. the mesh
-    normals). prior: warm-start parameters (batch N): eta, sigma_s, sigma_ss start the LM; rho_s and
-    rho_ss are the ridge target of the linear solve. Returns a :class:`FitResult` of numpy arrays;
+    normals; held there when ``settings.fit_normal`` is False). prior: warm-start parameters (batch
+    N): eta, sigma_s, sigma_ss start the LM; rho_s and rho_ss are the ridge target of the linear
+    solve. virtual: optional :class:`VirtualSamples` (batch N), added to the specular loss with
+    weight ``settings.lambda_g`` (specular augmentation); None fits the real views alone.
+    Returns a :class:`FitResult` of numpy arrays;
     vertices with fewer than ``settings.min_views`` usable views keep the prior (status "too few
     views", confidence 0), non-finite fits keep the prior (status "failed", confidence 0). Never NaN.
     Vertices are processed in chunks of ``settings.chunk_size``; ``progress(done)`` is called after each.
@@ -679,7 +791,9 @@ def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSe
         index = np.minimum(np.arange(start, start + _bucket(stop - start)), stop - 1)
         index = index[:min(index.size, settings.chunk_size)]
         out = _fit_chunk(Observations(*[np.asarray(x)[index] for x in obs]), normal0[index],
-                         PBRDFParams(*[x[index] for x in prior]), settings)
+                         PBRDFParams(*[x[index] for x in prior]), settings,
+                         None if virtual is None else VirtualSamples(*[np.asarray(x)[index] for x in virtual]),
+                         valid=stop - start)
         chunks.append({k: v[:stop - start] for k, v in out.items()})
         if progress is not None:
             progress(stop)
@@ -697,10 +811,12 @@ def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSe
         sigma_ss=pick(out["sigma_ss"], prior.sigma_ss))
     confidence = np.asarray(confidence_from_uncertainty(out["normal_std_deg"], out["eta_std"]))
     confidence = np.where(ok & np.isfinite(confidence), confidence, 0.0).astype(dtype)
+    uncertain = lambda std: np.where(ok & np.isfinite(std), std, np.inf).astype(dtype)  # noqa: E731
     normal0 = np.asarray(polar.safe_normalize(jnp.asarray(normal0), fallback=jnp.array([0.0, 0.0, 1.0], dtype)))
     return FitResult(normal=pick(out["normal"], normal0), params=params, status=status.astype(np.int32),
                      confidence=confidence, loss=np.where(ok, out["loss"], 0.0).astype(dtype),
-                     views_used=out["views_used"].astype(np.int32), iterations=out["iterations"])
+                     views_used=out["views_used"].astype(np.int32), iterations=out["iterations"],
+                     normal_std_deg=uncertain(out["normal_std_deg"]), eta_std=uncertain(out["eta_std"]))
 
 
 def default_prior(n, dtype=np.float32) -> PBRDFParams:

@@ -17,7 +17,7 @@ Public API::
     surface_points(occupancy, grid, smoothing_voxels=1.0) -> (points (N, 3), normals (N, 3))
     occluding_points(points, sparse_points, sparse_views, intrinsics, rotations, translations, ...) -> (N,) bool
     estimate_normals(points, towards, neighbours=12) -> (N, 3)
-    poisson_surface(points, normals, depth=7, trim_density=..., threads=-1) -> (vertices, faces)
+    poisson_surface(points, normals, depth=7, trim_density=...) -> (vertices, faces)
     largest_component(vertices, faces) -> (vertices, faces)
     remesh_to_count(vertices, faces, target_vertices, iterations=6) -> (vertices, faces)
     depth_vertex_count(vertices_at_depth, depth, target_depth) -> int
@@ -458,7 +458,7 @@ def estimate_normals(points: np.ndarray, towards: np.ndarray, neighbours: int = 
 
 
 def poisson_surface(points: np.ndarray, normals: np.ndarray, depth: int = 7, trim_density: float = 2.0,
-                    point_weight: float = 4.0, threads: int = -1) -> tuple[np.ndarray, np.ndarray]:
+                    point_weight: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
     """Screened Poisson reconstruction (open3d, Kazhdan & Hoppe 2013) of oriented points.
 
     Vertices whose Poisson density (about log2 of the local sample support) is more than ``trim_density``
@@ -472,7 +472,7 @@ def poisson_surface(points: np.ndarray, normals: np.ndarray, depth: int = 7, tri
     cloud.normals = o3d.utility.Vector3dVector(np.asarray(normals, np.float64))
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-            cloud, depth=depth, point_weight=point_weight, n_threads=threads)
+            cloud, depth=depth, point_weight=point_weight, n_threads=1)  # more threads: not deterministic
     density = np.asarray(density)
     if trim_density is not None and len(density):
         mesh.remove_vertices_by_mask(density < np.median(density) - trim_density)
@@ -552,6 +552,34 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
                                      o3d.utility.Vector3iVector(np.asarray(faces, np.int32)))
     mesh.compute_vertex_normals()
     return np.asarray(mesh.vertex_normals, np.float64)
+
+
+
+def blend_normals(fitted: np.ndarray, geometric: np.ndarray, confidence: np.ndarray) -> np.ndarray:
+    """Unit normals (N, 3) between the ``fitted`` and the mesh's ``geometric`` normals (N, 3) by the
+    fit's ``confidence`` (N,) in [0, 1]: a confident fit moves the surface, a failed one leaves it."""
+    weight = np.clip(np.nan_to_num(confidence), 0, 1)[:, None]
+    blended = weight * fitted + (1 - weight) * geometric
+    length = np.linalg.norm(blended, axis=1, keepdims=True)
+    return np.where(length > 1e-9, blended / np.maximum(length, 1e-12), geometric)
+
+
+def remesh_from_normals(vertices: np.ndarray, fitted_normals: np.ndarray, confidence: np.ndarray,
+                        geometric_normals: np.ndarray, target_vertices: int, depth: int = 9,
+                        point_weight: float = 4.0, trim_density: float | None = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """The geometry update of one iteration (paper §4.4): screened Poisson (:func:`poisson_surface`)
+    of the vertices (N, 3) with their fitted normals blended towards the mesh's own normals by
+    confidence (:func:`blend_normals`), the largest component, remeshed isotropically to about
+    ``target_vertices`` so the fit keeps the same work per iteration. Returns vertices (V, 3) and
+    faces (F, 3)."""
+    normals = blend_normals(fitted_normals, geometric_normals, confidence)
+    new_vertices, new_faces = poisson_surface(vertices, normals, depth=depth, trim_density=trim_density,
+                                              point_weight=point_weight)
+    if len(new_faces) == 0:
+        raise ValueError(f"screened Poisson at depth {depth} of {len(vertices)} points gave no surface")
+    new_vertices, new_faces = largest_component(new_vertices, new_faces)
+    new_vertices, new_faces = remesh_to_count(new_vertices, new_faces, target_vertices)
+    return largest_component(new_vertices, new_faces)
 
 
 # --------------------------------------------------------------------------- the initial mesh
@@ -640,7 +668,7 @@ def initial_mesh(masks: np.ndarray, intrinsics: np.ndarray, rotations: np.ndarra
 
     start = time.perf_counter()
     vertices, faces = poisson_surface(points, normals, depth=options.poisson_depth,
-                                      trim_density=options.trim_density, threads=options.threads)
+                                      trim_density=options.trim_density)
     vertices, faces = largest_component(vertices, faces)
     stats["poisson_vertices"] = len(vertices)
     timings["poisson_s"] = time.perf_counter() - start

@@ -749,9 +749,10 @@ def read_ply(path: str | Path) -> tuple[dict[str, np.ndarray], np.ndarray | None
     return vertex, faces
 
 
-def write_param_mesh(path: str | Path, mesh) -> None:
+def write_param_mesh(path: str | Path, mesh, extra: Mapping[str, np.ndarray] | None = None) -> None:
     """Write a :class:`sellip.render.ParamMesh` as a model PLY (MODEL_VERTEX_PROPERTIES, float32; plus an
-    int32 ``material`` property when the mesh has region labels)."""
+    int32 ``material`` property when the mesh has region labels, and the (V,) arrays of ``extra``
+    in their own dtype, e.g. ``confidence`` float32 and ``model`` uint8)."""
     p = mesh.params
     columns = [mesh.vertices, mesh.normals, np.asarray(p.eta)[:, None], p.rho_d, np.asarray(p.rho_s)[:, None],
                np.asarray(p.sigma_s)[:, None], p.rho_ss, np.asarray(p.sigma_ss)[:, None]]
@@ -759,6 +760,11 @@ def write_param_mesh(path: str | Path, mesh) -> None:
     vertex = {name: table[:, k].astype(np.float32) for k, name in enumerate(MODEL_VERTEX_PROPERTIES)}
     if mesh.material is not None:
         vertex["material"] = np.asarray(mesh.material, np.int32)
+    for name, values in (extra or {}).items():
+        values = np.asarray(values)
+        if values.shape != (mesh.num_vertices,):
+            raise ValueError(f"{path}: extra property {name!r} has shape {values.shape}, expected ({mesh.num_vertices},)")
+        vertex[name] = values
     write_ply(path, vertex, np.asarray(mesh.faces))
 
 

@@ -4,7 +4,9 @@ A store holds, for N vertices (DESIGN §4 names, float32 unless noted), chunked 
 
     vertices (N, 3), normals (N, 3), eta (N,), rho_d (N, 3), rho_s (N,), sigma_s (N,),
     rho_ss (N, 3), sigma_ss (N,), confidence (N,), status (N,) int8, loss (N,),
-    views_used (N,) int16, iterations (N,) int16
+    views_used (N,) int16, iterations (N,) int16, normal_std_deg (N,) and eta_std (N,) (the fit's
+    Gauss-Newton standard deviations, inf where not fitted); the final store adds model (N,) uint8
+    (:data:`MODEL_NAMES`) and cluster (N,) int32
 
 ``status`` is 0 fitted, 1 too few views, 2 failed (:data:`sellip.fit.STATUS_NAMES`). Vertices
 that could not be fitted hold parameters interpolated from their fitted neighbours and
@@ -24,7 +26,11 @@ from sellip.pbrdf import PBRDFParams
 
 PARAM_FIELDS = ("eta", "rho_d", "rho_s", "sigma_s", "rho_ss", "sigma_ss")
 EXTRA_FIELDS = {"confidence": np.float32, "status": np.int8, "loss": np.float32, "views_used": np.int16,
-                "iterations": np.int16}
+                "iterations": np.int16, "model": np.uint8, "cluster": np.int32}
+
+MODEL_NAMES = {0: "diffuse", 1: "diffuse + specular", 2: "diffuse + specular + single scattering (sigma_ss fixed)",
+               3: "diffuse + specular + single scattering"}
+"""Per-vertex ``model`` codes (DESIGN §4, §7): which lobes the vertex's material uses."""
 
 
 class ParamsError(ValueError):

@@ -4,9 +4,10 @@ Public API::
 
     ParamMesh(vertices, faces, normals, params, material=None)      # per-vertex parameters (numpy)
     Camera(intrinsics, rotation, translation, width, height, distortion=None)
-    Light(position, axis, intensity=1.0)                             # world coordinates
+    Light(position, axis, intensity=1.0, stokes=(1, 1, 0, 0))        # world coordinates; Stokes in its frame
     flash_light(camera, position_cam=(0, 0.05, 0), polarizer_deg=0.0, intensity=1.0) -> Light
     Renderer(mesh).render(camera, light, supersample=2, shadows=True) -> RenderResult
+    Renderer(mesh).interpolate(camera, vertex_values, supersample=1) -> (values (H, W, C), coverage (H, W))
     render_stokes(mesh, camera, light, supersample=2, shadows=True) -> RenderResult
     pixel_rays(camera, supersample=1) -> (origin (3,), directions (H, W, s*s, 3))
 
@@ -32,13 +33,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from sellip.conventions import camera_center, camera_to_world_point, camera_up, stokes_to_analyzers
-from sellip.pbrdf import PBRDFParams, full_stokes
+from sellip.pbrdf import PBRDFParams, full_mueller, full_stokes
 
 PARAM_CHANNELS = (("eta", 1), ("rho_d", 3), ("rho_s", 1), ("sigma_s", 1), ("rho_ss", 3), ("sigma_ss", 1))
 """Packing order of the pBRDF parameters in per-vertex attribute arrays: (name, channels)."""
 
 SHADING_CHUNK = 1 << 16
 """Samples shaded per jitted call (one compiled shape for every image size)."""
+
+FLASH_STOKES = (1.0, 1.0, 0.0, 0.0)
+"""Stokes vector of a linearly polarized light in its own frame (x = its polarizer axis)."""
 
 SHADOW_EPSILON_M = 1e-4
 """Shadow rays ignore hits closer than this to the surface point or to the light (metres)."""
@@ -122,14 +126,18 @@ class Camera:
 
 @dataclass(frozen=True)
 class Light:
-    """A linearly polarized point light: position (3,) and polarizer axis (3,) in world coordinates.
+    """A point light: position (3,) and polarizer axis (3,) in world coordinates.
 
-    It emits Stokes intensity * [1, 1, 0, 0] in its own frame, x = the axis projected orthogonal to each beam.
+    It emits Stokes ``intensity * stokes`` in its own frame, x = the axis projected orthogonal to each beam.
+    The default ``stokes`` [1, 1, 0, 0] is the rig's flash, linearly polarized along the axis; any other
+    (e.g. [1, 0, 0, 0] unpolarized, [1, 0, 1, 0] at 45 degrees from the axis) is shaded through the
+    full Mueller matrices (:func:`sellip.pbrdf.full_mueller`), a few times slower.
     """
 
     position: np.ndarray
     axis: np.ndarray
     intensity: float = 1.0
+    stokes: tuple[float, float, float, float] = FLASH_STOKES
 
 
 def flash_light(camera: Camera, position_cam=(0.0, 0.05, 0.0), polarizer_deg: float = 0.0,
@@ -203,15 +211,9 @@ def pixel_rays(camera: Camera, supersample: int = 1, rows: slice | None = None) 
 # --------------------------------------------------------------------------- shading kernel
 
 
-@jax.jit
-def _shade_samples(points, prim_ids, barycentric, lit, faces, vertex_normals, vertex_params,
-                   camera_position, camera_up_axis, light_position, light_axis):
-    """Stokes (N, 4, 3) of N surface samples for a unit flash (pure kernel).
-
-    points (N, 3) hit positions; prim_ids (N,) triangle index; barycentric (N, 3); lit (N,) 1 where the
-    light reaches the point (0 in shadow or for padding); faces (F, 3); vertex_normals (V, 3);
-    vertex_params (V, 10) packed as PARAM_CHANNELS; the rest (3,) world vectors.
-    """
+def _sample_geometry(points, prim_ids, barycentric, faces, vertex_normals, vertex_params, camera_position,
+                     camera_up_axis, light_position, light_axis):
+    """The arguments of :func:`sellip.pbrdf.full_stokes` / ``full_mueller`` at N hit samples (see _shade_samples)."""
     corners = faces[prim_ids]  # (N, 3)
     normal = jnp.einsum("nk,nkc->nc", barycentric, vertex_normals[corners])
     normal = normal / jnp.linalg.norm(normal, axis=-1, keepdims=True)
@@ -222,9 +224,31 @@ def _shade_samples(points, prim_ids, barycentric, lit, faces, vertex_normals, ve
     light_distance = jnp.linalg.norm(to_light, axis=-1)
     to_light = to_light / light_distance[:, None]
     count = points.shape[0]
-    stokes = full_stokes(normal, to_light, to_camera, light_distance,
-                         jnp.broadcast_to(light_axis, (count, 3)), jnp.broadcast_to(camera_up_axis, (count, 3)),
-                         params)
+    return (normal, to_light, to_camera, light_distance, jnp.broadcast_to(light_axis, (count, 3)),
+            jnp.broadcast_to(camera_up_axis, (count, 3)), params)
+
+
+@jax.jit
+def _shade_samples(points, prim_ids, barycentric, lit, faces, vertex_normals, vertex_params,
+                   camera_position, camera_up_axis, light_position, light_axis):
+    """Stokes (N, 4, 3) of N surface samples for a unit flash (pure kernel).
+
+    points (N, 3) hit positions; prim_ids (N,) triangle index; barycentric (N, 3); lit (N,) 1 where the
+    light reaches the point (0 in shadow or for padding); faces (F, 3); vertex_normals (V, 3);
+    vertex_params (V, 10) packed as PARAM_CHANNELS; the rest (3,) world vectors.
+    """
+    stokes = full_stokes(*_sample_geometry(points, prim_ids, barycentric, faces, vertex_normals, vertex_params,
+                                           camera_position, camera_up_axis, light_position, light_axis))
+    return stokes * lit[:, None, None]
+
+
+@jax.jit
+def _shade_samples_incident(points, prim_ids, barycentric, lit, faces, vertex_normals, vertex_params,
+                            camera_position, camera_up_axis, light_position, light_axis, incident_stokes):
+    """As :func:`_shade_samples` for a light emitting ``incident_stokes`` (4,) in its frame: Mueller @ Stokes."""
+    mueller = full_mueller(*_sample_geometry(points, prim_ids, barycentric, faces, vertex_normals, vertex_params,
+                                             camera_position, camera_up_axis, light_position, light_axis))
+    stokes = jnp.einsum("ncij,j->nic", mueller, incident_stokes.astype(mueller.dtype))  # (N, 4, 3)
     return stokes * lit[:, None, None]
 
 
@@ -301,35 +325,47 @@ class Renderer:
         out = np.zeros((count, 4, 3), np.float32)
         constants = [jnp.asarray(np.asarray(v, np.float32)) for v in
                      (camera.center, camera.up, light.position, light.axis)]
+        kernel = _shade_samples
+        if not np.array_equal(np.asarray(light.stokes, np.float64), FLASH_STOKES):
+            constants.append(jnp.asarray(np.asarray(light.stokes, np.float32)))
+            kernel = _shade_samples_incident
         for start in range(0, count, SHADING_CHUNK):
             stop = min(start + SHADING_CHUNK, count)
-            stokes = _shade_samples(_padded_rows(points, start, stop, np.float32),
-                                    _padded_rows(prim_ids, start, stop, np.int32),
-                                    _padded_rows(barycentric, start, stop, np.float32),
-                                    _padded_rows(lit, start, stop, np.float32),
-                                    self._faces, self._normals, self._params, *constants)
+            stokes = kernel(_padded_rows(points, start, stop, np.float32),
+                            _padded_rows(prim_ids, start, stop, np.int32),
+                            _padded_rows(barycentric, start, stop, np.float32),
+                            _padded_rows(lit, start, stop, np.float32),
+                            self._faces, self._normals, self._params, *constants)
             out[start:stop] = np.asarray(stokes)[: stop - start]
         return out * np.float32(light.intensity)
 
-    def render(self, camera: Camera, light: Light, supersample: int = 2, shadows: bool = True) -> RenderResult:
-        """Render one view. Returns a :class:`RenderResult` (Stokes per pixel, coverage, lit fraction)."""
+    def _hits(self, camera: Camera, supersample: int):
+        """The camera rays that hit the mesh, block by block of image rows: yields (sample index (S,) into
+        the (H * W * supersample**2) samples, hit points (S, 3), triangle ids (S,), barycentrics (S, 3))."""
         h, w, n_sub = camera.height, camera.width, supersample * supersample
-        light_position = np.asarray(light.position, np.float64)
-        samples, points, prim_ids, barycentric, lit = [], [], [], [], []
         for top in range(0, h, self.rows_per_block):
             rows = slice(top, min(top + self.rows_per_block, h))
             origin, directions = pixel_rays(camera, supersample, rows)
             flat_dirs = directions.reshape(-1, 3)
             hit = self._cast(np.broadcast_to(origin, flat_dirs.shape), flat_dirs)
             index = np.flatnonzero(np.isfinite(hit["t_hit"]))
-            block_points = origin + hit["t_hit"][index, None].astype(np.float64) * flat_dirs[index]
+            points = origin + hit["t_hit"][index, None].astype(np.float64) * flat_dirs[index]
             uv = hit["primitive_uvs"][index].astype(np.float64)
-            samples.append(index + top * w * n_sub)
+            yield (index + top * w * n_sub, points, hit["primitive_ids"][index],
+                   np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=-1))
+
+    def render(self, camera: Camera, light: Light, supersample: int = 2, shadows: bool = True) -> RenderResult:
+        """Render one view. Returns a :class:`RenderResult` (Stokes per pixel, coverage, lit fraction)."""
+        h, w, n_sub = camera.height, camera.width, supersample * supersample
+        light_position = np.asarray(light.position, np.float64)
+        samples, points, prim_ids, barycentric, lit = [], [], [], [], []
+        for sample, block_points, block_prims, block_barycentric in self._hits(camera, supersample):
+            samples.append(sample)
             points.append(block_points)
-            prim_ids.append(hit["primitive_ids"][index])
-            barycentric.append(np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=-1))
+            prim_ids.append(block_prims)
+            barycentric.append(block_barycentric)
             lit.append(self._visible_from_light(block_points, light_position) if shadows
-                       else np.ones(index.size, bool))
+                       else np.ones(sample.size, bool))
         lit = np.concatenate(lit)
         sample_stokes = self._shade(np.concatenate(points), np.concatenate(prim_ids), np.concatenate(barycentric),
                                     lit, camera, light)
@@ -344,6 +380,27 @@ class Renderer:
         lit_fraction = np.bincount(pixel, weights=lit, minlength=h * w) / n_sub
         return RenderResult(stokes=stokes.reshape(h, w, 4, 3), coverage=coverage.reshape(h, w).astype(np.float32),
                             lit=lit_fraction.reshape(h, w).astype(np.float32))
+
+    def interpolate(self, camera: Camera, vertex_values: np.ndarray, supersample: int = 1
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """Per-vertex values seen through each pixel, interpolated with the hits' barycentric coordinates.
+
+        vertex_values: (V, C). Returns (values (H, W, C) float32: the mean over the pixel's samples that hit
+        the mesh, 0 where none does; coverage (H, W) float32: the fraction of samples that hit).
+        """
+        values = np.asarray(vertex_values, np.float64).reshape(self.mesh.num_vertices, -1)
+        faces = np.asarray(self.mesh.faces)
+        h, w, n_sub = camera.height, camera.width, supersample * supersample
+        sums = np.zeros((h * w, values.shape[1]))
+        hits = np.zeros(h * w)
+        for sample_index, _, prim_ids, barycentric in self._hits(camera, supersample):
+            sample = np.einsum("nk,nkc->nc", barycentric, values[faces[prim_ids]])
+            pixel = sample_index // n_sub
+            for column in range(values.shape[1]):
+                sums[:, column] += np.bincount(pixel, weights=sample[:, column], minlength=h * w)
+            hits += np.bincount(pixel, minlength=h * w)
+        mean = sums / np.maximum(hits, 1)[:, None]
+        return (mean.reshape(h, w, -1).astype(np.float32), (hits / n_sub).reshape(h, w).astype(np.float32))
 
 
 def render_stokes(mesh: ParamMesh, camera: Camera, light: Light, supersample: int = 2,

@@ -1,11 +1,34 @@
 # Config validation, wildcard constraints and the input functions every rule family shares.
+import os
 import shlex
 import shutil
 import sys
 from pathlib import Path
 
+import yaml
+
+from snakemake.settings.types import DeploymentMethod
 from snakemake.utils import validate
 
+
+def _unless_set(current, defaults, overrides):
+    """``current`` with ``overrides`` applied wherever its value is still the default of
+    config/config.yaml (nested dicts key by key): the user's own settings always win."""
+    merged = dict(current)
+    for key, value in overrides.items():
+        if isinstance(value, dict) and isinstance(current.get(key), dict):
+            merged[key] = _unless_set(current[key], (defaults or {}).get(key) or {}, value)
+        elif current.get(key) == (defaults or {}).get(key):
+            merged[key] = value
+    return merged
+
+
+# The built-in demo (no `capture` given) runs with config `demo.overrides` in place of the defaults:
+# a laptop-sized model of a small, low-resolution capture; a user's capture gets the defaults.
+if not config["capture"]:
+    with open(Path(workflow.basedir) / "config" / "config.yaml") as defaults_file:
+        _defaults = yaml.safe_load(defaults_file)
+    config.update(_unless_set(config, _defaults, config["demo"].get("overrides") or {}))
 
 validate(config, "../../config/config.schema.yaml")
 
@@ -14,6 +37,11 @@ wildcard_constraints:
     name=r"[A-Za-z0-9_.-]+",
     scene=r"[A-Za-z0-9_]+",
     it=r"\d+",
+    pass_="fit|refit",
+
+
+ITERATIONS = int(config["iterations"])
+"""Outer iterations (observe -> fit -> augment -> remesh); pass ITERATIONS is the final refit."""
 
 
 DEMO_CAPTURE = f"captures/{config['demo']['scene']}"
@@ -31,24 +59,61 @@ def capture_file(name):
 
 RESULTS = f"results/{config['name']}"
 
-# The command every rule runs: `sellip` when it is on PATH (an activated venv, or a conda env
-# made with --sdm conda), else the sellip of the Python that runs Snakemake (.venv/bin/snakemake).
-SELLIP = "sellip" if shutil.which("sellip") else f"{shlex.quote(sys.executable)} -m sellip.cli"
+# The command every rule runs: `sellip` from the rule's conda env with --sdm conda, or when it is
+# on PATH (an activated venv); else the sellip of the Python that runs Snakemake (.venv/bin/snakemake).
+_CONDA = DeploymentMethod.CONDA in workflow.deployment_settings.deployment_method
+SELLIP = "sellip" if _CONDA or shutil.which("sellip") else f"{shlex.quote(sys.executable)} -m sellip.cli"
+
+# The env files (envs/*.yaml) install sellip from ${SELLIP_ROOT}: this checkout.
+os.environ.setdefault("SELLIP_ROOT", str(Path(workflow.basedir).resolve()))
+
+
+def at_iteration(value, it):
+    """A config value for iteration `it`: a list gives one value per iteration (its last value repeats)."""
+    if isinstance(value, list):
+        return value[min(int(it), len(value) - 1)]
+    return value
+
+
+def augmented(it):
+    """Whether iteration `it` refits with specular augmentation (config `augment.enabled`)."""
+    return bool(at_iteration(config["augment"]["enabled"], it))
+
+
+def params_of(it):
+    """The parameter store that iteration `it` ends with: the refit when augmented, else the first fit."""
+    return f"{RESULTS}/iter/{it}/{'refit' if augmented(it) else 'fit'}.zarr"
+
+
+def mesh_of(it):
+    """The mesh of iteration `it`: the initial mesh at 0, else the Poisson mesh of iteration it-1."""
+    return f"{RESULTS}/mesh/init.ply" if int(it) == 0 else f"{RESULTS}/iter/{int(it) - 1}/mesh.ply"
 
 
 def get_mesh(wildcards):
-    """The mesh of iteration `it`: the initial mesh at 0, else the Poisson mesh of iteration it-1."""
-    it = int(wildcards.it)
-    return f"{RESULTS}/mesh/init.ply" if it == 0 else f"{RESULTS}/iter/{it - 1}/mesh.ply"
+    return mesh_of(wildcards.it)
 
 
-def get_prior(wildcards):
-    """The previous iteration's parameters (warm start), or nothing at iteration 0."""
+def get_params(wildcards):
+    """The parameters iteration `it` ends with (input of its geometry update)."""
+    return params_of(int(wildcards.it))
+
+
+def get_fit_prior(wildcards):
+    """Warm start of a fit pass: the first pass starts from iteration it-1 (nothing at 0), the
+    refit from this iteration's first pass."""
     it = int(wildcards.it)
-    return [] if it == 0 else [f"{RESULTS}/iter/{it - 1}/params.zarr"]
+    if wildcards.pass_ == "refit":
+        return [f"{RESULTS}/iter/{it}/fit.zarr"]
+    return [] if it == 0 else [params_of(it - 1)]
+
+
+def get_lobes(wildcards):
+    """The cluster lobes a refit adds virtual samples from (nothing for the first pass)."""
+    return [f"{RESULTS}/iter/{wildcards.it}/clusters"] if wildcards.pass_ == "refit" else []
 
 
 def get_final_outputs():
-    """What `rule all` builds: every stage that exists so far, on the configured capture."""
-    return [capture_file("capture.yaml"), f"{RESULTS}/hdr.zarr", f"{RESULTS}/previews",
-            f"{RESULTS}/cameras.csv", f"{RESULTS}/mesh/init.ply", f"{RESULTS}/iter/0/params.zarr"]
+    """What `rule all` builds: the reconstructed model, its renders and its metrics."""
+    return [f"{RESULTS}/previews", f"{RESULTS}/final/model.ply", f"{RESULTS}/final/params.zarr",
+            f"{RESULTS}/final/renders", f"{RESULTS}/metrics.json"]

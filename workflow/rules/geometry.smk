@@ -26,7 +26,7 @@ rule run_sfm:
         seed=config["seed"],
     threads: config["sfm"]["threads"]
     conda:
-        "../../envs/sellip.yaml"
+        "../../envs/geometry.yaml"
     log:
         f"{RESULTS}/logs/run_sfm.log",
     benchmark:
@@ -59,7 +59,7 @@ rule init_mesh:
         mask_threshold=config["sfm"]["mask_threshold"],
     threads: config["init"]["threads"]
     conda:
-        "../../envs/sellip.yaml"
+        "../../envs/geometry.yaml"
     log:
         f"{RESULTS}/logs/init_mesh.log",
     benchmark:
@@ -70,3 +70,28 @@ rule init_mesh:
         " --min-inside-fraction {params.min_inside_fraction} --poisson-depth {params.poisson_depth}"
         " --target-depth {params.target_depth} --max-vertices {params.max_vertices}"
         " --mask-threshold {params.mask_threshold} --threads {threads} > {log} 2>&1"
+
+
+rule remesh_poisson:
+    input:
+        params=get_params,
+        mesh=get_mesh,
+        reference=f"{RESULTS}/mesh/init.ply",
+    output:
+        f"{RESULTS}/iter/{{it}}/mesh.ply",
+    params:
+        depth=lambda wildcards: at_iteration(config["remesh"]["depth"], wildcards.it),
+        point_weight=lambda wildcards: at_iteration(config["remesh"]["point_weight"], wildcards.it),
+        trim_density=config["remesh"]["trim_density"],
+        target=lambda wildcards, input: (f"--target-vertices {config['remesh']['target_vertices']}"
+                                         if config["remesh"]["target_vertices"] else f"--reference-mesh {input.reference}"),
+    conda:
+        "../../envs/geometry.yaml"
+    log:
+        f"{RESULTS}/logs/remesh_poisson/{{it}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/remesh_poisson/{{it}}.tsv"
+    shell:
+        SELLIP + " remesh --params {input.params} --mesh {input.mesh} --output {output} --depth {params.depth}"
+        " --point-weight {params.point_weight} --trim-density {params.trim_density} {params.target}"
+        " > {log} 2>&1"

@@ -14,7 +14,7 @@ rule linearize_frames:
         black_level_from=config["ingest"]["black_level_from"],
     threads: config["ingest"]["threads"]
     conda:
-        "../../envs/sellip.yaml"
+        "../../envs/ingest.yaml"
     log:
         f"{RESULTS}/logs/linearize_frames.log",
     benchmark:
@@ -31,7 +31,7 @@ rule merge_hdr:
         directory(f"{RESULTS}/hdr.zarr"),
     threads: config["ingest"]["threads"]
     conda:
-        "../../envs/sellip.yaml"
+        "../../envs/ingest.yaml"
     log:
         f"{RESULTS}/logs/merge_hdr.log",
     benchmark:
@@ -53,7 +53,7 @@ rule plot_hdr_previews:
             labels={"view": "{view}", "image": "{kind}"},
         ),
     conda:
-        "../../envs/sellip.yaml"
+        "../../envs/ingest.yaml"
     log:
         f"{RESULTS}/logs/plot_hdr_previews.log",
     benchmark:

@@ -22,9 +22,10 @@ rule gather_observations:
         shadow_offset=config["observe"]["shadow_offset"],
         min_cos=config["observe"]["min_cos"],
         missing_poses=config["observe"]["missing_poses"],
+        held_out=" ".join(config["evaluate"]["held_out_views"]),
     threads: config["observe"]["threads"]
     conda:
-        "../../envs/sellip.yaml"
+        "../../envs/geometry.yaml"
     log:
         f"{RESULTS}/logs/gather_observations/{{it}}.log",
     benchmark:
@@ -34,4 +35,5 @@ rule gather_observations:
         " --capture {params.capture} --output {output} --vertex-chunk {params.vertex_chunk}"
         " --view-chunk {params.view_chunk} --occlusion-tolerance {params.occlusion_tolerance}"
         " --shadow-offset {params.shadow_offset} --min-cos {params.min_cos}"
-        " --missing-poses {params.missing_poses} --threads {threads} > {log} 2>&1"
+        " --missing-poses {params.missing_poses} --exclude-views {params.held_out}"
+        " --threads {threads} > {log} 2>&1"

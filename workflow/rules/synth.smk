@@ -12,6 +12,8 @@ rule synth_capture:
         width=config["demo"]["width"],
         height=config["demo"]["height"],
         seed=config["demo"]["seed"],
+    conda:
+        "../../envs/ingest.yaml"
     log:
         "results/logs/synth_capture/{scene}.log",
     benchmark:

@@ -4,6 +4,7 @@
                --output results/NAME/iter/0/fit/2-of-4.npz
                [--prior results/NAME/iter/-1/params.zarr] [--dtype float32]
                [--set lambda_d=100 --set sigma_ss_fixed=0.9 ...] [--compilation-cache DIR]
+               [--lobes results/NAME/iter/0/clusters]
 
 The shard's vertex range is derived at run time from the store's vertex count and chunking
 (shard i of n takes an equal share of whole vertex chunks, so it reads only its own chunks).
@@ -11,6 +12,12 @@ With ``--prior`` (the previous iteration's params.zarr) every parameter is warm-
 the nearest previous vertex (DESIGN §7); without it the fit starts from eta = 1.5 and the
 defaults of :func:`sellip.fit.default_prior`. The starting normals are the mesh normals.
 ``--set`` overrides a field of :class:`sellip.fit.FitSettings`.
+
+With ``--lobes`` (the output of ``sellip cluster-lobes``: labels.npy, lobes.csv) this is the
+augmented refit (docs/augment.md): every vertex gets the virtual specular samples of its
+cluster's lobe. The prior is then the same iteration's first-pass params store (same vertices):
+the fit starts from its normals as well as its parameters (and holds them with
+``--set fit_normal=false``).
 """
 
 from __future__ import annotations
@@ -57,6 +64,10 @@ def settings_from_pairs(pairs: list[str]):
             raise ValueError(f"--set expects KEY=VALUE with KEY one of {sorted(fields)}, got {pair!r}")
         if text.lower() in ("null", "none", ""):
             values[key] = None
+        elif fields[key].type in ("bool", bool):
+            if text.lower() not in ("true", "false", "1", "0"):
+                raise ValueError(f"--set {key} expects true or false, got {text!r}")
+            values[key] = text.lower() in ("true", "1")
         else:
             kind = int if fields[key].type in ("int", int) else float
             values[key] = kind(text)
@@ -75,8 +86,10 @@ def enable_compilation_cache(directory: str | Path | None) -> None:
 
 
 def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: Path | None = None,
-              dtype: str = "float32", settings=None, compilation_cache: str | None = None) -> dict:
-    """Fit one shard and write ``output`` (.npz, atomically). Returns a summary dict."""
+              dtype: str = "float32", settings=None, compilation_cache: str | None = None,
+              lobes: Path | None = None) -> dict:
+    """Fit one shard and write ``output`` (.npz, atomically); with ``lobes`` the augmented refit.
+    Returns a summary dict."""
     import jax
 
     if dtype == "float64":
@@ -97,24 +110,44 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
     obs = type(data.observations)(*[np.asarray(x, float_type) if np.asarray(x).dtype.kind == "f" else np.asarray(x)
                                     for x in data.observations])
     n = stop - start
+    normal0 = data.normals.astype(float_type)
+    virtual = None
+    if lobes is not None:
+        from sellip.augment import virtual_samples
+        from sellip.stages.cluster_lobes import read_lobes
+
+        labels, cluster_lobes = read_lobes(lobes)
+        if len(labels) != total:
+            raise ValueError(f"{lobes}/labels.npy: {len(labels)} labels for the {total} vertices of {observations}")
+        virtual = virtual_samples(labels[start:stop], cluster_lobes, settings, float_type)
+        log.info("augmented refit: %d cluster lobes, %d virtual samples per vertex, lambda_g %g",
+                 len(cluster_lobes), settings.virtual_count, settings.lambda_g)
     if prior is not None:
         previous = read_params(prior)
         nearest = transfer_nearest(previous["vertices"], data.vertices)
         start_params = params_from({k: previous[k][nearest] for k in ("eta", "rho_d", "rho_s", "sigma_s", "rho_ss",
                                                                       "sigma_ss")}, float_type)
         log.info("warm start from %s (nearest of %d vertices)", prior, len(previous["vertices"]))
+        same_mesh = len(previous["vertices"]) == total and np.allclose(previous["vertices"][start:stop],
+                                                                       data.vertices, atol=1e-6)
+        if lobes is not None and same_mesh:
+            normal0 = previous["normals"][start:stop].astype(float_type)
+            log.info("refit: starting normals from %s", prior)
+        elif lobes is not None:
+            log.warning("refit: %s is not on this mesh; starting normals are the mesh normals", prior)
     else:
         start_params = default_prior(n, float_type)
     began = time.perf_counter()
     if n:
-        result = fit_vertices(obs, data.normals.astype(float_type), start_params, settings,
+        result = fit_vertices(obs, normal0, start_params, settings,
                               progress=lambda done: log.info("fitted %d / %d vertices (%.0f s)", done, n,
-                                                             time.perf_counter() - began))
+                                                             time.perf_counter() - began), virtual=virtual)
     seconds = time.perf_counter() - began
     arrays = {"start": np.asarray(start), "stop": np.asarray(stop)}
     if n:
         arrays.update(normal=result.normal, status=result.status, confidence=result.confidence, loss=result.loss,
                       views_used=result.views_used, iterations=result.iterations,
+                      normal_std_deg=result.normal_std_deg, eta_std=result.eta_std,
                       **{name: getattr(result.params, name) for name in result.params._fields})
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
@@ -138,6 +171,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a FitSettings field (repeatable)")
     parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
+    parser.add_argument("--lobes", type=Path, default=None,
+                        help="cluster-lobes output directory: the augmented refit (virtual specular samples)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -146,7 +181,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         settings = settings_from_pairs(args.overrides)
         run_stage(args.observations, args.shard, args.output, args.prior, args.dtype, settings,
-                  args.compilation_cache)
+                  args.compilation_cache, args.lobes)
     except (ObserveError, ValueError) as error:
         log.error("%s", error)
         return 1

@@ -41,7 +41,8 @@ def run_stage(observations: Path, shards: list[Path], output: Path) -> dict:
     if covered != total:
         raise ParamsError(f"{observations}: the shards cover [0, {covered}) of {total} vertices")
     parts = [p for p in parts if int(p["stop"]) > int(p["start"])]
-    names = ("normal", "status", "confidence", "loss", "views_used", "iterations", *PARAM_FIELDS)
+    names = ("normal", "status", "confidence", "loss", "views_used", "iterations", "normal_std_deg", "eta_std",
+             *PARAM_FIELDS)
     arrays = {name: np.concatenate([p[name] for p in parts]) for name in names}
     vertices = np.asarray(group["vertices"][:])
     fitted = arrays["status"] == STATUS_FITTED

@@ -5,6 +5,7 @@
                    --output results/NAME/iter/0/observations.zarr
                    [--vertex-chunk 4096] [--view-chunk 8] [--occlusion-tolerance 1e-3]
                    [--shadow-offset 0.5] [--min-cos 0] [--missing-poses skip|error] [--threads 2]
+                   [--exclude-views v003 v017]
 
 Views: those of hdr.zarr that have a pose in cameras.csv, in hdr.zarr's order. SfM leaves
 unregistered views out of cameras.csv; ``--missing-poses skip`` (default) leaves them out here
@@ -89,8 +90,12 @@ def _check_scale(mesh_vertices: np.ndarray, centers: np.ndarray, distance_m: flo
 
 
 def run_stage(mesh_path: str | Path, cameras_path: str | Path, hdr_path: str | Path, capture_path: str | Path,
-              output: str | Path, settings: ObserveSettings = ObserveSettings(), missing_poses: str = "skip") -> dict:
-    """Write the observation store ``output`` (see the module docstring); returns a summary."""
+              output: str | Path, settings: ObserveSettings = ObserveSettings(), missing_poses: str = "skip",
+              exclude_views: tuple[str, ...] = ()) -> dict:
+    """Write the observation store ``output`` (see the module docstring); returns a summary.
+
+    ``exclude_views``: views left out of the store (held out for evaluation, never used in the fit).
+    """
     from sellip.stages.linearize import atomic_directory, progress_logger
     from sellip.stages.merge_hdr import read_hdr
     from sellip.stages.sfm import read_cameras
@@ -110,6 +115,14 @@ def run_stage(mesh_path: str | Path, cameras_path: str | Path, hdr_path: str | P
         raise ObserveError(hdr_path, f"attrs intrinsics size {hdr.intrinsics.get('width')}x"
                                      f"{hdr.intrinsics.get('height')} differs from the images, {width}x{height}")
     pairs = pair_views(hdr.view_ids, camera_view_ids, hdr_path, cameras_path, missing_poses)
+    unknown = sorted(set(exclude_views) - set(hdr.view_ids))
+    if unknown:
+        raise ObserveError(hdr_path, f"held-out view(s) {unknown[:10]} are not views of this store")
+    pairs = [(index, row) for index, row in pairs if hdr.view_ids[index] not in set(exclude_views)]
+    if not pairs:
+        raise ObserveError(cameras_path, "every view is held out: nothing left to observe")
+    if exclude_views:
+        log.info("held out (never observed, never fitted): %s", ", ".join(sorted(exclude_views)))
     cameras = [hdr_camera(hdr.intrinsics, rotations[row], translations[row], hdr_path) for _, row in pairs]
     flashes = [flash_light(c, light["position_m"], light["polarizer_deg"]) for c in cameras]
     _check_scale(mesh.vertices, np.stack([c.center for c in cameras]), float(capture.config["scene"]["distance_m"]),
@@ -178,6 +191,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--missing-poses", choices=MISSING_POSES, default="skip",
                         help="HDR views without a pose in cameras.csv: leave them out, or stop")
     parser.add_argument("--threads", type=int, default=0, help="ray-casting threads (0: all cores)")
+    parser.add_argument("--exclude-views", nargs="*", default=[], metavar="VIEW",
+                        help="views held out for evaluation: left out of the store")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -191,7 +206,7 @@ def main(args: argparse.Namespace) -> int:
         return 1
     try:
         run_stage(args.mesh, args.cameras, args.hdr, args.capture, args.output, settings,
-                  missing_poses=args.missing_poses)
+                  missing_poses=args.missing_poses, exclude_views=tuple(args.exclude_views))
     except (ObserveError, CaptureError) as exc:
         log.error("%s", exc)
         return 1

@@ -1,0 +1,441 @@
+"""Specular augmentation (paper §4.3 "Specular and single scattering loss", Eqs. 24-25; DESIGN §5, §7).
+
+A vertex rarely sees its own highlight in a sparse capture, so its lobe is under-determined.
+Three pure steps (no I/O; the stage is :mod:`sellip.stages.cluster_lobes`):
+
+1. :func:`cluster_materials`: K-means on the feature (eta, rho_d RGB) of the confidently fitted
+   vertices, K chosen from the data by BIC (rule in :func:`choose_k`); clusters too small to fit
+   are merged away; every vertex gets the label of its nearest centre.
+2. :func:`fit_cluster_lobe`: per cluster, eta, sigma_s, sigma_ss, rho_s, rho_ss fitted to the
+   pooled real observations of its vertices with a per-sample half-angle error Delta theta_h
+   and the regularizer L_theta = lambda_theta Delta theta_h^2 (paper Eq. 25).
+3. :func:`virtual_samples`: per vertex, M specular observations at theta_h = 0, step, ... rendered
+   from its cluster's lobe, weighted by normalized cos theta_h; the fit adds them to its specular
+   loss with weight ``FitSettings.lambda_g`` (:func:`sellip.fit.fit_vertices` ``virtual=``).
+
+Features (:func:`cluster_features`): rho_d chromaticity (r, g of rho_d / sum rho_d) over 0.02,
+log mean rho_d over 0.2, eta over 0.05: one unit is about a just-distinguishable material
+difference in each, so the Euclidean K-means treats them alike.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sellip import fit
+from sellip.fit import FitSettings, Observations, VirtualSamples
+
+log = logging.getLogger(__name__)
+
+CHROMA_SCALE = 0.02
+LOG_BRIGHTNESS_SCALE = 0.2
+ETA_SCALE = 0.05
+VARIANCE_FLOOR = 0.5**2  # per-dimension variance floor of the BIC Gaussians (feature units): spreads below half a unit are not structure
+
+
+@dataclass(frozen=True)
+class AugmentSettings:
+    """Settings of the clustering and of the per-cluster lobe fit."""
+
+    k_max: int = 8  # K is chosen in 1..k_max
+    min_cluster_vertices: int = 50  # smaller clusters are merged into their nearest neighbour
+    min_confidence: float = 0.1  # vertices clustered and pooled: status fitted and confidence >= this
+    cluster_points: int = 20000  # at most this many vertices (seeded subsample) choose K and the centres
+    restarts: int = 4  # K-means++ restarts per K (the lowest inertia wins)
+    max_samples: int = 16384  # (vertex, view) samples per cluster lobe fit (seeded subsample)
+    lambda_theta: float = 1.0  # weight of L_theta = Delta theta_h^2 (radians): 1 deg costs a 1.7 % I_s error
+    max_theta_error_deg: float = 5.0  # |Delta theta_h| bound
+    alternations: int = 4  # (lobe parameters, Delta theta_h) alternations
+
+
+class Clustering(NamedTuple):
+    """labels (N,) int32 in 0..K-1 for every vertex; centres (K, 4) feature units; bic {K: value};
+    merges: one dict per merged cluster (vertices, into, reason); used (N,) bool, the vertices clustered."""
+
+    labels: np.ndarray
+    centres: np.ndarray
+    bic: dict
+    merges: list
+    used: np.ndarray
+
+
+class ClusterLobe(NamedTuple):
+    """One cluster's lobe: eta, sigma_s, sigma_ss, rho_s (floats), rho_ss (3,), samples (count), loss;
+    theta_h_deg (J,) and value (J,) the samples of the plot (paper Fig. 7b): half angle with its fitted
+    Delta theta_h, and the mono lobe value per unit shading, comparable to :func:`lobe_curve`."""
+
+    eta: float
+    sigma_s: float
+    sigma_ss: float
+    rho_s: float
+    rho_ss: np.ndarray
+    samples: int
+    loss: float
+    theta_h_deg: np.ndarray
+    value: np.ndarray
+
+
+# --- clustering --------------------------------------------------------------------------------
+
+def cluster_features(eta, rho_d) -> np.ndarray:
+    """Feature (N, 4) of N vertices from eta (N,) and rho_d (N, 3): chromaticity (2), log brightness, eta."""
+    rho_d = np.maximum(np.asarray(rho_d, np.float64), 1e-6)
+    total = rho_d.sum(-1)
+    chroma = rho_d[:, :2] / total[:, None]
+    return np.column_stack([chroma / CHROMA_SCALE, np.log(total / 3) / LOG_BRIGHTNESS_SCALE,
+                            np.asarray(eta, np.float64) / ETA_SCALE])
+
+
+def _squared_distances(x, centres):
+    return np.maximum(np.sum(x * x, 1)[:, None] - 2 * x @ centres.T + np.sum(centres * centres, 1)[None], 0)
+
+
+def kmeans(x: np.ndarray, k: int, rng: np.random.Generator, restarts: int = 4, iterations: int = 100):
+    """K-means++ seeding and Lloyd iterations, ``restarts`` times; the lowest inertia wins.
+
+    x (n, d); returns (centres (k, d), labels (n,), inertia). Deterministic for a given ``rng`` state.
+    """
+    n = len(x)
+    best = None
+    for _ in range(restarts):
+        centres = [x[rng.integers(n)]]
+        d2 = _squared_distances(x, np.asarray(centres))[:, 0]
+        for _ in range(1, k):
+            total = d2.sum()
+            index = rng.choice(n, p=d2 / total) if total > 0 else rng.integers(n)
+            centres.append(x[index])
+            d2 = np.minimum(d2, _squared_distances(x, x[index][None])[:, 0])
+        centres = np.asarray(centres)
+        for _ in range(iterations):
+            labels = np.argmin(_squared_distances(x, centres), 1)
+            counts = np.bincount(labels, minlength=k)
+            sums = np.zeros_like(centres)
+            np.add.at(sums, labels, x)
+            new = np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None], centres)
+            if np.allclose(new, centres, rtol=0, atol=1e-10):
+                break
+            centres = new
+        d2 = _squared_distances(x, centres)
+        labels = np.argmin(d2, 1)
+        inertia = float(np.take_along_axis(d2, labels[:, None], 1).sum())
+        if best is None or inertia < best[2]:
+            best = (centres, labels, inertia)
+    return best
+
+
+def bic(x: np.ndarray, labels: np.ndarray, k: int) -> float:
+    """Bayesian information criterion of a partition of x (n, d) into k clusters (lower is better).
+
+    Each cluster is a Gaussian with its own diagonal covariance (variances floored at
+    :data:`VARIANCE_FLOOR`) and a mixing weight: 2 d k + k - 1 parameters.
+    """
+    n, d = x.shape
+    log_likelihood = 0.0
+    for j in range(k):
+        members = x[labels == j]
+        if len(members) == 0:
+            continue
+        variance = np.maximum(members.var(0), VARIANCE_FLOOR)
+        log_likelihood += (len(members) * np.log(len(members) / n)
+                           - 0.5 * len(members) * np.sum(np.log(2 * np.pi * variance)) - 0.5 * len(members) * d)
+    return float(-2 * log_likelihood + (2 * d * k + k - 1) * np.log(n))
+
+
+def choose_k(x: np.ndarray, k_max: int, rng: np.random.Generator, restarts: int = 4):
+    """K-means for K = 1..k_max (at most one cluster per 2 points); K with the lowest BIC.
+
+    Returns (K, centres (K, d), bic {K: value}).
+    """
+    results, values = {}, {}
+    for k in range(1, max(1, min(k_max, len(x) // 2)) + 1):
+        centres, labels, _ = kmeans(x, k, rng, restarts)
+        results[k] = centres
+        values[k] = bic(x, labels, k)
+    k = min(values, key=values.get)
+    return k, results[k], values
+
+
+def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings = AugmentSettings(),
+                      seed: int = 0) -> Clustering:
+    """Material clusters of N vertices from their fitted eta (N,), rho_d (N, 3), status (N,) and confidence (N,).
+
+    The vertices with status fitted and confidence >= ``min_confidence`` (a seeded subsample of at
+    most ``cluster_points``) choose K (:func:`choose_k`) and the centres. A cluster with fewer than
+    ``min_cluster_vertices`` of them is merged into the nearest other centre (logged), smallest first.
+    Every vertex, also unfitted ones, is labelled with its nearest centre; labels are ordered by
+    cluster size (0 the largest).
+    """
+    rng = np.random.default_rng(seed)
+    features = cluster_features(eta, rho_d)
+    used = (np.asarray(status) == fit.STATUS_FITTED) & (np.asarray(confidence) >= settings.min_confidence)
+    used &= np.all(np.isfinite(features), 1)
+    if not used.any():
+        raise ValueError("no vertex is fitted with confidence >= "
+                         f"{settings.min_confidence}: nothing to cluster")
+    pool = np.flatnonzero(used)
+    if pool.size > settings.cluster_points:
+        pool = np.sort(rng.choice(pool, settings.cluster_points, replace=False))
+    _, centres, values = choose_k(features[pool], settings.k_max, rng, settings.restarts)
+    merges = []
+    while len(centres) > 1:
+        labels = np.argmin(_squared_distances(features[pool], centres), 1)
+        counts = np.bincount(labels, minlength=len(centres))
+        small = int(np.argmin(counts))
+        if counts[small] >= settings.min_cluster_vertices:
+            break
+        others = np.delete(np.arange(len(centres)), small)
+        into = int(others[np.argmin(_squared_distances(centres[small][None], centres[others])[0])])
+        merges.append({"cluster": small, "vertices": int(counts[small]), "into": into,
+                       "reason": f"{int(counts[small])} confident vertices < min_cluster_vertices "
+                                 f"{settings.min_cluster_vertices}"})
+        log.info("cluster %d (%d confident vertices) merged into cluster %d: fewer than %d", small,
+                 counts[small], into, settings.min_cluster_vertices)
+        members = (labels == small) | (labels == into)
+        centres[into] = features[pool][members].mean(0)
+        centres = centres[others]
+    counts = np.bincount(np.argmin(_squared_distances(features[pool], centres), 1), minlength=len(centres))
+    order = np.argsort(-counts, kind="stable")
+    centres = centres[order]
+    labels = np.argmin(_squared_distances(features, centres), 1).astype(np.int32)
+    return Clustering(labels=labels, centres=centres, bic=values, merges=merges, used=used)
+
+
+# --- per-cluster lobe ----------------------------------------------------------------------------
+
+class _Samples(NamedTuple):
+    """Pooled (vertex, view) samples of one cluster as a one-vertex fit record (J slots) plus what the
+    cluster fit adds: normal (J, 3) and rho_d (J, 3) / scale of each sample's vertex."""
+
+    record: fit._Vertex
+    normal: jnp.ndarray
+    rho_d: jnp.ndarray
+
+
+def _cluster_residuals(z, delta, spec, samples: _Samples, settings: FitSettings, lambda_theta):
+    """Residual matrix (J, 5) of the cluster fit: DoP, specular RGB, Delta theta_h (paper Eq. 25).
+
+    z (5,) as :func:`sellip.fit._decode` (the normal entries unused); delta (J,) radians; spec (4,)
+    rho_s, rho_ss RGB, or None to solve them (exact NNLS, variable projection). Returns (res, spec).
+    """
+    v = samples.record
+    frame = fit._Frame(*(jnp.array([0.0, 0.0, 1.0], z.dtype),) * 3)
+    _, eta, sigma_s, sigma_ss = fit._decode(z, frame, settings.sigma_ss_fixed)
+    terms = fit._model_terms(samples.normal, eta, sigma_s, sigma_ss, v, theta_h_offset=delta)
+    w = v.weight * terms["lit"]
+    diffuse_s = samples.rho_d * terms["d_is"][:, None]
+    if spec is None:
+        basis_s, basis_ss = terms["lobe_s"] * terms["r_is"], terms["lobe_ss"] * terms["r_is"]
+        ridge = 1e-6 * jnp.maximum(jnp.sum(w * (basis_s**2 + basis_ss**2)), 1e-12)
+        spec = fit._nnls_specular(basis_s, basis_ss, v.obs_s - diffuse_s, w, v.prior, ridge)
+    reflect = terms["lobe_s"][:, None] * spec[0] + terms["lobe_ss"][:, None] * spec[None, 1:]
+    i_d = (v.obs_d - reflect * terms["r_id"][:, None]) @ v.color
+    i_alpha = (v.obs_a - reflect * terms["r_ia"][:, None]) @ v.color
+    i_beta = (v.obs_s - reflect * terms["r_is"][:, None]) @ v.color
+    dop_measured = jnp.sqrt(i_alpha**2 + i_beta**2 + 1e-30) / jnp.maximum(i_d, 1e-6)
+    sqrt_w = jnp.sqrt(w)
+    res_psi = jnp.sqrt(settings.lambda_psi) * sqrt_w * (terms["dop"] - dop_measured)
+    res_s = jnp.sqrt(settings.lambda_s) * sqrt_w[:, None] * (diffuse_s + reflect * terms["r_is"][:, None] - v.obs_s)
+    res_theta = jnp.sqrt(lambda_theta * v.weight) * delta
+    return jnp.concatenate([res_psi[:, None], res_s, res_theta[:, None]], 1), spec
+
+
+def _pool_samples(obs: Observations, normals, rho_d, settings: FitSettings, max_samples: int,
+                  rng: np.random.Generator):
+    """The usable views (:func:`sellip.fit.select_views`) of n vertices as J <= max_samples samples,
+    padded with weight-0 slots to the power of two at or above ``max_samples``: every cluster has
+    the same shape, so the lobe fit compiles once per run (and once per machine with the persistent
+    compilation cache). Returns (_Samples, J, scale)."""
+    dtype = np.float64 if jax.config.jax_enable_x64 else np.float32
+    obs = Observations(*[np.asarray(x, dtype) if np.asarray(x).dtype.kind == "f" else np.asarray(x) for x in obs])
+    normals = np.asarray(normals, dtype) / np.linalg.norm(normals, axis=-1, keepdims=True)
+    keep = np.asarray(fit._select(Observations(*[jnp.asarray(x) for x in obs]), jnp.asarray(normals), settings))
+    vertex, view = np.nonzero(keep)
+    if vertex.size > max_samples:
+        pick = np.sort(rng.choice(vertex.size, max_samples, replace=False))
+        vertex, view = vertex[pick], view[pick]
+    count = vertex.size
+    size = fit._bucket(max_samples, minimum=256)
+    index_v = np.resize(vertex, size) if count else np.zeros(size, int)
+    index_k = np.resize(view, size) if count else np.zeros(size, int)
+    take = lambda x: np.asarray(x)[index_v, index_k]
+    diffuse = take(obs.diffuse)
+    valid = np.arange(size) < count
+    scale = float(np.median(diffuse[:count].mean(-1))) if count else 1.0
+    color = diffuse[:count].sum(0)
+    color = color / color.sum() if count and color.sum() > 0 else np.full(3, 1 / 3)
+    record = fit._Vertex(
+        obs_d=diffuse / scale, obs_a=take(obs.diffuse_pol) / scale, obs_s=take(obs.specular) / scale,
+        to_light=take(obs.to_light), to_camera=take(obs.to_camera), light_distance=take(obs.light_distance),
+        camera_up=take(obs.camera_up), light_axis=take(obs.light_axis),
+        weight=np.where(valid, 1.0 / max(count, 1), 0.0).astype(dtype), color=color.astype(dtype),
+        scale=np.asarray(scale, dtype), prior=np.zeros(4, dtype))
+    record = record._replace(**{name: jnp.asarray(getattr(record, name), dtype) for name in record._fields
+                                if name != "virtual"})
+    return _Samples(record, jnp.asarray(normals[index_v]), jnp.asarray(np.asarray(rho_d, dtype)[index_v] / scale)), \
+        count, scale
+
+
+def _stacked_residuals(z, delta, samples, settings, lambda_theta):
+    return _cluster_residuals(z, delta, None, samples, settings, lambda_theta)[0].ravel()
+
+
+_stacked = jax.jit(_stacked_residuals, static_argnames=("settings",))
+_stacked_jacobian = jax.jit(jax.jacfwd(_stacked_residuals), static_argnames=("settings",))
+
+
+def _delta_step(z, delta, samples, settings: FitSettings, lambda_theta, max_delta, steps: int = 3):
+    """Gauss-Newton on each sample's Delta theta_h with the lobe parameters (and albedos) held:
+    every sample's rows depend on its own Delta only. Accepts a step per sample only where it
+    lowers that sample's cost."""
+    _, spec = _cluster_residuals(z, delta, None, samples, settings, lambda_theta)
+
+    def rows(d):
+        return _cluster_residuals(z, d, spec, samples, settings, lambda_theta)[0]
+
+    for _ in range(steps):
+        res, slope = jax.jvp(rows, (delta,), (jnp.ones_like(delta),))
+        cost = jnp.sum(res**2, 1)
+        new = jnp.clip(delta - jnp.sum(res * slope, 1) / (jnp.sum(slope**2, 1) + 1e-30), -max_delta, max_delta)
+        better = jnp.sum(rows(new) ** 2, 1) < cost
+        delta = jnp.where(better, new, delta)
+    return delta
+
+
+_delta_step_jit = jax.jit(_delta_step, static_argnames=("settings", "steps"))
+
+
+def fit_cluster_lobe(obs: Observations, normals, rho_d, eta0: float, fit_settings: FitSettings | None = None,
+                     settings: AugmentSettings = AugmentSettings(), seed: int = 0) -> ClusterLobe:
+    """Fit one cluster's lobe to the pooled observations of its n vertices (paper Eq. 25).
+
+    obs: :class:`sellip.fit.Observations` (n, K); normals (n, 3) and rho_d (n, 3): the vertices'
+    fitted normals and albedos (held). eta0: the start of eta (e.g. the members' median).
+    Minimizes lambda_psi L_psi + lambda_s L_s' + lambda_theta sum_j w_j Delta theta_h_j^2 over eta,
+    sigma_s, sigma_ss (LM, scipy ``least_squares`` on the fit's bounded parameterization), rho_s
+    and rho_ss (closed-form NNLS) and Delta theta_h (J,) (per-sample Gauss-Newton), alternating
+    ``settings.alternations`` times. Intensities are divided by the cluster's median diffuse level.
+    """
+    from scipy.optimize import least_squares
+
+    fit_settings = fit_settings or FitSettings()
+    rng = np.random.default_rng(seed)
+    samples, count, scale = _pool_samples(obs, normals, rho_d, fit_settings, settings.max_samples, rng)
+    if count == 0:
+        raise ValueError("the cluster has no usable (vertex, view) sample")
+    dtype = samples.record.obs_d.dtype
+    lambda_theta = jnp.asarray(settings.lambda_theta, dtype)
+    max_delta = jnp.asarray(np.radians(settings.max_theta_error_deg), dtype)
+    delta = jnp.zeros(samples.normal.shape[0], dtype)
+    free = [2, 3] if fit_settings.sigma_ss_fixed is not None else [2, 3, 4]
+    # Start: eta0 with the fit's roughness grid, the lowest loss.
+    grid = np.asarray(fit.ROUGHNESS_GRID)
+    starts = np.asarray(fit._encode(jnp.full(len(grid), eta0, dtype), jnp.asarray(grid[:, 0], dtype),
+                                    jnp.asarray(grid[:, 1], dtype), dtype))
+    costs = [float(jnp.sum(_stacked(jnp.asarray(s), delta, samples, fit_settings, lambda_theta) ** 2)) for s in starts]
+    z = starts[int(np.argmin(costs))].astype(np.float64)
+
+    def solve(z, delta):
+        def residual(x):
+            full = z.copy()
+            full[free] = x
+            return np.asarray(_stacked(jnp.asarray(full, dtype), delta, samples, fit_settings, lambda_theta), np.float64)
+
+        def jacobian(x):
+            full = z.copy()
+            full[free] = x
+            jac = _stacked_jacobian(jnp.asarray(full, dtype), delta, samples, fit_settings, lambda_theta)
+            return np.asarray(jac, np.float64)[:, free]
+
+        result = least_squares(residual, z[free], jac=jacobian, method="lm", xtol=1e-8, ftol=1e-8, max_nfev=100)
+        z = z.copy()
+        z[free] = result.x
+        return z
+
+    for _ in range(settings.alternations):
+        z = solve(z, delta)
+        delta = _delta_step_jit(jnp.asarray(z, dtype), delta, samples, fit_settings, lambda_theta, max_delta)
+    z = solve(z, delta)
+    zj = jnp.asarray(z, dtype)
+    res, spec = _cluster_residuals(zj, delta, None, samples, fit_settings, lambda_theta)
+    frame = fit._Frame(*(jnp.array([0.0, 0.0, 1.0], dtype),) * 3)
+    _, eta, sigma_s, sigma_ss = (float(x) if np.ndim(x) == 0 else x for x in fit._decode(zj, frame,
+                                                                                          fit_settings.sigma_ss_fixed))
+    # Plot samples: the measured lobe value per unit shading (comparable to lobe_curve) against theta_h + delta.
+    terms = fit._model_terms(samples.normal, jnp.asarray(eta, dtype), jnp.asarray(sigma_s, dtype),
+                             jnp.asarray(sigma_ss, dtype), samples.record, theta_h_offset=delta)
+    r_plus0 = float(fit.fresnel(jnp.ones((), dtype), jnp.asarray(eta, dtype)).r_plus)
+    measured = (samples.record.obs_s - samples.rho_d * terms["d_is"][:, None]) @ samples.record.color
+    shading = terms["r_is"] / r_plus0
+    ok = np.asarray((shading > 1e-6) & (jnp.arange(shading.shape[0]) < count))
+    theta_h = np.degrees(np.arccos(np.clip(np.sum(np.asarray(samples.normal) * _unit(
+        np.asarray(samples.record.to_light) + np.asarray(samples.record.to_camera)), -1), -1, 1)))
+    return ClusterLobe(eta=eta, sigma_s=sigma_s, sigma_ss=sigma_ss, rho_s=float(spec[0]) * scale,
+                       rho_ss=np.asarray(spec[1:], np.float64) * scale, samples=int(count),
+                       loss=float(jnp.sum(res**2)),
+                       theta_h_deg=(theta_h + np.degrees(np.asarray(delta)))[ok],
+                       value=(np.asarray(measured / jnp.where(shading > 1e-6, shading, 1)) * scale)[ok])
+
+
+def _unit(v):
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def lobe_curve(theta_h_deg, lobe: ClusterLobe, color=(1 / 3, 1 / 3, 1 / 3)) -> np.ndarray:
+    """The mono coaxial lobe value per unit shading (:func:`sellip.fit.virtual_reflectance` weighted by
+    ``color``) at half angles theta_h_deg (M,) degrees. Returns (M,)."""
+    values = fit.virtual_reflectance(jnp.radians(jnp.asarray(theta_h_deg, jnp.float64 if jax.config.jax_enable_x64
+                                                             else jnp.float32)), *_lobe_arrays([lobe]))
+    return np.asarray(values[0] @ jnp.asarray(color, values.dtype))
+
+
+def _lobe_arrays(lobes):
+    """(eta, rho_s, sigma_s, rho_ss, sigma_ss) arrays (K,), (K, 3) of cluster lobes."""
+    dtype = np.float64 if jax.config.jax_enable_x64 else np.float32
+    return (jnp.asarray([lb.eta for lb in lobes], dtype), jnp.asarray([lb.rho_s for lb in lobes], dtype),
+            jnp.asarray([lb.sigma_s for lb in lobes], dtype), jnp.asarray(np.stack([lb.rho_ss for lb in lobes]), dtype),
+            jnp.asarray([lb.sigma_ss for lb in lobes], dtype))
+
+
+# --- virtual samples -----------------------------------------------------------------------------
+
+def virtual_theta_h(settings: FitSettings | None = None) -> np.ndarray:
+    """The M half angles (radians) of the virtual samples: 0, step, ..., (M - 1) step (paper: 0..89.5 deg)."""
+    settings = settings or FitSettings()
+    theta = np.radians(settings.virtual_step_deg) * np.arange(settings.virtual_count)
+    if settings.virtual_count < 1 or theta[-1] >= np.pi / 2:
+        raise ValueError(f"virtual samples need 1 <= virtual_count and (virtual_count - 1) * virtual_step_deg < 90, "
+                         f"got {settings.virtual_count} x {settings.virtual_step_deg} deg")
+    return theta
+
+
+def virtual_samples(labels, lobes: list[ClusterLobe] | None, settings: FitSettings | None = None,
+                    dtype=np.float32) -> VirtualSamples:
+    """Virtual specular samples of N vertices from their cluster labels (N,) and the clusters' lobes.
+
+    Every vertex gets the M samples of its cluster's lobe (:func:`sellip.fit.virtual_reflectance`)
+    at :func:`virtual_theta_h`, weights w^a = cos theta_h / sum cos theta_h. A label < 0 (no
+    cluster) gets weight 0. Returns :class:`sellip.fit.VirtualSamples` of numpy arrays (N, M, ...).
+    """
+    labels = np.asarray(labels)
+    theta = virtual_theta_h(settings)
+    if lobes:
+        table = np.asarray(fit.virtual_reflectance(jnp.asarray(np.broadcast_to(theta, (len(lobes), theta.size))),
+                                                   *_lobe_arrays(lobes)))  # (K, M, 3)
+    else:
+        table = np.zeros((0, theta.size, 3))
+    if labels.size and labels.max(initial=-1) >= len(table):
+        raise ValueError(f"cluster label {labels.max()} but only {len(table)} cluster lobes")
+    weight = np.cos(theta) / np.cos(theta).sum()
+    has = labels >= 0
+    reflectance = np.zeros((labels.size, theta.size, 3))
+    if len(table):
+        reflectance[has] = table[labels[has]]
+    return VirtualSamples(theta_h=np.broadcast_to(theta, (labels.size, theta.size)).astype(dtype),
+                          reflectance=reflectance.astype(dtype),
+                          weight=np.where(has[:, None], weight[None], 0.0).astype(dtype))

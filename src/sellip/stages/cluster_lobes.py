@@ -1,0 +1,234 @@
+"""``sellip cluster-lobes``: material clusters and per-cluster specular lobes (rule ``cluster_lobes``).
+
+    sellip cluster-lobes --params results/NAME/iter/0/fit.zarr
+                         --observations results/NAME/iter/0/observations.zarr
+                         --output results/NAME/iter/0/clusters --seed 0
+                         [--k-max 8] [--max-samples 20000] [--min-cluster-vertices 50]
+                         [--set lambda_psi=100 ...]
+
+Writes the directory ``--output`` (built under a temporary name, then renamed) with
+
+- ``labels.npy``: (N,) int32, the cluster of every vertex of the params store;
+- ``lobes.csv``: one row per cluster (:data:`LOBES_SCHEMA`): cluster, vertices, eta, sigma_s,
+  sigma_ss, rho_s, rho_ss_r, rho_ss_g, rho_ss_b, samples, loss;
+- ``lobes.png``: each cluster's lobe against its samples as a function of theta_h (paper Fig. 7b);
+- ``clusters.json``: K, the BIC per K, the merges, the settings and the seed.
+
+The numerics are :mod:`sellip.augment`; ``sellip fit --lobes DIR`` turns the result into virtual
+samples. ``--set`` overrides :class:`sellip.fit.FitSettings` (view selection, lambda_psi, lambda_s).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+LOBE_COLUMNS = ("cluster", "vertices", "eta", "sigma_s", "sigma_ss", "rho_s", "rho_ss_r", "rho_ss_g", "rho_ss_b",
+                "samples", "loss")
+
+
+def lobes_schema():
+    """pandera schema of lobes.csv."""
+    import pandera.pandas as pa
+
+    finite = pa.Check(np.isfinite, element_wise=True)
+    nonnegative = [pa.Check.ge(0), finite]
+    return pa.DataFrameSchema(
+        {
+            "cluster": pa.Column(int, [pa.Check.ge(0)], unique=True, coerce=True),
+            "vertices": pa.Column(int, pa.Check.ge(0), coerce=True),
+            "eta": pa.Column(float, [pa.Check.ge(1.0), pa.Check.le(3.0)], coerce=True),
+            "sigma_s": pa.Column(float, [pa.Check.gt(0), pa.Check.le(1.0)], coerce=True),
+            "sigma_ss": pa.Column(float, [pa.Check.gt(0), pa.Check.le(1.0)], coerce=True),
+            "rho_s": pa.Column(float, nonnegative, coerce=True),
+            **{f"rho_ss_{c}": pa.Column(float, nonnegative, coerce=True) for c in "rgb"},
+            "samples": pa.Column(int, pa.Check.gt(0), coerce=True),
+            "loss": pa.Column(float, nonnegative, coerce=True),
+        },
+        strict=True, ordered=True, name="lobes.csv",
+    )
+
+
+def read_lobes(directory: Path):
+    """The cluster labels (N,) and lobes (list of :class:`sellip.augment.ClusterLobe`, cluster order) of a
+    ``cluster-lobes`` output directory. ValueError naming the file when it is missing or invalid."""
+    import pandas as pd
+    import pandera.pandas as pa
+
+    from sellip.augment import ClusterLobe
+
+    directory = Path(directory)
+    labels_path, lobes_path = directory / "labels.npy", directory / "lobes.csv"
+    for path in (labels_path, lobes_path):
+        if not path.is_file():
+            raise ValueError(f"{path}: missing; run `sellip cluster-lobes` first")
+    labels = np.load(labels_path)
+    try:
+        table = lobes_schema().validate(pd.read_csv(lobes_path), lazy=True)
+    except pa.errors.SchemaErrors as error:
+        first = error.failure_cases.iloc[0]
+        raise ValueError(f"{lobes_path}: invalid ({len(error.failure_cases)} problems; first: column "
+                         f"{first['column']!r}, check {first['check']!r}, value {first['failure_case']!r})") from None
+    table = table.sort_values("cluster")
+    if list(table["cluster"]) != list(range(len(table))):
+        raise ValueError(f"{lobes_path}: clusters must be numbered 0..K-1, got {list(table['cluster'])}")
+    if labels.ndim != 1 or labels.dtype.kind != "i" or (labels.size and (labels.min() < 0 or labels.max() >= len(table))):
+        raise ValueError(f"{labels_path}: expected (N,) integer labels in 0..{len(table) - 1}")
+    lobes = [ClusterLobe(eta=row.eta, sigma_s=row.sigma_s, sigma_ss=row.sigma_ss, rho_s=row.rho_s,
+                         rho_ss=np.array([row.rho_ss_r, row.rho_ss_g, row.rho_ss_b]), samples=int(row.samples),
+                         loss=row.loss, theta_h_deg=np.zeros(0), value=np.zeros(0))
+             for row in table.itertuples(index=False)]
+    return labels, lobes
+
+
+def _load_rows(group, rows: np.ndarray):
+    """Observations (:class:`sellip.fit.Observations`) of the store rows ``rows`` (sorted), reading only their chunks."""
+    from sellip.fit import Observations
+    from sellip.observe import PER_VIEW_ARRAYS, VIEW_AXES
+
+    data = {name: np.asarray(group[name].oindex[rows]) for name in PER_VIEW_ARRAYS}
+    for name in VIEW_AXES:
+        data[name] = np.repeat(np.asarray(group[name][...])[None], len(rows), axis=0)
+    return Observations(**data)
+
+
+def plot_lobes(path: Path, lobes, color_of) -> None:
+    """lobes.png: per cluster, its samples and its lobe (mono, per unit shading) against theta_h."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sellip.augment import lobe_curve
+
+    columns = min(len(lobes), 4)
+    rows = -(-len(lobes) // columns)
+    figure, axes = plt.subplots(rows, columns, figsize=(4 * columns, 3.2 * rows), squeeze=False)
+    theta = np.linspace(0, 89.5, 180)
+    for k, (axis, lobe) in enumerate(zip(axes.ravel(), lobes)):
+        axis.scatter(lobe.theta_h_deg, lobe.value, s=2, color="k", alpha=0.3, label="samples")
+        axis.plot(theta, lobe_curve(theta, lobe, color_of(k)), color="r", label="cluster lobe")
+        axis.set_yscale("symlog", linthresh=1e-3)
+        axis.set_title(f"cluster {k}: σs {lobe.sigma_s:.3f}, σss {lobe.sigma_ss:.2f}, η {lobe.eta:.2f}", fontsize=9)
+        axis.set_xlabel("θh (deg)")
+        axis.set_xlim(0, 90)
+    for axis in axes.ravel()[len(lobes):]:
+        axis.axis("off")
+    axes[0, 0].set_ylabel("reflectance per unit shading")
+    axes[0, 0].legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+    plt.close(figure)
+
+
+def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, settings=None,
+              fit_settings=None, compilation_cache: str | None = None) -> dict:
+    """Cluster the vertices of ``params``, fit the cluster lobes on ``observations``, write ``output``."""
+    import jax
+
+    from sellip.stages.fit import enable_compilation_cache
+
+    jax.config.update("jax_enable_x64", True)  # one small problem per cluster: float64 costs little
+    enable_compilation_cache(compilation_cache)
+    import pandas as pd
+
+    from sellip.augment import AugmentSettings, cluster_materials, fit_cluster_lobe
+    from sellip.fit import FitSettings
+    from sellip.observe import ObserveError, open_observations
+    from sellip.params import read_params
+
+    settings = settings or AugmentSettings()
+    fit_settings = fit_settings or FitSettings()
+    store = read_params(params)
+    group = open_observations(observations)
+    total = int(group.attrs["num_vertices"])
+    n = len(store["vertices"])
+    if n != total or not np.allclose(np.asarray(group["vertices"][...]), store["vertices"], atol=1e-6):
+        raise ObserveError(observations, f"holds {total} vertices that are not the {n} vertices of {params} "
+                                         "(cluster-lobes needs the params and observations of the same mesh)")
+    clustering = cluster_materials(store["eta"], store["rho_d"], store["status"], store["confidence"], settings, seed)
+    k = len(clustering.centres)
+    log.info("K = %d clusters (BIC over K: %s), %d merges", k,
+             {key: round(value, 1) for key, value in clustering.bic.items()}, len(clustering.merges))
+    rng = np.random.default_rng(seed)
+    lobes, rows_out, colors = [], [], []
+    for cluster in range(k):
+        members = np.flatnonzero((clustering.labels == cluster) & clustering.used)
+        if members.size == 0:
+            raise ValueError(f"cluster {cluster} has no confidently fitted vertex")
+        # Enough vertices for max_samples samples at >= 8 usable views each, a seeded subset.
+        limit = max(64, settings.max_samples // 8)
+        rows = np.sort(rng.choice(members, limit, replace=False)) if members.size > limit else members
+        obs = _load_rows(group, rows)
+        lobe = fit_cluster_lobe(obs, store["normals"][rows], store["rho_d"][rows], float(np.median(store["eta"][members])),
+                                fit_settings, settings, seed=seed + cluster)
+        log.info("cluster %d: %d vertices (%d confident), %d samples: eta %.3f sigma_s %.3f sigma_ss %.3f rho_s %.4g",
+                 cluster, int(np.sum(clustering.labels == cluster)), members.size, lobe.samples, lobe.eta,
+                 lobe.sigma_s, lobe.sigma_ss, lobe.rho_s)
+        lobes.append(lobe)
+        mean_color = np.asarray(obs.diffuse)[np.asarray(obs.usable)].sum(0)
+        colors.append(mean_color / mean_color.sum() if mean_color.sum() > 0 else np.full(3, 1 / 3))
+        rows_out.append({"cluster": cluster, "vertices": int(np.sum(clustering.labels == cluster)), "eta": lobe.eta,
+                         "sigma_s": lobe.sigma_s, "sigma_ss": lobe.sigma_ss, "rho_s": lobe.rho_s,
+                         **{f"rho_ss_{c}": float(lobe.rho_ss[i]) for i, c in enumerate("rgb")},
+                         "samples": lobe.samples, "loss": lobe.loss})
+    table = lobes_schema().validate(pd.DataFrame(rows_out, columns=list(LOBE_COLUMNS)))
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    tmp = output.with_name(output.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    np.save(tmp / "labels.npy", clustering.labels.astype(np.int32))
+    table.to_csv(tmp / "lobes.csv", index=False)
+    plot_lobes(tmp / "lobes.png", lobes, lambda i: colors[i])
+    summary = {"k": k, "bic": {str(key): value for key, value in clustering.bic.items()},
+               "k_bic": int(min(clustering.bic, key=clustering.bic.get)), "merges": clustering.merges,
+               "clustered_vertices": int(clustering.used.sum()), "vertices": n, "seed": seed,
+               "settings": dataclasses.asdict(settings)}
+    (tmp / "clusters.json").write_text(json.dumps(summary, indent=2))
+    shutil.rmtree(output, ignore_errors=True)
+    tmp.rename(output)
+    return summary
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    from sellip.augment import AugmentSettings
+
+    defaults = AugmentSettings()
+    parser.add_argument("--params", type=Path, required=True, help="this iteration's first-pass params store")
+    parser.add_argument("--observations", type=Path, required=True, help="this iteration's observations.zarr")
+    parser.add_argument("--output", type=Path, required=True, help="output directory (clusters)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--k-max", type=int, default=defaults.k_max)
+    parser.add_argument("--max-samples", type=int, default=defaults.max_samples)
+    parser.add_argument("--min-cluster-vertices", type=int, default=defaults.min_cluster_vertices)
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a FitSettings field (repeatable)")
+    parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
+
+
+def main(args: argparse.Namespace) -> int:
+    from sellip.augment import AugmentSettings
+    from sellip.observe import ObserveError
+    from sellip.params import ParamsError
+    from sellip.stages.fit import settings_from_pairs
+
+    try:
+        if args.k_max < 1 or args.max_samples < 1 or args.min_cluster_vertices < 1:
+            raise ValueError("--k-max, --max-samples and --min-cluster-vertices must be >= 1")
+        settings = AugmentSettings(k_max=args.k_max, max_samples=args.max_samples,
+                                   min_cluster_vertices=args.min_cluster_vertices)
+        run_stage(args.params, args.observations, args.output, args.seed, settings,
+                  settings_from_pairs(args.overrides), args.compilation_cache)
+    except (ObserveError, ParamsError, ValueError) as error:
+        log.error("%s", error)
+        return 1
+    return 0

@@ -1,0 +1,244 @@
+"""``sellip evaluate``: figures of merit of the final model (DESIGN §8) -> metrics.json (rule ``evaluate_model``).
+
+    sellip evaluate --model results/NAME/final/model.ply --params results/NAME/final/params.zarr
+                    --cameras results/NAME/cameras.csv --hdr results/NAME/hdr.zarr --capture CAPTURE
+                    --benchmarks results/NAME/benchmarks --held-out v003 v017
+                    --output results/NAME/metrics.json [--sim3-from-sfm] [--timings-plot PATH]
+
+Ground truth: ``CAPTURE/ground_truth/model.ply``. Without it, metrics.json still holds the held-out PSNR
+and the stage timings; the ground-truth figures are null and ``reasons`` says why.
+
+Frames: the model and cameras.csv share a world. When the cameras came from SfM (``--sim3-from-sfm``, or
+``report.json`` of the sfm stage next to cameras.csv, ``<cameras dir>/sfm/report.json``, says mode "sfm"),
+the model is moved into the ground truth's world by the Sim(3) that maps the cameras.csv camera centres onto
+the capture's poses.csv ones (:func:`sellip.evaluate.camera_alignment`); otherwise (modes known, verify:
+cameras.csv holds poses.csv) no alignment is applied.
+
+Confident vertices: status 0 (fitted) and confidence > 0 in params.zarr; without --params, confidence > 0
+in model.ply; without either, every vertex (said in ``reasons``).
+
+The keys of metrics.json and the exact definitions: :mod:`sellip.evaluate` and docs/outputs.md.
+The file is written under a temporary name and renamed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sellip import evaluate
+from sellip.io import GROUND_TRUTH_MESH, CaptureError, read_capture, read_param_mesh
+from sellip.observe import ObserveError
+from sellip.outputs import NEW_LIGHT_OFFSET_M, moved_flash, save_figure, timings_figure
+from sellip.params import ParamsError, read_params
+from sellip.render import Camera, Renderer, flash_light
+from sellip.stages.render_outputs import OutputsError, load_cameras, model_confidence
+
+log = logging.getLogger(__name__)
+
+
+def confident_vertices(model_path: Path, params_path: Path | None, count: int) -> tuple[np.ndarray, str | None]:
+    """(N,) bool confident vertices (module docstring) and a note when no confidence was available."""
+    if params_path is not None:
+        arrays = read_params(params_path)
+        if len(arrays["vertices"]) != count:
+            raise OutputsError(f"{params_path}: {len(arrays['vertices'])} vertices, but {model_path} has {count}")
+        confident = np.ones(count, bool)
+        if "status" in arrays:
+            confident &= arrays["status"] == 0
+        if "confidence" in arrays:
+            confident &= arrays["confidence"] > 0
+        return confident, None
+    confidence = model_confidence(model_path)
+    if confidence is not None:
+        return confidence > 0, None
+    return np.ones(count, bool), f"neither --params nor a confidence property in {model_path}: all vertices count"
+
+
+def sfm_mode(cameras_path: Path, report_path: Path | None) -> str | None:
+    """The ``mode`` of the sfm stage's report.json (default: <cameras dir>/sfm/report.json), None if absent."""
+    path = report_path or Path(cameras_path).parent / "sfm" / "report.json"
+    if not path.is_file():
+        return None
+    return json.loads(path.read_text()).get("mode")
+
+
+def _moved_camera(camera: Camera, similarity) -> Camera:
+    if similarity is None:
+        return camera
+    rotation, translation = similarity.apply_to_poses(np.asarray(camera.rotation), np.asarray(camera.translation))
+    return Camera(camera.intrinsics, rotation, translation, camera.width, camera.height, camera.distortion)
+
+
+def _mean_db(per_view: dict) -> float | None:
+    values = [v["psnr_db"] for v in per_view.values() if v.get("psnr_db") is not None]
+    return float(np.mean(values)) if values else None
+
+
+def run_stage(model_path: str | Path, cameras_path: str | Path, hdr_path: str | Path, capture_path: str | Path,
+              output: str | Path, params_path: str | Path | None = None, benchmarks: str | Path | None = None,
+              held_out: list[str] | None = None, sim3_from_sfm: bool = False, sfm_report: str | Path | None = None,
+              supersample: int = 2, geometry_samples: int = 50000, timings_plot: str | Path | None = None,
+              new_light_offset_cam=NEW_LIGHT_OFFSET_M) -> dict:
+    """Compute the figures of merit and write ``output`` (metrics.json); returns the metrics."""
+    started = time.perf_counter()
+    model_path, capture_path, output = Path(model_path), Path(capture_path), Path(output)
+    if not model_path.is_file():
+        raise OutputsError(f"{model_path}: model does not exist")
+    model = read_param_mesh(model_path)
+    capture = read_capture(capture_path)
+    light = capture.config["light"]
+    cameras, hdr = load_cameras(cameras_path, hdr_path)
+    held_out = list(held_out or [])
+    reasons: dict[str, str] = {}
+    metrics: dict = {"model": str(model_path), "cameras": str(cameras_path), "capture": str(capture_path),
+                     "settings": {"supersample": supersample, "psnr_peak_percentile": evaluate.PSNR_PEAK_PERCENTILE,
+                                  "psnr_max_db": evaluate.PSNR_MAX_DB, "geometry_samples": geometry_samples,
+                                  "new_light_offset_cam_m": list(map(float, new_light_offset_cam))}}
+    renderer = Renderer(model)
+
+    def flash(camera: Camera):
+        return flash_light(camera, light["position_m"], polarizer_deg=float(light["polarizer_deg"]))
+
+    # Held-out views: the model (cameras.csv world) against the measured HDR images.
+    held_out_psnr = {}
+    for view_id in held_out:
+        if view_id not in cameras:
+            held_out_psnr[view_id] = {"psnr_db": None, "reason": f"no pose in {cameras_path}"}
+            continue
+        camera = cameras[view_id]
+        result = renderer.render(camera, flash(camera), supersample=supersample)
+        analyzers, valid = hdr.view(view_id)
+        mask = evaluate.render_mask(analyzers, valid, result.coverage)
+        held_out_psnr[view_id] = evaluate.psnr(analyzers, result.analyzers, mask)
+        log.info("held-out %s: PSNR %s dB", view_id, held_out_psnr[view_id]["psnr_db"])
+    metrics["psnr_held_out"] = {"views": held_out_psnr, "mean_db": _mean_db(held_out_psnr)} if held_out else None
+    if not held_out:
+        reasons["psnr_held_out"] = "no --held-out views given"
+
+    # Ground truth.
+    truth_path = capture_path / GROUND_TRUTH_MESH
+    ground_truth_keys = ("alignment", "vertices", "normal_error_deg", "eta_relative_error_pct",
+                         "rho_d_relative_rmse", "sigma_s_abs_error", "sigma_ss_abs_error",
+                         "correspondence_distance_mm", "geometry", "psnr_new_light")
+    metrics.update({key: None for key in ground_truth_keys})
+    metrics["ground_truth"] = str(truth_path) if truth_path.is_file() else None
+    similarity, truth = None, None
+    if not truth_path.is_file():
+        for key in ground_truth_keys:
+            reasons[key] = f"the capture has no ground truth ({truth_path} does not exist)"
+    else:
+        truth = read_param_mesh(truth_path)
+        mode = sfm_mode(Path(cameras_path), Path(sfm_report) if sfm_report else None)
+        if sim3_from_sfm or mode == "sfm":
+            if capture.poses is None:
+                for key in ground_truth_keys:
+                    reasons[key] = (f"cameras came from SfM and {capture_path} has no poses.csv to align them "
+                                    "to the ground truth")
+                truth = None
+            else:
+                from sellip.stages.sfm import read_cameras
+
+                own = read_cameras(cameras_path)
+                ref_ids = list(capture.poses["view_id"])
+                ref = [capture.pose(v) for v in ref_ids]
+                try:
+                    similarity = evaluate.camera_alignment(*own, ref_ids, np.stack([r for r, _ in ref]),
+                                                           np.stack([t for _, t in ref]))
+                except ValueError as exc:
+                    raise OutputsError(f"{cameras_path} vs {capture_path}/poses.csv: {exc}") from None
+                metrics["alignment"] = {"method": "sim3", "source": "cameras.csv centres -> poses.csv centres",
+                                        "sfm_mode": mode, "scale": similarity.scale,
+                                        "rotation": similarity.rotation.tolist(),
+                                        "translation": similarity.translation.tolist()}
+        else:
+            metrics["alignment"] = {"method": "none", "sfm_mode": mode,
+                                    "source": "cameras.csv is in the ground truth's world (poses.csv)"}
+    if truth is not None:
+        confident, note = confident_vertices(model_path, Path(params_path) if params_path else None,
+                                             model.num_vertices)
+        if note:
+            reasons["confident_vertices"] = note
+        metrics["vertices"] = {"model": model.num_vertices, "confident": int(confident.sum()),
+                               "ground_truth": truth.num_vertices}
+        metrics.update(evaluate.parameter_errors(model, truth, confident, similarity))
+        for key in ("eta_relative_error_pct", "rho_d_relative_rmse", "sigma_s_abs_error", "sigma_ss_abs_error"):
+            if metrics[key] is None:
+                reasons[key] = "no confident vertex with this lobe in the ground truth"
+        metrics["geometry"] = evaluate.geometry_errors(model, truth, similarity, samples=geometry_samples)
+        log.info("normals: median %.2f deg (confident %s); chamfer %.3f mm, hausdorff %.3f mm",
+                 metrics["normal_error_deg"]["all"]["median"],
+                 (metrics["normal_error_deg"]["confident"] or {}).get("median"),
+                 metrics["geometry"]["chamfer_mm"], metrics["geometry"]["hausdorff_mm"])
+        # New light: ground truth and model rendered under the same moved flash, ground-truth world.
+        moved_model = Renderer(evaluate.transform_mesh(model, similarity))
+        truth_renderer = Renderer(truth)
+        new_light = {}
+        for view_id in [v for v in held_out if v in cameras] or [next(iter(cameras))]:
+            camera = _moved_camera(cameras[view_id], similarity)
+            lamp = moved_flash(camera, light["position_m"], new_light_offset_cam, float(light["polarizer_deg"]))
+            reference = truth_renderer.render(camera, lamp, supersample=supersample)
+            estimate = moved_model.render(camera, lamp, supersample=supersample)
+            new_light[view_id] = evaluate.psnr(reference.analyzers, estimate.analyzers,
+                                               (reference.coverage > 0) | (estimate.coverage > 0))
+            log.info("new light at %s: PSNR %s dB", view_id, new_light[view_id]["psnr_db"])
+        metrics["psnr_new_light"] = {"views": new_light, "mean_db": _mean_db(new_light)}
+
+    # Stage timings.
+    metrics["timings"] = None
+    if benchmarks is None:
+        reasons["timings"] = "no --benchmarks folder given"
+    elif not Path(benchmarks).is_dir():
+        reasons["timings"] = f"{benchmarks} does not exist"
+    else:
+        metrics["timings"] = evaluate.stage_timings(benchmarks)
+        if timings_plot is not None and metrics["timings"]["rules"]:
+            save_figure(timings_figure(metrics["timings"]["rules"]), timings_plot)
+    metrics["reasons"] = reasons
+    metrics["evaluate_s"] = time.perf_counter() - started
+    output.parent.mkdir(parents=True, exist_ok=True)
+    tmp = output.with_name(f".{output.name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(metrics, indent=2, allow_nan=False))
+    tmp.rename(output)
+    log.info("wrote %s in %.1f s", output, metrics["evaluate_s"])
+    return metrics
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", required=True, type=Path, help="model PLY (final/model.ply)")
+    parser.add_argument("--params", type=Path, default=None, help="params.zarr of the model (status, confidence)")
+    parser.add_argument("--cameras", required=True, type=Path, help="cameras.csv (same world as the model)")
+    parser.add_argument("--hdr", required=True, type=Path, help="hdr.zarr (measured held-out views)")
+    parser.add_argument("--capture", required=True, type=Path, help="capture folder (light, ground_truth/)")
+    parser.add_argument("--benchmarks", type=Path, default=None, help="Snakemake benchmark folder of the run")
+    parser.add_argument("--held-out", nargs="*", default=[], help="views never fitted, compared by PSNR")
+    parser.add_argument("--output", required=True, type=Path, help="metrics.json to write")
+    parser.add_argument("--sim3-from-sfm", action="store_true",
+                        help="align cameras.csv to poses.csv by Sim(3) (automatic when sfm/report.json says sfm)")
+    parser.add_argument("--sfm-report", type=Path, default=None,
+                        help="report.json of the sfm stage (default: <cameras dir>/sfm/report.json)")
+    parser.add_argument("--supersample", type=int, default=2, help="s x s samples per pixel (default: 2)")
+    parser.add_argument("--geometry-samples", type=int, default=50000,
+                        help="surface samples per mesh for Chamfer/Hausdorff (default: 50000)")
+    parser.add_argument("--timings-plot", type=Path, default=None, help="also write a per-rule wall-time PNG")
+
+
+def main(args: argparse.Namespace) -> int:
+    logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)  # "no TPU" notices
+    if args.supersample < 1:
+        raise SystemExit("--supersample must be at least 1")
+    try:
+        run_stage(args.model, args.cameras, args.hdr, args.capture, args.output, params_path=args.params,
+                  benchmarks=args.benchmarks, held_out=args.held_out, sim3_from_sfm=args.sim3_from_sfm,
+                  sfm_report=args.sfm_report, supersample=args.supersample, geometry_samples=args.geometry_samples,
+                  timings_plot=args.timings_plot)
+    except (OutputsError, CaptureError, ObserveError, ParamsError) as exc:
+        log.error("%s", exc)
+        return 1
+    return 0

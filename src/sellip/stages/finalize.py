@@ -1,0 +1,89 @@
+"""``sellip finalize``: the final model (rule ``finalize_model``, DESIGN §4).
+
+    sellip finalize --params results/NAME/iter/10/params.zarr --mesh results/NAME/iter/9/mesh.ply
+                    --output-model results/NAME/final/model.ply --output-params results/NAME/final/params.zarr
+                    [--clusters results/NAME/iter/10/clusters] [--model 3]
+
+``--params`` is the last pass of the loop: the pBRDF refitted with the normals of the final
+geometry (paper §4.4); its rows are the vertices of ``--mesh``, whose triangles the model keeps.
+Written (each atomically): ``model.ply`` with the vertex properties of DESIGN §4 (float32) plus
+``confidence`` (float32) and ``model`` (uint8, :data:`sellip.params.MODEL_NAMES`), and
+``params.zarr`` with the same arrays (plus status, loss, views_used, iterations, cluster).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_params: Path,
+              clusters: Path | None = None, model: int = 3) -> dict:
+    """Write the final model PLY and parameter store; returns a summary dict."""
+    from sellip.io import write_param_mesh
+    from sellip.observe import read_mesh
+    from sellip.params import MODEL_NAMES, PARAM_FIELDS, ParamsError, params_from, read_params, write_params
+    from sellip.render import ParamMesh
+
+    if model not in MODEL_NAMES:
+        raise ValueError(f"--model must be one of {sorted(MODEL_NAMES)}, got {model}")
+    store = read_params(params_path)
+    mesh = read_mesh(mesh_path)
+    vertices = store["vertices"]
+    if len(vertices) != mesh.num_vertices or not np.allclose(vertices, mesh.vertices, atol=1e-6):
+        raise ParamsError(f"{params_path}: its {len(vertices)} vertices are not those of {mesh_path} "
+                          f"({mesh.num_vertices}): the final pass must fit the final mesh")
+    n = len(vertices)
+    cluster = np.zeros(n, np.int32)
+    if clusters is not None:
+        labels_path = Path(clusters) / "labels.npy"
+        if not labels_path.is_file():
+            raise ParamsError(f"{labels_path}: missing (expected the cluster label of every vertex)")
+        cluster = np.load(labels_path).astype(np.int32)
+        if cluster.shape != (n,):
+            raise ParamsError(f"{labels_path}: {cluster.shape[0]} labels for {n} vertices")
+    models = np.full(n, model, np.uint8)
+    params = params_from(store, np.float64)
+    confidence = np.asarray(store.get("confidence", np.zeros(n)), np.float32)
+    output_model = Path(output_model)
+    output_model.parent.mkdir(parents=True, exist_ok=True)
+    tmp = output_model.with_name(output_model.name + ".tmp.ply")
+    write_param_mesh(tmp, ParamMesh(vertices, mesh.faces, store["normals"], params),
+                     extra={"confidence": confidence, "model": models})
+    tmp.replace(output_model)
+    arrays = {name: store[name] for name in store if name != "attrs"}
+    arrays.update(model=models, cluster=cluster)
+    write_params(output_params, arrays, attrs={**store["attrs"], "model_names": {str(k): v for k, v in
+                                                                                  MODEL_NAMES.items()}})
+    summary = {"vertices": n, "faces": len(mesh.faces), "confidence_median": float(np.median(confidence)),
+               "eta_median": float(np.median(store["eta"])),
+               "fields": list(PARAM_FIELDS)}
+    log.info("wrote %s and %s: %d vertices, %d faces, median confidence %.2f, median eta %.3f", output_model,
+             output_params, n, len(mesh.faces), summary["confidence_median"], summary["eta_median"])
+    return summary
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--params", type=Path, required=True, help="the last pass's params.zarr")
+    parser.add_argument("--mesh", type=Path, required=True, help="the final mesh (its triangles)")
+    parser.add_argument("--output-model", type=Path, required=True, help="final model PLY")
+    parser.add_argument("--output-params", type=Path, required=True, help="final params.zarr")
+    parser.add_argument("--clusters", type=Path, default=None, help="cluster_lobes output of the last pass")
+    parser.add_argument("--model", type=int, default=3, help="model code of every vertex (sellip.params.MODEL_NAMES)")
+
+
+def main(args: argparse.Namespace) -> int:
+    from sellip.observe import ObserveError
+    from sellip.params import ParamsError
+
+    try:
+        run_stage(args.params, args.mesh, args.output_model, args.output_params, args.clusters, args.model)
+    except (ParamsError, ObserveError, ValueError) as error:
+        log.error("%s", error)
+        return 1
+    return 0

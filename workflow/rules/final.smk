@@ -1,0 +1,104 @@
+# The final model (DESIGN §4), its renders and its figures of merit (DESIGN §8).
+# The last pass of the loop (iteration ITERATIONS) refits the pBRDF on the final geometry with
+# its normals held (config `final.settings`); finalize_model writes it as model.ply + params.zarr.
+
+
+def final_model_code():
+    """The `model` code of every vertex (sellip.params.MODEL_NAMES) until model selection picks per cluster."""
+    return 2 if config["fit"]["settings"].get("sigma_ss_fixed") is not None else 3
+
+
+rule finalize_model:
+    input:
+        params=params_of(ITERATIONS),
+        mesh=mesh_of(ITERATIONS),
+        clusters=[f"{RESULTS}/iter/{ITERATIONS}/clusters"] if augmented(ITERATIONS) else [],
+    output:
+        model=f"{RESULTS}/final/model.ply",
+        params=directory(f"{RESULTS}/final/params.zarr"),
+    params:
+        clusters=lambda wildcards, input: f"--clusters {input.clusters}" if input.clusters else "",
+        model=final_model_code(),
+    conda:
+        "../../envs/fit.yaml"
+    log:
+        f"{RESULTS}/logs/finalize_model.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/finalize_model.tsv"
+    shell:
+        SELLIP + " finalize --params {input.params} --mesh {input.mesh} --output-model {output.model}"
+        " --output-params {output.params} {params.clusters} --model {params.model} > {log} 2>&1"
+
+
+rule render_outputs:
+    input:
+        model=f"{RESULTS}/final/model.ply",
+        cameras=f"{RESULTS}/cameras.csv",
+        hdr=f"{RESULTS}/hdr.zarr",
+        capture=capture_file("capture.yaml"),
+    output:
+        report(
+            directory(f"{RESULTS}/final/renders"),
+            patterns=["{image}.png"],
+            caption="../report/renders.rst",
+            category="Renders",
+            labels={"image": "{image}"},
+        ),
+    params:
+        capture=lambda wildcards, input: Path(input.capture).parent,
+        views=" ".join(config["evaluate"]["render_views"]),
+        supersample=config["evaluate"]["supersample"],
+    conda:
+        "../../envs/report.yaml"
+    log:
+        f"{RESULTS}/logs/render_outputs.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/render_outputs.tsv"
+    shell:
+        SELLIP + " render-outputs --model {input.model} --cameras {input.cameras} --hdr {input.hdr}"
+        " --capture {params.capture} --output {output} --views {params.views}"
+        " --supersample {params.supersample} > {log} 2>&1"
+
+
+rule evaluate_model:
+    input:
+        model=f"{RESULTS}/final/model.ply",
+        params=f"{RESULTS}/final/params.zarr",
+        cameras=f"{RESULTS}/cameras.csv",
+        hdr=f"{RESULTS}/hdr.zarr",
+        capture=capture_file("capture.yaml"),
+        renders=f"{RESULTS}/final/renders",  # evaluated last: its timings cover every other stage
+    output:
+        metrics=report(f"{RESULTS}/metrics.json", caption="../report/metrics.rst", category="Metrics"),
+        timings=report(f"{RESULTS}/final/timings.png", caption="../report/timings.rst", category="Metrics"),
+    params:
+        capture=lambda wildcards, input: Path(input.capture).parent,
+        benchmarks=f"{RESULTS}/benchmarks",
+        held_out=" ".join(config["evaluate"]["held_out_views"]),
+    conda:
+        "../../envs/report.yaml"
+    log:
+        f"{RESULTS}/logs/evaluate_model.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/evaluate_model.tsv"
+    shell:
+        SELLIP + " evaluate --model {input.model} --params {input.params} --cameras {input.cameras}"
+        " --hdr {input.hdr} --capture {params.capture} --benchmarks {params.benchmarks}"
+        " --held-out {params.held_out} --output {output.metrics} --timings-plot {output.timings} > {log} 2>&1"
+
+
+onsuccess:
+    # Where everything is (README: the main command ends by saying so).
+    if Path(f"{RESULTS}/metrics.json").is_file():
+        import json
+
+        metrics = json.loads(Path(f"{RESULTS}/metrics.json").read_text())
+        normal = (metrics.get("normal_error_deg") or {}).get("all") or {}
+        eta = metrics.get("eta_relative_error_pct") or {}
+        psnr = (metrics.get("psnr_held_out") or {}).get("mean_db")
+        print(f"\nsellip: reconstruction of {capture_dir()} in {RESULTS}/", "  model:    final/model.ply (+ final/params.zarr)",
+              "  renders:  final/renders/ (index.json lists them)", "  metrics:  metrics.json, final/timings.png",
+              "  report:   make report (or snakemake --report results/report.html)", sep="\n")
+        if normal:
+            print(f"  normal error mean {normal['mean']:.2f} deg, eta error mean {eta.get('mean', float('nan')):.2f} %, "
+                  f"held-out PSNR {psnr if psnr is None else round(psnr, 1)} dB")
