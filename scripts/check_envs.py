@@ -108,7 +108,7 @@ def imported_heavy(module: str) -> set[str] | None:
             f"import sellip.stages.{module}\n"
             "print(json.dumps(sorted({m.split('.')[0] for m in sys.modules})))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO,
-                         env={**os.environ, "PYTHONPATH": str(REPO / "src")})
+                         env={**os.environ, "PYTHONPATH": str(REPO / "src")}, check=False)
     if out.returncode != 0:
         raise RuntimeError(f"import sellip.stages.{module} failed:\n{out.stderr[-2000:]}")
     loaded = json.loads(out.stdout.strip().splitlines()[-1])
@@ -140,7 +140,7 @@ def resolve(family: str) -> list[str]:
         report = Path(tmp) / "report.json"
         out = subprocess.run([sys.executable, "-m", "pip", "install", "--dry-run", "--ignore-installed", "--quiet",
                               "--report", str(report), "-r", str(requirements)],
-                             capture_output=True, text=True, env={**os.environ, "SELLIP_ROOT": str(REPO)})
+                             capture_output=True, text=True, env={**os.environ, "SELLIP_ROOT": str(REPO)}, check=False)
         if out.returncode != 0:
             return [f"envs/{family}.yaml: pip cannot resolve its pip list:\n{out.stderr[-3000:]}"]
         installs = json.loads(report.read_text())["install"]

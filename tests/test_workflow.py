@@ -47,7 +47,7 @@ def _command(workdir: Path, *args: str) -> tuple[list[str], dict]:
 def _snakemake(workdir: Path, *args: str) -> subprocess.CompletedProcess:
     """Run snakemake on the repository's workflow in ``workdir`` with the tiny-scene config on top."""
     command, env = _command(workdir, *args)
-    result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=1500)
+    result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=1500, check=False)
     if result.returncode != 0:
         raise AssertionError(f"snakemake failed:\n{result.stdout[-4000:]}\n{result.stderr[-4000:]}")
     return result
@@ -85,11 +85,12 @@ def test_tiny_capture_reconstructs_close_to_the_ground_truth(tiny_run):
     for name in ("normals", "eta", "rho_d", "rho_s", "sigma_s", "rho_ss", "sigma_ss", "confidence"):
         assert np.all(np.isfinite(store[name])), name
     assert (results / "final" / "renders").is_dir() and any((results / "final" / "renders").glob("*.png"))
-    # Measured 2026-11-21 on this scene (24 views of 160x128 demosaiced pixels, a 4 cm sphere):
-    # bounds that catch regressions, not targets (see docs/reconstruction.md).
+    # Measured 2026-11-21 on this scene (24 views of 160x128 demosaiced pixels, a 4 cm sphere, two
+    # iterations): normal median 2.9 deg, eta median 11.1 %, Chamfer 0.95 mm, held-out PSNR 23.7 dB.
+    # Bounds that catch regressions, not targets (see docs/reconstruction.md).
     assert metrics["normal_error_deg"]["all"]["median"] < 4.0
-    assert metrics["eta_relative_error_pct"]["median"] < 12.0
-    assert metrics["geometry"]["chamfer_mm"] < 1.5
+    assert metrics["eta_relative_error_pct"]["median"] < 14.0
+    assert metrics["geometry"]["chamfer_mm"] < 1.2
     assert metrics["psnr_held_out"]["mean_db"] > 20.0
     assert metrics["timings"]["rules"]["fit_pbrdf"]["jobs"] == SHARDS * 2 * (ITERATIONS + 1)
 

@@ -27,7 +27,14 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
     """Write the final model PLY and parameter store; returns a summary dict."""
     from sellip.io import write_param_mesh
     from sellip.observe import read_mesh
-    from sellip.params import MODEL_NAMES, PARAM_FIELDS, ParamsError, params_from, read_params, write_params
+    from sellip.params import (
+        MODEL_NAMES,
+        PARAM_FIELDS,
+        ParamsError,
+        params_from,
+        read_params,
+        write_params,
+    )
     from sellip.render import ParamMesh
 
     if model not in MODEL_NAMES:

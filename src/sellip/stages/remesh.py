@@ -35,7 +35,13 @@ def run_stage(params_path: Path, mesh_path: Path, output: Path, depth: int = 9, 
     from sellip.geometry import mesh_distances, remesh_from_normals, vertex_normals
     from sellip.io import write_param_mesh
     from sellip.observe import read_mesh
-    from sellip.params import PARAM_FIELDS, ParamsError, params_from, read_params, transfer_nearest
+    from sellip.params import (
+        PARAM_FIELDS,
+        ParamsError,
+        params_from,
+        read_params,
+        transfer_nearest,
+    )
     from sellip.render import ParamMesh
 
     started = time.perf_counter()
