@@ -2,13 +2,13 @@
 
     sellip fit --observations results/NAME/iter/0/observations.zarr --shard 2-of-4
                --output results/NAME/iter/0/fit/2-of-4.npz
-               [--prior results/NAME/iter/-1/params.zarr] [--dtype float32]
+               [--prior results/NAME/iter/1/refit.zarr] [--dtype float32]
                [--set lambda_d=100 --set sigma_ss_fixed=0.9 ...] [--compilation-cache DIR]
                [--lobes results/NAME/iter/0/clusters]
 
 The shard's vertex range is derived at run time from the store's vertex count and chunking
 (shard i of n takes an equal share of whole vertex chunks, so it reads only its own chunks).
-With ``--prior`` (the previous iteration's params.zarr) every parameter is warm-started from
+With ``--prior`` (a parameter store: the previous iteration's) every parameter is warm-started from
 the nearest previous vertex (DESIGN §7); without it the fit starts from eta = 1.5 and the
 defaults of :func:`sellip.fit.default_prior`. The starting normals are the mesh normals.
 ``--set`` overrides a field of :class:`sellip.fit.FitSettings`.
@@ -166,7 +166,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--observations", type=Path, required=True, help="observations.zarr of this iteration")
     parser.add_argument("--shard", type=parse_shard, default=(0, 1), help="i-of-n (default 1-of-1: all vertices)")
     parser.add_argument("--output", type=Path, required=True, help="shard result (.npz)")
-    parser.add_argument("--prior", type=Path, default=None, help="previous iteration's params.zarr (warm start)")
+    parser.add_argument("--prior", type=Path, default=None,
+                        help="a parameter store to warm-start from (the previous iteration's, or this one's first pass)")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a FitSettings field (repeatable)")

@@ -2,7 +2,7 @@
 
     sellip gather-fit --observations results/NAME/iter/0/observations.zarr
                       --shards results/NAME/iter/0/fit/1-of-2.npz results/NAME/iter/0/fit/2-of-2.npz
-                      --output results/NAME/iter/0/params.zarr
+                      --output results/NAME/iter/0/fit.zarr
 
 The shards must cover the store's vertices exactly once. Vertices that could not be fitted
 (too few views, failed) get parameters and normals interpolated from their fitted neighbours
