@@ -2,7 +2,6 @@
 
 Public API::
 
-    look_at(center, target, up) -> (3, 3) cam_from_world rotation
     object_center(mesh) -> (3,)                          # centre of the vertices' bounding box
     novel_camera(cameras, target, reference=0, elevate_deg=20.0) -> Camera
     moved_flash(camera, flash_position_cam, offset_cam=NEW_LIGHT_OFFSET_M, polarizer_deg=0.0) -> Light
@@ -38,6 +37,7 @@ import numpy as np
 
 from sellip.previews import WHITE_PERCENTILE, dolp_aolp, srgb_encode, to_uint8
 from sellip.render import Camera, Light, ParamMesh, Renderer, flash_light
+from sellip.scenes import look_at_rotation
 
 log = logging.getLogger(__name__)
 
@@ -67,16 +67,6 @@ MAP_SPECS = {
 
 
 # --------------------------------------------------------------------------- cameras and lights
-
-
-def look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """cam_from_world rotation (3, 3) of an OpenCV camera at ``center`` looking at ``target``, image up ≈ ``up``."""
-    forward = np.asarray(target, np.float64) - center
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, np.asarray(up, np.float64))  # OpenCV: x right, y down, z forward
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    return np.stack([right, down, forward])
 
 
 def object_center(mesh: ParamMesh) -> np.ndarray:
@@ -111,7 +101,7 @@ def novel_camera(cameras: list[Camera], target: np.ndarray, reference: int = 0,
     horizontal = horizontal / np.linalg.norm(horizontal) if np.linalg.norm(horizontal) > 1e-9 else base.rotation[0]
     direction = np.cos(new_elevation) * horizontal + np.sin(new_elevation) * up
     center = target + 0.5 * (distances[reference] + distances[neighbour]) * direction
-    rotation = look_at(center, target, up)
+    rotation = look_at_rotation(center, target, up=up)
     return Camera(intrinsics=base.intrinsics, rotation=rotation, translation=-rotation @ center,
                   width=base.width, height=base.height)
 

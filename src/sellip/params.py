@@ -59,6 +59,11 @@ def fill_from_neighbours(vertices: np.ndarray, values: np.ndarray, known: np.nda
     return values
 
 
+def same_vertices(a: np.ndarray, b: np.ndarray, atol: float = 1e-6) -> bool:
+    """Whether two vertex arrays (N, 3) are the same vertices in the same order (stores keep float32)."""
+    return len(a) == len(b) and np.allclose(a, b, atol=atol)
+
+
 def transfer_nearest(from_vertices: np.ndarray, to_vertices: np.ndarray) -> np.ndarray:
     """Index (M,) of the nearest ``from_vertices`` row for each of ``to_vertices`` (M, 3)."""
     return cKDTree(from_vertices).query(to_vertices, k=1)[1]

@@ -260,12 +260,13 @@ def device_intrinsics(width: int, height: int) -> np.ndarray:
     return np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
 
 
-def look_at_rotation(center: np.ndarray, target: np.ndarray, roll_rad: float = 0.0) -> np.ndarray:
-    """cam_from_world rotation (3, 3) of an OpenCV camera at ``center`` looking at ``target``, world z up,
-    rolled by ``roll_rad`` about its optical axis."""
-    forward = target - center
+def look_at_rotation(center: np.ndarray, target: np.ndarray, roll_rad: float = 0.0,
+                     up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """cam_from_world rotation (3, 3) of an OpenCV camera at ``center`` looking at ``target``, image up
+    towards ``up`` (world z by default), rolled by ``roll_rad`` about its optical axis."""
+    forward = np.asarray(target, np.float64) - center
     forward /= np.linalg.norm(forward)
-    right = np.cross(np.array([0.0, 0.0, -1.0]), forward)
+    right = np.cross(forward, np.asarray(up, np.float64))
     right /= np.linalg.norm(right)
     down = np.cross(forward, right)
     c, s = np.cos(roll_rad), np.sin(roll_rad)

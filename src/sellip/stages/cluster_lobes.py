@@ -143,7 +143,7 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
     from sellip.augment import AugmentSettings, cluster_materials, fit_cluster_lobe
     from sellip.fit import FitSettings
     from sellip.observe import ObserveError, open_observations
-    from sellip.params import read_params
+    from sellip.params import read_params, same_vertices
 
     settings = settings or AugmentSettings()
     fit_settings = fit_settings or FitSettings()
@@ -151,7 +151,7 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
     group = open_observations(observations)
     total = int(group.attrs["num_vertices"])
     n = len(store["vertices"])
-    if n != total or not np.allclose(np.asarray(group["vertices"][...]), store["vertices"], atol=1e-6):
+    if not same_vertices(np.asarray(group["vertices"][...]), store["vertices"]):
         raise ObserveError(observations, f"holds {total} vertices that are not the {n} vertices of {params} "
                                          "(cluster-lobes needs the params and observations of the same mesh)")
     clustering = cluster_materials(store["eta"], store["rho_d"], store["status"], store["confidence"], settings, seed)

@@ -177,7 +177,7 @@ def run_stage(model_path: str | Path, cameras_path: str | Path, hdr_path: str | 
                  (metrics["normal_error_deg"]["confident"] or {}).get("median"),
                  metrics["geometry"]["chamfer_mm"], metrics["geometry"]["hausdorff_mm"])
         # New light: ground truth and model rendered under the same moved flash, ground-truth world.
-        moved_model = Renderer(evaluate.transform_mesh(model, similarity))
+        moved_model = renderer if similarity is None else Renderer(evaluate.transform_mesh(model, similarity))
         truth_renderer = Renderer(truth)
         new_light = {}
         for view_id in [v for v in held_out if v in cameras] or [next(iter(cameras))]:

@@ -33,6 +33,7 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
         ParamsError,
         params_from,
         read_params,
+        same_vertices,
         write_params,
     )
     from sellip.render import ParamMesh
@@ -42,7 +43,7 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
     store = read_params(params_path)
     mesh = read_mesh(mesh_path)
     vertices = store["vertices"]
-    if len(vertices) != mesh.num_vertices or not np.allclose(vertices, mesh.vertices, atol=1e-6):
+    if not same_vertices(vertices, mesh.vertices):
         raise ParamsError(f"{params_path}: its {len(vertices)} vertices are not those of {mesh_path} "
                           f"({mesh.num_vertices}): the final pass must fit the final mesh")
     n = len(vertices)

@@ -97,7 +97,13 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
     enable_compilation_cache(compilation_cache)
     from sellip.fit import STATUS_NAMES, FitSettings, default_prior, fit_vertices
     from sellip.observe import load_observations, open_observations
-    from sellip.params import params_from, read_params, transfer_nearest
+    from sellip.params import (
+        PARAM_FIELDS,
+        params_from,
+        read_params,
+        same_vertices,
+        transfer_nearest,
+    )
 
     settings = settings or FitSettings()
     group = open_observations(observations)
@@ -125,11 +131,10 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
     if prior is not None:
         previous = read_params(prior)
         nearest = transfer_nearest(previous["vertices"], data.vertices)
-        start_params = params_from({k: previous[k][nearest] for k in ("eta", "rho_d", "rho_s", "sigma_s", "rho_ss",
-                                                                      "sigma_ss")}, float_type)
+        start_params = params_from({k: previous[k][nearest] for k in PARAM_FIELDS}, float_type)
         log.info("warm start from %s (nearest of %d vertices)", prior, len(previous["vertices"]))
-        same_mesh = len(previous["vertices"]) == total and np.allclose(previous["vertices"][start:stop],
-                                                                       data.vertices, atol=1e-6)
+        same_mesh = len(previous["vertices"]) == total and same_vertices(previous["vertices"][start:stop],
+                                                                         data.vertices)
         if lobes is not None and same_mesh:
             normal0 = previous["normals"][start:stop].astype(float_type)
             log.info("refit: starting normals from %s", prior)

@@ -40,6 +40,7 @@ def run_stage(params_path: Path, mesh_path: Path, output: Path, depth: int = 9, 
         ParamsError,
         params_from,
         read_params,
+        same_vertices,
         transfer_nearest,
     )
     from sellip.render import ParamMesh
@@ -53,7 +54,7 @@ def run_stage(params_path: Path, mesh_path: Path, output: Path, depth: int = 9, 
     normal_confidence = (confidence_from_uncertainty(store["normal_std_deg"], 0.0) if "normal_std_deg" in store
                          else confidence)
     mesh = read_mesh(mesh_path)
-    if mesh.num_vertices != len(vertices) or not np.allclose(mesh.vertices, vertices, atol=1e-6):
+    if not same_vertices(mesh.vertices, vertices):
         raise ParamsError(f"{params_path}: its {len(vertices)} vertices are not those of {mesh_path} "
                           f"({mesh.num_vertices})")
     target = int(target_vertices or (read_mesh(reference_mesh).num_vertices if reference_mesh else len(vertices)))
