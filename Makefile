@@ -8,7 +8,7 @@ CORES ?= 2
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test dry-run report clean-results
+.PHONY: install demo test dry-run report bench-sweep clean-results
 
 install: $(STAMP)
 
@@ -39,6 +39,14 @@ report: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest
+
+# The stability suite (docs/stability.md): failure-mode cases run end to end -> results/bench/stability/.
+bench-stability: $(STAMP)
+	$(BIN)/sellip bench-stability --out results/bench/stability --cores $(CORES)
+
+# The speed-accuracy sweep of docs/benchmarks.md (quick preset; the demo-sized one is in that page).
+bench-sweep: $(STAMP)
+	$(BIN)/sellip bench-sweep --scenes demo sphere_ior --preset quick --out results/bench/sweep --cores $(CORES)
 
 clean-results:
 	rm -rf results .snakemake

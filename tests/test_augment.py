@@ -228,9 +228,12 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
     common = ["--params", str(tmp_path / "fit.zarr"), "--observations", str(tmp_path / "observations.zarr")]
     assert cli.main(["cluster-lobes", *common, "--output", str(clusters), "--seed", "0", "--max-samples", "1000",
                      "--min-cluster-vertices", "10"]) == 0
-    assert sorted(p.name for p in clusters.iterdir()) == ["clusters.json", "labels.npy", "lobes.csv", "lobes.png"]
+    assert sorted(p.name for p in clusters.iterdir()) == ["clusters.json", "labels.npy", "lobes.csv", "lobes.png",
+                                                        "models.npy"]
     assert not list(tmp_path.glob("*.tmp"))
-    from sellip.stages.cluster_lobes import read_lobes
+    from sellip.stages.cluster_lobes import read_lobes, read_models
+
+    assert read_models(clusters, 120).shape == (120,)
 
     labels, lobes = read_lobes(clusters)
     assert labels.dtype == np.int32 and labels.shape == (120,) and len(lobes) == 3

@@ -20,6 +20,7 @@ difference in each, so the Euclidean K-means treats them alike.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -217,22 +218,36 @@ class _Samples(NamedTuple):
     rho_d: jnp.ndarray
 
 
+def _solve_spec(terms, target_s, w, prior, lobes: str):
+    """Closed-form (rho_s, rho_ss RGB) (4,) of the cluster fit for the lobe set ``lobes``
+    (:data:`sellip.fit.LOBE_SETS`): exact NNLS for "full", a clamped 1-D least squares of rho_s for
+    "specular" (rho_ss = 0), zeros for "diffuse". target_s (J, 3): I_s minus its diffuse part."""
+    basis_s, basis_ss = terms["lobe_s"] * terms["r_is"], terms["lobe_ss"] * terms["r_is"]
+    ridge = 1e-6 * jnp.maximum(jnp.sum(w * (basis_s**2 + basis_ss**2)), 1e-12)
+    if lobes == "diffuse":
+        return jnp.zeros(4, target_s.dtype)
+    if lobes == "specular":
+        wb = w * basis_s
+        rho_s = (jnp.sum(wb @ target_s) + ridge * prior[0]) / (3 * jnp.sum(wb * basis_s) + ridge)
+        return jnp.zeros(4, target_s.dtype).at[0].set(jnp.maximum(rho_s, 0))
+    return fit._nnls_specular(basis_s, basis_ss, target_s, w, prior, ridge)
+
+
 def _cluster_residuals(z, delta, spec, samples: _Samples, settings: FitSettings, lambda_theta):
     """Residual matrix (J, 5) of the cluster fit: DoP, specular RGB, Delta theta_h (paper Eq. 25).
 
     z (5,) as :func:`sellip.fit._decode` (the normal entries unused); delta (J,) radians; spec (4,)
-    rho_s, rho_ss RGB, or None to solve them (exact NNLS, variable projection). Returns (res, spec).
+    rho_s, rho_ss RGB, or None to solve them (closed form, variable projection). The lobes are
+    those of ``settings.lobes`` (a lobe left out contributes nothing). Returns (res, spec).
     """
     v = samples.record
     frame = fit._Frame(*(jnp.array([0.0, 0.0, 1.0], z.dtype),) * 3)
     _, eta, sigma_s, sigma_ss = fit._decode(z, frame, settings.sigma_ss_fixed)
-    terms = fit._model_terms(samples.normal, eta, sigma_s, sigma_ss, v, theta_h_offset=delta)
+    terms = fit._model_terms(samples.normal, eta, sigma_s, sigma_ss, v, theta_h_offset=delta, lobes=settings.lobes)
     w = v.weight * terms["lit"]
     diffuse_s = samples.rho_d * terms["d_is"][:, None]
     if spec is None:
-        basis_s, basis_ss = terms["lobe_s"] * terms["r_is"], terms["lobe_ss"] * terms["r_is"]
-        ridge = 1e-6 * jnp.maximum(jnp.sum(w * (basis_s**2 + basis_ss**2)), 1e-12)
-        spec = fit._nnls_specular(basis_s, basis_ss, v.obs_s - diffuse_s, w, v.prior, ridge)
+        spec = _solve_spec(terms, v.obs_s - diffuse_s, w, v.prior, settings.lobes)
     reflect = terms["lobe_s"][:, None] * spec[0] + terms["lobe_ss"][:, None] * spec[None, 1:]
     i_d = (v.obs_d - reflect * terms["r_id"][:, None]) @ v.color
     i_alpha = (v.obs_a - reflect * terms["r_ia"][:, None]) @ v.color
@@ -245,13 +260,24 @@ def _cluster_residuals(z, delta, spec, samples: _Samples, settings: FitSettings,
     return jnp.concatenate([res_psi[:, None], res_s, res_theta[:, None]], 1), spec
 
 
+class _Pool(NamedTuple):
+    """Pooled samples of a cluster (:func:`_pool_samples`): the samples (J slots), the count of real
+    ones, the intensity scale they are divided by, and vertex (count,) the row of each real sample."""
+
+    samples: _Samples
+    count: int
+    scale: float
+    vertex: np.ndarray
+
+
 def _pool_samples(obs: Observations, normals, rho_d, settings: FitSettings, max_samples: int,
-                  rng: np.random.Generator):
+                  rng: np.random.Generator) -> _Pool:
     """The usable views (:func:`sellip.fit.select_views`) of n vertices as J <= max_samples samples,
     padded with weight-0 slots to the power of two at or above ``max_samples``: every cluster has
     the same shape, so the lobe fit compiles once per run (and once per machine with the persistent
-    compilation cache). Returns (_Samples, J, scale)."""
+    compilation cache)."""
     dtype = np.float64 if jax.config.jax_enable_x64 else np.float32
+    settings = lobe_fit_settings(settings)
     obs = Observations(*[np.asarray(x, dtype) if np.asarray(x).dtype.kind == "f" else np.asarray(x) for x in obs])
     normals = np.asarray(normals, dtype) / np.linalg.norm(normals, axis=-1, keepdims=True)
     keep = np.asarray(fit._select(Observations(*[jnp.asarray(x) for x in obs]), jnp.asarray(normals), settings))
@@ -263,7 +289,7 @@ def _pool_samples(obs: Observations, normals, rho_d, settings: FitSettings, max_
     size = fit._bucket(max_samples, minimum=256)
     index_v = np.resize(vertex, size) if count else np.zeros(size, int)
     index_k = np.resize(view, size) if count else np.zeros(size, int)
-    take = lambda x: np.asarray(x)[index_v, index_k]
+    take = lambda x: np.asarray(x)[index_v, index_k]  # noqa: E731
     diffuse = take(obs.diffuse)
     valid = np.arange(size) < count
     scale = float(np.median(diffuse[:count].mean(-1))) if count else 1.0
@@ -276,9 +302,9 @@ def _pool_samples(obs: Observations, normals, rho_d, settings: FitSettings, max_
         weight=np.where(valid, 1.0 / max(count, 1), 0.0).astype(dtype), color=color.astype(dtype),
         scale=np.asarray(scale, dtype), prior=np.zeros(4, dtype))
     record = record._replace(**{name: jnp.asarray(getattr(record, name), dtype) for name in record._fields
-                                if name != "virtual"})
-    return _Samples(record, jnp.asarray(normals[index_v]), jnp.asarray(np.asarray(rho_d, dtype)[index_v] / scale)), \
-        count, scale
+                                if getattr(record, name) is not None})
+    samples = _Samples(record, jnp.asarray(normals[index_v]), jnp.asarray(np.asarray(rho_d, dtype)[index_v] / scale))
+    return _Pool(samples, count, scale, vertex)
 
 
 def _stacked_residuals(z, delta, samples, settings, lambda_theta):
@@ -289,11 +315,13 @@ _stacked = jax.jit(_stacked_residuals, static_argnames=("settings",))
 _stacked_jacobian = jax.jit(jax.jacfwd(_stacked_residuals), static_argnames=("settings",))
 
 
-def _delta_step(z, delta, samples, settings: FitSettings, lambda_theta, max_delta, steps: int = 3):
+def _delta_step(z, delta, samples, settings: FitSettings, lambda_theta, max_delta, steps: int = 3, spec=None):
     """Gauss-Newton on each sample's Delta theta_h with the lobe parameters (and albedos) held:
     every sample's rows depend on its own Delta only. Accepts a step per sample only where it
-    lowers that sample's cost."""
-    _, spec = _cluster_residuals(z, delta, None, samples, settings, lambda_theta)
+    lowers that sample's cost. ``spec`` (4,) holds the albedos at given values (None: solved at the
+    incoming delta)."""
+    if spec is None:
+        _, spec = _cluster_residuals(z, delta, None, samples, settings, lambda_theta)
 
     def rows(d):
         return _cluster_residuals(z, d, spec, samples, settings, lambda_theta)[0]
@@ -310,6 +338,21 @@ def _delta_step(z, delta, samples, settings: FitSettings, lambda_theta, max_delt
 _delta_step_jit = jax.jit(_delta_step, static_argnames=("settings", "steps"))
 
 
+def lobe_fit_settings(settings: FitSettings) -> FitSettings:
+    """The fields of ``settings`` the cluster fit uses (loss weights, lobe set, view selection), the
+    others at their defaults: the jitted lobe kernels take the settings as a static argument, so
+    passes that differ only in, e.g., ``fit_normal`` or ``max_iterations`` share one compilation."""
+    keep = ("lambda_psi", "lambda_s", "lobes", "sigma_ss_fixed", "dark_threshold", "chroma_threshold",
+            "outlier_threshold", "shading_outlier_floor")
+    return FitSettings(**{name: getattr(settings, name) for name in keep})
+
+
+def _free_lobe_parameters(settings: FitSettings) -> list[int]:
+    """Indices into z of the cluster fit's nonlinear parameters: eta (2), and sigma_s (3), sigma_ss (4)
+    where the lobe set fits them (:func:`sellip.fit._free_parameters` without the normal)."""
+    return list(fit._free_parameters(dataclasses.replace(settings, fit_normal=False)))
+
+
 def fit_cluster_lobe(obs: Observations, normals, rho_d, eta0: float, fit_settings: FitSettings | None = None,
                      settings: AugmentSettings = AugmentSettings(), seed: int = 0) -> ClusterLobe:
     """Fit one cluster's lobe to the pooled observations of its n vertices (paper Eq. 25).
@@ -318,25 +361,35 @@ def fit_cluster_lobe(obs: Observations, normals, rho_d, eta0: float, fit_setting
     fitted normals and albedos (held). eta0: the start of eta (e.g. the members' median).
     Minimizes lambda_psi L_psi + lambda_s L_s' + lambda_theta sum_j w_j Delta theta_h_j^2 over eta,
     sigma_s, sigma_ss (LM, scipy ``least_squares`` on the fit's bounded parameterization), rho_s
-    and rho_ss (closed-form NNLS) and Delta theta_h (J,) (per-sample Gauss-Newton), alternating
+    and rho_ss (closed form) and Delta theta_h (J,) (per-sample Gauss-Newton), alternating
     ``settings.alternations`` times. Intensities are divided by the cluster's median diffuse level.
+    The lobes are those of ``fit_settings.lobes`` and ``sigma_ss_fixed`` (the model, :mod:`sellip.models`):
+    a lobe left out has albedo 0 (its roughness is then the start value, unused).
     """
+    fit_settings = lobe_fit_settings(fit_settings or FitSettings())
+    pool = _pool_samples(obs, normals, rho_d, fit_settings, settings.max_samples, np.random.default_rng(seed))
+    if pool.count == 0:
+        raise ValueError("the cluster has no usable (vertex, view) sample")
+    return _fit_pool(pool, eta0, fit_settings, settings)
+
+
+def _fit_pool(pool: _Pool, eta0: float, fit_settings: FitSettings, settings: AugmentSettings) -> ClusterLobe:
+    """:func:`fit_cluster_lobe` on pooled samples."""
     from scipy.optimize import least_squares
 
-    fit_settings = fit_settings or FitSettings()
-    rng = np.random.default_rng(seed)
-    samples, count, scale = _pool_samples(obs, normals, rho_d, fit_settings, settings.max_samples, rng)
-    if count == 0:
-        raise ValueError("the cluster has no usable (vertex, view) sample")
+    fit_settings = lobe_fit_settings(fit_settings)
+    samples, count, scale = pool.samples, pool.count, pool.scale
     dtype = samples.record.obs_d.dtype
     lambda_theta = jnp.asarray(settings.lambda_theta, dtype)
     max_delta = jnp.asarray(np.radians(settings.max_theta_error_deg), dtype)
     delta = jnp.zeros(samples.normal.shape[0], dtype)
-    free = [2, 3] if fit_settings.sigma_ss_fixed is not None else [2, 3, 4]
+    free = _free_lobe_parameters(fit_settings)
     # Start: eta0 with the fit's roughness grid, the lowest loss.
     grid = np.asarray(fit.ROUGHNESS_GRID)
     starts = np.asarray(fit._encode(jnp.full(len(grid), eta0, dtype), jnp.asarray(grid[:, 0], dtype),
                                     jnp.asarray(grid[:, 1], dtype), dtype))
+    if fit_settings.lobes == "diffuse":  # no roughness to start from: one start
+        starts = starts[:1]
     costs = [float(jnp.sum(_stacked(jnp.asarray(s), delta, samples, fit_settings, lambda_theta) ** 2)) for s in starts]
     z = starts[int(np.argmin(costs))].astype(np.float64)
 
@@ -357,7 +410,8 @@ def fit_cluster_lobe(obs: Observations, normals, rho_d, eta0: float, fit_setting
         z[free] = result.x
         return z
 
-    for _ in range(settings.alternations):
+    # Without a lobe, Delta theta_h changes nothing: one solve.
+    for _ in range(settings.alternations if fit_settings.lobes != "diffuse" else 0):
         z = solve(z, delta)
         delta = _delta_step_jit(jnp.asarray(z, dtype), delta, samples, fit_settings, lambda_theta, max_delta)
     z = solve(z, delta)
@@ -380,6 +434,28 @@ def fit_cluster_lobe(obs: Observations, normals, rho_d, eta0: float, fit_setting
                        loss=float(jnp.sum(res**2)),
                        theta_h_deg=(theta_h + np.degrees(np.asarray(delta)))[ok],
                        value=(np.asarray(measured / jnp.where(shading > 1e-6, shading, 1)) * scale)[ok])
+
+
+def lobe_sample_losses(lobe: ClusterLobe, pool: _Pool, fit_settings: FitSettings,
+                       settings: AugmentSettings = AugmentSettings(), delta_rounds: int = 2) -> np.ndarray:
+    """The cluster loss of each real sample of ``pool`` (count,) under a given lobe (held): the
+    rows of :func:`_cluster_residuals` with the lobe's eta, roughnesses and albedos, and each
+    sample's own Delta theta_h fitted (a per-sample nuisance, with its L_theta cost) by
+    ``delta_rounds`` x 3 Gauss-Newton steps. Summed, it is the cluster fit's loss on these samples:
+    the held-out error of model selection (:func:`sellip.models.select_model`)."""
+    samples = pool.samples
+    fit_settings = lobe_fit_settings(fit_settings)
+    dtype = samples.record.obs_d.dtype
+    lambda_theta = jnp.asarray(settings.lambda_theta, dtype)
+    max_delta = jnp.asarray(np.radians(settings.max_theta_error_deg), dtype)
+    z = fit._encode(jnp.asarray(lobe.eta, dtype), jnp.asarray(lobe.sigma_s, dtype),
+                    jnp.asarray(max(lobe.sigma_ss, lobe.sigma_s + fit.LOBE_GAP), dtype), dtype)
+    spec = jnp.asarray(np.concatenate([[lobe.rho_s], np.asarray(lobe.rho_ss)]) / pool.scale, dtype)
+    delta = jnp.zeros(samples.normal.shape[0], dtype)
+    for _ in range(delta_rounds if fit_settings.lobes != "diffuse" else 0):
+        delta = _delta_step_jit(z, delta, samples, fit_settings, lambda_theta, max_delta, spec=spec)
+    res, _ = _cluster_residuals(z, delta, spec, samples, fit_settings, lambda_theta)
+    return np.asarray(jnp.sum(res**2, 1), np.float64)[:pool.count]
 
 
 def _unit(v):

@@ -10,6 +10,7 @@ Public API::
     psnr(reference, estimate, mask) -> dict                          # definition below
     render_mask(measured_analyzers, valid, coverage) -> (H, W) bool
     stage_timings(benchmarks_dir, results_dir=None) -> dict
+    vertex_errors(model, truth, similarity=None) -> dict of (N,) arrays   # per-vertex normal and η errors
 
 Definitions (all exact; docs/outputs.md repeats them):
 
@@ -251,3 +252,22 @@ def _store_vertices(path: Path) -> int | None:
     if "num_vertices" in group.attrs:
         return int(group.attrs["num_vertices"])
     return int(group["vertices"].shape[0]) if "vertices" in group else None
+
+
+# --------------------------------------------------------------------------- per vertex
+
+
+def vertex_errors(model: ParamMesh, truth: ParamMesh, similarity: Similarity | None = None) -> dict[str, np.ndarray]:
+    """Per model vertex, against its nearest ground-truth vertex (the correspondence of :func:`parameter_errors`).
+
+    Returns (N,) arrays: ``normal_error_deg``, ``eta_relative_error_pct`` (|η - η_gt| / η_gt in percent),
+    ``distance_mm`` (to the nearest ground-truth vertex) and ``nearest`` (its index). ``similarity``: model
+    world -> ground-truth world (None: same world).
+    """
+    model = transform_mesh(model, similarity)
+    distance, nearest = cKDTree(np.asarray(truth.vertices, np.float64)).query(np.asarray(model.vertices), k=1)
+    angle = angular_error_deg(np.asarray(model.normals, np.float64), np.asarray(truth.normals, np.float64)[nearest])
+    eta_gt = np.asarray(truth.params.eta, np.float64)[nearest]
+    eta_error = 100 * np.abs(np.asarray(model.params.eta, np.float64) - eta_gt) / eta_gt
+    return {"normal_error_deg": angle, "eta_relative_error_pct": eta_error, "distance_mm": 1000 * distance,
+            "nearest": nearest}

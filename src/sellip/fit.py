@@ -42,7 +42,8 @@ import numpy as np
 from sellip import polar
 from sellip.conventions import observations_from_analyzers, stokes_to_analyzers
 from sellip.fresnel import fresnel
-from sellip.pbrdf import PBRDFParams, lobe_factor, lobe_stokes
+from sellip.pbrdf import (PBRDFParams, ViewFrames, diffuse_stokes, lobe_factor, lobe_stokes, reflection_stokes,
+                          surface_terms, view_frames)
 
 STATUS_FITTED = 0
 STATUS_TOO_FEW_VIEWS = 1
@@ -52,6 +53,9 @@ STATUS_NAMES = {STATUS_FITTED: "fitted", STATUS_TOO_FEW_VIEWS: "too few views", 
 ETA_BOUNDS = (1.05, 3.0)
 SIGMA_BOUNDS = (0.01, 1.0)
 LOBE_GAP = 0.1  # sigma_ss >= sigma_s + LOBE_GAP
+LOBE_SETS = ("diffuse", "specular", "full")
+"""The reflection lobes a fit may use (DESIGN §7 model selection): none, the specular lobe, or
+specular and single scattering (with sigma_ss free, or fixed by ``FitSettings.sigma_ss_fixed``)."""
 
 
 @dataclass(frozen=True)
@@ -73,6 +77,7 @@ class FitSettings:
     outlier_floor: float = 0.05  # ... and this relative error
     shading_outlier_floor: float = 0.9  # a shading outlier is also > e^0.9 = 2.5x off the median apparent albedo
     sigma_ss_fixed: float | None = None  # fix sigma_ss (paper §6: 0.9 or 1.0) instead of fitting it
+    lobes: str = "full"  # reflection lobes of the model: "diffuse" (none), "specular" (no single scattering), "full"
     round_iterations: int = 4  # LM iterations between compactions of the still-running vertices
     lm_batch: int = 512  # vertices advanced together by one compiled LM kernel
     chunk_size: int = 8192  # vertices prepared and finalized together (bounds memory)
@@ -80,6 +85,10 @@ class FitSettings:
     lambda_g: float = 0.1  # weight of the virtual specular samples against the real views (paper Eq. 24)
     virtual_count: int = 180  # M virtual samples per vertex, at theta_h = 0, step, ..., (M - 1) step
     virtual_step_deg: float = 0.5  # their theta_h spacing (degrees)
+
+    def __post_init__(self):
+        if self.lobes not in LOBE_SETS:
+            raise ValueError(f"FitSettings.lobes must be one of {LOBE_SETS}, got {self.lobes!r}")
 
 
 class Observations(NamedTuple):
@@ -260,25 +269,29 @@ def _nnls_specular(a, b, y, weight, prior, ridge):
     one is exact. Elementwise operations only.
     """
     wa, wb = weight * a, weight * b
-    g00 = 3 * jnp.sum(wa * a) + ridge
-    g0c = jnp.sum(wa * b)
-    gcc = jnp.sum(wb * b) + ridge
-    r0 = jnp.sum(wa @ y) + ridge * prior[0]
-    rc = wb @ y + ridge * prior[1:]  # (3,)
+    return _nnls_specular_gram(jnp.sum(wa * a), jnp.sum(wa * b), jnp.sum(wb * b), wa @ y, wb @ y, prior, ridge)
 
-    def objective(rho_s, rho_ss):
-        return (g00 * rho_s**2 + 2 * g0c * rho_s * jnp.sum(rho_ss) + gcc * jnp.sum(rho_ss**2)
-                - 2 * (r0 * rho_s + jnp.sum(rc * rho_ss)))
 
-    subsets = ((jnp.arange(8)[:, None] >> jnp.arange(3)[None, :]) & 1).astype(a.dtype)  # (8, 3), 1 = free
+def _nnls_specular_gram(g_aa, g_ab, g_bb, y_a, y_b, prior, ridge):
+    """:func:`_nnls_specular` from its inner products: g_aa = sum w a^2, g_ab = sum w a b,
+    g_bb = sum w b^2 (scalars), y_a = sum_k w_k a_k y_k, y_b = sum_k w_k b_k y_k ((3,) each)."""
+    g00 = 3 * g_aa + ridge
+    g0c = g_ab
+    gcc = g_bb + ridge
+    r0 = jnp.sum(y_a) + ridge * prior[0]
+    rc = y_b + ridge * prior[1:]  # (3,)
+    dtype = rc.dtype
+
+    subsets = ((jnp.arange(8)[:, None] >> jnp.arange(3)[None, :]) & 1).astype(dtype)  # (8, 3), 1 = free
     n_free = jnp.sum(subsets, -1)
     rho_s = (r0 - g0c * (subsets @ rc) / gcc) / (g00 - n_free * g0c**2 / gcc)  # (8,)
     rho_ss = subsets * (rc[None, :] - g0c * rho_s[:, None]) / gcc  # (8, 3)
     feasible = (rho_s >= 0) & jnp.all(rho_ss >= 0, -1)
     rho_ss_only = jnp.maximum(rc / gcc, 0)  # rho_s = 0: channels independent
-    cand_s = jnp.concatenate([jnp.zeros(1, a.dtype), rho_s])
+    cand_s = jnp.concatenate([jnp.zeros(1, dtype), rho_s])
     cand_ss = jnp.concatenate([rho_ss_only[None], rho_ss])
-    cost = jax.vmap(objective)(cand_s, cand_ss)
+    cost = (g00 * cand_s**2 + 2 * g0c * cand_s * jnp.sum(cand_ss, -1) + gcc * jnp.sum(cand_ss**2, -1)
+            - 2 * (r0 * cand_s + cand_ss @ rc))  # (9,) the objective up to a constant
     best = jnp.argmin(jnp.where(jnp.concatenate([jnp.ones(1, bool), feasible]), cost, jnp.inf))
     return jnp.concatenate([cand_s[best][None], cand_ss[best]])
 
@@ -301,15 +314,37 @@ class _Vertex(NamedTuple):
     scale: jnp.ndarray  # () the vertex's diffuse level (intensity units)
     prior: jnp.ndarray  # (4,) rho_s, rho_ss RGB warm start (already divided by scale)
     virtual: _Virtual | None = None  # virtual specular samples (augmentation), or none
+    frames: ViewFrames | None = None  # (K,) the normal-independent frames (:func:`_prepare`), or computed on use
 
 
-def _model_terms(normal, eta, sigma_s, sigma_ss, v: _Vertex, theta_h_offset=None):
-    """Per-view design terms for unit albedos, from the full model (exact frames, 3.5 deg flash offset
-    included): the observations (I_d, I_alpha, I_s) of the diffuse lobe and of the reflection lobe,
-    and the two lobe factors. Each (K,). ``theta_h_offset`` (K,) radians, optional: the lobe factors
-    are evaluated at theta_h + offset (the per-sample Delta theta_h of the cluster fit, paper Eq. 25)."""
-    stokes_d, stokes_r, geom = lobe_stokes(normal, v.to_light, v.to_camera, v.light_distance, v.light_axis,
-                                           v.camera_up, eta)
+def _view_frames(v: _Vertex) -> ViewFrames:
+    if v.frames is not None:
+        return v.frames
+    return view_frames(v.to_light, v.to_camera, v.light_axis, v.camera_up)
+
+
+def _surface(normal, v: _Vertex):
+    """The normal-dependent geometry and frames (:class:`sellip.pbrdf.SurfaceTerms`) of the K views."""
+    return surface_terms(normal, v.to_light, v.to_camera, v.light_distance, _view_frames(v))
+
+
+def _view_terms(normal, eta, v: _Vertex, theta_h_offset=None, surface=None, reflection=None):
+    """The roughness-independent per-view terms for unit albedos, from the full model (exact frames,
+    3.5 deg flash offset included): the observations (I_d, I_alpha, I_s) of the diffuse lobe
+    (``d_*``) and of the reflection lobe (``r_*``), each (K,), the diffuse DoP and azimuth
+    direction, and the geometry record the lobe factors need. ``theta_h_offset`` (K,) radians,
+    optional: the lobe factors will be evaluated at theta_h + offset (the per-sample Delta theta_h
+    of the cluster fit, paper Eq. 25). ``surface`` (:func:`_surface` at ``normal``) and
+    ``reflection`` (:func:`sellip.pbrdf.reflection_stokes` at ``eta``, normal-independent) may
+    be passed when already known: the LM's difference Jacobian reuses them across its columns.
+    """
+    surface = _surface(normal, v) if surface is None else surface
+    if reflection is None:
+        reflection = reflection_stokes(_view_frames(v), eta)
+    geom = surface.geometry
+    shading = geom.shading[..., None]
+    stokes_d = shading * diffuse_stokes(surface, eta)
+    stokes_r = shading * reflection
     if theta_h_offset is not None:
         theta_h = jnp.arccos(jnp.clip(geom.cos_h, 0.0, 1.0))
         geom = geom._replace(cos_h=jnp.clip(jnp.cos(theta_h + theta_h_offset), 0.0, 1.0))
@@ -320,47 +355,77 @@ def _model_terms(normal, eta, sigma_s, sigma_ss, v: _Vertex, theta_h_offset=None
     safe_gamma = jnp.where(gamma > 0, gamma, 1)
     terms = {
         "d_id": d_id, "d_ia": d_ia, "d_is": d_is, "r_id": r_id, "r_ia": r_ia, "r_is": r_is,
-        "lobe_s": lobe_factor(geom, sigma_s), "lobe_ss": lobe_factor(geom, sigma_ss),
         "dop": gamma / jnp.where(lit, d_id, 1),
         "dir_a": jnp.where(gamma > 0, d_ia / safe_gamma, 0),  # unit direction of the diffuse (I_alpha, I_beta)
         "dir_b": jnp.where(gamma > 0, d_is / safe_gamma, 1),
-        "lit": lit,
+        "lit": lit, "geom": geom,
     }
-    if v.virtual is not None:
-        # Virtual I_s of unit rho_s / rho_ss: S R+(0; eta) kappa / rho at the coaxial views, (M,) each.
-        shaded = v.virtual.geom.shading * fresnel(jnp.ones_like(eta), eta).r_plus
-        terms.update(virt_s=shaded * lobe_factor(v.virtual.geom, sigma_s),
-                     virt_ss=shaded * lobe_factor(v.virtual.geom, sigma_ss))
+    if v.virtual is not None:  # S R+(0; eta) of the virtual coaxial views, (M,)
+        terms["virt_shaded"] = v.virtual.geom.shading * fresnel(jnp.ones_like(eta), eta).r_plus
     return terms
+
+
+def _lobe_terms(terms, sigma_s, sigma_ss, v: _Vertex, lobes: str = "full"):
+    """``terms`` of :func:`_view_terms` with the two lobe factors D G / (4 cos_i cos_o) (K,) added
+    (``lobe_s``, ``lobe_ss``; 0 for a lobe the model ``lobes`` leaves out), and for virtual
+    samples the virtual I_s of unit rho_s / rho_ss (``virt_s``, ``virt_ss``, (M,) each)."""
+    geom = terms["geom"]
+    zero = jnp.zeros_like(terms["d_id"])
+    out = dict(terms, lobe_s=zero if lobes == "diffuse" else lobe_factor(geom, sigma_s),
+               lobe_ss=lobe_factor(geom, sigma_ss) if lobes == "full" else zero)
+    if v.virtual is not None:
+        shaded = terms["virt_shaded"]
+        zero = jnp.zeros_like(shaded)
+        out.update(virt_s=zero if lobes == "diffuse" else shaded * lobe_factor(v.virtual.geom, sigma_s),
+                   virt_ss=shaded * lobe_factor(v.virtual.geom, sigma_ss) if lobes == "full" else zero)
+    return out
+
+
+def _model_terms(normal, eta, sigma_s, sigma_ss, v: _Vertex, theta_h_offset=None, lobes: str = "full"):
+    """Per-view design terms for unit albedos (:func:`_view_terms` and :func:`_lobe_terms`), each (K,)."""
+    return _lobe_terms(_view_terms(normal, eta, v, theta_h_offset), sigma_s, sigma_ss, v, lobes)
 
 
 def _linear_solution(terms, v: _Vertex, settings: FitSettings):
     """Closed-form rho_d (3,) and (rho_s, rho_ss RGB) (4,) for given nonlinear parameters.
 
     rho_d from the diffuse loss (non-negative, per channel), rho_s and rho_ss from the specular
-    loss (exact small NNLS). The two couple weakly (the diffuse lobe's share of I_s, the
-    reflection lobes' small share of I_d at the flash offset): two alternations settle them.
+    loss (exact small NNLS; only rho_s for ``lobes="specular"``, none for "diffuse"). The two
+    couple weakly (the diffuse lobe's share of I_s, the reflection lobes' small share of I_d at
+    the flash offset): two alternations settle them. Both solves need only inner products of the
+    per-view terms, formed once: the alternations cost O(1), not O(K).
     """
     w = v.weight * terms["lit"]
-    a_d = terms["d_id"]
-    norm_d = jnp.maximum(jnp.sum(w * a_d * a_d), 1e-20)
+    wa = w * terms["d_id"]
+    norm_d = jnp.maximum(jnp.sum(wa * terms["d_id"]), 1e-20)
+    diffuse_target = wa @ v.obs_d  # (3,) sum w a_d I_d
+    if settings.lobes == "diffuse":
+        return jnp.maximum(diffuse_target / norm_d, 0), jnp.zeros(4, norm_d.dtype)
     basis_s = terms["lobe_s"] * terms["r_is"]
     basis_ss = terms["lobe_ss"] * terms["r_is"]
-    w_s = w
+    w_s, w_ss = w * basis_s, w * basis_ss
+    # I_d = rho_d d_id + (lobe_s rho_s + lobe_ss rho_ss) r_id: the reflection's share of the diffuse target.
+    share_s = jnp.sum(wa * terms["r_id"] * terms["lobe_s"])
+    share_ss = jnp.sum(wa * terms["r_id"] * terms["lobe_ss"])
+    # I_s = rho_d d_is + rho_s basis_s + rho_ss basis_ss: the specular normal equations.
+    g_aa, g_ab, g_bb = jnp.sum(w_s * basis_s), jnp.sum(w_s * basis_ss), jnp.sum(w_ss * basis_ss)
+    y_a, y_b = w_s @ v.obs_s, w_ss @ v.obs_s  # (3,) each
+    d_a, d_b = jnp.sum(w_s * terms["d_is"]), jnp.sum(w_ss * terms["d_is"])  # the diffuse lobe's share of I_s
     if v.virtual is not None:  # the virtual samples are more rows of the specular loss (no diffuse part)
-        basis_s = jnp.concatenate([basis_s, terms["virt_s"]])
-        basis_ss = jnp.concatenate([basis_ss, terms["virt_ss"]])
-        w_s = jnp.concatenate([w, v.virtual.weight])
-    ridge = 1e-6 * jnp.maximum(jnp.sum(w_s * (basis_s**2 + basis_ss**2)), 1e-12)
-    target_d = v.obs_d
+        wv_s, wv_ss = v.virtual.weight * terms["virt_s"], v.virtual.weight * terms["virt_ss"]
+        g_aa, g_ab, g_bb = g_aa + jnp.sum(wv_s * terms["virt_s"]), g_ab + jnp.sum(wv_s * terms["virt_ss"]), \
+            g_bb + jnp.sum(wv_ss * terms["virt_ss"])
+        y_a, y_b = y_a + wv_s @ v.virtual.target, y_b + wv_ss @ v.virtual.target
+    ridge = 1e-6 * jnp.maximum(g_aa + g_bb, 1e-12)
+    spec = jnp.zeros(4, norm_d.dtype)
     for _ in range(2):
-        rho_d = jnp.maximum((w * a_d) @ target_d / norm_d, 0)
-        target_s = v.obs_s - rho_d[None, :] * terms["d_is"][:, None]
-        if v.virtual is not None:
-            target_s = jnp.concatenate([target_s, v.virtual.target])
-        spec = _nnls_specular(basis_s, basis_ss, target_s, w_s, v.prior, ridge)
-        reflect = terms["lobe_s"][:, None] * spec[0] + terms["lobe_ss"][:, None] * spec[None, 1:]
-        target_d = v.obs_d - reflect * terms["r_id"][:, None]
+        rho_d = jnp.maximum((diffuse_target - share_s * spec[0] - share_ss * spec[1:]) / norm_d, 0)
+        target_a, target_b = y_a - rho_d * d_a, y_b - rho_d * d_b
+        if settings.lobes == "specular":  # one non-negative unknown: the clamped 1-D least squares
+            rho_s = (jnp.sum(target_a) + ridge * v.prior[0]) / (3 * g_aa + ridge)
+            spec = jnp.zeros(4, norm_d.dtype).at[0].set(jnp.maximum(rho_s, 0))
+        else:
+            spec = _nnls_specular_gram(g_aa, g_ab, g_bb, target_a, target_b, v.prior, ridge)
     return rho_d, spec
 
 
@@ -371,10 +436,9 @@ def _predictions(terms, rho_d, spec):
     return pred, reflect
 
 
-def _residuals(z, v: _Vertex, frame: _Frame, settings: FitSettings):
-    """Weighted residual vector (9K,) of one vertex; its squared norm is the loss."""
-    normal, eta, sigma_s, sigma_ss = _decode(z, frame, settings.sigma_ss_fixed)
-    terms = _model_terms(normal, eta, sigma_s, sigma_ss, v)
+def _residuals_from_terms(terms, v: _Vertex, settings: FitSettings):
+    """Weighted residual vector (9K,) (plus 3M with virtual samples) of one vertex from its
+    :func:`_model_terms`; the albedos are solved in closed form inside."""
     rho_d, spec = _linear_solution(terms, v, settings)
     (pred_d, _, pred_s), reflect = _predictions(terms, rho_d, spec)
     w = v.weight * terms["lit"]
@@ -397,10 +461,75 @@ def _residuals(z, v: _Vertex, frame: _Frame, settings: FitSettings):
     return jnp.concatenate(parts)
 
 
+def _residuals(z, v: _Vertex, frame: _Frame, settings: FitSettings):
+    """Weighted residual vector (9K,) of one vertex; its squared norm is the loss."""
+    normal, eta, sigma_s, sigma_ss = _decode(z, frame, settings.sigma_ss_fixed)
+    return _residuals_from_terms(_model_terms(normal, eta, sigma_s, sigma_ss, v, lobes=settings.lobes), v, settings)
+
+
+DIFFERENCE_STEPS = (7e-4, 7e-4, 3e-3, 3e-3, 1e-2)
+"""Forward-difference steps in z (normal offsets, eta, sigma_s, sigma_ss) in float32, where the
+truncation and round-off errors of each column balance (measured against forward-mode AD at
+solutions of the benchmark problem: median column errors 0.1-0.5 %). The normal's columns need
+the smallest step (the sharpest curvature: a narrow specular lobe), sigma_ss the largest (a broad,
+weak lobe). Scaled by sqrt(eps) for other dtypes."""
+
+
+def _difference_steps(dtype) -> np.ndarray:
+    """(5,) forward-difference steps of :data:`DIFFERENCE_STEPS` for ``dtype``."""
+    scale = (float(np.finfo(dtype).eps) / float(np.finfo(np.float32).eps)) ** 0.5
+    return np.asarray(DIFFERENCE_STEPS) * scale
+
+
+def _residuals_and_jacobian(z, v: _Vertex, frame: _Frame, settings: FitSettings, free: tuple[int, ...]):
+    """Residuals r (R,) at z and their forward-difference Jacobian (R, F) over the columns ``free``.
+
+    Exploits the model's structure. The normal moves the surface terms (:func:`_surface`), eta
+    the Fresnel terms, the roughnesses only the two lobe factors; the reflection lobe's Stokes
+    vector does not depend on the normal at all. So: the surface terms at z and at each normal
+    column, the reflection Fresnel terms at z and at the eta column, the view terms at every
+    geometric point, and the roughness columns reuse the view terms at z; the closed-form
+    albedos and the losses are evaluated at every point. About 3.5 residual evaluations for all
+    5 columns, where forward-mode AD through the whole residual measured about 13 (docs/fit.md).
+    """
+    steps = _difference_steps(z.dtype)
+    normal_cols = [i for i in free if i < 2]
+    eta_cols = [i for i in free if i == 2]
+    roughness = [i for i in free if i >= 3]
+    shift = jnp.eye(5, dtype=z.dtype) * steps[:, None].astype(z.dtype)
+
+    def decode(i):
+        return _decode(z if i is None else z + shift[i], frame, settings.sigma_ss_fixed)
+
+    def residual(terms, sigma_s, sigma_ss):
+        return _residuals_from_terms(_lobe_terms(terms, sigma_s, sigma_ss, v, settings.lobes), v, settings)
+
+    # Unrolled over the few points (a vmap over them measured 3x slower on CPU).
+    frames = _view_frames(v)
+    normal, eta, sigma_s, sigma_ss = decode(None)
+    surface = _surface(normal, v)
+    reflection = reflection_stokes(frames, eta)
+    base = _view_terms(normal, eta, v, surface=surface, reflection=reflection)
+    rows = [residual(base, sigma_s, sigma_ss)]
+    for i in normal_cols:
+        normal_i, _, _, _ = decode(i)
+        rows.append(residual(_view_terms(normal_i, eta, v, reflection=reflection), sigma_s, sigma_ss))
+    for i in eta_cols:
+        _, eta_i, _, _ = decode(i)
+        rows.append(residual(_view_terms(normal, eta_i, v, surface=surface, reflection=reflection_stokes(frames, eta_i)),
+                             sigma_s, sigma_ss))
+    for i in roughness:
+        _, _, sigma_s_i, sigma_ss_i = decode(i)
+        rows.append(residual(base, sigma_s_i, sigma_ss_i))
+    r = jnp.stack(rows)
+    h = jnp.asarray(steps[np.asarray(normal_cols + eta_cols + roughness, int)], z.dtype)
+    return r[0], (r[1:] - r[:1]).T / h
+
+
 def per_view_error(z, v: _Vertex, frame: _Frame, settings: FitSettings):
     """Relative RMS model error of each view (K,): diffuse and specular residuals over the diffuse level."""
     normal, eta, sigma_s, sigma_ss = _decode(z, frame, settings.sigma_ss_fixed)
-    terms = _model_terms(normal, eta, sigma_s, sigma_ss, v)
+    terms = _model_terms(normal, eta, sigma_s, sigma_ss, v, lobes=settings.lobes)
     rho_d, spec = _linear_solution(terms, v, settings)
     (pred_d, _, pred_s), _ = _predictions(terms, rho_d, spec)
     return jnp.sqrt(jnp.sum((pred_d - v.obs_d) ** 2 + (pred_s - v.obs_s) ** 2, -1) / 6)
@@ -409,13 +538,18 @@ def per_view_error(z, v: _Vertex, frame: _Frame, settings: FitSettings):
 # --- Levenberg-Marquardt --------------------------------------------------------------------
 
 class _LMState(NamedTuple):
-    """Per-vertex solver state, batch-first."""
+    """Per-vertex solver state, batch-first. The normal equations (J^T J, J^T r) at z are carried:
+    the Jacobian is computed at each trial point together with its residuals, and kept when the
+    step is accepted."""
 
     z: jnp.ndarray  # (N, 5) unconstrained parameters
     loss: jnp.ndarray  # (N,)
     damping: jnp.ndarray  # (N,)
     iterations: jnp.ndarray  # (N,) int32, in the current stage
     done: jnp.ndarray  # (N,) bool
+    hess: jnp.ndarray  # (N, F, F) J^T J over the free columns
+    grad: jnp.ndarray  # (N, F) J^T r
+    mark: jnp.ndarray  # (N,) the loss PROGRESS_ITERATIONS iterations ago (see _lm_rounds)
 
 
 def _free_parameters(settings: FitSettings, lobes: bool = True) -> tuple[int, ...]:
@@ -423,59 +557,102 @@ def _free_parameters(settings: FitSettings, lobes: bool = True) -> tuple[int, ..
 
     ``lobes=False`` holds both roughnesses: the first stage, while the normal may still be a few
     degrees off (a sharp lobe would otherwise collapse onto one bright view). A fixed sigma_ss
-    is never moved; with ``settings.fit_normal`` False the normal stays at normal0.
+    is never moved, nor the roughness of a lobe the model (``settings.lobes``) leaves out; with
+    ``settings.fit_normal`` False the normal stays at normal0.
     """
     normal = (0, 1) if settings.fit_normal else ()
-    if not lobes:
+    if not lobes or settings.lobes == "diffuse":
         return normal + (2,)
-    return normal + ((2, 3) if settings.sigma_ss_fixed is not None else (2, 3, 4))
+    if settings.lobes == "specular" or settings.sigma_ss_fixed is not None:
+        return normal + (2, 3)
+    return normal + (2, 3, 4)
 
 
-def _lm_step(z, loss, damping, v: _Vertex, frame: _Frame, settings: FitSettings, free: tuple[int, ...]):
-    """One Levenberg-Marquardt step of one vertex over the parameters ``free``.
+Z_LIMIT = 6.0
+"""The largest |z| of the sigmoid-bounded parameters (eta, sigma_s, sigma_ss) LM moves to."""
+PROGRESS_ITERATIONS = 4
+STUCK_DAMPING = 10.0
+"""LM stops a vertex whose loss fell by less than the tolerance over PROGRESS_ITERATIONS
+iterations with its damping above STUCK_DAMPING (:func:`_lm_rounds`)."""
 
-    Returns (z, loss, damping, converged).
-    """
-    residual = lambda zz: _residuals(zz, v, frame, settings)  # noqa: E731
+
+def _loss_tolerance(settings: FitSettings, dtype) -> float:
+    """Relative loss decrease below which the fit has converged: settings.tolerance, but never
+    below what the dtype resolves (float32 losses stop improving near 1e-6)."""
+    return max(settings.tolerance, 30 * float(jnp.finfo(dtype).eps))
+
+
+def _normal_equations(z, v: _Vertex, frame: _Frame, settings: FitSettings, free: tuple[int, ...]):
+    """(loss, J^T J (F, F), J^T r (F,)) of one vertex at z."""
+    r, jac = _residuals_and_jacobian(z, v, frame, settings, free)
+    return jnp.sum(r * r), jac.T @ jac, jac.T @ r
+
+
+def _lm_step(state: _LMState, v: _Vertex, frame: _Frame, settings: FitSettings, free: tuple[int, ...]):
+    """One Levenberg-Marquardt step of one vertex (unbatched ``state``) over the parameters ``free``.
+
+    Returns (z, loss, damping, hess, grad, converged)."""
+    z, loss, damping, hess, grad = state.z, state.loss, state.damping, state.hess, state.grad
     basis = jnp.eye(5, dtype=z.dtype)[np.asarray(free)]  # (F, 5)
-    r, jvp = jax.linearize(residual, z)
-    jac = jax.vmap(jvp, out_axes=1)(basis)  # (M, F): only the free columns are computed
-    grad = jac.T @ r
-    hess = jac.T @ jac
     diag = jnp.diag(hess) + 1e-9
-    step = -solve_spd(hess + damping * jnp.diag(diag), grad) @ basis
-    z_new = z + step
-    loss_new = jnp.sum(residual(z_new) ** 2)
-    better = jnp.isfinite(loss_new) & (loss_new < loss)
-    # Relative loss decrease below which the fit has converged: settings.tolerance, but never
-    # below what the dtype resolves (float32 losses stop improving near 1e-6).
-    tolerance = max(settings.tolerance, 30 * float(jnp.finfo(z.dtype).eps))
+
+    def solve(moving):  # the damped step with the columns where ``moving`` is 0 held
+        held = jnp.diag(1 - moving)
+        return -solve_spd((hess + damping * jnp.diag(diag)) * moving[:, None] * moving[None, :] + held,
+                          grad * moving) @ basis
+
+    # Bounded parameters stay where their sigmoid still moves (|z| <= Z_LIMIT: within 0.25 % of
+    # the range of a bound; a saturated one would leave a zero Jacobian column for good). A step
+    # that would cross the limit is taken again with those parameters held (a projected step),
+    # so that the quadratic model stays true to the step taken.
+    step = solve(jnp.ones(len(free), z.dtype))
+    limit = jnp.asarray([np.inf, np.inf, Z_LIMIT, Z_LIMIT, Z_LIMIT], z.dtype)
+    crossing = (jnp.abs(z + step) > limit).astype(z.dtype) @ basis.T  # (F,) 1 where the step crosses
+    step = jnp.where(jnp.any(crossing > 0), solve(1 - crossing), step)
+    z_new = jnp.clip(z + step, -limit, limit)
+    loss_new, hess_new, grad_new = _normal_equations(z_new, v, frame, settings, free)
+    better = (jnp.isfinite(loss_new) & (loss_new < loss) & jnp.all(jnp.isfinite(hess_new))
+              & jnp.all(jnp.isfinite(grad_new)))
+    tolerance = _loss_tolerance(settings, z.dtype)
     rel_gain = (loss - loss_new) / jnp.maximum(loss, jnp.finfo(z.dtype).tiny)
-    # Stationarity (MINPACK's gtol): the largest cosine between the residual and a Jacobian column.
-    cosine = jnp.max(jnp.abs(grad) / jnp.sqrt(diag * jnp.maximum(jnp.sum(r * r), jnp.finfo(z.dtype).tiny)))
+    # Stationarity at z (MINPACK's gtol): the largest cosine between the residual and a Jacobian column.
+    cosine = jnp.max(jnp.abs(grad) / jnp.sqrt(diag * jnp.maximum(loss, jnp.finfo(z.dtype).tiny)))
     stationary = cosine < max(settings.gradient_tolerance, 10 * float(jnp.finfo(z.dtype).eps) ** 0.5)
-    # A small gain only counts near Gauss-Newton steps (a heavily damped step is small anyway).
-    flat = better & (rel_gain < tolerance) & (damping < 1e-2)
+    # Converged when the gain is small: the gain achieved by a near Gauss-Newton step (a heavily
+    # damped step is small anyway), or the most the Gauss-Newton model at z can still give,
+    # g^T H^-1 g (it ends the fits left crawling along a flat valley, e.g. a vanishing lobe whose
+    # roughness runs to its bound, where steps fail by round-off and only the damping grows).
+    model_gain = grad @ solve_spd(hess + 1e-6 * jnp.diag(diag), grad) / jnp.maximum(loss, jnp.finfo(z.dtype).tiny)
+    flat = (better & (rel_gain < tolerance) & (damping < 1e-2)) | (model_gain < tolerance)
     converged = stationary | flat | (loss_new < 1e-14)
     stalled = (~better) & (damping > 1e8)
-    return (jnp.where(better, z_new, z), jnp.where(better, loss_new, loss),
-            jnp.where(better, damping * 0.3, damping * 4.0), converged | stalled)
+    pick = lambda new, old: jnp.where(better, new, old)  # noqa: E731
+    return (pick(z_new, z), pick(loss_new, loss), jnp.where(better, damping * 0.3, damping * 4.0),
+            pick(hess_new, hess), pick(grad_new, grad), converged | stalled)
 
 
 @partial(jax.jit, static_argnames=("settings", "steps", "free", "max_iterations"))
 def _lm_rounds(state: _LMState, records: _Vertex, frames: _Frame, settings: FitSettings, steps: int,
                free: tuple[int, ...], max_iterations: int) -> _LMState:
     """Up to ``steps`` LM iterations for a batch, stopping early when every vertex is done."""
-    step = jax.vmap(lambda z, loss, damping, v, f: _lm_step(z, loss, damping, v, f, settings, free))
+    step = jax.vmap(lambda st, v, f: _lm_step(st, v, f, settings, free))
+    tolerance = _loss_tolerance(settings, state.z.dtype)
 
     def body(carry):
         st, count = carry
-        z, loss, damping, converged = step(st.z, st.loss, st.damping, records, frames)
+        z, loss, damping, hess, grad, converged = step(st, records, frames)
         active = ~st.done
         pick = lambda new, old: jnp.where(active.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)  # noqa: E731
         iterations = st.iterations + active.astype(jnp.int32)
-        st = _LMState(pick(z, st.z), pick(loss, st.loss), pick(damping, st.damping), iterations,
-                      st.done | (active & (converged | (iterations >= max_iterations))))
+        loss = pick(loss, st.loss)
+        # No progress: less than the tolerance gained over the last PROGRESS_ITERATIONS iterations
+        # while the damping has grown past STUCK_DAMPING (a fit crawling along a flat valley, short
+        # steps failing by round-off; a few failed steps at low damping only mean a poor model).
+        check = active & (iterations % PROGRESS_ITERATIONS == 0)
+        stuck = check & ((st.mark - loss) < tolerance * st.mark) & (damping > STUCK_DAMPING)
+        st = _LMState(pick(z, st.z), loss, pick(damping, st.damping), iterations,
+                      st.done | (active & (converged | stuck | (iterations >= max_iterations))),
+                      pick(hess, st.hess), pick(grad, st.grad), jnp.where(check, loss, st.mark))
         return st, count + 1
 
     def cond(carry):
@@ -485,9 +662,9 @@ def _lm_rounds(state: _LMState, records: _Vertex, frames: _Frame, settings: FitS
     return jax.lax.while_loop(cond, body, (state, jnp.asarray(0)))[0]
 
 
-@partial(jax.jit, static_argnames=("settings",))
-def _initial_loss(z, records: _Vertex, frames: _Frame, settings: FitSettings):
-    return jax.vmap(lambda zz, v, f: jnp.sum(_residuals(zz, v, f, settings) ** 2))(z, records, frames)
+@partial(jax.jit, static_argnames=("settings", "free"))
+def _normal_equations_batch(z, records: _Vertex, frames: _Frame, settings: FitSettings, free: tuple[int, ...]):
+    return jax.vmap(lambda zz, v, f: _normal_equations(zz, v, f, settings, free))(z, records, frames)
 
 
 ROUGHNESS_GRID = ((0.05, 0.6), (0.1, 0.6), (0.2, 0.6), (0.3, 0.6), (0.45, 0.6),
@@ -498,13 +675,22 @@ non-convex in roughness."""
 
 @partial(jax.jit, static_argnames=("settings",))
 def _best_start(z0, records: _Vertex, frames: _Frame, settings: FitSettings):
-    """Per vertex, the lowest-loss start among the warm start and :data:`ROUGHNESS_GRID`. (N, 5)."""
+    """Per vertex, the lowest-loss start among the warm start and :data:`ROUGHNESS_GRID`. (N, 5).
+
+    The starts differ in roughness only: the view terms are evaluated once per vertex."""
     grid = jnp.asarray(ROUGHNESS_GRID, z0.dtype)
     eta = ETA_BOUNDS[0] + (ETA_BOUNDS[1] - ETA_BOUNDS[0]) * jax.nn.sigmoid(z0[:, 2])
     grid_starts = jax.vmap(lambda e: _encode(jnp.full(len(ROUGHNESS_GRID), e), grid[:, 0], grid[:, 1], z0.dtype))(eta)
     starts = jnp.concatenate([z0[:, None], grid_starts.at[:, :, :2].set(z0[:, None, :2])], axis=1)
-    loss = jax.vmap(lambda zs, v, f: jax.vmap(lambda z: jnp.sum(_residuals(z, v, f, settings) ** 2))(zs))(
-        starts, records, frames)
+
+    def losses(zs, v, f):
+        normal, eta, _, _ = _decode(zs[0], f, settings.sigma_ss_fixed)
+        view = _view_terms(normal, eta, v)
+        _, _, sigma_s, sigma_ss = jax.vmap(lambda zz: _decode(zz, f, settings.sigma_ss_fixed))(zs)
+        return jax.vmap(lambda s, ss: jnp.sum(_residuals_from_terms(_lobe_terms(view, s, ss, v, settings.lobes), v,
+                                                                    settings) ** 2))(sigma_s, sigma_ss)
+
+    loss = jax.vmap(losses)(starts, records, frames)
     loss = jnp.where(jnp.isfinite(loss), loss, jnp.inf)
     return jnp.take_along_axis(starts, jnp.argmin(loss, axis=1)[:, None, None], 1)[:, 0]
 
@@ -518,29 +704,65 @@ def _take(tree, index):
     return jax.tree_util.tree_map(lambda x: x[index], tree)
 
 
+_VIEW_FIELDS = ("obs_d", "obs_a", "obs_s", "to_light", "to_camera", "light_distance", "camera_up", "light_axis",
+                "weight", "frames")
+"""The fields of :class:`_Vertex` with a view axis (axis 1 of a batch)."""
+
+
+def _batches(active: np.ndarray, views: np.ndarray, batch: int):
+    """Batches of ``batch`` vertex indices from ``active`` and the view slots each needs.
+
+    Vertices are ordered by their number of used views, so each batch can drop the slots none of
+    its vertices uses (views are at the front, :func:`_compact_views`); widths are rounded by
+    :func:`_view_bucket` (few compiled shapes). Short batches repeat their vertices (identical
+    work, harmless writes). Yields (index (batch,), width)."""
+    order = active[np.argsort(views[active], kind="stable")]
+    for start in range(0, order.size, batch):
+        index = np.resize(order[start:start + batch], batch)
+        yield index, _view_bucket(int(views[index].max(initial=1)))
+
+
+def _take_records(records: _Vertex, index: np.ndarray, width: int) -> _Vertex:
+    """Rows ``index`` of a batch of records, with only the first ``width`` view slots."""
+    rows = _take(records, index)
+    if width >= rows.obs_d.shape[1]:
+        return rows
+    return rows._replace(**{name: jax.tree_util.tree_map(lambda x: x[:, :width], getattr(rows, name))
+                            for name in _VIEW_FIELDS if getattr(rows, name) is not None})
+
+
 def _run_lm(z, records: _Vertex, frames: _Frame, settings: FitSettings, free: tuple[int, ...],
             run: np.ndarray, max_iterations: int):
     """LM to convergence for the vertices where ``run`` is set, with compaction.
 
-    The vertices still running are gathered into batches of one fixed size (one compiled shape)
-    and advanced ``round_iterations`` steps at a time, so the cost follows the mean number of
-    iterations, not the slowest vertex of a chunk. Returns (z, loss, iterations) as numpy arrays.
+    The vertices still running are gathered into batches of one fixed size (one compiled shape
+    per view width, :func:`_batches`) and advanced ``round_iterations`` steps at a time, so the
+    cost follows the mean number of iterations, not the slowest vertex of a chunk, and the number
+    of views each vertex uses, not the most any vertex uses. Returns (z, loss, iterations) as
+    numpy arrays.
     """
     z = np.asarray(z)
     n = z.shape[0]
     dtype = z.dtype
-    state = _LMState(z, np.asarray(_initial_loss(jnp.asarray(z), records, frames, settings)),
-                     np.full(n, 1e-3, dtype), np.zeros(n, np.int32), ~np.asarray(run, bool))
+    run = np.asarray(run, bool)
+    views = np.asarray(jnp.sum(records.weight > 0, axis=1))
     batch = min(settings.lm_batch, _bucket(n))
+    loss = np.zeros(n, dtype)
+    hess = np.zeros((n, len(free), len(free)), dtype)
+    grad = np.zeros((n, len(free)), dtype)
+    for index, width in _batches(np.flatnonzero(run), views, batch):  # normal equations at the start
+        part = _normal_equations_batch(jnp.asarray(z[index]), _take_records(records, index, width),
+                                       _take(frames, index), settings, free)
+        loss[index], hess[index], grad[index] = (np.asarray(x) for x in part)
+    state = _LMState(z, loss, np.full(n, 1e-3, dtype), np.zeros(n, np.int32), ~run, hess, grad, loss.copy())
     while True:
         active = np.flatnonzero(~state.done)
         if active.size == 0:
             return state.z, state.loss, state.iterations
         fields = [x.copy() for x in state]
-        for start in range(0, active.size, batch):
-            index = np.resize(active[start:start + batch], batch)  # repeats: identical work, harmless writes
-            part = _lm_rounds(_take(state, index), _take(records, index), _take(frames, index), settings,
-                              steps=settings.round_iterations, free=free, max_iterations=max_iterations)
+        for index, width in _batches(active, views, batch):
+            part = _lm_rounds(_take(state, index), _take_records(records, index, width), _take(frames, index),
+                              settings, steps=settings.round_iterations, free=free, max_iterations=max_iterations)
             for full, new in zip(fields, part):
                 full[index] = np.asarray(new)
         state = _LMState(*fields)
@@ -625,7 +847,8 @@ def _prepare(obs: Observations, keep, prior: PBRDFParams, virtual: VirtualSample
                             (lambda_g * virtual.weight).astype(scale.dtype))
     return _Vertex(obs.diffuse / s, obs.diffuse_pol / s, obs.specular / s, obs.to_light, obs.to_camera,
                    obs.light_distance, obs.camera_up, obs.light_axis, weight.astype(obs.diffuse.dtype), color,
-                   scale, spec_prior, prepared)
+                   scale, spec_prior, prepared,
+                   frames=view_frames(obs.to_light, obs.to_camera, obs.light_axis, obs.camera_up))
 
 
 def _robust_weights(z, v: _Vertex, frame: _Frame, settings: FitSettings):
@@ -643,17 +866,18 @@ def _robust_weights(z, v: _Vertex, frame: _Frame, settings: FitSettings):
 def _finalize(z, loss, v: _Vertex, frame: _Frame, settings: FitSettings):
     """Decoded parameters, linear solution and Gauss-Newton uncertainties at the solution of one vertex."""
     normal, eta, sigma_s, sigma_ss = _decode(z, frame, settings.sigma_ss_fixed)
-    terms = _model_terms(normal, eta, sigma_s, sigma_ss, v)
+    terms = _model_terms(normal, eta, sigma_s, sigma_ss, v, lobes=settings.lobes)
     rho_d, spec = _linear_solution(terms, v, settings)
     # The uncertainties (hence the confidence) always treat the normal as unknown: holding it
     # fixed does not make it better known.
-    free = np.zeros(5)
-    free[list(_free_parameters(dataclasses.replace(settings, fit_normal=True)))] = 1
-    jac = jax.jacfwd(lambda zz: _residuals(zz, v, frame, settings))(z) * free[None, :]
+    free = _free_parameters(dataclasses.replace(settings, fit_normal=True))
+    basis = jnp.eye(5, dtype=z.dtype)[np.asarray(free)]  # (F, 5)
+    _, jac = _residuals_and_jacobian(z, v, frame, settings, free)
+    held = 1 - jnp.sum(basis, 0)  # (5,) 1 for the columns not fitted
     views = jnp.sum(v.weight > 0)
-    dof = jnp.maximum(9 * views - int(free.sum()), 1)
-    normal_matrix = jac.T @ jac
-    regular = normal_matrix + 1e-9 * jnp.diag(jnp.diag(normal_matrix)) + (1 - free) * jnp.eye(5, dtype=z.dtype)
+    dof = jnp.maximum(9 * views - len(free), 1)
+    normal_matrix = basis.T @ (jac.T @ jac) @ basis
+    regular = normal_matrix + 1e-9 * jnp.diag(jnp.diag(normal_matrix)) + jnp.diag(held)
     cov = (loss / dof) * solve_spd(regular + 1e-12 * jnp.eye(5, dtype=z.dtype), jnp.eye(5, dtype=z.dtype))
     deta_dz = (ETA_BOUNDS[1] - ETA_BOUNDS[0]) * jax.nn.sigmoid(z[2]) * (1 - jax.nn.sigmoid(z[2]))
     eta_std = jnp.sqrt(jnp.maximum(cov[2, 2], 0)) * deta_dz

@@ -2,7 +2,7 @@
 
 Public API::
 
-    read_capture(path: str | Path, check_raw: bool = False) -> Capture
+    read_capture(path: str | Path, check_raw: bool = False, check_files: bool = True) -> Capture
     read_raw_frame(capture: Capture, row: str | Mapping | pandas.Series) -> np.ndarray  # (H, W) uint16
     read_raw_file(path: str | Path, sensor: Mapping, file_label: str | None = None) -> np.ndarray
     validate_config(config: Mapping, file_label: str = "capture.yaml") -> dict
@@ -394,13 +394,14 @@ class Capture:
         return quaternion_to_rotation(q), t
 
 
-def read_capture(path: str | Path, check_raw: bool = False) -> Capture:
+def read_capture(path: str | Path, check_raw: bool = False, check_files: bool = True) -> Capture:
     """Read and validate a capture folder (DESIGN §3).
 
     Checks capture.yaml, frames.csv (and poses.csv if present), that every raw
-    file exists and that every view in poses.csv has frames. With
-    ``check_raw`` every raw frame is also opened and checked (slow).
-    Raises a CaptureError subclass on the first problem.
+    file exists (unless ``check_files`` is False: for stages that never read a
+    raw frame, and for ingest with ``bad_frames: skip``) and that every view in
+    poses.csv has frames. With ``check_raw`` every raw frame is also opened and
+    checked (slow). Raises a CaptureError subclass on the first problem.
     """
     root = Path(path)
     yaml_path, frames_path, poses_path = root / CAPTURE_YAML, root / FRAMES_CSV, root / POSES_CSV
@@ -423,7 +424,7 @@ def read_capture(path: str | Path, check_raw: bool = False) -> Capture:
                                              f"this view has no frame in {frames_path}; "
                                              "expected every view to have at least one frame")
     for i, rel in enumerate(frames["file"]):
-        if not (root / rel).is_file():
+        if check_files and not (root / rel).is_file():
             raise MissingFileError(str(frames_path), f"row {i} (line {i + 2}), column 'file'",
                                    f"raw frame {str(root / rel)!r} does not exist")
     capture = Capture(root=root, config=config, frames=frames, poses=poses)

@@ -133,30 +133,74 @@ def _unit_muellers(normal, to_light, to_camera, light_axis, camera_up, eta, geom
     return diffuse, reflection
 
 
-def _unit_stokes(normal, to_light, to_camera, light_axis, camera_up, eta, geom: _Geometry):
-    """What :func:`_unit_muellers` does to the flash's [1, 1, 0, 0], as vectors (s0, s1, s2) (..., 3).
+class ViewFrames(NamedTuple):
+    """The normal-independent terms of the reflection lobe and the light/camera frames of one
+    (vertex, view) (:func:`view_frames`): a fit evaluates them once, not at every normal."""
 
-    Same chain of frames and Fresnel terms, applied to one Stokes vector instead of composing
-    4x4 matrices (a few times cheaper; the fit evaluates it in every iteration). s3 stays 0:
-    dielectric interfaces without total internal reflection introduce no retardance but 0 or pi.
-    """
-    f = _frames(normal, to_light, to_camera, light_axis, camera_up)
-    # Diffuse: the flash's (1, 1, 0) in the entry s/p frame, transmitted, depolarized, re-emitted.
-    cos_in, _ = polar.frame_rotation_terms(f.beam_in, f.light, f.diffuse_in)
-    f_i = fresnel(geom.cos_i, eta)
-    f_o = fresnel(geom.cos_o, eta)
-    inside = f_i.t_plus + f_i.t_minus * cos_in
-    s1, s2 = polar.rotate_linear_stokes(f_o.t_minus, jnp.zeros_like(inside),
-                                        *polar.frame_rotation_terms(to_camera, f.diffuse_out, f.camera))
-    diffuse = inside[..., None] * jnp.stack([f_o.t_plus, s1, s2], axis=-1)
-    # Reflection: (1, 1, 0) in the s/p frame of the plane (w_i, w_o), F^R, then the camera frame.
-    cos_r, sin_r = polar.frame_rotation_terms(f.beam_in, f.light, f.reflection)
-    f_d = fresnel(geom.cos_d, eta)
+    half: jnp.ndarray  # (..., 3) half vector of w_i and w_o
+    cos_d: jnp.ndarray  # (...,) cos theta_d = h . w_i
+    light: jnp.ndarray  # (..., 3) x axis of the flash frame (its polarizer axis)
+    camera: jnp.ndarray  # (..., 3) x axis of the camera frame of the ray
+    light_to_reflection: tuple  # (cos 2theta, sin 2theta) flash frame -> reflection plane, each (...,)
+    reflection_to_camera: tuple  # (cos 2theta, sin 2theta) reflection plane -> camera frame
+
+
+def view_frames(to_light, to_camera, light_axis, camera_up) -> ViewFrames:
+    """:class:`ViewFrames` of views (..., 3) (the arguments of :func:`lobe_stokes`)."""
+    beam_in = -to_light
+    x_light = polar.orthogonal_x_axis(beam_in, light_axis)
+    x_camera = polar.frame_x_axis(to_camera, camera_up)
+    reflection = polar.safe_normalize(jnp.cross(to_camera, to_light), fallback=x_light)
+    half = polar.safe_normalize(to_light + to_camera)
+    return ViewFrames(half=half, cos_d=jnp.clip(_dot(half, to_light), 0, 1), light=x_light, camera=x_camera,
+                      light_to_reflection=polar.frame_rotation_terms(beam_in, x_light, reflection),
+                      reflection_to_camera=polar.frame_rotation_terms(to_camera, reflection, x_camera))
+
+
+class SurfaceTerms(NamedTuple):
+    """The normal-dependent terms of one (vertex, view) (:func:`surface_terms`), all (...,)."""
+
+    geometry: _Geometry
+    entry_cos: jnp.ndarray  # cos 2theta of the flash frame -> plane (n, w_i)
+    exit_rotation: tuple  # (cos 2theta, sin 2theta) plane (n, w_o) -> camera frame
+
+
+def surface_terms(normal, to_light, to_camera, light_distance, frames: ViewFrames) -> SurfaceTerms:
+    """:class:`SurfaceTerms` of a surface with ``normal`` (..., 3) seen in views with ``frames``."""
+    cos_i = _dot(normal, to_light)
+    cos_o = _dot(normal, to_camera)
+    lit = (cos_i > 0) & (cos_o > 0)
+    half = jnp.where(jnp.sum(frames.half * frames.half, -1, keepdims=True) > 0, frames.half, normal)
+    geom = _Geometry(cos_i=jnp.clip(cos_i, 0, 1), cos_o=jnp.clip(cos_o, 0, 1), cos_h=jnp.clip(_dot(normal, half), 0, 1),
+                     cos_d=frames.cos_d, lit=lit,
+                     shading=jnp.where(lit, cos_i / (light_distance * light_distance), 0))
+    diffuse_in = polar.safe_normalize(jnp.cross(normal, to_light), fallback=frames.light)
+    diffuse_out = polar.safe_normalize(jnp.cross(normal, to_camera), fallback=frames.camera)
+    entry_cos, _ = polar.frame_rotation_terms(-to_light, frames.light, diffuse_in)
+    return SurfaceTerms(geom, entry_cos, polar.frame_rotation_terms(to_camera, diffuse_out, frames.camera))
+
+
+def reflection_stokes(frames: ViewFrames, eta):
+    """The reflection lobe's unit Stokes vector (s0, s1, s2) (..., 3) in the camera frame, before the
+    shading and the lobe factor: normal-independent (Fresnel at theta_d about the half vector)."""
+    f_d = fresnel(frames.cos_d, eta)
+    cos_r, sin_r = frames.light_to_reflection
     r0 = f_d.r_plus + f_d.r_minus * cos_r
     r1 = f_d.r_minus + f_d.r_plus * cos_r
     r2 = -f_d.r_s_r_p * sin_r
-    r1, r2 = polar.rotate_linear_stokes(r1, r2, *polar.frame_rotation_terms(to_camera, f.reflection, f.camera))
-    return diffuse, jnp.stack([r0, r1, r2], axis=-1)
+    r1, r2 = polar.rotate_linear_stokes(r1, r2, *frames.reflection_to_camera)
+    return jnp.stack([r0, r1, r2], axis=-1)
+
+
+def diffuse_stokes(surface: SurfaceTerms, eta):
+    """The diffuse lobe's unit Stokes vector (s0, s1, s2) (..., 3) in the camera frame, before the
+    shading: entry transmission, depolarization, exit transmission about the normal. s3 stays 0:
+    dielectric interfaces without total internal reflection introduce no retardance but 0 or pi."""
+    f_i = fresnel(surface.geometry.cos_i, eta)
+    f_o = fresnel(surface.geometry.cos_o, eta)
+    inside = f_i.t_plus + f_i.t_minus * surface.entry_cos
+    s1, s2 = polar.rotate_linear_stokes(f_o.t_minus, jnp.zeros_like(inside), *surface.exit_rotation)
+    return inside[..., None] * jnp.stack([f_o.t_plus, s1, s2], axis=-1)
 
 
 def full_mueller(normal, to_light, to_camera, light_distance, light_axis, camera_up, params: PBRDFParams):
@@ -186,12 +230,16 @@ def lobe_stokes(normal, to_light, to_camera, light_distance, light_axis, camera_
     lobe (specular and single scattering share it) before its factor kappa / rho = D G / (4 cos_i cos_o),
     which :func:`lobe_factor` gives; and the geometry record for :func:`lobe_factor`.
     The full model is ``rho_d diffuse + (rho_s kappa_s + rho_ss kappa_ss) reflection``.
+    Composed of :func:`view_frames`, :func:`surface_terms`, :func:`diffuse_stokes` and
+    :func:`reflection_stokes` (the same chain of frames and Fresnel terms as :func:`full_mueller`,
+    applied to the flash's [1, 1, 0, 0] instead of composing 4x4 matrices).
     """
-    geom = _geometry(normal, to_light, to_camera, light_distance)
-    diffuse, reflection = _unit_stokes(normal, to_light, to_camera, light_axis, camera_up, eta, geom)
-    shading = geom.shading[..., None]
-    zero = jnp.zeros_like(diffuse[..., :1])
-    return (shading * jnp.concatenate([diffuse, zero], -1), shading * jnp.concatenate([reflection, zero], -1), geom)
+    frames = view_frames(to_light, to_camera, light_axis, camera_up)
+    surface = surface_terms(normal, to_light, to_camera, light_distance, frames)
+    shading = surface.geometry.shading[..., None]
+    zero = jnp.zeros_like(shading)
+    return (jnp.concatenate([shading * diffuse_stokes(surface, eta), zero], -1),
+            jnp.concatenate([shading * reflection_stokes(frames, eta), zero], -1), surface.geometry)
 
 
 def lobe_factor(geom: _Geometry, sigma):

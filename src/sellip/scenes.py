@@ -2,7 +2,8 @@
 
 Public API::
 
-    SCENES: tuple of scene names ("demo", "sphere_ior", "tiny")
+    SCENES: tuple of scene names ("demo", "sphere_ior", "tiny", "tiny_dark", "tiny_white", "tiny_mirror",
+            "tiny_bumpy")
     build_scene(name) -> Scene                       # mesh with per-vertex pBRDF parameters, fixed per name
     handheld_orbit(views, width, height, rng, ...) -> list[Camera]
     device_intrinsics(width, height) -> (3, 3) K    # the 25 mm lens on the IMX250 scaled to width
@@ -22,6 +23,12 @@ Scenes:
 - ``sphere_ior``: a 6 cm-radius textured sphere split into seven wedges with
   the refractive indices of the paper's Table 1 (SPHERE_IOR_ETAS).
 - ``tiny``: a 4 cm-radius sphere with two materials, coarse mesh, for tests.
+- ``tiny_dark``, ``tiny_white``, ``tiny_mirror``: the tiny sphere in the materials of the paper's
+  failure cases (§6, docs/stability.md): very dark (rho_d 0.02-0.05), white and rough (rho_d about
+  0.8, sigma_s 0.55-0.6, single scattering on one half), and a near-mirror (sigma_s 0.03-0.05 over
+  a dark diffuse albedo). Same flash power as ``tiny``: the rig, not the object, sets it.
+- ``tiny_bumpy``: the ``tiny`` materials on a sphere with three 4 mm bumps and three 4 mm dents (finer
+  mesh, 10242 vertices): shape detail for the initial-mesh cases of the stability suite.
 """
 
 from __future__ import annotations
@@ -34,7 +41,7 @@ from scipy.spatial import cKDTree
 from sellip.pbrdf import PBRDFParams
 from sellip.render import Camera, ParamMesh
 
-SCENES = ("demo", "sphere_ior", "tiny")
+SCENES = ("demo", "sphere_ior", "tiny", "tiny_dark", "tiny_white", "tiny_mirror", "tiny_bumpy")
 
 DEVICE_WIDTH_PX = 2448
 DEVICE_FX_PX = 7246.0
@@ -225,23 +232,79 @@ def _sphere_ior() -> Scene:
     return Scene("sphere_ior", mesh, materials, flash_power=20000.0)
 
 
-def _tiny() -> Scene:
-    """A 4 cm sphere, coarse mesh, two materials (top and bottom halves) with a checker texture."""
-    d, faces = icosphere(4)
-    materials = (Material("glossy", eta=1.6, rho_d=(0.2, 0.12, 0.08), rho_s=1.0, sigma_s=0.12),
-                 Material("rough", eta=1.4, rho_d=(0.1, 0.18, 0.22), rho_s=0.6, sigma_s=0.35,
-                          rho_ss=(0.1, 0.06, 0.03), sigma_ss=0.5))
+TINY_FLASH_POWER = 30000.0
+"""Flash power (DN per unit intensity at flash level 1) of the tiny sphere scenes."""
+
+
+TINY_BUMPS = (((0, 30), 0.004), ((120, -20), 0.004), ((240, 45), 0.004),
+              ((60, -35), -0.004), ((180, 10), -0.004), ((300, -5), -0.004))
+"""tiny_bumpy: ((azimuth, elevation) in degrees, height in metres) of its Gaussian bumps (> 0) and dents (< 0)."""
+
+TINY_BUMP_WIDTH_RAD = 0.2
+"""Standard deviation (angle on the sphere) of the tiny_bumpy bumps: 8 mm on the 4 cm sphere."""
+
+
+def _two_material_sphere(name: str, materials: tuple[Material, Material], checker_gain: tuple[float, float],
+                         flash_power: float = TINY_FLASH_POWER, subdivisions: int = 4, bumps=()) -> Scene:
+    """A 4 cm sphere (icosphere of ``subdivisions``: 4 gives 2562 vertices), ``materials`` on the top and bottom
+    halves, and a checker texture (12 azimuth sectors x 8 bands) that scales each material's rho_d by
+    ``checker_gain`` (dark, light). ``bumps``: ((azimuth, elevation) deg, height m) Gaussian bumps of
+    TINY_BUMP_WIDTH_RAD added to the radius (the normals are then the surface's)."""
+    d, faces = icosphere(subdivisions)
     region = (d[:, 2] < 0).astype(np.int64)
     azimuth = np.arctan2(d[:, 1], d[:, 0])
-    checker = ((np.floor(azimuth / (np.pi / 6)) + np.floor(d[:, 2] / 0.25)) % 2).astype(np.float64)
-    albedo = np.array([m.rho_d for m in materials])[region] * (0.6 + 0.6 * checker)[:, None]
-    vertices = 0.04 * d
-    mesh = ParamMesh(vertices=vertices, faces=faces, normals=d.copy(),
+    checker = ((np.floor(azimuth / (np.pi / 6)) + np.floor(d[:, 2] / 0.25)) % 2).astype(np.int64)
+    albedo = np.array([m.rho_d for m in materials])[region] * np.asarray(checker_gain, np.float64)[checker][:, None]
+    radius = 0.04 + sum(height * bump(d, _direction(*where), TINY_BUMP_WIDTH_RAD) for where, height in bumps)
+    vertices = radius[:, None] * d if bumps else 0.04 * d
+    normals = vertex_normals(vertices, faces) if bumps else d.copy()
+    mesh = ParamMesh(vertices=vertices, faces=faces, normals=normals,
                      params=_params_from_regions(materials, region, albedo), material=region)
-    return Scene("tiny", mesh, materials, flash_power=30000.0)
+    return Scene(name, mesh, materials, flash_power=flash_power)
 
 
-_BUILDERS = {"demo": _demo, "sphere_ior": _sphere_ior, "tiny": _tiny}
+TINY_MATERIALS = (Material("glossy", eta=1.6, rho_d=(0.2, 0.12, 0.08), rho_s=1.0, sigma_s=0.12),
+                  Material("rough", eta=1.4, rho_d=(0.1, 0.18, 0.22), rho_s=0.6, sigma_s=0.35,
+                           rho_ss=(0.1, 0.06, 0.03), sigma_ss=0.5))
+
+
+def _tiny() -> Scene:
+    """A 4 cm sphere, coarse mesh, two materials (top and bottom halves) with a checker texture."""
+    return _two_material_sphere("tiny", TINY_MATERIALS, (0.6, 1.2))
+
+
+def _tiny_bumpy() -> Scene:
+    """The tiny sphere's materials on a finer sphere (10242 vertices) with three 4 mm bumps and three 4 mm dents
+    (TINY_BUMPS): shape detail that an over-smoothed initial mesh loses and a visual hull cannot carve."""
+    return _two_material_sphere("tiny_bumpy", TINY_MATERIALS, (0.6, 1.2), subdivisions=5, bumps=TINY_BUMPS)
+
+
+def _tiny_dark() -> Scene:
+    """The tiny sphere, very dark (rho_d 0.02-0.05, paper §6: the DoP drowns in noise), glossy and rough halves."""
+    materials = (Material("dark_glossy", eta=1.55, rho_d=(0.05, 0.04, 0.035), rho_s=1.0, sigma_s=0.15),
+                 Material("dark_rough", eta=1.45, rho_d=(0.035, 0.045, 0.05), rho_s=0.8, sigma_s=0.3))
+    return _two_material_sphere("tiny_dark", materials, (0.6, 1.0))
+
+
+def _tiny_white() -> Scene:
+    """The tiny sphere, white and rough (rho_d about 0.8, sigma_s 0.55-0.6); the bottom half adds single
+    scattering with a lobe as wide as the specular one (paper §6: specular and single scattering blur)."""
+    materials = (Material("white_rough", eta=1.5, rho_d=(0.82, 0.8, 0.76), rho_s=1.0, sigma_s=0.6),
+                 Material("white_scattering", eta=1.45, rho_d=(0.76, 0.8, 0.82), rho_s=0.8, sigma_s=0.55,
+                          rho_ss=(0.3, 0.3, 0.3), sigma_ss=0.6))
+    return _two_material_sphere("tiny_white", materials, (0.85, 1.0))
+
+
+def _tiny_mirror() -> Scene:
+    """The tiny sphere as a near-mirror: sigma_s 0.03 and 0.05 (paper §6: dominant specularity) over a dark
+    diffuse albedo (0.03-0.08)."""
+    materials = (Material("mirror_03", eta=1.6, rho_d=(0.08, 0.06, 0.05), rho_s=1.0, sigma_s=0.03),
+                 Material("mirror_05", eta=1.5, rho_d=(0.05, 0.06, 0.08), rho_s=1.0, sigma_s=0.05))
+    return _two_material_sphere("tiny_mirror", materials, (0.6, 1.0))
+
+
+_BUILDERS = {"demo": _demo, "sphere_ior": _sphere_ior, "tiny": _tiny, "tiny_dark": _tiny_dark,
+             "tiny_white": _tiny_white, "tiny_mirror": _tiny_mirror, "tiny_bumpy": _tiny_bumpy}
 
 
 def build_scene(name: str) -> Scene:

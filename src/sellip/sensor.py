@@ -4,6 +4,7 @@ Public API::
 
     SensorModel(width, height, ...)            # layout, levels, noise, colour matrix
     SensorModel.capture_sensor() -> dict        # capture.yaml ``sensor`` section
+    SensorModel.with_noise_scale(k) -> SensorModel   # noise standard deviations x k at the same signal
     camera_rgb_from_srgb(srgb, color_matrix) -> camera RGB (..., 3)
     mosaic_sample(analyzers, layout) -> (H, W)  # each raw pixel's analyzer and colour
     simulate_raw(analyzers, sensor, scale, rng, noise=True) -> (H, W) uint16
@@ -20,7 +21,7 @@ Mono sensors (``color_layout: mono``) see the sRGB luminance.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -76,6 +77,17 @@ class SensorModel:
             "polarizer_layout": [list(map(int, row)) for row in self.polarizer_layout],
             "color_layout": self.color_layout,
         }
+
+    def with_noise_scale(self, scale: float) -> SensorModel:
+        """The same sensor with both noise standard deviations (in DN) multiplied by ``scale`` at the same mean signal.
+
+        gain_e_per_dn / scale**2 (scale**2 fewer photo-electrons per DN: shot noise x scale) and
+        read_noise_e / scale (read noise in DN = read_noise_e / gain_e_per_dn: x scale). Physically: the
+        flash delivers 1/scale**2 of the photons and the analog gain is scale**2 higher. scale 1: unchanged.
+        """
+        if not np.isfinite(scale) or scale <= 0:
+            raise ValueError(f"noise scale must be a positive number, got {scale!r}")
+        return replace(self, gain_e_per_dn=self.gain_e_per_dn / scale ** 2, read_noise_e=self.read_noise_e / scale)
 
     def black_map(self) -> np.ndarray:
         """(H, W) black level of every raw pixel."""

@@ -1,11 +1,7 @@
 # The final model (DESIGN §4), its renders and its figures of merit (DESIGN §8).
 # The last pass of the loop (iteration ITERATIONS) refits the pBRDF on the final geometry with
-# its normals held (config `final.settings`); finalize_model writes it as model.ply + params.zarr.
-
-
-def final_model_code():
-    """The `model` code of every vertex (sellip.params.MODEL_NAMES) until model selection picks per cluster."""
-    return 2 if config["fit"]["settings"].get("sigma_ss_fixed") is not None else 3
+# its normals held (config `final.settings`); finalize_model writes it as model.ply + params.zarr,
+# with each vertex's model (DESIGN §7) from the last pass's store.
 
 
 rule finalize_model:
@@ -18,7 +14,6 @@ rule finalize_model:
         params=directory(f"{RESULTS}/final/params.zarr"),
     params:
         clusters=lambda wildcards, input: f"--clusters {input.clusters}" if input.clusters else "",
-        model=final_model_code(),
     conda:
         "../../envs/fit.yaml"
     log:
@@ -27,7 +22,7 @@ rule finalize_model:
         f"{RESULTS}/benchmarks/finalize_model.tsv"
     shell:
         SELLIP + " finalize --params {input.params} --mesh {input.mesh} --output-model {output.model}"
-        " --output-params {output.params} {params.clusters} --model {params.model} > {log} 2>&1"
+        " --output-params {output.params} {params.clusters} > {log} 2>&1"
 
 
 rule render_outputs:

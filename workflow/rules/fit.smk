@@ -1,7 +1,14 @@
 # Per-vertex fit (DESIGN §2 fit / augment / refit, per iteration and vertex shard) and its gather step.
 # Two passes per iteration, one set of rules: `fit` (warm-started from iteration it-1) and, when
 # augmentation is on, `refit` (virtual specular samples from the iteration's cluster lobes).
+# cluster_lobes also chooses each cluster's model (config `model_selection`, DESIGN §7); the refit
+# and the next iteration's passes fit every vertex with its model.
 # The numerics live in sellip.fit and sellip.augment; each rule calls one `sellip` command.
+
+
+def settings_args(settings):
+    """`--set KEY=VALUE ...` of a dict of FitSettings fields."""
+    return " ".join(f"--set {key}={'null' if value is None else value}" for key, value in settings.items())
 
 
 def fit_settings_args(wildcards):
@@ -14,7 +21,23 @@ def fit_settings_args(wildcards):
         settings.update(config["augment"]["settings"])
     if it == ITERATIONS:
         settings.update(config["final"]["settings"])
-    return " ".join(f"--set {key}={'null' if value is None else value}" for key, value in settings.items())
+    return settings_args(settings)
+
+
+def cluster_settings_args(wildcards):
+    """`--set KEY=VALUE` for the cluster lobe fits of this iteration: config `fit.settings` (its loss
+    weights, view selection, and the most complex model allowed: `lobes`, `sigma_ss_fixed`)."""
+    return settings_args({key: at_iteration(value, int(wildcards.it)) for key, value in config["fit"]["settings"].items()})
+
+
+def model_selection_args():
+    """The model-selection options of `sellip cluster-lobes` from config `model_selection` (DESIGN §7)."""
+    selection = config["model_selection"]
+    return (f"--{'' if selection['enabled'] else 'no-'}model-selection"
+            f" --candidates {' '.join(str(m) for m in selection['candidates'])}"
+            f" --held-out-fraction {selection['held_out_fraction']} --selection-tolerance {selection['tolerance']}"
+            f" --selection-standard-errors {selection['standard_errors']}"
+            f" --fixed-sigma-ss {selection['sigma_ss_fixed']} --selection-max-samples {selection['max_samples']}")
 
 
 rule fit_pbrdf:
@@ -28,6 +51,7 @@ rule fit_pbrdf:
         prior=lambda wildcards, input: f"--prior {input.prior}" if input.prior else "",
         lobes=lambda wildcards, input: f"--lobes {input.lobes}" if input.lobes else "",
         settings=fit_settings_args,
+        fixed_sigma_ss=config["model_selection"]["sigma_ss_fixed"],
         dtype=config["fit"]["dtype"],
         cache=config["fit"]["compilation_cache"],
     threads: config["fit"]["threads"]
@@ -42,7 +66,7 @@ rule fit_pbrdf:
     shell:
         SELLIP + " fit --observations {input.observations} --shard {wildcards.scatteritem}"
         " --output {output} {params.prior} {params.lobes} --dtype {params.dtype} {params.settings}"
-        " --compilation-cache {params.cache} > {log} 2>&1"
+        " --fixed-sigma-ss {params.fixed_sigma_ss} --compilation-cache {params.cache} > {log} 2>&1"
 
 
 rule gather_fit:
@@ -79,6 +103,8 @@ rule cluster_lobes:
         k_max=config["augment"]["k_max"],
         max_samples=config["augment"]["max_samples"],
         min_cluster_vertices=config["augment"]["min_cluster_vertices"],
+        settings=cluster_settings_args,
+        selection=model_selection_args(),
         cache=config["fit"]["compilation_cache"],
     threads: config["fit"]["threads"]
     conda:
@@ -90,4 +116,5 @@ rule cluster_lobes:
     shell:
         SELLIP + " cluster-lobes --params {input.params} --observations {input.observations} --output {output}"
         " --seed {params.seed} --k-max {params.k_max} --max-samples {params.max_samples}"
-        " --min-cluster-vertices {params.min_cluster_vertices} --compilation-cache {params.cache} > {log} 2>&1"
+        " --min-cluster-vertices {params.min_cluster_vertices} {params.settings} {params.selection}"
+        " --compilation-cache {params.cache} > {log} 2>&1"

@@ -12,6 +12,7 @@ rule linearize_frames:
         capture=lambda wildcards, input: Path(input.capture).parent,
         saturation=config["ingest"]["saturation"],
         black_level_from=config["ingest"]["black_level_from"],
+        bad_frames=config["ingest"].get("bad_frames", "error"),
     threads: config["ingest"]["threads"]
     conda:
         "../../envs/ingest.yaml"
@@ -21,7 +22,8 @@ rule linearize_frames:
         f"{RESULTS}/benchmarks/linearize_frames.tsv"
     shell:
         SELLIP + " linearize --capture {params.capture} --output {output} --threads {threads}"
-        " --saturation {params.saturation} --black-level-from {params.black_level_from} > {log} 2>&1"
+        " --saturation {params.saturation} --black-level-from {params.black_level_from}"
+        " --bad-frames {params.bad_frames} > {log} 2>&1"
 
 
 rule merge_hdr:

@@ -23,6 +23,8 @@ rule gather_observations:
         min_cos=config["observe"]["min_cos"],
         missing_poses=config["observe"]["missing_poses"],
         held_out=" ".join(config["evaluate"]["held_out_views"]),
+        max_views=(f"--max-views {config['observe']['max_views']}"
+                   if config["observe"].get("max_views") is not None else ""),
     threads: config["observe"]["threads"]
     conda:
         "../../envs/geometry.yaml"
@@ -35,5 +37,5 @@ rule gather_observations:
         " --capture {params.capture} --output {output} --vertex-chunk {params.vertex_chunk}"
         " --view-chunk {params.view_chunk} --occlusion-tolerance {params.occlusion_tolerance}"
         " --shadow-offset {params.shadow_offset} --min-cos {params.min_cos}"
-        " --missing-poses {params.missing_poses} --exclude-views {params.held_out}"
+        " --missing-poses {params.missing_poses} --exclude-views {params.held_out} {params.max_views}"
         " --threads {threads} > {log} 2>&1"

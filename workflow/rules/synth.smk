@@ -12,6 +12,7 @@ rule synth_capture:
         width=config["demo"]["width"],
         height=config["demo"]["height"],
         seed=config["demo"]["seed"],
+        noise_scale=config["demo"].get("noise_scale", 1.0),
     conda:
         "../../envs/ingest.yaml"
     log:
@@ -21,4 +22,4 @@ rule synth_capture:
     shell:
         SELLIP + " synth --scene {wildcards.scene} --out captures/{wildcards.scene}"
         " --views {params.views} --width {params.width} --height {params.height}"
-        " --seed {params.seed} --no-progress > {log} 2>&1"
+        " --seed {params.seed} --noise-scale {params.noise_scale} --no-progress > {log} 2>&1"

@@ -5,17 +5,28 @@
                          --output results/NAME/iter/0/clusters --seed 0
                          [--k-max 8] [--max-samples 20000] [--min-cluster-vertices 50]
                          [--set lambda_psi=100 ...]
+                         [--no-model-selection] [--candidates 0 1 2 3] [--held-out-fraction 0.25]
+                         [--selection-tolerance 0.01] [--selection-standard-errors 1]
+                         [--fixed-sigma-ss 0.9] [--selection-max-samples 4096]
 
 Writes the directory ``--output`` (built under a temporary name, then renamed) with
 
 - ``labels.npy``: (N,) int32, the cluster of every vertex of the params store;
-- ``lobes.csv``: one row per cluster (:data:`LOBES_SCHEMA`): cluster, vertices, eta, sigma_s,
-  sigma_ss, rho_s, rho_ss_r, rho_ss_g, rho_ss_b, samples, loss;
+- ``models.npy``: (N,) uint8, the model of every vertex (its cluster's; :data:`sellip.params.MODEL_NAMES`);
+- ``lobes.csv``: one row per cluster (:func:`lobes_schema`): cluster, vertices, eta, sigma_s,
+  sigma_ss, rho_s, rho_ss_r, rho_ss_g, rho_ss_b, samples, loss, model;
 - ``lobes.png``: each cluster's lobe against its samples as a function of theta_h (paper Fig. 7b);
-- ``clusters.json``: K, the BIC per K, the merges, the settings and the seed.
+- ``clusters.json``: K, the BIC per K, the merges, the settings and the seed, and under
+  ``model_selection`` per cluster the chosen model, the held-out loss of every candidate and why.
 
-The numerics are :mod:`sellip.augment`; ``sellip fit --lobes DIR`` turns the result into virtual
-samples. ``--set`` overrides :class:`sellip.fit.FitSettings` (view selection, lambda_psi, lambda_s).
+Model selection (DESIGN §7, :mod:`sellip.models`, on unless ``--no-model-selection``): per cluster,
+the simplest model whose held-out loss is within the tolerance of the best; the cluster's lobe is
+then fitted with that model. Without it every cluster gets the model of the fit settings (3, or 2
+with ``--set sigma_ss_fixed=...``). The fit settings (``--set``) are also the most complex model allowed.
+
+The numerics are :mod:`sellip.augment` and :mod:`sellip.models`; ``sellip fit --lobes DIR`` turns
+the result into virtual samples and fits every vertex with its model. ``--set`` overrides
+:class:`sellip.fit.FitSettings` (view selection, lambda_psi, lambda_s, lobes, sigma_ss_fixed).
 """
 
 from __future__ import annotations
@@ -25,6 +36,7 @@ import dataclasses
 import json
 import logging
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -32,12 +44,14 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 LOBE_COLUMNS = ("cluster", "vertices", "eta", "sigma_s", "sigma_ss", "rho_s", "rho_ss_r", "rho_ss_g", "rho_ss_b",
-                "samples", "loss")
+                "samples", "loss", "model")
 
 
 def lobes_schema():
     """pandera schema of lobes.csv."""
     import pandera.pandas as pa
+
+    from sellip.params import MODEL_NAMES
 
     finite = pa.Check(np.isfinite, element_wise=True)
     nonnegative = [pa.Check.ge(0), finite]
@@ -52,6 +66,7 @@ def lobes_schema():
             **{f"rho_ss_{c}": pa.Column(float, nonnegative, coerce=True) for c in "rgb"},
             "samples": pa.Column(int, pa.Check.gt(0), coerce=True),
             "loss": pa.Column(float, nonnegative, coerce=True),
+            "model": pa.Column(int, pa.Check.isin(sorted(MODEL_NAMES)), coerce=True),
         },
         strict=True, ordered=True, name="lobes.csv",
     )
@@ -89,6 +104,23 @@ def read_lobes(directory: Path):
     return labels, lobes
 
 
+def read_models(directory: Path, count: int | None = None) -> np.ndarray:
+    """The model of every vertex (N,) uint8 (``models.npy``) of a ``cluster-lobes`` output directory.
+    ValueError naming the file when it is missing, not (N,) codes of :data:`sellip.params.MODEL_NAMES`,
+    or (with ``count``) not ``count`` long."""
+    from sellip.params import MODEL_NAMES
+
+    path = Path(directory) / "models.npy"
+    if not path.is_file():
+        raise ValueError(f"{path}: missing; run `sellip cluster-lobes` first")
+    models = np.load(path)
+    if models.ndim != 1 or models.dtype.kind not in "iu" or not np.isin(models, sorted(MODEL_NAMES)).all():
+        raise ValueError(f"{path}: expected (N,) integer model codes in {sorted(MODEL_NAMES)}")
+    if count is not None and len(models) != count:
+        raise ValueError(f"{path}: {len(models)} models for {count} vertices")
+    return models.astype(np.uint8)
+
+
 def _load_rows(group, rows: np.ndarray):
     """Observations (:class:`sellip.fit.Observations`) of the store rows ``rows`` (sorted), reading only their chunks."""
     from sellip.fit import Observations
@@ -100,8 +132,9 @@ def _load_rows(group, rows: np.ndarray):
     return Observations(**data)
 
 
-def plot_lobes(path: Path, lobes, color_of) -> None:
-    """lobes.png: per cluster, its samples and its lobe (mono, per unit shading) against theta_h."""
+def plot_lobes(path: Path, lobes, color_of, models=None) -> None:
+    """lobes.png: per cluster, its samples and its lobe (mono, per unit shading) against theta_h;
+    ``models`` (K,) the clusters' model codes, shown in the titles."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -117,7 +150,10 @@ def plot_lobes(path: Path, lobes, color_of) -> None:
         axis.scatter(lobe.theta_h_deg, lobe.value, s=2, color="k", alpha=0.3, label="samples")
         axis.plot(theta, lobe_curve(theta, lobe, color_of(k)), color="r", label="cluster lobe")
         axis.set_yscale("symlog", linthresh=1e-3)
-        axis.set_title(f"cluster {k}: σs {lobe.sigma_s:.3f}, σss {lobe.sigma_ss:.2f}, η {lobe.eta:.2f}", fontsize=9)
+        lobes_text = {0: "no lobe", 1: f"σs {lobe.sigma_s:.3f}"}.get(
+            -1 if models is None else int(models[k]), f"σs {lobe.sigma_s:.3f}, σss {lobe.sigma_ss:.2f}")
+        model_text = "" if models is None else f" (model {int(models[k])})"
+        axis.set_title(f"cluster {k}{model_text}: {lobes_text}, η {lobe.eta:.2f}", fontsize=9)
         axis.set_xlabel("θh (deg)")
         axis.set_xlim(0, 90)
     for axis in axes.ravel()[len(lobes):]:
@@ -130,8 +166,10 @@ def plot_lobes(path: Path, lobes, color_of) -> None:
 
 
 def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, settings=None,
-              fit_settings=None, compilation_cache: str | None = None) -> dict:
-    """Cluster the vertices of ``params``, fit the cluster lobes on ``observations``, write ``output``."""
+              fit_settings=None, compilation_cache: str | None = None, selection=None) -> dict:
+    """Cluster the vertices of ``params``, choose each cluster's model (``selection``:
+    :class:`sellip.models.SelectionSettings`, default on), fit the cluster lobes on ``observations``,
+    write ``output``."""
     import jax
 
     from sellip.stages.fit import enable_compilation_cache
@@ -142,11 +180,13 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
 
     from sellip.augment import AugmentSettings, cluster_materials, fit_cluster_lobe
     from sellip.fit import FitSettings
+    from sellip.models import SelectionSettings, allowed_models, model_of, select_model, settings_for_model
     from sellip.observe import ObserveError, open_observations
-    from sellip.params import read_params, same_vertices
+    from sellip.params import MODEL_NAMES, read_params, same_vertices
 
     settings = settings or AugmentSettings()
     fit_settings = fit_settings or FitSettings()
+    selection = selection or SelectionSettings()
     store = read_params(params)
     group = open_observations(observations)
     total = int(group.attrs["num_vertices"])
@@ -158,8 +198,12 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
     k = len(clustering.centres)
     log.info("K = %d clusters (BIC over K: %s), %d merges", k,
              {key: round(value, 1) for key, value in clustering.bic.items()}, len(clustering.merges))
+    if selection.enabled:
+        log.info("model selection: candidates %s, %.0f %% of each cluster's vertices held out, tolerance %g + %g SE",
+                 allowed_models(fit_settings, selection.candidates), 100 * selection.held_out_fraction,
+                 selection.tolerance, selection.standard_errors)
     rng = np.random.default_rng(seed)
-    lobes, rows_out, colors = [], [], []
+    lobes, rows_out, colors, models, choices = [], [], [], [], []
     for cluster in range(k):
         members = np.flatnonzero((clustering.labels == cluster) & clustering.used)
         if members.size == 0:
@@ -168,31 +212,56 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
         limit = max(64, settings.max_samples // 8)
         rows = np.sort(rng.choice(members, limit, replace=False)) if members.size > limit else members
         obs = _load_rows(group, rows)
-        lobe = fit_cluster_lobe(obs, store["normals"][rows], store["rho_d"][rows], float(np.median(store["eta"][members])),
-                                fit_settings, settings, seed=seed + cluster)
-        log.info("cluster %d: %d vertices (%d confident), %d samples: eta %.3f sigma_s %.3f sigma_ss %.3f rho_s %.4g",
-                 cluster, int(np.sum(clustering.labels == cluster)), members.size, lobe.samples, lobe.eta,
-                 lobe.sigma_s, lobe.sigma_ss, lobe.rho_s)
+        eta0 = float(np.median(store["eta"][members]))
+        began = time.perf_counter()
+        if selection.enabled:
+            choice = select_model(obs, store["normals"][rows], store["rho_d"][rows], eta0, fit_settings, selection,
+                                  settings, seed=seed + cluster)
+            model = choice.model
+            log.info("cluster %d: %s (%.1f s)", cluster, choice.reason, time.perf_counter() - began)
+            choices.append({"cluster": cluster, "model": model, "name": MODEL_NAMES[model], "reason": choice.reason,
+                            "best": choice.best, "train_vertices": choice.train_vertices,
+                            "held_out_vertices": choice.held_out_vertices,
+                            "held_out_samples": choice.held_out_samples,
+                            "candidates": {str(m): row for m, row in choice.candidates.items()},
+                            "seconds": time.perf_counter() - began})
+        else:
+            model = model_of(fit_settings)
+        lobe = fit_cluster_lobe(obs, store["normals"][rows], store["rho_d"][rows], eta0,
+                                settings_for_model(fit_settings, model, selection.sigma_ss_fixed), settings,
+                                seed=seed + cluster)
+        log.info("cluster %d: %d vertices (%d confident), %d samples, model %d: eta %.3f sigma_s %.3f sigma_ss %.3f "
+                 "rho_s %.4g rho_ss %s", cluster, int(np.sum(clustering.labels == cluster)), members.size,
+                 lobe.samples, model, lobe.eta, lobe.sigma_s, lobe.sigma_ss, lobe.rho_s, np.round(lobe.rho_ss, 4))
         lobes.append(lobe)
+        models.append(model)
         mean_color = np.asarray(obs.diffuse)[np.asarray(obs.usable)].sum(0)
         colors.append(mean_color / mean_color.sum() if mean_color.sum() > 0 else np.full(3, 1 / 3))
         rows_out.append({"cluster": cluster, "vertices": int(np.sum(clustering.labels == cluster)), "eta": lobe.eta,
                          "sigma_s": lobe.sigma_s, "sigma_ss": lobe.sigma_ss, "rho_s": lobe.rho_s,
                          **{f"rho_ss_{c}": float(lobe.rho_ss[i]) for i, c in enumerate("rgb")},
-                         "samples": lobe.samples, "loss": lobe.loss})
+                         "samples": lobe.samples, "loss": lobe.loss, "model": model})
     table = lobes_schema().validate(pd.DataFrame(rows_out, columns=list(LOBE_COLUMNS)))
+    vertex_models = np.asarray(models, np.uint8)[clustering.labels]
+    counts = {str(m): int(np.sum(vertex_models == m)) for m in sorted(MODEL_NAMES)}
+    log.info("vertices per model: %s", counts)
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
     tmp = output.with_name(output.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
     np.save(tmp / "labels.npy", clustering.labels.astype(np.int32))
+    np.save(tmp / "models.npy", vertex_models)
     table.to_csv(tmp / "lobes.csv", index=False)
-    plot_lobes(tmp / "lobes.png", lobes, lambda i: colors[i])
+    plot_lobes(tmp / "lobes.png", lobes, lambda i: colors[i], models)
     summary = {"k": k, "bic": {str(key): value for key, value in clustering.bic.items()},
                "k_bic": int(min(clustering.bic, key=clustering.bic.get)), "merges": clustering.merges,
                "clustered_vertices": int(clustering.used.sum()), "vertices": n, "seed": seed,
-               "settings": dataclasses.asdict(settings)}
+               "settings": dataclasses.asdict(settings),
+               "model_selection": {"enabled": selection.enabled, "settings": dataclasses.asdict(selection),
+                                   "allowed": allowed_models(fit_settings, selection.candidates),
+                                   "models": [int(m) for m in models], "vertices_per_model": counts,
+                                   "clusters": choices}}
     (tmp / "clusters.json").write_text(json.dumps(summary, indent=2))
     shutil.rmtree(output, ignore_errors=True)
     tmp.rename(output)
@@ -201,8 +270,10 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     from sellip.augment import AugmentSettings
+    from sellip.models import SelectionSettings
 
     defaults = AugmentSettings()
+    selection = SelectionSettings()
     parser.add_argument("--params", type=Path, required=True, help="this iteration's first-pass params store")
     parser.add_argument("--observations", type=Path, required=True, help="this iteration's observations.zarr")
     parser.add_argument("--output", type=Path, required=True, help="output directory (clusters)")
@@ -213,21 +284,39 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a FitSettings field (repeatable)")
     parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
+    parser.add_argument("--model-selection", action=argparse.BooleanOptionalAction, default=selection.enabled,
+                        help="choose each cluster's model on held-out vertices (default on)")
+    parser.add_argument("--candidates", type=int, nargs="+", default=list(selection.candidates),
+                        help="model codes tried (sellip.params.MODEL_NAMES)")
+    parser.add_argument("--held-out-fraction", type=float, default=selection.held_out_fraction)
+    parser.add_argument("--selection-tolerance", type=float, default=selection.tolerance,
+                        help="relative held-out loss a simpler model may lose")
+    parser.add_argument("--selection-standard-errors", type=float, default=selection.standard_errors,
+                        help="plus this many standard errors of the difference")
+    parser.add_argument("--fixed-sigma-ss", type=float, default=selection.sigma_ss_fixed,
+                        help="sigma_ss of model 2 when --set sigma_ss_fixed is not given")
+    parser.add_argument("--selection-max-samples", type=int, default=selection.max_samples,
+                        help="training samples per candidate fit")
 
 
 def main(args: argparse.Namespace) -> int:
     from sellip.augment import AugmentSettings
+    from sellip.models import SelectionSettings
     from sellip.observe import ObserveError
     from sellip.params import ParamsError
     from sellip.stages.fit import settings_from_pairs
 
     try:
-        if args.k_max < 1 or args.max_samples < 1 or args.min_cluster_vertices < 1:
-            raise ValueError("--k-max, --max-samples and --min-cluster-vertices must be >= 1")
+        if args.k_max < 1 or args.max_samples < 1 or args.min_cluster_vertices < 1 or args.selection_max_samples < 1:
+            raise ValueError("--k-max, --max-samples, --min-cluster-vertices and --selection-max-samples must be >= 1")
         settings = AugmentSettings(k_max=args.k_max, max_samples=args.max_samples,
                                    min_cluster_vertices=args.min_cluster_vertices)
+        selection = SelectionSettings(enabled=args.model_selection, candidates=tuple(args.candidates),
+                                      held_out_fraction=args.held_out_fraction, tolerance=args.selection_tolerance,
+                                      standard_errors=args.selection_standard_errors,
+                                      sigma_ss_fixed=args.fixed_sigma_ss, max_samples=args.selection_max_samples)
         run_stage(args.params, args.observations, args.output, args.seed, settings,
-                  settings_from_pairs(args.overrides), args.compilation_cache)
+                  settings_from_pairs(args.overrides), args.compilation_cache, selection)
     except (ObserveError, ParamsError, ValueError) as error:
         log.error("%s", error)
         return 1

@@ -92,7 +92,7 @@ def run_stage(model_path: str | Path, cameras_path: str | Path, hdr_path: str | 
     if not model_path.is_file():
         raise OutputsError(f"{model_path}: model does not exist")
     model = read_param_mesh(model_path)
-    capture = read_capture(capture_path)
+    capture = read_capture(capture_path, check_files=False)  # raw frames are ingest's business
     light = capture.config["light"]
     cameras, hdr = load_cameras(cameras_path, hdr_path)
     held_out = list(held_out or [])

@@ -9,6 +9,8 @@ geometry (paper §4.4); its rows are the vertices of ``--mesh``, whose triangles
 Written (each atomically): ``model.ply`` with the vertex properties of DESIGN §4 (float32) plus
 ``confidence`` (float32) and ``model`` (uint8, :data:`sellip.params.MODEL_NAMES`), and
 ``params.zarr`` with the same arrays (plus status, loss, views_used, iterations, cluster).
+``model`` is the store's own (the model each vertex was fitted with, DESIGN §7); ``--model``
+only fills it for a store without one.
 """
 
 from __future__ import annotations
@@ -24,7 +26,8 @@ log = logging.getLogger(__name__)
 
 def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_params: Path,
               clusters: Path | None = None, model: int = 3) -> dict:
-    """Write the final model PLY and parameter store; returns a summary dict."""
+    """Write the final model PLY and parameter store; returns a summary dict. The per-vertex model is
+    the store's ``model``; ``model`` is the code of every vertex of a store that has none."""
     from sellip.io import write_param_mesh
     from sellip.observe import read_mesh
     from sellip.params import (
@@ -55,7 +58,14 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
         cluster = np.load(labels_path).astype(np.int32)
         if cluster.shape != (n,):
             raise ParamsError(f"{labels_path}: {cluster.shape[0]} labels for {n} vertices")
-    models = np.full(n, model, np.uint8)
+    if "model" in store:
+        models = np.asarray(store["model"], np.uint8)
+        if not np.isin(models, sorted(MODEL_NAMES)).all():
+            raise ParamsError(f"{params_path}: model codes {sorted(set(np.unique(models)) - set(MODEL_NAMES))} "
+                              f"are not in {sorted(MODEL_NAMES)}")
+    else:
+        models = np.full(n, model, np.uint8)
+        log.info("%s has no model array: every vertex gets model %d", params_path, model)
     params = params_from(store, np.float64)
     confidence = np.asarray(store.get("confidence", np.zeros(n)), np.float32)
     output_model = Path(output_model)
@@ -69,10 +79,11 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
     write_params(output_params, arrays, attrs={**store["attrs"], "model_names": {str(k): v for k, v in
                                                                                   MODEL_NAMES.items()}})
     summary = {"vertices": n, "faces": len(mesh.faces), "confidence_median": float(np.median(confidence)),
-               "eta_median": float(np.median(store["eta"])),
-               "fields": list(PARAM_FIELDS)}
-    log.info("wrote %s and %s: %d vertices, %d faces, median confidence %.2f, median eta %.3f", output_model,
-             output_params, n, len(mesh.faces), summary["confidence_median"], summary["eta_median"])
+               "eta_median": float(np.median(store["eta"])), "fields": list(PARAM_FIELDS),
+               "vertices_per_model": {str(m): int(np.sum(models == m)) for m in sorted(MODEL_NAMES)}}
+    log.info("wrote %s and %s: %d vertices, %d faces, median confidence %.2f, median eta %.3f, vertices per model %s",
+             output_model, output_params, n, len(mesh.faces), summary["confidence_median"], summary["eta_median"],
+             summary["vertices_per_model"])
     return summary
 
 
@@ -82,7 +93,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--output-model", type=Path, required=True, help="final model PLY")
     parser.add_argument("--output-params", type=Path, required=True, help="final params.zarr")
     parser.add_argument("--clusters", type=Path, default=None, help="cluster_lobes output of the last pass")
-    parser.add_argument("--model", type=int, default=3, help="model code of every vertex (sellip.params.MODEL_NAMES)")
+    parser.add_argument("--model", type=int, default=3,
+                        help="model code of every vertex when the store has no model array (sellip.params.MODEL_NAMES)")
 
 
 def main(args: argparse.Namespace) -> int:

@@ -13,11 +13,18 @@ the nearest previous vertex (DESIGN §7); without it the fit starts from eta = 1
 defaults of :func:`sellip.fit.default_prior`. The starting normals are the mesh normals.
 ``--set`` overrides a field of :class:`sellip.fit.FitSettings`.
 
-With ``--lobes`` (the output of ``sellip cluster-lobes``: labels.npy, lobes.csv) this is the
-augmented refit (docs/augment.md): every vertex gets the virtual specular samples of its
+With ``--lobes`` (the output of ``sellip cluster-lobes``: labels.npy, models.npy, lobes.csv) this
+is the augmented refit (docs/augment.md): every vertex gets the virtual specular samples of its
 cluster's lobe. The prior is then the same iteration's first-pass params store (same vertices):
 the fit starts from its normals as well as its parameters (and holds them with
 ``--set fit_normal=false``).
+
+Models (DESIGN §7, :mod:`sellip.models`): every vertex is fitted with its own model, from
+``--lobes``'s models.npy, else from the prior store's ``model`` (nearest vertex, as its
+parameters), else the model of the settings (3, or 2 with ``sigma_ss_fixed``); never more
+complex than the settings allow. Vertices are grouped by model, one fit per group. Model 2's
+sigma_ss is ``--set sigma_ss_fixed`` when given, else ``--fixed-sigma-ss``. The output holds
+``model`` (N,) uint8, the model each vertex was fitted with.
 """
 
 from __future__ import annotations
@@ -62,7 +69,9 @@ def settings_from_pairs(pairs: list[str]):
         key, sep, text = pair.partition("=")
         if not sep or key not in fields:
             raise ValueError(f"--set expects KEY=VALUE with KEY one of {sorted(fields)}, got {pair!r}")
-        if text.lower() in ("null", "none", ""):
+        if fields[key].type in ("str", str):
+            values[key] = text
+        elif text.lower() in ("null", "none", ""):
             values[key] = None
         elif fields[key].type in ("bool", bool):
             if text.lower() not in ("true", "false", "1", "0"):
@@ -70,7 +79,11 @@ def settings_from_pairs(pairs: list[str]):
             values[key] = text.lower() in ("true", "1")
         else:
             kind = int if fields[key].type in ("int", int) else float
-            values[key] = kind(text)
+            try:
+                values[key] = kind(text)
+            except ValueError:
+                raise ValueError(f"--set {key} expects a{'n integer' if kind is int else ' number'}, "
+                                 f"got {text!r}") from None
     return FitSettings(**values)
 
 
@@ -87,15 +100,17 @@ def enable_compilation_cache(directory: str | Path | None) -> None:
 
 def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: Path | None = None,
               dtype: str = "float32", settings=None, compilation_cache: str | None = None,
-              lobes: Path | None = None) -> dict:
+              lobes: Path | None = None, fixed_sigma_ss: float = 0.9) -> dict:
     """Fit one shard and write ``output`` (.npz, atomically); with ``lobes`` the augmented refit.
-    Returns a summary dict."""
+    Every vertex is fitted with its model (module docstring); ``fixed_sigma_ss`` is model 2's
+    sigma_ss when ``settings.sigma_ss_fixed`` is None. Returns a summary dict."""
     import jax
 
     if dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     enable_compilation_cache(compilation_cache)
-    from sellip.fit import STATUS_NAMES, FitSettings, default_prior, fit_vertices
+    from sellip.fit import STATUS_NAMES, FitSettings, default_prior
+    from sellip.models import cap_models, fit_by_model, model_of
     from sellip.observe import load_observations, open_observations
     from sellip.params import (
         PARAM_FIELDS,
@@ -118,14 +133,16 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
     n = stop - start
     normal0 = data.normals.astype(float_type)
     virtual = None
+    models, source = np.full(n, model_of(settings), np.uint8), "the fit settings"
     if lobes is not None:
         from sellip.augment import virtual_samples
-        from sellip.stages.cluster_lobes import read_lobes
+        from sellip.stages.cluster_lobes import read_lobes, read_models
 
         labels, cluster_lobes = read_lobes(lobes)
         if len(labels) != total:
             raise ValueError(f"{lobes}/labels.npy: {len(labels)} labels for the {total} vertices of {observations}")
         virtual = virtual_samples(labels[start:stop], cluster_lobes, settings, float_type)
+        models, source = read_models(lobes, total)[start:stop], f"{lobes}/models.npy"
         log.info("augmented refit: %d cluster lobes, %d virtual samples per vertex, lambda_g %g",
                  len(cluster_lobes), settings.virtual_count, settings.lambda_g)
     if prior is not None:
@@ -133,6 +150,8 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
         nearest = transfer_nearest(previous["vertices"], data.vertices)
         start_params = params_from({k: previous[k][nearest] for k in PARAM_FIELDS}, float_type)
         log.info("warm start from %s (nearest of %d vertices)", prior, len(previous["vertices"]))
+        if lobes is None and "model" in previous:
+            models, source = previous["model"][nearest], f"{prior} (nearest vertex)"
         same_mesh = len(previous["vertices"]) == total and same_vertices(previous["vertices"][start:stop],
                                                                          data.vertices)
         if lobes is not None and same_mesh:
@@ -142,9 +161,13 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
             log.warning("refit: %s is not on this mesh; starting normals are the mesh normals", prior)
     else:
         start_params = default_prior(n, float_type)
+    models = cap_models(models, settings)
+    per_model = {int(m): int(np.sum(models == m)) for m in np.unique(models)}
+    log.info("models from %s: %s vertices per model (model 2's sigma_ss %s)", source, per_model,
+             settings.sigma_ss_fixed if settings.sigma_ss_fixed is not None else fixed_sigma_ss)
     began = time.perf_counter()
     if n:
-        result = fit_vertices(obs, normal0, start_params, settings,
+        result = fit_by_model(obs, normal0, start_params, models, settings, fixed_sigma_ss,
                               progress=lambda done: log.info("fitted %d / %d vertices (%.0f s)", done, n,
                                                              time.perf_counter() - began), virtual=virtual)
     seconds = time.perf_counter() - began
@@ -152,7 +175,7 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
     if n:
         arrays.update(normal=result.normal, status=result.status, confidence=result.confidence, loss=result.loss,
                       views_used=result.views_used, iterations=result.iterations,
-                      normal_std_deg=result.normal_std_deg, eta_std=result.eta_std,
+                      normal_std_deg=result.normal_std_deg, eta_std=result.eta_std, model=models,
                       **{name: getattr(result.params, name) for name in result.params._fields})
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
@@ -161,7 +184,7 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
     tmp.replace(output)
     counts = {STATUS_NAMES[s]: int(np.sum(result.status == s)) for s in STATUS_NAMES} if n else {}
     summary = {"vertices": n, "seconds": seconds, "vertex_fits_per_second": n / seconds if seconds > 0 else 0.0,
-               "status": counts}
+               "status": counts, "models": per_model}
     log.info("shard done: %d vertices in %.1f s (%.0f vertex-fits/s); %s", n, seconds,
              summary["vertex_fits_per_second"], counts)
     return summary
@@ -179,6 +202,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
     parser.add_argument("--lobes", type=Path, default=None,
                         help="cluster-lobes output directory: the augmented refit (virtual specular samples)")
+    from sellip.models import SelectionSettings
+
+    parser.add_argument("--fixed-sigma-ss", type=float, default=SelectionSettings().sigma_ss_fixed,
+                        help="sigma_ss of the vertices of model 2 when --set sigma_ss_fixed is not given")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -186,8 +213,10 @@ def main(args: argparse.Namespace) -> int:
 
     try:
         settings = settings_from_pairs(args.overrides)
+        if not 0.02 <= args.fixed_sigma_ss <= 1:
+            raise ValueError(f"--fixed-sigma-ss must be in [0.02, 1], got {args.fixed_sigma_ss}")
         run_stage(args.observations, args.shard, args.output, args.prior, args.dtype, settings,
-                  args.compilation_cache, args.lobes)
+                  args.compilation_cache, args.lobes, args.fixed_sigma_ss)
     except (ObserveError, ValueError) as error:
         log.error("%s", error)
         return 1

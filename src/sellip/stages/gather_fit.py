@@ -6,7 +6,9 @@
 
 The shards must cover the store's vertices exactly once. Vertices that could not be fitted
 (too few views, failed) get parameters and normals interpolated from their fitted neighbours
-and confidence 0 (DESIGN §7). The store layout is :mod:`sellip.params`.
+and confidence 0 (DESIGN §7); they keep their ``model`` (their cluster's, not fitted). The store
+layout is :mod:`sellip.params`; ``model`` (the model each vertex was fitted with) is written when
+every shard has it.
 """
 
 from __future__ import annotations
@@ -43,6 +45,8 @@ def run_stage(observations: Path, shards: list[Path], output: Path) -> dict:
     parts = [p for p in parts if int(p["stop"]) > int(p["start"])]
     names = ("normal", "status", "confidence", "loss", "views_used", "iterations", "normal_std_deg", "eta_std",
              *PARAM_FIELDS)
+    if parts and all("model" in p for p in parts):
+        names += ("model",)
     arrays = {name: np.concatenate([p[name] for p in parts]) for name in names}
     vertices = np.asarray(group["vertices"][:])
     fitted = arrays["status"] == STATUS_FITTED
@@ -52,9 +56,11 @@ def run_stage(observations: Path, shards: list[Path], output: Path) -> dict:
     arrays["confidence"] = np.where(fitted, arrays["confidence"], 0.0)
     counts = {STATUS_NAMES[s]: int(np.sum(arrays["status"] == s)) for s in STATUS_NAMES}
     normals = arrays.pop("normal")
-    write_params(output, {"vertices": vertices, "normals": normals, **arrays},
-                 attrs={"status_counts": counts, "status_names": {str(k): v for k, v in STATUS_NAMES.items()}})
-    log.info("%s: %d vertices, %s", output, total, counts)
+    attrs = {"status_counts": counts, "status_names": {str(k): v for k, v in STATUS_NAMES.items()}}
+    if "model" in arrays:
+        attrs["model_counts"] = {str(m): int(np.sum(arrays["model"] == m)) for m in np.unique(arrays["model"])}
+    write_params(output, {"vertices": vertices, "normals": normals, **arrays}, attrs=attrs)
+    log.info("%s: %d vertices, %s; vertices per model %s", output, total, counts, attrs.get("model_counts"))
     return counts
 
 

@@ -1,6 +1,7 @@
 """``sellip linearize``: every raw frame of a capture -> linear analyzer images (rule ``linearize_frames``).
 
     sellip linearize --capture CAPTURE --output results/NAME/ingest/linear.zarr [--threads 2]
+                     [--bad-frames error|skip]
 
 Per frame (:func:`sellip.ingest.process_frame`): black level, white level,
 saturated/dead pixels, demosaic, colour matrix, undistortion, on the output
@@ -13,7 +14,12 @@ attrs
     ``frame_id``, ``view_id``, ``flash_level``, ``exposure_s`` (lists, frames.csv
     order), ``intrinsics`` (output grid, :func:`sellip.ingest.output_intrinsics`),
     ``analyzer_angles_deg``, ``channels``, ``raw_shape``, ``capture``, ``saturation``,
-    ``black_level_from``.
+    ``black_level_from``, ``bad_frames`` and ``skipped`` (per frame: null, or why it was left out).
+
+Bad frames (missing, unreadable, wrong size, type or bit depth): ``--bad-frames error`` (default)
+stops with the file and its frames.csv row; ``skip`` leaves the frame out (all NaN in the store,
+``skipped`` says why) with a warning naming both, and ``sellip merge-hdr`` merges the view from its
+other frames (a view with none left is dropped).
 
 Frames are processed in a pool of ``--threads`` threads (numpy releases the
 GIL), one frame per task, so memory stays at a few frames. The store is
@@ -37,12 +43,15 @@ import numpy as np
 
 from sellip import ingest
 from sellip.conventions import ANALYZER_ANGLES_DEG
-from sellip.io import RAWPY_SUFFIXES, CaptureError, read_capture, read_raw_frame
+from sellip.io import FRAMES_CSV, RAWPY_SUFFIXES, CaptureError, MissingFileError, read_capture, read_raw_frame
 
 log = logging.getLogger(__name__)
 
 BLACK_LEVEL_SOURCES = ("capture", "file")
 """Where black levels come from: capture.yaml (all formats), or a RAW file's own (rawpy) levels."""
+
+BAD_FRAME_POLICIES = ("error", "skip")
+"""What a missing or unreadable raw frame does: stop the stage, or leave the frame out with a warning."""
 
 
 @contextmanager
@@ -118,27 +127,42 @@ def _check_file_black_level(path: Path, plan: ingest.IngestPlan) -> None:
                     np.unique(declared).tolist(), np.unique(plan.black).tolist())
 
 
+def _frame_row(capture, index: int) -> str:
+    """'frames.csv row i (line i+2), frame_id ..., view ...': where a frame comes from, for messages."""
+    row = capture.frames.iloc[index]
+    return (f"{capture.root / FRAMES_CSV} row {index} (line {index + 2}), frame_id {row['frame_id']!r}, "
+            f"view {row['view_id']!r}")
+
+
 def linearize_capture(capture_dir: str | Path, output: str | Path, threads: int = 1,
-                      saturation: float = ingest.DEFAULT_SATURATION, black_level_from: str = "capture") -> Path:
+                      saturation: float = ingest.DEFAULT_SATURATION, black_level_from: str = "capture",
+                      bad_frames: str = "error") -> Path:
     """Linearize every frame of a capture into a zarr store at ``output`` (layout in the module docstring).
 
-    Raises :class:`sellip.io.CaptureError` (naming the file) for a bad capture or frame; nothing is
-    written then.
+    bad_frames: "error" raises :class:`sellip.io.CaptureError` naming the file and its frames.csv row for a
+    bad capture or frame, and nothing is written; "skip" leaves bad frames out (module docstring). Raises
+    CaptureError when every frame is bad.
     """
     if black_level_from not in BLACK_LEVEL_SOURCES:
         raise ValueError(f"black_level_from must be one of {BLACK_LEVEL_SOURCES}, got {black_level_from!r}")
+    if bad_frames not in BAD_FRAME_POLICIES:
+        raise ValueError(f"bad_frames must be one of {BAD_FRAME_POLICIES}, got {bad_frames!r}")
     import zarr
 
     started = time.perf_counter()
-    capture = read_capture(capture_dir)
+    skip = bad_frames == "skip"
+    capture = read_capture(capture_dir, check_files=not skip)
     frames = capture.frames
     plan = ingest.make_ingest_plan(capture.sensor, capture.config["camera"], capture.layout, saturation)
     out = plan.intrinsics
     channels = plan.demosaic.channels
     paths = [capture.root / rel for rel in frames["file"]]
-    raw_paths = [p for p in paths if p.suffix.lower() in RAWPY_SUFFIXES]
+    raw_paths = [p for p in paths if p.suffix.lower() in RAWPY_SUFFIXES and p.is_file()]
     if black_level_from == "capture" and raw_paths:
-        _check_file_black_level(raw_paths[0], plan)
+        try:
+            _check_file_black_level(raw_paths[0], plan)
+        except Exception as exc:  # noqa: BLE001 -- rawpy raises many types; the frame's own read reports it
+            log.debug("black-level check of %s failed: %s", raw_paths[0], exc)
     log.info("%s: %d frames of %d views, raw %dx%d -> %dx%d x 4 analyzers x %d channels, %d thread(s)",
              capture.root, len(frames), len(capture.view_ids), plan.raw_shape[1], plan.raw_shape[0],
              out["width"], out["height"], channels, threads)
@@ -149,17 +173,29 @@ def linearize_capture(capture_dir: str | Path, output: str | Path, threads: int 
         linear = group.create_array("linear", shape=shape, chunks=(1,) + shape[1:], dtype="float32",
                                     fill_value=np.nan, compressors=None)
 
-        def run(index: int) -> int:
-            row = frames.iloc[index]
-            raw = read_raw_frame(capture, row)
-            black = _frame_black(paths[index], plan, black_level_from)
+        def run(index: int) -> str | None:
+            """Linearize frame ``index``; returns None, or (skip) why the frame was left out."""
+            try:
+                if not paths[index].is_file():  # rawpy reports a missing file as an I/O error
+                    raise MissingFileError(str(paths[index]), None, "raw frame does not exist")
+                raw = read_raw_frame(capture, frames.iloc[index])
+                black = _frame_black(paths[index], plan, black_level_from)
+            except CaptureError as exc:
+                if not skip:
+                    raise type(exc)(exc.file, _frame_row(capture, index),
+                                    f"{exc.problem} (ingest.bad_frames: skip leaves such frames out)") from None
+                log.warning("skipping %s: %s", _frame_row(capture, index), exc)
+                return str(exc)
             try:
                 linear[index] = ingest.process_frame(raw, plan, black)
             except ingest.IngestError as exc:
                 raise ingest.IngestError(f"{paths[index]}: {exc}") from None
-            return index
+            return None
 
-        map_in_threads(run, len(frames), threads, progress_logger(len(frames), "linearized frames"))
+        skipped = map_in_threads(run, len(frames), threads, progress_logger(len(frames), "linearized frames"))
+        if all(reason is not None for reason in skipped):
+            raise CaptureError(str(capture.root / FRAMES_CSV), None,
+                               f"none of its {len(frames)} raw frames could be read (first: {skipped[0]})")
         group.attrs.update({
             "frame_id": frames["frame_id"].tolist(),
             "view_id": frames["view_id"].tolist(),
@@ -172,7 +208,13 @@ def linearize_capture(capture_dir: str | Path, output: str | Path, threads: int 
             "capture": str(capture.root),
             "saturation": float(saturation),
             "black_level_from": black_level_from,
+            "bad_frames": bad_frames,
+            "skipped": skipped,
         })
+    left_out = [frames["frame_id"].iloc[i] for i, reason in enumerate(skipped) if reason is not None]
+    if left_out:
+        log.warning("left out %d of %d frames (ingest.bad_frames: skip): %s", len(left_out), len(frames),
+                    ", ".join(left_out[:30]))
     log.info("wrote %s in %.1f s", output, time.perf_counter() - started)
     return Path(output)
 
@@ -186,12 +228,15 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              f"(default: {ingest.DEFAULT_SATURATION})")
     parser.add_argument("--black-level-from", choices=BLACK_LEVEL_SOURCES, default="capture",
                         help="black levels from capture.yaml (default) or, for RAW files, the file's own")
+    parser.add_argument("--bad-frames", choices=BAD_FRAME_POLICIES, default="error",
+                        help="a missing or unreadable frame stops the stage (error, default) or is left out "
+                             "with a warning (skip)")
 
 
 def main(args: argparse.Namespace) -> int:
     try:
         linearize_capture(args.capture, args.output, threads=args.threads, saturation=args.saturation,
-                          black_level_from=args.black_level_from)
+                          black_level_from=args.black_level_from, bad_frames=args.bad_frames)
     except (CaptureError, ingest.IngestError) as exc:
         log.error("%s", exc)
         return 1

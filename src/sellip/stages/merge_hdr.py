@@ -15,7 +15,10 @@ attrs
     ``view_id`` (list, order of first appearance in frames.csv), ``frames_per_view``,
     ``intrinsics`` (fx, fy, cx, cy, width, height, distortion of the output grid:
     undistorted, one pixel per polarizer cell), ``analyzer_angles_deg``,
-    ``channels``, ``units``, ``capture``.
+    ``channels``, ``units``, ``capture``, ``dropped_views`` (views whose every frame was left out).
+
+Frames that ``sellip linearize --bad-frames skip`` left out (its ``skipped`` attr) are not merged: the
+view is merged from its other frames, and a view with none left is dropped with a warning.
 """
 
 from __future__ import annotations
@@ -79,8 +82,17 @@ def merge_capture(linear_path: str | Path, output: str | Path, threads: int = 1)
     linear = source["linear"]
     view_of_frame = list(attrs["view_id"])
     gains = np.asarray(attrs["flash_level"], np.float64) * np.asarray(attrs["exposure_s"], np.float64)
-    view_ids = list(dict.fromkeys(view_of_frame))
-    frames_of = {view: [i for i, v in enumerate(view_of_frame) if v == view] for view in view_ids}
+    skipped = list(attrs.get("skipped") or [None] * len(view_of_frame))
+    all_views = list(dict.fromkeys(view_of_frame))
+    frames_of = {view: [i for i, v in enumerate(view_of_frame) if v == view and skipped[i] is None]
+                 for view in all_views}
+    view_ids = [v for v in all_views if frames_of[v]]
+    dropped = [v for v in all_views if not frames_of[v]]
+    if dropped:
+        log.warning("dropping %d view(s) whose every frame was left out by linearize: %s", len(dropped),
+                    ", ".join(dropped[:30]))
+    if not view_ids:
+        raise ingest.IngestError(f"{linear_path}: no view has a frame left to merge")
     _, height, width, n_analyzers, channels = linear.shape
     log.info("%s: %d frames -> %d views of %dx%d", linear_path, linear.shape[0], len(view_ids), width, height)
 
@@ -108,6 +120,7 @@ def merge_capture(linear_path: str | Path, output: str | Path, threads: int = 1)
             "channels": attrs["channels"],
             "units": UNITS,
             "capture": attrs["capture"],
+            "dropped_views": dropped,
         })
     log.info("wrote %s in %.1f s; valid pixels per view: min %.3f, median %.3f", output,
              time.perf_counter() - started, min(fractions), float(np.median(fractions)))

@@ -5,11 +5,14 @@
                    --output results/NAME/iter/0/observations.zarr
                    [--vertex-chunk 4096] [--view-chunk 8] [--occlusion-tolerance 1e-3]
                    [--shadow-offset 0.5] [--min-cos 0] [--missing-poses skip|error] [--threads 2]
-                   [--exclude-views v003 v017]
+                   [--exclude-views v003 v017] [--max-views 12]
 
 Views: those of hdr.zarr that have a pose in cameras.csv, in hdr.zarr's order. SfM leaves
 unregistered views out of cameras.csv; ``--missing-poses skip`` (default) leaves them out here
 too with a warning, ``error`` stops. A cameras.csv view that hdr.zarr lacks is always an error.
+Held-out views (``--exclude-views``) are left out; then ``--max-views N`` keeps N of the remaining
+views spread evenly over their order (:func:`spread_subset`; for an orbit, evenly around it), to
+measure what fewer views cost (config ``observe.max_views``; the initial mesh still uses every view).
 The flash position (``light.position_m``, camera coordinates) comes from capture.yaml.
 
 Views are processed ``view_chunk`` at a time (:class:`sellip.observe.Observer`), and each
@@ -68,6 +71,19 @@ def pair_views(hdr_view_ids: list[str], camera_view_ids: list[str], hdr_path, ca
     return pairs
 
 
+def spread_subset(count: int, keep: int | None) -> np.ndarray:
+    """Indices (min(keep, count),) of ``keep`` of ``count`` ordered items spread evenly over the order.
+
+    Item floor(j count / keep) for j = 0..keep-1: always item 0, distinct, increasing. None (or
+    keep >= count) keeps all. ValueError when keep < 1.
+    """
+    if keep is None or keep >= count:
+        return np.arange(count)
+    if keep < 1:
+        raise ValueError(f"max_views must be at least 1, got {keep}")
+    return (np.arange(keep) * count) // keep
+
+
 def hdr_camera(intrinsics: dict, rotation: np.ndarray, translation: np.ndarray, hdr_path) -> Camera:
     """The camera of one view at the HDR resolution (hdr.zarr ``intrinsics`` attrs + a cameras.csv pose)."""
     from sellip.stages.sfm import intrinsics_matrix
@@ -91,17 +107,18 @@ def _check_scale(mesh_vertices: np.ndarray, centers: np.ndarray, distance_m: flo
 
 def run_stage(mesh_path: str | Path, cameras_path: str | Path, hdr_path: str | Path, capture_path: str | Path,
               output: str | Path, settings: ObserveSettings = ObserveSettings(), missing_poses: str = "skip",
-              exclude_views: tuple[str, ...] = ()) -> dict:
+              exclude_views: tuple[str, ...] = (), max_views: int | None = None) -> dict:
     """Write the observation store ``output`` (see the module docstring); returns a summary.
 
     ``exclude_views``: views left out of the store (held out for evaluation, never used in the fit).
+    ``max_views``: keep only this many of the other views, spread evenly (:func:`spread_subset`); None: all.
     """
     from sellip.stages.linearize import atomic_directory, progress_logger
     from sellip.stages.merge_hdr import read_hdr
     from sellip.stages.sfm import read_cameras
 
     started = time.perf_counter()
-    capture = read_capture(capture_path)
+    capture = read_capture(capture_path, check_files=False)  # raw frames are ingest's business
     light = capture.config["light"]
     mesh = read_mesh(mesh_path)
     if not Path(cameras_path).is_file():
@@ -115,7 +132,10 @@ def run_stage(mesh_path: str | Path, cameras_path: str | Path, hdr_path: str | P
         raise ObserveError(hdr_path, f"attrs intrinsics size {hdr.intrinsics.get('width')}x"
                                      f"{hdr.intrinsics.get('height')} differs from the images, {width}x{height}")
     pairs = pair_views(hdr.view_ids, camera_view_ids, hdr_path, cameras_path, missing_poses)
-    unknown = sorted(set(exclude_views) - set(hdr.view_ids))
+    dropped = sorted(set(exclude_views) & set(hdr.attrs.get("dropped_views") or []))
+    if dropped:  # ingest.bad_frames: skip dropped them; nothing left to hold out
+        log.warning("held-out view(s) %s were dropped at ingest (no readable frame)", ", ".join(dropped))
+    unknown = sorted(set(exclude_views) - set(hdr.view_ids) - set(dropped))
     if unknown:
         raise ObserveError(hdr_path, f"held-out view(s) {unknown[:10]} are not views of this store")
     pairs = [(index, row) for index, row in pairs if hdr.view_ids[index] not in set(exclude_views)]
@@ -123,6 +143,9 @@ def run_stage(mesh_path: str | Path, cameras_path: str | Path, hdr_path: str | P
         raise ObserveError(cameras_path, "every view is held out: nothing left to observe")
     if exclude_views:
         log.info("held out (never observed, never fitted): %s", ", ".join(sorted(exclude_views)))
+    if max_views is not None and max_views < len(pairs):
+        pairs = [pairs[k] for k in spread_subset(len(pairs), max_views)]
+        log.info("max_views %d: observing %s", max_views, ", ".join(hdr.view_ids[index] for index, _ in pairs))
     cameras = [hdr_camera(hdr.intrinsics, rotations[row], translations[row], hdr_path) for _, row in pairs]
     flashes = [flash_light(c, light["position_m"], light["polarizer_deg"]) for c in cameras]
     _check_scale(mesh.vertices, np.stack([c.center for c in cameras]), float(capture.config["scene"]["distance_m"]),
@@ -193,6 +216,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=0, help="ray-casting threads (0: all cores)")
     parser.add_argument("--exclude-views", nargs="*", default=[], metavar="VIEW",
                         help="views held out for evaluation: left out of the store")
+    parser.add_argument("--max-views", type=int, default=None, metavar="N",
+                        help="observe only N of the remaining views, spread evenly over their order (default: all)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -204,9 +229,13 @@ def main(args: argparse.Namespace) -> int:
     except ValueError as exc:
         log.error("bad settings: %s", exc)
         return 1
+    if args.max_views is not None and args.max_views < 1:
+        log.error("bad settings: --max-views must be at least 1, got %d", args.max_views)
+        return 1
     try:
         run_stage(args.mesh, args.cameras, args.hdr, args.capture, args.output, settings,
-                  missing_poses=args.missing_poses, exclude_views=tuple(args.exclude_views))
+                  missing_poses=args.missing_poses, exclude_views=tuple(args.exclude_views),
+                  max_views=args.max_views)
     except (ObserveError, CaptureError) as exc:
         log.error("%s", exc)
         return 1

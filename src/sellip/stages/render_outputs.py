@@ -91,7 +91,7 @@ def run_stage(model_path: str | Path, cameras_path: str | Path, hdr_path: str | 
     if not Path(model_path).is_file():
         raise OutputsError(f"{model_path}: model does not exist")
     mesh = read_param_mesh(model_path)
-    light = read_capture(capture_path).config["light"]
+    light = read_capture(capture_path, check_files=False).config["light"]  # no raw frame is read here
     cameras, hdr = load_cameras(cameras_path, hdr_path)
     unknown = [v for v in views or [] if v not in cameras]
     if unknown:  # e.g. views SfM could not register: render the others

@@ -143,7 +143,7 @@ def run_stage(hdr_path: str | Path, capture_path: str | Path, cameras_path: str 
     from sellip.stages.merge_hdr import read_hdr
 
     started = time.perf_counter()
-    capture = read_capture(capture_path)
+    capture = read_capture(capture_path, check_files=False)  # raw frames are ingest's business
     hdr = read_hdr(hdr_path)
     view_ids = hdr.view_ids
     distance_m = float(capture.config["scene"]["distance_m"])

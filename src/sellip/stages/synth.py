@@ -1,6 +1,6 @@
 """``sellip synth``: generate a synthetic capture folder (DESIGN §3) with ground truth.
 
-    sellip synth --scene demo --out captures/demo [--views N --width W --height H --seed S]
+    sellip synth --scene demo --out captures/demo [--views N --width W --height H --seed S] [--noise-scale K]
 
 For each view of a handheld orbit (:func:`sellip.scenes.handheld_orbit`) the
 scene is rendered once with the full pBRDF (:mod:`sellip.render`) under the
@@ -38,10 +38,12 @@ EXPOSURE_S = 0.005
 
 def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width: int = 612, height: int = 512,
                        seed: int = 0, supersample: int = 2, raw_format: str = "dng", distortion=None,
-                       flash_levels=FLASH_LEVELS, progress: bool = True) -> Path:
+                       flash_levels=FLASH_LEVELS, progress: bool = True, noise_scale: float = 1.0) -> Path:
     """Render and write a synthetic capture of ``scene_name`` to ``out``; returns the folder.
 
-    width, height: raw mosaic size (multiples of 4); distortion: OpenCV (k1, k2, p1, p2, k3) or None.
+    width, height: raw mosaic size (multiples of 4); distortion: OpenCV (k1, k2, p1, p2, k3) or None;
+    noise_scale: sensor noise standard deviations x this at the same signal
+    (:meth:`sellip.sensor.SensorModel.with_noise_scale`; 1 is the real device).
     """
     from tqdm import tqdm
 
@@ -50,7 +52,7 @@ def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width:
     cameras = handheld_orbit(views, width, height, np.random.default_rng([seed, 1]),
                              distance_m=scene.distance_m, elevation_deg=scene.elevation_deg,
                              distortion=distortion)
-    sensor = SensorModel(width=width, height=height)
+    sensor = SensorModel(width=width, height=height).with_noise_scale(noise_scale)
     k = cameras[0].intrinsics
     config = {
         "sensor": sensor.capture_sensor(),
@@ -61,7 +63,8 @@ def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width:
         "scene": {"distance_m": float(np.mean(scene.distance_m))},
         "synthetic": {"scene": scene_name, "seed": int(seed), "views": int(views), "supersample": int(supersample),
                       "flash_power_dn": float(scene.flash_power), "gain_e_per_dn": sensor.gain_e_per_dn,
-                      "read_noise_e": sensor.read_noise_e, "ground_truth": GROUND_TRUTH_MESH},
+                      "read_noise_e": sensor.read_noise_e, "noise_scale": float(noise_scale),
+                      "ground_truth": GROUND_TRUTH_MESH},
     }
     renderer = Renderer(scene.mesh)
     saturated = []
@@ -97,6 +100,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="raw frame files (default: dng)")
     parser.add_argument("--distortion", type=float, nargs=5, metavar=("K1", "K2", "P1", "P2", "K3"),
                         help="OpenCV lens distortion to simulate (default: none)")
+    parser.add_argument("--noise-scale", type=float, default=1.0,
+                        help="sensor noise standard deviations x this at the same signal, as with 1/k^2 of the "
+                             "photons at k^2 the gain (default: 1, the real device)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -107,7 +113,9 @@ def main(args: argparse.Namespace) -> int:
                          f"got {args.width}x{args.height}")
     if args.views < 1 or args.supersample < 1:
         raise SystemExit("--views and --supersample must be at least 1")
+    if not args.noise_scale > 0:
+        raise SystemExit(f"--noise-scale must be positive, got {args.noise_scale}")
     synthesize_capture(args.scene, args.out, views=args.views, width=args.width, height=args.height, seed=args.seed,
                        supersample=args.supersample, raw_format=args.raw_format, distortion=args.distortion,
-                       progress=not args.no_progress)
+                       progress=not args.no_progress, noise_scale=args.noise_scale)
     return 0

@@ -1,0 +1,176 @@
+"""``sellip bench-sweep``: the speed-accuracy sweep of the whole workflow (issue #9, docs/benchmarks.md).
+
+    sellip bench-sweep --scenes demo sphere_ior --preset quick --out results/bench/sweep
+                       [--cores 2] [--only FACTOR ...] [--repeat 2] [--force] [--report-only]
+
+Runs the workflow once per variant (:mod:`sellip.sweep`: the preset's base per scene, then one factor
+changed at a time) in OUT/work/PRESET (a Snakemake working directory: captures/, results/NAME/,
+jax_cache/, logs/, configs/), then writes into OUT:
+
+- ``sweep.csv``: one row per variant (:data:`sellip.sweep.SWEEP_COLUMNS`, pandera-checked): times and figures;
+- ``sweep.png``: accuracy (normal median error, eta median error, held-out PSNR) against total time per scene,
+  each variant labelled, the Pareto front marked;
+- ``ior.csv``: fitted eta per material of the paper's Table 1, for every sphere_ior variant (column ``name``);
+- ``tables.md``: the sweep, the IOR table (sphere_ior base), augmentation on/off and sigma_ss fixed/free,
+  each next to the paper's numbers.
+
+A variant whose results folder holds a record of the same config is not run again: an interrupted sweep
+resumes, and ``--report-only`` redraws the outputs from finished runs without running anything.
+Every output is written under a temporary name and renamed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sellip import sweep
+
+log = logging.getLogger(__name__)
+
+
+def ior_of_results(results: Path, capture: Path):
+    """sweep.ior_table of one finished run: results/NAME/final/{model.ply,params.zarr} against the capture's
+    ground truth, in the ground truth's world (metrics.json ``alignment``)."""
+    from sellip.evaluate import transform_mesh
+    from sellip.geometry import Similarity
+    from sellip.io import GROUND_TRUTH_MESH, read_param_mesh
+    from sellip.stages.evaluate import confident_vertices
+
+    model_path, params_path = results / "final" / "model.ply", results / "final" / "params.zarr"
+    model = read_param_mesh(model_path)
+    truth = read_param_mesh(capture / GROUND_TRUTH_MESH)
+    confident, _ = confident_vertices(model_path, params_path, model.num_vertices)
+    alignment = json.loads((results / "metrics.json").read_text()).get("alignment") or {}
+    if alignment.get("method") == "sim3":
+        model = transform_mesh(model, Similarity(float(alignment["scale"]), np.asarray(alignment["rotation"]),
+                                                 np.asarray(alignment["translation"])))
+    return sweep.ior_table(model, truth, confident)
+
+
+SWEEP_MD = {"label": ("variant", ""), "cpu_s": ("CPU s", ".0f"), "fit_cpu_s": ("fit CPU s", ".0f"),
+            "total_s": ("wall s", ".0f"), "run_s": ("own run wall s", ".0f"), "normal_median_deg": ("normal med. °", ".2f"),
+            "eta_median_pct": ("η med. %", ".1f"), "rho_d_rmse": ("ρd RMSE", ".3f"),
+            "sigma_s_median": ("σs err.", ".3f"), "chamfer_mm": ("Chamfer mm", ".3f"),
+            "psnr_held_out_db": ("held-out PSNR dB", ".2f"), "psnr_new_light_db": ("new-light PSNR dB", ".2f"),
+            "front": ("front", ""), "cold_cpu_s": ("first-run CPU s", ".0f"),
+            "cold_compiled": ("first-run XLA compiles", "d")}
+IOR_MD = {"material": ("material", ""), "eta_true": ("η true", ".3f"), "eta_ours": ("η ours (median)", ".3f"),
+          "error_pct": ("error %", ".2f"), "vertex_error_pct": ("per-vertex error, median %", ".1f"),
+          "vertices": ("vertices", "d"), "eta_paper": ("η paper", ".3f"), "paper_error_pct": ("paper error %", ".2f")}
+AUG_MD = {"scene": ("scene", ""), "augmentation": ("augmentation", ""),
+          "psnr_held_out_db": ("held-out PSNR dB", ".2f"), "psnr_new_light_db": ("new-light PSNR dB", ".2f"),
+          "sigma_s_median": ("σs err.", ".3f"), "normal_median_deg": ("normal med. °", ".2f"),
+          "cpu_s": ("CPU s", ".0f"), "total_s": ("wall s", ".0f"), "paper_psnr_db": ("paper (owl) PSNR dB", ".1f")}
+SIGMA_MD = {"scene": ("scene", ""), "sigma_ss": ("σss", ""), "fit_s": ("fit jobs wall s", ".0f"),
+            "fit_saving_pct": ("fit wall saved %", ".0f"), "fit_cpu_s": ("fit CPU s (sampled)", ".0f"),
+            "cpu_s": ("pipeline CPU s", ".0f"), "cpu_saving_pct": ("CPU saved %", ".0f"), "total_s": ("wall s", ".0f"),
+            "psnr_held_out_db": ("held-out PSNR dB", ".2f"), "normal_median_deg": ("normal med. °", ".2f"),
+            "eta_median_pct": ("η med. %", ".1f"), "paper_psnr_db": ("paper (owl) PSNR dB", ".1f")}
+
+
+def tables_markdown(table, ior, preset: str) -> str:
+    """tables.md: the sweep per scene, the IOR table, augmentation on/off, sigma_ss fixed/free."""
+    table = table.assign(front=sweep.front_marks(table))
+    parts = [f"# Speed-accuracy sweep ({preset} preset)\n",
+             "CPU s: CPU time of all jobs (core-seconds, the chart's axis); wall s: the shared upstream run plus "
+             "the variant's own run. front: on the Pareto front of 1 normal error, 2 η error, 3 held-out PSNR "
+             "against CPU time.\n"]
+    for scene in dict.fromkeys(table["scene"]):
+        parts += [f"\n## {scene}\n\n", sweep.markdown_table(table[table["scene"] == scene], SWEEP_MD)]
+    if ior is not None and not ior.empty:
+        mean = {"material": "average", "error_pct": ior["error_pct"].mean(),
+                "vertex_error_pct": ior["vertex_error_pct"].mean(), "paper_error_pct": sweep.PAPER_TABLE1_AVERAGE_PCT}
+        import pandas as pd
+
+        shown = pd.concat([ior, pd.DataFrame([mean])], ignore_index=True)
+        parts += ["\n## Refractive index (sphere_ior, base)\n\n", sweep.markdown_table(shown, IOR_MD)]
+    aug = sweep.augmentation_table(table)
+    if not aug.empty:
+        parts += ["\n## Augmentation on/off\n\n", sweep.markdown_table(aug, AUG_MD)]
+    sigma = sweep.sigma_ss_table(table)
+    if not sigma.empty:
+        parts += [f"\n## σss free vs fixed (paper: fixing saves up to ~{sweep.PAPER_SIGMA_SS_SAVING_PCT:.0f} %)\n\n",
+                  sweep.markdown_table(sigma, SIGMA_MD)]
+    return "".join(parts)
+
+
+def write_outputs(variants, records, preset: str, out: Path, workdir: Path) -> dict:
+    """sweep.csv, sweep.png, ior.csv, tables.md in ``out`` from the finished runs; returns their paths."""
+    import pandas as pd
+
+    paths = sweep.SweepPaths(workdir)
+    rows = []
+    for variant, record in zip(variants, records):
+        folder = paths.results / variant.name
+        metrics = json.loads((folder / "metrics.json").read_text())
+        rows.append(sweep.sweep_row(variant, metrics, record, preset, sweep.job_cpu_seconds(folder / "benchmarks")))
+    table = sweep.sweep_table(rows)
+    iors = []
+    for variant in variants:
+        if variant.scene == "sphere_ior":
+            ior = ior_of_results(paths.results / variant.name, paths.capture(variant.scene))
+            iors.append(ior.assign(name=variant.name))
+    ior_all = pd.concat(iors, ignore_index=True) if iors else None
+    base_ior = None if ior_all is None else ior_all[ior_all["name"] == "sphere_ior__base"].drop(columns="name")
+    written = {"csv": sweep.write_csv_atomic(table, out / "sweep.csv"),
+               "png": sweep.save_figure_atomic(sweep.sweep_figure(table), out / "sweep.png"),
+               "md": sweep.write_text_atomic(tables_markdown(table, base_ior, preset), out / "tables.md")}
+    if ior_all is not None:
+        written["ior"] = sweep.write_csv_atomic(ior_all, out / "ior.csv")
+    return written
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scenes", nargs="+", default=["demo", "sphere_ior"],
+                        help="built-in scenes to sweep (sellip.scenes.SCENES; default: demo sphere_ior)")
+    parser.add_argument("--preset", choices=sorted(sweep.PRESETS), default="quick",
+                        help="base configuration and factor values (default: quick)")
+    parser.add_argument("--out", type=Path, default=Path("results/bench/sweep"),
+                        help="output folder; the runs go to OUT/work/PRESET (default: results/bench/sweep)")
+    parser.add_argument("--cores", type=int, default=2, help="snakemake --cores of every run (default: 2)")
+    parser.add_argument("--only", nargs="+", default=None, metavar="FACTOR",
+                        help=f"sweep only these factors (the base always runs): {[f.name for f in sweep.FACTORS]}")
+    parser.add_argument("--repeat", type=int, default=2,
+                        help="at most this many runs per variant, the last timed: a run that spent over 10 %% of "
+                             "its CPU time compiling XLA kernels runs again (default 2; 1 times compilation too)")
+    parser.add_argument("--force", action="store_true", help="run every variant again, even if finished before")
+    parser.add_argument("--report-only", action="store_true",
+                        help="run nothing: redraw the outputs from the variants finished before")
+
+
+def main(args: argparse.Namespace) -> int:
+    from sellip.scenes import SCENES
+
+    unknown = [s for s in args.scenes if s not in SCENES]
+    if unknown:
+        log.error("unknown scene(s) %s; expected some of %s", unknown, list(SCENES))
+        return 1
+    if args.cores < 1 or args.repeat < 1:
+        log.error("--cores and --repeat must be at least 1")
+        return 1
+    workdir = args.out / "work" / args.preset
+    started = time.perf_counter()
+    try:
+        if args.report_only:
+            variants = sweep.plan_variants(args.scenes, args.preset, args.only)
+            records = []
+            for variant in variants:
+                path = workdir / "results" / variant.name / sweep.RECORD
+                if not path.is_file():
+                    raise sweep.SweepError(f"{path} missing: {variant.name} has not run (drop --report-only)")
+                records.append(json.loads(path.read_text()))
+        else:
+            variants, records = sweep.run_sweep(args.scenes, args.preset, workdir, cores=args.cores,
+                                                only=args.only, repeat=args.repeat, force=args.force)
+        written = write_outputs(variants, records, args.preset, args.out, workdir)
+    except (sweep.SweepError, ValueError) as exc:
+        log.error("%s", exc)
+        return 1
+    log.info("wrote %s in %.0f s", ", ".join(str(p) for p in written.values()), time.perf_counter() - started)
+    return 0

@@ -1,0 +1,275 @@
+"""Model selection (sellip.models, DESIGN §7): which lobes a cluster needs, and fitting vertices by model.
+
+One synthetic scene (the renderer and cameras of test_augment.py: the full model, 40 views within
+25 deg of +z, 0.5 % noise): three materials of 48 surface points each, a quarter of them facing the
+cameras (they see their highlight), the others 10-60 deg away. "specular" has no single scattering,
+"scattering" a strong single-scattering lobe, "diffuse" no reflection lobe at all.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_augment import _cameras, _render
+
+from sellip import augment, cli, models
+from sellip.fit import FitSettings, Observations, default_prior, fit_vertices
+from sellip.pbrdf import PBRDFParams
+
+MATERIALS = {  # eta, rho_d, rho_s, sigma_s, rho_ss, sigma_ss
+    "specular": (1.5, (0.45, 0.25, 0.12), 0.8, 0.15, (0.0, 0.0, 0.0), 0.5),
+    "scattering": (1.45, (0.25, 0.25, 0.22), 0.6, 0.2, (0.3, 0.25, 0.2), 0.6),
+    "diffuse": (1.6, (0.15, 0.25, 0.45), 0.0, 0.3, (0.0, 0.0, 0.0), 0.5),
+}
+PER_MATERIAL = 48
+HELD = FitSettings(fit_normal=False)  # the refit's settings (normals held at the truth here)
+LOBES = augment.AugmentSettings(min_cluster_vertices=10, max_samples=1000)
+SELECTION = models.SelectionSettings(max_samples=1000)  # the lobe fits' shape: one compilation per model
+
+
+def _make_scene(seed=0, views=40, noise=0.005):
+    rng = np.random.default_rng(seed)
+    names = list(MATERIALS)
+    material = np.repeat(np.arange(len(names)), PER_MATERIAL)
+    n = material.size
+    table = [np.array([MATERIALS[name][i] for name in names]) for i in range(6)]
+    params = PBRDFParams(eta=table[0][material], rho_d=table[1][material] * rng.uniform(0.95, 1.05, (n, 3)),
+                         rho_s=table[2][material], sigma_s=table[3][material], rho_ss=table[4][material],
+                         sigma_ss=table[5][material])
+    facing = rng.random(n) < 0.25
+    tilt = np.radians(np.where(facing, rng.uniform(0, 8, n), rng.uniform(10, 60, n)))
+    azimuth = rng.uniform(0, 2 * np.pi, n)
+    normals = np.stack([np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth), np.cos(tilt)], -1)
+    positions = rng.uniform(-0.03, 0.03, (n, 3))
+    centres, up, right = _cameras(rng, views, 25.0)
+    obs = _render(params, normals, positions, centres, up, right, noise, rng)
+    return {"params": params, "normals": normals, "positions": positions, "material": material, "names": names,
+            "obs": obs, "up": up, "right": right}
+
+
+def _rows(obs, rows):
+    return Observations(*[np.asarray(x)[rows] for x in obs])
+
+
+def _select(scene, name, seed=0, selection=SELECTION):
+    rows = np.flatnonzero(scene["material"] == scene["names"].index(name))
+    return models.select_model(_rows(scene["obs"], rows), scene["normals"][rows], scene["params"].rho_d[rows], 1.5,
+                               HELD, selection, LOBES, seed=seed)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """The scene and the selection of each material's cluster (the true normals and albedos held)."""
+    s = _make_scene()
+    s["selection"] = {name: _select(s, name) for name in MATERIALS}
+    return s
+
+
+def test_model_codes_settings_and_caps():
+    from sellip.stages.fit import settings_from_pairs
+
+    for code in models.MODELS:
+        assert models.model_of(models.settings_for_model(HELD, code)) == code
+    assert models.settings_for_model(HELD, 3) == HELD  # the default settings are model 3: same compiled fit
+    assert models.settings_for_model(HELD, 2, sigma_ss_fixed=0.7).sigma_ss_fixed == 0.7
+    fixed = FitSettings(sigma_ss_fixed=1.0)
+    assert models.settings_for_model(fixed, 2, sigma_ss_fixed=0.7).sigma_ss_fixed == 1.0  # the user's value wins
+    assert models.allowed_models(fixed) == [0, 1, 2]
+    assert models.allowed_models(FitSettings(lobes="specular"), (0, 1, 3)) == [0, 1]
+    np.testing.assert_array_equal(models.cap_models([0, 1, 2, 3], fixed), [0, 1, 2, 2])
+    assert settings_from_pairs(["lobes=specular", "fit_normal=false"]) == FitSettings(lobes="specular", fit_normal=False)
+    with pytest.raises(ValueError, match="lobes"):
+        settings_from_pairs(["lobes=mirror"])
+    with pytest.raises(ValueError, match="max_iterations expects an integer"):
+        settings_from_pairs(["max_iterations=many"])
+    with pytest.raises(ValueError, match="candidates"):
+        models.SelectionSettings(candidates=(1, 4))
+    with pytest.raises(ValueError, match="held_out_fraction"):
+        models.SelectionSettings(held_out_fraction=1.0)
+
+
+def test_the_rule_takes_the_simplest_model_within_the_tolerance():
+    rng = np.random.default_rng(0)
+    base = rng.uniform(1.0, 2.0, 20)  # per-vertex held-out losses of the best model
+    noise = rng.normal(0, 0.01, 20)
+    losses = {0: base * 3, 1: base * 1.005 + noise, 2: base * 1.002, 3: base}
+    chosen, best, table = models.choose(losses, tolerance=0.01, standard_errors=1.0)
+    assert (chosen, best) == (1, 3)  # 0.5 % worse: within 1 %
+    assert table[0]["excess"] == pytest.approx(2 * base.sum()) and table[3]["excess"] == 0
+    # 3 % worse on every vertex alike: beyond 1 % plus one (tiny) standard error.
+    chosen, _, table = models.choose({1: base * 1.03, 3: base}, tolerance=0.01, standard_errors=1.0)
+    assert chosen == 3 and table[1]["standard_error"] < 0.01 * table[3]["held_out_loss"]
+    # 3 % worse on average but as noisy as that: within one standard error, so the simpler model.
+    spread = rng.normal(0, 1, 20)
+    spread = 0.3 * (spread - spread.mean()) / spread.std()
+    flat = np.full(20, 1.5)
+    chosen, best, table = models.choose({1: flat * (1.03 + spread), 3: flat}, tolerance=0.01, standard_errors=1.0)
+    assert best == 3 and chosen == 1 and table[1]["excess"] == pytest.approx(0.03 * table[3]["held_out_loss"])
+    assert models.choose({1: flat * (1.03 + spread), 3: flat}, tolerance=0.0, standard_errors=0.0)[0] == 3
+
+
+def test_selection_drops_the_lobes_a_cluster_does_not_need_and_keeps_those_it_needs(scene):
+    chosen = {name: s.model for name, s in scene["selection"].items()}
+    print({name: s.reason for name, s in scene["selection"].items()})
+    # Measured: specular 1, scattering 3 (model 2's fixed sigma_ss 0.9 +4 %), diffuse 0.
+    assert chosen["specular"] == 1 and chosen["scattering"] in (2, 3) and chosen["diffuse"] == 0, chosen
+    for s in scene["selection"].values():
+        assert sorted(s.candidates) == [0, 1, 2, 3] and s.held_out_vertices == 12 and s.train_vertices == 36
+        assert s.candidates[s.model]["excess"] <= s.candidates[s.model]["allowed"]
+    table = scene["selection"]["scattering"].candidates
+    best = table[scene["selection"]["scattering"].best]["held_out_loss"]
+    assert table[1]["excess"] > 0.2 * best  # without single scattering the held-out samples fit far worse
+    table = scene["selection"]["specular"].candidates
+    assert table[0]["excess"] > 10 * table[1]["held_out_loss"]  # the specular lobe is needed
+
+
+def test_selection_is_deterministic_for_a_seed(scene):
+    again = _select(scene, "specular")
+    first = scene["selection"]["specular"]
+    assert again.model == first.model and again.candidates == first.candidates and again.reason == first.reason
+    assert _select(scene, "specular", seed=5).model == 1  # another split: the same answer
+
+
+def _refit_models(scene):
+    """The models of the stage test's refit (model at most 1): diffuse 0, the others 1."""
+    return np.where(scene["material"] == scene["names"].index("diffuse"), 0, 1)
+
+
+def test_fit_by_model_fits_every_vertex_with_its_model(scene):
+    """A real grouped fit: the rows of each model are exactly the plain fit of that model on them."""
+    obs, normals, n = scene["obs"], scene["normals"], len(scene["normals"])
+    vertex_models = _refit_models(scene)
+    # Zero-weight virtual samples: the refit's compiled shapes (shared with the stage test below).
+    virtual = augment.virtual_samples(np.full(n, -1), None, HELD, np.float64)
+    prior = default_prior(n, np.float64)
+    grouped = models.fit_by_model(obs, normals, prior, vertex_models, HELD, virtual=virtual)
+    for code in (0, 1):
+        m = vertex_models == code
+        alone = fit_vertices(_rows(obs, m), normals[m], PBRDFParams(*[np.asarray(x)[m] for x in prior]),
+                             models.settings_for_model(HELD, code), virtual=None if code == 0 else
+                             augment.fit.VirtualSamples(*[np.asarray(x)[m] for x in virtual]))
+        for name in ("eta", "rho_d", "rho_s", "sigma_s", "rho_ss"):
+            np.testing.assert_allclose(getattr(grouped.params, name)[m], getattr(alone.params, name), rtol=1e-9,
+                                       err_msg=f"model {code}: {name}")
+        np.testing.assert_array_equal(grouped.status[m], alone.status)
+        if code == 1:  # every vertex of one model: the same as the plain fit with that model's settings
+            same = models.fit_by_model(_rows(obs, m), normals[m], PBRDFParams(*[np.asarray(x)[m] for x in prior]),
+                                       np.ones(m.sum(), int), HELD, virtual=augment.fit.VirtualSamples(
+                                           *[np.asarray(x)[m] for x in virtual]))
+            for a, b in zip(jax_leaves(same), jax_leaves(alone)):
+                np.testing.assert_array_equal(a, b)
+    assert np.all(grouped.status == 0) and np.all(grouped.params.rho_ss == 0)
+    assert np.all(grouped.params.rho_s[vertex_models == 0] == 0)
+    specular = scene["material"] == scene["names"].index("specular")
+    eta_error = np.abs(grouped.params.eta / scene["params"].eta - 1)
+    assert np.median(eta_error[specular]) < 0.02 and np.median(eta_error[vertex_models == 0]) < 0.02
+    with pytest.raises(ValueError, match="models for"):
+        models.fit_by_model(obs, normals, prior, np.ones(n - 1, int), HELD)
+
+
+def jax_leaves(tree):
+    import jax
+
+    return jax.tree_util.tree_leaves(tree)
+
+
+def _write_stores(folder, scene):
+    """observations.zarr (float32) and fit.zarr (the true parameters, every vertex fitted, confidence 1)."""
+    from sellip.observe import ObservationWriter, ObserveMesh, ObserveSettings
+    from sellip.params import write_params
+
+    obs, n = scene["obs"], len(scene["normals"])
+    mesh = ObserveMesh(scene["positions"], scene["normals"], np.zeros((0, 3), np.int64))
+    writer = ObservationWriter(folder / "observations.zarr", mesh, [f"v{k}" for k in range(np.shape(obs.usable)[1])],
+                               {"camera_up": scene["up"], "light_axis": scene["right"]},
+                               ObserveSettings(vertex_chunk=64, view_chunk=8))
+    for name in ("diffuse", "diffuse_pol", "specular", "to_light", "to_camera", "light_distance", "usable"):
+        writer.arrays[name][...] = np.asarray(getattr(obs, name))
+    write_params(folder / "fit.zarr", {"vertices": scene["positions"], "normals": scene["normals"],
+                                       **scene["params"]._asdict(), "confidence": np.ones(n),
+                                       "status": np.zeros(n, np.int8)}, chunk=64)
+
+
+def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, scene, caplog, monkeypatch):
+    from sellip.io import read_ply, write_ply
+    from sellip.params import read_params
+    from sellip.stages import finalize
+
+    _write_stores(tmp_path, scene)
+    stores = ["--params", str(tmp_path / "fit.zarr"), "--observations", str(tmp_path / "observations.zarr")]
+    small = ["--max-samples", "1000", "--selection-max-samples", "1000", "--min-cluster-vertices", "10"]
+    # At most model 1 (--set lobes=specular): the scattering cluster may not keep its lobe.
+    assert cli.main(["cluster-lobes", *stores, "--output", str(tmp_path / "clusters"), *small,
+                     "--set", "lobes=specular"]) == 0
+    labels, vertex_models = np.load(tmp_path / "clusters" / "labels.npy"), np.load(tmp_path / "clusters" / "models.npy")
+    info = json.loads((tmp_path / "clusters" / "clusters.json").read_text())["model_selection"]
+    assert vertex_models.dtype == np.uint8 and info["allowed"] == [0, 1] and info["enabled"]
+    np.testing.assert_array_equal(vertex_models, np.asarray(info["models"])[labels])
+    expected = {"specular": 1, "scattering": 1, "diffuse": 0}
+    for name, code in expected.items():
+        assert np.all(vertex_models[scene["material"] == scene["names"].index(name)] == code), name
+    for cluster in info["clusters"]:  # why: every candidate's held-out loss
+        assert sorted(cluster["candidates"]) == ["0", "1"] and cluster["reason"].startswith(f"model {cluster['model']}")
+    table = (tmp_path / "clusters" / "lobes.csv").read_text().splitlines()
+    assert table[0].endswith(",model") and sorted(int(line.split(",")[-1]) for line in table[1:]) == [0, 1, 1]
+
+    # The refit: every vertex with its cluster's model (the grouped fit's compiled shapes above).
+    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--prior", str(tmp_path / "fit.zarr"),
+                     "--lobes", str(tmp_path / "clusters"), "--output", str(tmp_path / "refit.npz"),
+                     "--dtype", "float64", "--set", "fit_normal=false"]) == 0
+    with np.load(tmp_path / "refit.npz") as refit:
+        np.testing.assert_array_equal(refit["model"], vertex_models)
+        assert np.all(refit["rho_ss"] == 0) and np.all(refit["rho_s"][vertex_models == 0] == 0)
+        assert np.all(refit["rho_s"][vertex_models == 1] > 0.1)
+    assert cli.main(["gather-fit", "--observations", str(tmp_path / "observations.zarr"), "--shards",
+                     str(tmp_path / "refit.npz"), "--output", str(tmp_path / "refit.zarr")]) == 0
+    store = read_params(tmp_path / "refit.zarr")
+    np.testing.assert_array_equal(store["model"], vertex_models)
+    # The final model carries the store's models (not a constant).
+    n = len(vertex_models)
+    write_ply(tmp_path / "mesh.ply", {**{k: scene["positions"][:, i] for i, k in enumerate("xyz")},
+                                      **{f"n{k}": scene["normals"][:, i] for i, k in enumerate("xyz")}},
+              np.array([[0, 1, 2]]))
+    summary = finalize.run_stage(tmp_path / "refit.zarr", tmp_path / "mesh.ply", tmp_path / "model.ply",
+                                 tmp_path / "final.zarr", tmp_path / "clusters")
+    vertex, _ = read_ply(tmp_path / "model.ply")
+    np.testing.assert_array_equal(vertex["model"], vertex_models)
+    assert summary["vertices_per_model"]["0"] == np.sum(vertex_models == 0) and sum(
+        summary["vertices_per_model"].values()) == n
+
+    # The next iteration's first pass takes the models from its prior store (nearest vertex), capped by
+    # its settings (the fit itself is stood in for: only which models it is given matters here).
+    given = []
+
+    def fake_fit(obs, normal0, prior, vertex_models, settings, sigma_ss_fixed, progress=None, virtual=None):
+        given.append((np.array(vertex_models), settings, sigma_ss_fixed, virtual))
+        k = len(normal0)
+        return models.FitResult(normal=normal0, params=prior, status=np.zeros(k, np.int32), confidence=np.ones(k),
+                                loss=np.zeros(k), views_used=np.full(k, 8), iterations=np.ones(k, np.int32),
+                                normal_std_deg=np.ones(k), eta_std=np.ones(k))
+
+    monkeypatch.setattr(models, "fit_by_model", fake_fit)
+    for extra, expected in (([], vertex_models), (["--set", "lobes=diffuse"], np.zeros(n))):
+        assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--prior",
+                         str(tmp_path / "refit.zarr"), "--output", str(tmp_path / "next.npz"), "--fixed-sigma-ss",
+                         "0.8", *extra]) == 0
+        np.testing.assert_array_equal(given[-1][0], expected)
+        assert given[-1][2] == 0.8 and given[-1][3] is None
+        with np.load(tmp_path / "next.npz") as fitted:
+            np.testing.assert_array_equal(fitted["model"], expected)
+    monkeypatch.undo()
+
+    # Without model selection: every cluster gets the fit settings' model.
+    assert cli.main(["cluster-lobes", *stores, "--output", str(tmp_path / "plain"), *small, "--set", "lobes=specular",
+                     "--no-model-selection"]) == 0
+    assert np.all(np.load(tmp_path / "plain" / "models.npy") == 1)
+    assert json.loads((tmp_path / "plain" / "clusters.json").read_text())["model_selection"]["clusters"] == []
+
+    # A bad models.npy is refused, naming the file; nothing is written.
+    np.save(tmp_path / "clusters" / "models.npy", np.full(n, 7, np.uint8))
+    caplog.clear()
+    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--lobes", str(tmp_path / "clusters"),
+                     "--output", str(tmp_path / "bad.npz")]) == 1
+    assert "models.npy" in caplog.text and not (tmp_path / "bad.npz").exists()
