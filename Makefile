@@ -8,7 +8,7 @@ CORES ?= 2
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test dry-run report bench-sweep clean-results
+.PHONY: install demo test dry-run report bench-sweep bench-stability clean-results
 
 install: $(STAMP)
 
@@ -40,7 +40,7 @@ report: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest
 
-# The stability suite (docs/stability.md): failure-mode cases run end to end -> results/bench/stability/.
+# The stability suite (docs/benchmarks.md): failure-mode cases run end to end -> results/bench/stability/.
 bench-stability: $(STAMP)
 	$(BIN)/sellip bench-stability --out results/bench/stability --cores $(CORES)
 

@@ -202,6 +202,19 @@ def test_augmentation_and_sigma_ss_tables_pair_the_right_rows():
     assert "| – |" in sweep.markdown_table(pd.DataFrame({"x": [np.nan]}), {"x": ("x", ".1f")})
 
 
+def test_model_selection_table_pairs_on_and_off_and_shows_the_models():
+    table = _table([("sphere_ior", "base", None, 80.0, 10.0, 15.0, 20.0, 30.0),
+                    ("sphere_ior", "model_selection", False, 100.0, 10.0, 15.5, 19.9, 40.0),
+                    ("demo", "base", None, 80.0, 10.0, 15.0, 20.0, 30.0)])  # no demo "off" run: left out
+    models = {"sphere_ior__base": {1: 750, 3: 250}, "sphere_ior__model_selection-off": {3: 1000}}
+    frame = sweep.model_selection_table(table, models)
+    assert frame["selection"].tolist() == ["on", "off"] and frame["scene"].tolist() == ["sphere_ior"] * 2
+    assert frame["models"].tolist() == ["1: 75 %, 3: 25 %", "3: 100 %"]
+    np.testing.assert_allclose(frame["cpu_saving_pct"], [20.0, 0.0])
+    np.testing.assert_allclose(frame["psnr_held_out_db"], [20.0, 19.9])
+    assert sweep.model_selection_table(table.iloc[:1], models).empty
+
+
 def test_front_marks_and_chart(tmp_path):
     table = _table([("demo", "base", None, 100.0, 10.0, 15.0, 20.0, 40.0),
                     ("demo", "iterations", 1, 50.0, 12.0, 14.0, 18.0, 20.0),
@@ -220,11 +233,13 @@ def test_tables_markdown_has_every_section():
 
     table = _table([("sphere_ior", "base", None, 100.0, 10.0, 15.0, 20.0, 40.0),
                     ("sphere_ior", "augment", False, 60.0, 10.5, 15.0, 14.0, 40.0),
-                    ("sphere_ior", "sigma_ss", 1.0, 81.0, 10.2, 16.5, 19.5, 10.0)])
+                    ("sphere_ior", "sigma_ss", 1.0, 81.0, 10.2, 16.5, 19.5, 10.0),
+                    ("sphere_ior", "model_selection", False, 90.0, 10.0, 15.0, 20.0, 45.0)])
     ior = pd.DataFrame([{"material": n, "eta_true": m, "vertices": 5, "eta_ours": m, "error_pct": 1.0,
                          "vertex_error_pct": 2.0, "eta_paper": p, "paper_error_pct": e} for n, m, p, e in sweep.PAPER_TABLE1])
-    text = tables_markdown(table, ior, "quick")
-    for heading in ("## sphere_ior", "## Refractive index", "## Augmentation on/off", "## σss free vs fixed"):
+    text = tables_markdown(table, ior, "quick", {"sphere_ior__base": {1: 10}, "sphere_ior__model_selection-off": {3: 10}})
+    for heading in ("## sphere_ior", "## Refractive index", "## Augmentation on/off", "## σss free vs fixed",
+                    "## Model selection on/off"):
         assert heading in text
     assert "| average |" in text and "| 1.49 |" in text
 

@@ -24,7 +24,7 @@ Scenes:
   the refractive indices of the paper's Table 1 (SPHERE_IOR_ETAS).
 - ``tiny``: a 4 cm-radius sphere with two materials, coarse mesh, for tests.
 - ``tiny_dark``, ``tiny_white``, ``tiny_mirror``: the tiny sphere in the materials of the paper's
-  failure cases (§6, docs/stability.md): very dark (rho_d 0.02-0.05), white and rough (rho_d about
+  failure cases (§6, docs/benchmarks.md): very dark (rho_d 0.02-0.05), white and rough (rho_d about
   0.8, sigma_s 0.55-0.6, single scattering on one half), and a near-mirror (sigma_s 0.03-0.05 over
   a dark diffuse albedo). Same flash power as ``tiny``: the rig, not the object, sets it.
 - ``tiny_bumpy``: the ``tiny`` materials on a sphere with three 4 mm bumps and three 4 mm dents (finer

@@ -7,14 +7,13 @@ sensor noise, the flash position off by 1 cm, missing and corrupt frames) or the
 with 4 mm bumps and dents from the default and from an over-smoothed initial mesh; the initial mesh
 perturbed by 1 mm along the normals); ``baseline`` breaks nothing. Per case: the
 figures of merit of metrics.json, whether every output is finite, and how well the per-vertex
-confidence flags the vertices whose normal (or η) is wrong. docs/stability.md has the table.
+confidence flags the vertices whose normal (or η) is wrong. docs/benchmarks.md has the table.
 
 Public API::
 
     Case, CASES, CASE_NAMES                     # what each case breaks, and how
     base_config(workdir, views=36, iterations=2) -> dict
     case_config(case, workdir, iterations=2) -> dict     # the override YAML of one case
-    deep_merge(base, override) -> dict
     perturb_along_normals(vertices, normals, sigma_m, seed) -> (V, 3)
     perturb_mesh_file(path, sigma_m, seed) -> None        # a PLY rewritten in place (atomically)
     miscalibrate_flash(capture_dir, offset_m) -> (true, declared)   # capture.yaml light.position_m += offset
@@ -40,7 +39,6 @@ bad ones, defined also when no error passes the threshold. The same for η with 
 
 from __future__ import annotations
 
-import copy
 import json
 import logging
 import os
@@ -53,6 +51,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from sellip.sweep import merge
 
 log = logging.getLogger(__name__)
 
@@ -138,17 +138,6 @@ CASE_NAMES = tuple(case.name for case in CASES)
 # --------------------------------------------------------------------------- configuration
 
 
-def deep_merge(base: Mapping, override: Mapping) -> dict:
-    """``base`` with ``override`` merged in key by key (nested mappings merged, anything else replaced)."""
-    merged = copy.deepcopy(dict(base))
-    for key, value in override.items():
-        if isinstance(value, Mapping) and isinstance(merged.get(key), Mapping):
-            merged[key] = deep_merge(merged[key], value)
-        else:
-            merged[key] = copy.deepcopy(value)
-    return merged
-
-
 def held_out_views(views: int) -> list[str]:
     """Two evaluation views a quarter and three quarters along the orbit."""
     return [f"v{views // 4:03d}", f"v{3 * views // 4:03d}"]
@@ -173,7 +162,7 @@ def base_config(workdir: str | Path, views: int = BASE_VIEWS, iterations: int = 
 def case_config(case: Case, workdir: str | Path, iterations: int = 2, jax_cache: str | Path | None = None) -> dict:
     """The full override of one case: :func:`base_config` with the case's views and ``config`` merged in."""
     config = base_config(workdir, case.views or BASE_VIEWS, iterations, jax_cache)
-    return deep_merge(config, {"name": case.name, **case.config})
+    return merge(config, {"name": case.name, **case.config})
 
 
 # --------------------------------------------------------------------------- breaking things
@@ -393,7 +382,7 @@ COLUMNS: dict[str, str] = {
     "flagged_bad": "float", "auc": "float", "worst_auc": "float", "eta_bad_share": "float",
     "eta_bad_flagged": "float", "eta_flagged_bad": "float", "eta_auc": "float", "eta_worst_auc": "float",
 }
-"""The columns of stability.csv, in order (definitions: docs/stability.md)."""
+"""The columns of stability.csv, in order (definitions: docs/benchmarks.md)."""
 
 
 def empty_row(case: Case) -> dict:

@@ -11,7 +11,8 @@ Public API::
     sweep_row(variant, metrics, record, preset, cpu) -> dict; SWEEP_COLUMNS; sweep_schema()
     sweep_figure(table) -> matplotlib Figure                       # accuracy against time, fronts marked
     PAPER_TABLE1; ior_table(model, truth, confident) -> DataFrame  # fitted eta per Table-1 material
-    augmentation_table(table), sigma_ss_table(table), markdown_table(frame, columns)
+    augmentation_table(table), sigma_ss_table(table), model_selection_table(table, vertex_models)
+    markdown_table(frame, columns)
     link_upstream(source, target); cache_entries(directory) -> int
     SnakemakeRunner(workdir, cores); run_sweep(scenes, preset, workdir, runner, ...) -> list of records
 
@@ -95,6 +96,7 @@ FACTORS: tuple[Factor, ...] = (
     Factor("augment", "augment.enabled", (False,), "aug {}"),
     Factor("sigma_ss", "fit.settings.sigma_ss_fixed", (0.9, 1.0), "σss {}"),
     Factor("dtype", "fit.dtype", ("float64",), "{}"),
+    Factor("model_selection", "model_selection.enabled", (False,), "selection {}"),
 )
 """The factors, in sweep order. Adding one is one line here."""
 
@@ -623,6 +625,31 @@ def sigma_ss_table(table):
                          "total_s": row["total_s"], "psnr_held_out_db": row["psnr_held_out_db"],
                          "normal_median_deg": row["normal_median_deg"], "eta_median_pct": row["eta_median_pct"],
                          "paper_psnr_db": PAPER_SIGMA_SS_PSNR_DB.get(value, np.nan)})
+    return pd.DataFrame(rows)
+
+
+def model_selection_table(table, vertex_models: dict[str, dict[int, int]]):
+    """Per scene: the base (model selection on) against the selection-off variant: the final vertices per
+    model (``vertex_models`` {variant name: {model code: vertices}}, from final/params.zarr), the fit and
+    cluster_lobes job times, the pipeline CPU time and its saving, accuracy. Empty when no scene has both."""
+    import pandas as pd
+
+    rows = []
+    for scene in dict.fromkeys(table["scene"]):
+        on, off = _pair(table, scene, "base", "base"), _pair(table, scene, "model_selection", "off")
+        if on is None or off is None:
+            continue
+        for state, row in (("on", on), ("off", off)):
+            counts = vertex_models.get(row["name"], {})
+            total = max(sum(counts.values()), 1)
+            rows.append({"scene": scene, "selection": state,
+                         "models": ", ".join(f"{m}: {100 * c / total:.0f} %" for m, c in sorted(counts.items()) if c),
+                         "fit_s": row["fit_s"], "cluster_s": row["cluster_s"], "cpu_s": row["cpu_s"],
+                         "cpu_saving_pct": 100 * (1 - row["cpu_s"] / off["cpu_s"]),
+                         "fit_saving_pct": 100 * (1 - row["fit_s"] / off["fit_s"]),
+                         "psnr_held_out_db": row["psnr_held_out_db"], "psnr_new_light_db": row["psnr_new_light_db"],
+                         "normal_median_deg": row["normal_median_deg"], "eta_median_pct": row["eta_median_pct"],
+                         "rho_d_rmse": row["rho_d_rmse"]})
     return pd.DataFrame(rows)
 
 

@@ -8,7 +8,7 @@ capture with one failure mode built in, under ``OUT/runs/<case>/`` (its own capt
 Snakemake output in ``snakemake.log``); the cases share the XLA cache ``OUT/jax_cache``. A case that fails
 is a row with status "failed" and the reason; the suite goes on. Written at the end (atomically):
 ``OUT/stability.csv`` (columns :data:`sellip.stability.COLUMNS`, checked with pandera) and
-``OUT/stability.md`` (the table of docs/stability.md). Exit status 0 when the tables were written, also
+``OUT/stability.md`` (the table of docs/benchmarks.md). Exit status 0 when the tables were written, also
 when cases failed (that is a finding); 1 when the suite could not run.
 """
 

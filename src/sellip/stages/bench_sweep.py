@@ -12,7 +12,7 @@ jax_cache/, logs/, configs/), then writes into OUT:
   each variant labelled, the Pareto front marked;
 - ``ior.csv``: fitted eta per material of the paper's Table 1, for every sphere_ior variant (column ``name``);
 - ``tables.md``: the sweep, the IOR table (sphere_ior base), augmentation on/off and sigma_ss fixed/free,
-  each next to the paper's numbers.
+  each next to the paper's numbers, and model selection on/off with the final vertices per model.
 
 A variant whose results folder holds a record of the same config is not run again: an interrupted sweep
 resumes, and ``--report-only`` redraws the outputs from finished runs without running anything.
@@ -74,8 +74,25 @@ SIGMA_MD = {"scene": ("scene", ""), "sigma_ss": ("σss", ""), "fit_s": ("fit job
             "eta_median_pct": ("η med. %", ".1f"), "paper_psnr_db": ("paper (owl) PSNR dB", ".1f")}
 
 
-def tables_markdown(table, ior, preset: str) -> str:
-    """tables.md: the sweep per scene, the IOR table, augmentation on/off, sigma_ss fixed/free."""
+MODEL_MD = {"scene": ("scene", ""), "selection": ("model selection", ""), "models": ("final vertices per model", ""),
+            "fit_s": ("fit jobs wall s", ".0f"), "fit_saving_pct": ("fit saved %", ".0f"),
+            "cluster_s": ("cluster_lobes wall s", ".0f"), "cpu_s": ("pipeline CPU s", ".0f"),
+            "cpu_saving_pct": ("CPU saved %", ".0f"), "psnr_held_out_db": ("held-out PSNR dB", ".2f"),
+            "psnr_new_light_db": ("new-light PSNR dB", ".2f"), "normal_median_deg": ("normal med. °", ".2f"),
+            "eta_median_pct": ("η med. %", ".1f"), "rho_d_rmse": ("ρd RMSE", ".3f")}
+
+
+def vertex_models(results: Path) -> dict[int, int]:
+    """{model code: vertices} of a finished run's final/params.zarr."""
+    from sellip.params import read_params
+
+    codes, counts = np.unique(np.asarray(read_params(results / "final" / "params.zarr")["model"]), return_counts=True)
+    return {int(m): int(c) for m, c in zip(codes, counts)}
+
+
+def tables_markdown(table, ior, preset: str, models: dict | None = None) -> str:
+    """tables.md: the sweep per scene, the IOR table, augmentation on/off, sigma_ss fixed/free, model
+    selection on/off (``models``: {variant name: {model code: vertices}})."""
     table = table.assign(front=sweep.front_marks(table))
     parts = [f"# Speed-accuracy sweep ({preset} preset)\n",
              "CPU s: CPU time of all jobs (core-seconds, the chart's axis); wall s: the shared upstream run plus "
@@ -97,6 +114,10 @@ def tables_markdown(table, ior, preset: str) -> str:
     if not sigma.empty:
         parts += [f"\n## σss free vs fixed (paper: fixing saves up to ~{sweep.PAPER_SIGMA_SS_SAVING_PCT:.0f} %)\n\n",
                   sweep.markdown_table(sigma, SIGMA_MD)]
+    selection = sweep.model_selection_table(table, models or {})
+    if not selection.empty:
+        parts += ["\n## Model selection on/off (codes: 0 diffuse, 1 + specular, 2 + single scattering with σss "
+                  "fixed, 3 + single scattering)\n\n", sweep.markdown_table(selection, MODEL_MD)]
     return "".join(parts)
 
 
@@ -118,9 +139,11 @@ def write_outputs(variants, records, preset: str, out: Path, workdir: Path) -> d
             iors.append(ior.assign(name=variant.name))
     ior_all = pd.concat(iors, ignore_index=True) if iors else None
     base_ior = None if ior_all is None else ior_all[ior_all["name"] == "sphere_ior__base"].drop(columns="name")
+    models = {v.name: vertex_models(paths.results / v.name) for v in variants
+              if v.factor in ("base", "model_selection")}
     written = {"csv": sweep.write_csv_atomic(table, out / "sweep.csv"),
                "png": sweep.save_figure_atomic(sweep.sweep_figure(table), out / "sweep.png"),
-               "md": sweep.write_text_atomic(tables_markdown(table, base_ior, preset), out / "tables.md")}
+               "md": sweep.write_text_atomic(tables_markdown(table, base_ior, preset, models), out / "tables.md")}
     if ior_all is not None:
         written["ior"] = sweep.write_csv_atomic(ior_all, out / "ior.csv")
     return written
