@@ -61,18 +61,25 @@ def _defaults():
 
 
 def test_plan_has_the_base_first_then_one_factor_at_a_time():
-    variants = sweep.plan_variants(["demo", "sphere_ior"], "quick")
+    variants = sweep.plan_variants(["demo", "tiny"], "quick")
     per_scene = len(variants) // 2
     assert [v.factor for v in variants[:1]] == ["base"] and variants[per_scene].factor == "base"
-    assert [v.scene for v in variants] == ["demo"] * per_scene + ["sphere_ior"] * per_scene
+    assert [v.scene for v in variants] == ["demo"] * per_scene + ["tiny"] * per_scene
     expected = sum(len(f.values_for("quick")) for f in sweep.FACTORS)
     assert per_scene == 1 + expected
+    # The quick preset narrows sphere_ior to its base and model selection off (SCENE_FACTORS); full does not.
+    ior = [v.name for v in sweep.plan_variants(["sphere_ior"], "quick")]
+    assert ior == ["sphere_ior__base", "sphere_ior__model_selection-off"]
+    assert len(sweep.plan_variants(["sphere_ior"], "full")) == 1 + sum(len(f.values_for("full")) for f in sweep.FACTORS)
+    variants = sweep.plan_variants(["demo"], "quick")
     names = [v.name for v in variants]
     assert len(set(names)) == len(names)
     assert all(re.fullmatch(r"[A-Za-z0-9_.-]+", n) for n in names)  # the Snakefile's {name} constraint
     labels = {v.name: v.label for v in variants}
     assert labels["demo__sigma_ss-0.9"] == "σss 0.9" and labels["demo__augment-off"] == "aug off"
-    assert labels["demo__dtype-float64"] == "float64" and labels["demo__iterations-3"] == "3 it"
+    assert labels["demo__iterations-3"] == "3 it" and labels["demo__model_selection-off"] == "selection off"
+    full = {v.name: v.label for v in sweep.plan_variants(["demo"], "full")}
+    assert full["demo__dtype-float64"] == "float64" and full["demo__sigma_ss-1"] == "σss 1"
 
 
 def test_plan_skips_the_base_value_and_checks_names():
@@ -87,9 +94,9 @@ def test_plan_skips_the_base_value_and_checks_names():
 
 
 def test_variant_config_sets_one_key_over_the_base_and_validates(tmp_path):
-    variant = next(v for v in sweep.plan_variants(["sphere_ior"], "quick") if v.factor == "sigma_ss")
+    variant = next(v for v in sweep.plan_variants(["sphere_ior"], "full") if v.factor == "sigma_ss" and v.value == 0.9)
     before = json.dumps(sweep.PRESETS)
-    config = sweep.variant_overrides(variant, "quick", tmp_path / "cap", tmp_path / "cache")
+    config = sweep.variant_overrides(variant, "quick", tmp_path / "cap", tmp_path / "cache")  # quick base
     assert json.dumps(sweep.PRESETS) == before  # the presets are not mutated
     assert config["fit"]["settings"] == {"min_views": 6, "sigma_ss_fixed": 0.9}
     assert config["name"] == "sphere_ior__sigma_ss-0.9" and config["demo"]["scene"] == "sphere_ior"
@@ -372,13 +379,13 @@ class FakeRunner:
 
 def test_run_sweep_repeats_reuses_the_upstream_and_resumes(tmp_path):
     runner = FakeRunner(tmp_path)
-    variants, records = sweep.run_sweep(["tiny"], "quick", tmp_path, runner, only=["augment", "dtype"])
-    assert [v.name for v in variants] == ["tiny__base", "tiny__augment-off", "tiny__dtype-float64"]
+    variants, records = sweep.run_sweep(["tiny"], "quick", tmp_path, runner, only=["augment", "sigma_ss"])
+    assert [v.name for v in variants] == ["tiny__base", "tiny__augment-off", "tiny__sigma_ss-0.9"]
     names = [name for name, _, _ in runner.calls]
     # A new fit setting compiles (a new cache entry): run again, time the second run; augment-off reuses the
     # base's kernels and runs once.
     assert names == ["tiny__capture", "tiny__upstream", "tiny__base", "tiny__base", "tiny__augment-off",
-                     "tiny__dtype-float64", "tiny__dtype-float64"]
+                     "tiny__sigma_ss-0.9", "tiny__sigma_ss-0.9"]
     assert [(r["runs"], r["cold_compiled"], r["compiled"], r["new_programs"]) for r in records] == [
         (2, 1, 0, 0), (1, None, 0, 0), (2, 1, 0, 0)]
     assert [r["deterministic"] for r in records] == [True, None, True]
@@ -387,7 +394,7 @@ def test_run_sweep_repeats_reuses_the_upstream_and_resumes(tmp_path):
     assert records[0]["cold_cpu_s"] == 3.0 and records[1]["cold_cpu_s"] is None
     # A second sweep runs nothing; --force runs the variants again (not the capture or the upstream).
     runner.calls.clear()
-    again = sweep.run_sweep(["tiny"], "quick", tmp_path, runner, only=["augment", "dtype"])[1]
+    again = sweep.run_sweep(["tiny"], "quick", tmp_path, runner, only=["augment", "sigma_ss"])[1]
     assert runner.calls == [] and [r["run_s"] for r in again] == [7.0] * 3
     runner.compiled.clear()  # a cold cache: with repeat=1 the base runs once all the same
     once = sweep.run_sweep(["tiny"], "quick", tmp_path, runner, only=["augment"], repeat=1, force=True)[1]

@@ -146,12 +146,15 @@ def held_out_views(views: int) -> list[str]:
 def base_config(workdir: str | Path, views: int = BASE_VIEWS, iterations: int = 2,
                 jax_cache: str | Path | None = None) -> dict:
     """The override of config/config.yaml that every case starts from: the tiny sphere at 320x256,
-    ``views`` views (two held out), at most 2500 vertices, ``iterations`` iterations, two fit shards."""
+    ``views`` views (two held out), at most 2500 vertices, ``iterations`` iterations, two fit shards of
+    about equal size."""
     return {
         "iterations": int(iterations),
         "demo": {"scene": "tiny", "views": int(views), "width": 320, "height": 256, "seed": BASE_SEED,
                  "noise_scale": 1.0},
         "init": {"hull_resolution": 64, "max_vertices": 2500},
+        # Fit shards are whole observation chunks: 256-vertex chunks split ~2.5k vertices evenly over both.
+        "observe": {"vertex_chunk": 256},
         "remesh": {"depth": 6},
         "fit": {"shards": 2, "compilation_cache": str(jax_cache or Path(workdir) / "jax_cache"),
                 "settings": {"min_views": 6}},

@@ -90,15 +90,21 @@ class Factor:
 
 FACTORS: tuple[Factor, ...] = (
     Factor("iterations", "iterations", {"quick": (1, 3), "full": (1, 2, 4, 6, 8)}, "{} it"),
-    Factor("remesh_depth", "remesh.depth", {"quick": (7,), "full": (8, 9)}, "depth {}"),
-    Factor("lm_cap", "fit.settings.max_iterations", {"quick": (5,), "full": (5, 10, 60)}, "LM {}"),
     Factor("views", "observe.max_views", {"quick": (12,), "full": (12, 24)}, "{} views"),
     Factor("augment", "augment.enabled", (False,), "aug {}"),
-    Factor("sigma_ss", "fit.settings.sigma_ss_fixed", (0.9, 1.0), "σss {}"),
-    Factor("dtype", "fit.dtype", ("float64",), "{}"),
+    Factor("sigma_ss", "fit.settings.sigma_ss_fixed", {"quick": (0.9,), "full": (0.9, 1.0)}, "σss {}"),
     Factor("model_selection", "model_selection.enabled", (False,), "selection {}"),
+    Factor("remesh_depth", "remesh.depth", {"quick": (), "full": (8, 9)}, "depth {}"),
+    Factor("lm_cap", "fit.settings.max_iterations", {"quick": (), "full": (5, 10, 60)}, "LM {}"),
+    Factor("dtype", "fit.dtype", {"quick": (), "full": ("float64",)}, "{}"),
 )
-"""The factors, in sweep order. Adding one is one line here."""
+"""The factors, in sweep order. Adding one is one line here. The quick preset sweeps the first five; remesh
+depth, the LM cap, float64 and sigma_ss 1.0 only in full."""
+
+SCENE_FACTORS: dict[str, dict[str, tuple[str, ...]]] = {"quick": {"sphere_ior": ("model_selection",)}}
+"""Per preset and scene, the only factors swept there (a scene not named: every factor). In the quick preset
+sphere_ior runs its base (the refractive-index table) and model selection off (a scene without single
+scattering): the quick sweep then takes about an hour on 2 cores (docs/benchmarks.md)."""
 
 
 _QUICK = {
@@ -213,8 +219,9 @@ class Variant:
 
 def plan_variants(scenes: list[str], preset: str, only: list[str] | None = None,
                   factors: tuple[Factor, ...] = FACTORS, defaults: dict | None = None) -> list[Variant]:
-    """Per scene: the base, then every value of every factor (``only``: these factors) that differs from the
-    base's own value (base of ``preset`` over ``defaults``, config/config.yaml when None)."""
+    """Per scene: the base, then every value of every factor (``only``: these factors; :data:`SCENE_FACTORS`
+    may narrow them per scene) that differs from the base's own value (base of ``preset`` over ``defaults``,
+    config/config.yaml when None)."""
     if preset not in PRESETS:
         raise SweepError(f"unknown preset {preset!r}; expected one of {sorted(PRESETS)}")
     known = {f.name for f in factors}
@@ -227,8 +234,9 @@ def plan_variants(scenes: list[str], preset: str, only: list[str] | None = None,
     variants = []
     for scene in scenes:
         variants.append(Variant(scene, "base"))
+        allowed = SCENE_FACTORS.get(preset, {}).get(scene)
         for factor in factors:
-            if only and factor.name not in only:
+            if (only and factor.name not in only) or (allowed is not None and factor.name not in allowed):
                 continue
             try:
                 own = get_key(base, factor.key)
