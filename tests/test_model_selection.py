@@ -15,6 +15,7 @@ import pytest
 from test_augment import _cameras, _render
 
 from sellip import augment, cli, models
+from sellip import fit as fit_module
 from sellip.fit import FitSettings, Observations, default_prior, fit_vertices
 from sellip.pbrdf import PBRDFParams
 
@@ -138,7 +139,8 @@ def _refit_models(scene):
 
 
 def test_fit_by_model_fits_every_vertex_with_its_model(scene):
-    """A real grouped fit: the rows of each model are exactly the plain fit of that model on them."""
+    """A real grouped fit: the rows of each model are the plain fit of that model on them (to round-off), and
+    the models are data to one compilation: a mix of every model compiles no LM kernel anew."""
     obs, normals, n = scene["obs"], scene["normals"], len(scene["normals"])
     vertex_models = _refit_models(scene)
     # Zero-weight virtual samples: the refit's compiled shapes (shared with the stage test below).
@@ -151,8 +153,10 @@ def test_fit_by_model_fits_every_vertex_with_its_model(scene):
                              models.settings_for_model(HELD, code), virtual=None if code == 0 else
                              augment.fit.VirtualSamples(*[np.asarray(x)[m] for x in virtual]))
         for name in ("eta", "rho_d", "rho_s", "sigma_s", "rho_ss"):
-            np.testing.assert_allclose(getattr(grouped.params, name)[m], getattr(alone.params, name), rtol=1e-9,
-                                       err_msg=f"model {code}: {name}")
+            # One fit for every model: the grouped batches mix models and view widths, so sums run in
+            # another order (round-off, amplified a little by LM's accept/stop decisions).
+            np.testing.assert_allclose(getattr(grouped.params, name)[m], getattr(alone.params, name), rtol=1e-6,
+                                       atol=1e-9, err_msg=f"model {code}: {name}")
         np.testing.assert_array_equal(grouped.status[m], alone.status)
         if code == 1:  # every vertex of one model: the same as the plain fit with that model's settings
             same = models.fit_by_model(_rows(obs, m), normals[m], PBRDFParams(*[np.asarray(x)[m] for x in prior]),
@@ -160,6 +164,11 @@ def test_fit_by_model_fits_every_vertex_with_its_model(scene):
                                            *[np.asarray(x)[m] for x in virtual]))
             for a, b in zip(jax_leaves(same), jax_leaves(alone)):
                 np.testing.assert_array_equal(a, b)
+    compiled = fit_module._lm_rounds._cache_size()
+    mixed = models.fit_by_model(obs, normals, prior, np.arange(n) % 4, HELD, virtual=virtual)
+    assert fit_module._lm_rounds._cache_size() == compiled
+    assert np.all(mixed.params.rho_s[np.arange(n) % 4 == 0] == 0) and np.all(mixed.params.rho_ss[np.arange(n) % 4 < 2] == 0)
+    np.testing.assert_allclose(mixed.params.sigma_ss[np.arange(n) % 4 == 2], 0.9, rtol=1e-12)
     assert np.all(grouped.status == 0) and np.all(grouped.params.rho_ss == 0)
     assert np.all(grouped.params.rho_s[vertex_models == 0] == 0)
     specular = scene["material"] == scene["names"].index("specular")

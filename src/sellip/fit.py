@@ -57,6 +57,13 @@ LOBE_SETS = ("diffuse", "specular", "full")
 """The reflection lobes a fit may use (DESIGN §7 model selection): none, the specular lobe, or
 specular and single scattering (with sigma_ss free, or fixed by ``FitSettings.sigma_ss_fixed``)."""
 
+MODELS = (0, 1, 2, 3)
+"""The per-vertex model codes, simplest first (:data:`sellip.params.MODEL_NAMES`): 0 diffuse,
+1 + specular, 2 + single scattering with sigma_ss fixed, 3 + single scattering (:mod:`sellip.models`)."""
+
+DEFAULT_FIXED_SIGMA_SS = 0.9
+"""Model 2's sigma_ss when the settings do not fix it (paper §6: 0.9 or 1.0)."""
+
 
 @dataclass(frozen=True)
 class FitSettings:
@@ -89,6 +96,26 @@ class FitSettings:
     def __post_init__(self):
         if self.lobes not in LOBE_SETS:
             raise ValueError(f"FitSettings.lobes must be one of {LOBE_SETS}, got {self.lobes!r}")
+
+
+def model_of(settings: FitSettings) -> int:
+    """The model code (:data:`MODELS`) a FitSettings fits: its lobe set and whether sigma_ss is fixed."""
+    if settings.lobes == "diffuse":
+        return 0
+    if settings.lobes == "specular":
+        return 1
+    return 2 if settings.sigma_ss_fixed is not None else 3
+
+
+def model_arrays(models, sigma_ss_fixed: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex models (N,) (:data:`MODELS`) as the fit kernels take them: lobe_mask (N, 2), 1 where the
+    model has the specular / single-scattering lobe, and the fixed sigma_ss (N,): ``sigma_ss_fixed``
+    for model 2, NaN (free or absent) otherwise."""
+    models = np.asarray(models)
+    if models.size and (models.min() < 0 or models.max() > MODELS[-1]):
+        raise ValueError(f"models must be in {MODELS}, got {np.unique(models).tolist()}")
+    lobe_mask = np.stack([models >= 1, models >= 2], -1).astype(np.float64)
+    return lobe_mask, np.where(models == 2, float(sigma_ss_fixed), np.nan)
 
 
 class Observations(NamedTuple):
@@ -174,15 +201,18 @@ def _decode(z, frame: _Frame, sigma_ss_fixed):
 
     sigma_s in [0.01, 1 - LOBE_GAP]; sigma_ss in [sigma_s + LOBE_GAP, 1]: single scattering is the
     broader lobe, and two lobes of equal roughness are one lobe (a flat, degenerate valley).
+    sigma_ss_fixed: None (free), a number, or a traced scalar (a vertex's model: NaN = free).
     """
     normal = polar.safe_normalize(frame.normal0 + z[0] * frame.t1 + z[1] * frame.t2, fallback=frame.normal0)
     eta = ETA_BOUNDS[0] + (ETA_BOUNDS[1] - ETA_BOUNDS[0]) * jax.nn.sigmoid(z[2])
     sigma_s = SIGMA_BOUNDS[0] + (SIGMA_BOUNDS[1] - LOBE_GAP - SIGMA_BOUNDS[0]) * jax.nn.sigmoid(z[3])
-    if sigma_ss_fixed is None:
-        low = sigma_s + LOBE_GAP
-        sigma_ss = low + (SIGMA_BOUNDS[1] - low) * jax.nn.sigmoid(z[4])
-    else:
-        sigma_ss = jnp.asarray(sigma_ss_fixed, z.dtype)
+    if isinstance(sigma_ss_fixed, (int, float)):
+        return normal, eta, sigma_s, jnp.asarray(sigma_ss_fixed, z.dtype)
+    low = sigma_s + LOBE_GAP
+    sigma_ss = low + (SIGMA_BOUNDS[1] - low) * jax.nn.sigmoid(z[4])
+    if sigma_ss_fixed is not None:
+        fixed = jnp.asarray(sigma_ss_fixed, z.dtype)
+        sigma_ss = jnp.where(jnp.isnan(fixed), sigma_ss, fixed)
     return normal, eta, sigma_s, sigma_ss
 
 
@@ -315,6 +345,22 @@ class _Vertex(NamedTuple):
     prior: jnp.ndarray  # (4,) rho_s, rho_ss RGB warm start (already divided by scale)
     virtual: _Virtual | None = None  # virtual specular samples (augmentation), or none
     frames: ViewFrames | None = None  # (K,) the normal-independent frames (:func:`_prepare`), or computed on use
+    lobe_mask: jnp.ndarray | None = None  # (2,) 1/0: the vertex's model has the specular, single-scattering lobe
+    sigma_ss_fixed: jnp.ndarray | None = None  # () the model's fixed sigma_ss, NaN where it is free
+
+
+def _fixed_sigma_ss(v: _Vertex, settings: FitSettings):
+    """sigma_ss_fixed for :func:`_decode`: the vertex's own model where it has one, else the settings'."""
+    return settings.sigma_ss_fixed if v.sigma_ss_fixed is None else v.sigma_ss_fixed
+
+
+def _column_mask(v: _Vertex, free: tuple[int, ...], dtype):
+    """(F,) 1 for the columns of ``free`` that the vertex's model fits, 0 for a roughness it does not
+    have or holds (every column without a per-vertex model)."""
+    if v.lobe_mask is None:
+        return jnp.ones(len(free), dtype)
+    fits = (1, 1, 1, v.lobe_mask[0], v.lobe_mask[1] * jnp.isnan(v.sigma_ss_fixed))
+    return jnp.stack([jnp.asarray(fits[i], dtype) for i in free])
 
 
 def _view_frames(v: _Vertex) -> ViewFrames:
@@ -370,14 +416,15 @@ def _lobe_terms(terms, sigma_s, sigma_ss, v: _Vertex, lobes: str = "full"):
     (``lobe_s``, ``lobe_ss``; 0 for a lobe the model ``lobes`` leaves out), and for virtual
     samples the virtual I_s of unit rho_s / rho_ss (``virt_s``, ``virt_ss``, (M,) each)."""
     geom = terms["geom"]
+    on_s, on_ss = (1, 1) if v.lobe_mask is None else (v.lobe_mask[0], v.lobe_mask[1])  # the vertex's model
     zero = jnp.zeros_like(terms["d_id"])
-    out = dict(terms, lobe_s=zero if lobes == "diffuse" else lobe_factor(geom, sigma_s),
-               lobe_ss=lobe_factor(geom, sigma_ss) if lobes == "full" else zero)
+    out = dict(terms, lobe_s=zero if lobes == "diffuse" else on_s * lobe_factor(geom, sigma_s),
+               lobe_ss=on_ss * lobe_factor(geom, sigma_ss) if lobes == "full" else zero)
     if v.virtual is not None:
         shaded = terms["virt_shaded"]
         zero = jnp.zeros_like(shaded)
-        out.update(virt_s=zero if lobes == "diffuse" else shaded * lobe_factor(v.virtual.geom, sigma_s),
-                   virt_ss=shaded * lobe_factor(v.virtual.geom, sigma_ss) if lobes == "full" else zero)
+        out.update(virt_s=zero if lobes == "diffuse" else on_s * shaded * lobe_factor(v.virtual.geom, sigma_s),
+                   virt_ss=on_ss * shaded * lobe_factor(v.virtual.geom, sigma_ss) if lobes == "full" else zero)
     return out
 
 
@@ -418,6 +465,8 @@ def _linear_solution(terms, v: _Vertex, settings: FitSettings):
         y_a, y_b = y_a + wv_s @ v.virtual.target, y_b + wv_ss @ v.virtual.target
     ridge = 1e-6 * jnp.maximum(g_aa + g_bb, 1e-12)
     spec = jnp.zeros(4, norm_d.dtype)
+    # A lobe the vertex's model leaves out has albedo 0 (its basis is 0; the ridge alone would keep the prior).
+    on = jnp.ones(4, norm_d.dtype) if v.lobe_mask is None else v.lobe_mask[jnp.array([0, 1, 1, 1])]
     for _ in range(2):
         rho_d = jnp.maximum((diffuse_target - share_s * spec[0] - share_ss * spec[1:]) / norm_d, 0)
         target_a, target_b = y_a - rho_d * d_a, y_b - rho_d * d_b
@@ -425,7 +474,7 @@ def _linear_solution(terms, v: _Vertex, settings: FitSettings):
             rho_s = (jnp.sum(target_a) + ridge * v.prior[0]) / (3 * g_aa + ridge)
             spec = jnp.zeros(4, norm_d.dtype).at[0].set(jnp.maximum(rho_s, 0))
         else:
-            spec = _nnls_specular_gram(g_aa, g_ab, g_bb, target_a, target_b, v.prior, ridge)
+            spec = on * _nnls_specular_gram(g_aa, g_ab, g_bb, target_a, target_b, v.prior, ridge)
     return rho_d, spec
 
 
@@ -463,7 +512,7 @@ def _residuals_from_terms(terms, v: _Vertex, settings: FitSettings):
 
 def _residuals(z, v: _Vertex, frame: _Frame, settings: FitSettings):
     """Weighted residual vector (9K,) of one vertex; its squared norm is the loss."""
-    normal, eta, sigma_s, sigma_ss = _decode(z, frame, settings.sigma_ss_fixed)
+    normal, eta, sigma_s, sigma_ss = _decode(z, frame, _fixed_sigma_ss(v, settings))
     return _residuals_from_terms(_model_terms(normal, eta, sigma_s, sigma_ss, v, lobes=settings.lobes), v, settings)
 
 
@@ -499,7 +548,7 @@ def _residuals_and_jacobian(z, v: _Vertex, frame: _Frame, settings: FitSettings,
     shift = jnp.eye(5, dtype=z.dtype) * steps[:, None].astype(z.dtype)
 
     def decode(i):
-        return _decode(z if i is None else z + shift[i], frame, settings.sigma_ss_fixed)
+        return _decode(z if i is None else z + shift[i], frame, _fixed_sigma_ss(v, settings))
 
     def residual(terms, sigma_s, sigma_ss):
         return _residuals_from_terms(_lobe_terms(terms, sigma_s, sigma_ss, v, settings.lobes), v, settings)
@@ -528,7 +577,7 @@ def _residuals_and_jacobian(z, v: _Vertex, frame: _Frame, settings: FitSettings,
 
 def per_view_error(z, v: _Vertex, frame: _Frame, settings: FitSettings):
     """Relative RMS model error of each view (K,): diffuse and specular residuals over the diffuse level."""
-    normal, eta, sigma_s, sigma_ss = _decode(z, frame, settings.sigma_ss_fixed)
+    normal, eta, sigma_s, sigma_ss = _decode(z, frame, _fixed_sigma_ss(v, settings))
     terms = _model_terms(normal, eta, sigma_s, sigma_ss, v, lobes=settings.lobes)
     rho_d, spec = _linear_solution(terms, v, settings)
     (pred_d, _, pred_s), _ = _predictions(terms, rho_d, spec)
@@ -583,16 +632,22 @@ def _loss_tolerance(settings: FitSettings, dtype) -> float:
 
 
 def _normal_equations(z, v: _Vertex, frame: _Frame, settings: FitSettings, free: tuple[int, ...]):
-    """(loss, J^T J (F, F), J^T r (F,)) of one vertex at z."""
+    """(loss, J^T J (F, F), J^T r (F,)) of one vertex at z; the columns its model does not fit are 0."""
     r, jac = _residuals_and_jacobian(z, v, frame, settings, free)
+    jac = jac * _column_mask(v, free, z.dtype)
     return jnp.sum(r * r), jac.T @ jac, jac.T @ r
 
 
 def _lm_step(state: _LMState, v: _Vertex, frame: _Frame, settings: FitSettings, free: tuple[int, ...]):
     """One Levenberg-Marquardt step of one vertex (unbatched ``state``) over the parameters ``free``.
 
-    Returns (z, loss, damping, hess, grad, converged)."""
+    A fresh state (loss +inf, :func:`_run_lm`) takes no step: its first "step" evaluates the normal
+    equations at the start and always accepts them (and ends the fit if they are not finite), so
+    that one compiled kernel serves the start and the iterations.
+    Returns (z, loss, damping, hess, grad, converged, fresh)."""
     z, loss, damping, hess, grad = state.z, state.loss, state.damping, state.hess, state.grad
+    fresh = jnp.isinf(loss)
+    fitted = _column_mask(v, free, z.dtype)  # (F,) 0: a roughness the vertex's model holds
     basis = jnp.eye(5, dtype=z.dtype)[np.asarray(free)]  # (F, 5)
     diag = jnp.diag(hess) + 1e-9
 
@@ -605,11 +660,11 @@ def _lm_step(state: _LMState, v: _Vertex, frame: _Frame, settings: FitSettings, 
     # the range of a bound; a saturated one would leave a zero Jacobian column for good). A step
     # that would cross the limit is taken again with those parameters held (a projected step),
     # so that the quadratic model stays true to the step taken.
-    step = solve(jnp.ones(len(free), z.dtype))
+    step = solve(fitted)
     limit = jnp.asarray([np.inf, np.inf, Z_LIMIT, Z_LIMIT, Z_LIMIT], z.dtype)
     crossing = (jnp.abs(z + step) > limit).astype(z.dtype) @ basis.T  # (F,) 1 where the step crosses
-    step = jnp.where(jnp.any(crossing > 0), solve(1 - crossing), step)
-    z_new = jnp.clip(z + step, -limit, limit)
+    step = jnp.where(jnp.any(crossing > 0), solve(fitted * (1 - crossing)), step)
+    z_new = jnp.where(fresh, z, jnp.clip(z + step, -limit, limit))
     loss_new, hess_new, grad_new = _normal_equations(z_new, v, frame, settings, free)
     better = (jnp.isfinite(loss_new) & (loss_new < loss) & jnp.all(jnp.isfinite(hess_new))
               & jnp.all(jnp.isfinite(grad_new)))
@@ -622,13 +677,15 @@ def _lm_step(state: _LMState, v: _Vertex, frame: _Frame, settings: FitSettings, 
     # damped step is small anyway), or the most the Gauss-Newton model at z can still give,
     # g^T H^-1 g (it ends the fits left crawling along a flat valley, e.g. a vanishing lobe whose
     # roughness runs to its bound, where steps fail by round-off and only the damping grows).
-    model_gain = grad @ solve_spd(hess + 1e-6 * jnp.diag(diag), grad) / jnp.maximum(loss, jnp.finfo(z.dtype).tiny)
+    model_gain = grad @ solve_spd(hess + 1e-6 * jnp.diag(diag) + jnp.diag(1 - fitted), grad) / jnp.maximum(
+        loss, jnp.finfo(z.dtype).tiny)
     flat = (better & (rel_gain < tolerance) & (damping < 1e-2)) | (model_gain < tolerance)
     converged = stationary | flat | (loss_new < 1e-14)
     stalled = (~better) & (damping > 1e8)
     pick = lambda new, old: jnp.where(better, new, old)  # noqa: E731
-    return (pick(z_new, z), pick(loss_new, loss), jnp.where(better, damping * 0.3, damping * 4.0),
-            pick(hess_new, hess), pick(grad_new, grad), converged | stalled)
+    damping = jnp.where(fresh, damping, jnp.where(better, damping * 0.3, damping * 4.0))
+    return (pick(z_new, z), pick(loss_new, loss), damping, pick(hess_new, hess), pick(grad_new, grad),
+            jnp.where(fresh, ~better, converged | stalled), fresh)
 
 
 @partial(jax.jit, static_argnames=("settings", "steps", "free", "max_iterations"))
@@ -640,10 +697,10 @@ def _lm_rounds(state: _LMState, records: _Vertex, frames: _Frame, settings: FitS
 
     def body(carry):
         st, count = carry
-        z, loss, damping, hess, grad, converged = step(st, records, frames)
+        z, loss, damping, hess, grad, converged, fresh = step(st, records, frames)
         active = ~st.done
         pick = lambda new, old: jnp.where(active.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)  # noqa: E731
-        iterations = st.iterations + active.astype(jnp.int32)
+        iterations = st.iterations + (active & ~fresh).astype(jnp.int32)
         loss = pick(loss, st.loss)
         # No progress: less than the tolerance gained over the last PROGRESS_ITERATIONS iterations
         # while the damping has grown past STUCK_DAMPING (a fit crawling along a flat valley, short
@@ -660,11 +717,6 @@ def _lm_rounds(state: _LMState, records: _Vertex, frames: _Frame, settings: FitS
         return (count < steps) & jnp.any(~st.done)
 
     return jax.lax.while_loop(cond, body, (state, jnp.asarray(0)))[0]
-
-
-@partial(jax.jit, static_argnames=("settings", "free"))
-def _normal_equations_batch(z, records: _Vertex, frames: _Frame, settings: FitSettings, free: tuple[int, ...]):
-    return jax.vmap(lambda zz, v, f: _normal_equations(zz, v, f, settings, free))(z, records, frames)
 
 
 ROUGHNESS_GRID = ((0.05, 0.6), (0.1, 0.6), (0.2, 0.6), (0.3, 0.6), (0.45, 0.6),
@@ -684,9 +736,10 @@ def _best_start(z0, records: _Vertex, frames: _Frame, settings: FitSettings):
     starts = jnp.concatenate([z0[:, None], grid_starts.at[:, :, :2].set(z0[:, None, :2])], axis=1)
 
     def losses(zs, v, f):
-        normal, eta, _, _ = _decode(zs[0], f, settings.sigma_ss_fixed)
+        fixed = _fixed_sigma_ss(v, settings)
+        normal, eta, _, _ = _decode(zs[0], f, fixed)
         view = _view_terms(normal, eta, v)
-        _, _, sigma_s, sigma_ss = jax.vmap(lambda zz: _decode(zz, f, settings.sigma_ss_fixed))(zs)
+        _, _, sigma_s, sigma_ss = jax.vmap(lambda zz: _decode(zz, f, fixed))(zs)
         return jax.vmap(lambda s, ss: jnp.sum(_residuals_from_terms(_lobe_terms(view, s, ss, v, settings.lobes), v,
                                                                     settings) ** 2))(sigma_s, sigma_ss)
 
@@ -704,6 +757,12 @@ def _take(tree, index):
     return jax.tree_util.tree_map(lambda x: x[index], tree)
 
 
+def _to_host(tree):
+    """Every leaf of ``tree`` as a numpy array: the LM's per-batch gathers are then numpy indexing
+    (microseconds), not one dispatched JAX gather per field and batch."""
+    return jax.tree_util.tree_map(np.asarray, tree)
+
+
 _VIEW_FIELDS = ("obs_d", "obs_a", "obs_s", "to_light", "to_camera", "light_distance", "camera_up", "light_axis",
                 "weight", "frames")
 """The fields of :class:`_Vertex` with a view axis (axis 1 of a batch)."""
@@ -714,11 +773,14 @@ def _batches(active: np.ndarray, views: np.ndarray, batch: int):
 
     Vertices are ordered by their number of used views, so each batch can drop the slots none of
     its vertices uses (views are at the front, :func:`_compact_views`); widths are rounded by
-    :func:`_view_bucket` (few compiled shapes). Short batches repeat their vertices (identical
-    work, harmless writes). Yields (index (batch,), width)."""
+    :func:`_view_bucket` (few compiled shapes). The last, short batch is rounded up to a power of
+    two (at least 64) instead of to ``batch``: the vertices still running after most have converged
+    are few. Short batches repeat their vertices (identical work, harmless writes). Yields
+    (index (size,), width)."""
     order = active[np.argsort(views[active], kind="stable")]
     for start in range(0, order.size, batch):
-        index = np.resize(order[start:start + batch], batch)
+        size = min(batch, _bucket(order.size - start))
+        index = np.resize(order[start:start + size], size)
         yield index, _view_bucket(int(views[index].max(initial=1)))
 
 
@@ -731,6 +793,26 @@ def _take_records(records: _Vertex, index: np.ndarray, width: int) -> _Vertex:
                             for name in _VIEW_FIELDS if getattr(rows, name) is not None})
 
 
+def _map_batches(kernel, rows: np.ndarray, records: _Vertex, frames: _Frame, batch: int, *per_vertex, out=None):
+    """Apply a jitted batch ``kernel(*per_vertex_rows, records_rows, frames_rows)`` to the vertices
+    ``rows``, in the view-width batches of :func:`_batches`, and scatter its outputs (a tuple or
+    dict of per-vertex arrays) into ``out`` (same structure, full length; zeros when None). An output
+    with a view axis narrower than ``out``'s is written to its first slots."""
+    views = np.sum(np.asarray(records.weight) > 0, axis=1)
+    for index, width in _batches(rows, views, batch):
+        part = kernel(*[jnp.asarray(np.asarray(x)[index]) for x in per_vertex], _take_records(records, index, width),
+                      _take(frames, index))
+        part = jax.tree_util.tree_map(np.asarray, part)
+        if out is None:
+            n = len(records.weight)
+            out = jax.tree_util.tree_map(lambda x: np.zeros((n,) + x.shape[1:], x.dtype), part)
+
+        def scatter(full, new, index=index):
+            full[(index,) + tuple(slice(0, k) for k in new.shape[1:])] = new
+        jax.tree_util.tree_map(scatter, out, part)
+    return out
+
+
 def _run_lm(z, records: _Vertex, frames: _Frame, settings: FitSettings, free: tuple[int, ...],
             run: np.ndarray, max_iterations: int):
     """LM to convergence for the vertices where ``run`` is set, with compaction.
@@ -738,27 +820,24 @@ def _run_lm(z, records: _Vertex, frames: _Frame, settings: FitSettings, free: tu
     The vertices still running are gathered into batches of one fixed size (one compiled shape
     per view width, :func:`_batches`) and advanced ``round_iterations`` steps at a time, so the
     cost follows the mean number of iterations, not the slowest vertex of a chunk, and the number
-    of views each vertex uses, not the most any vertex uses. Returns (z, loss, iterations) as
-    numpy arrays.
+    of views each vertex uses, not the most any vertex uses. Returns (z, loss, iterations, hess)
+    as numpy arrays; hess (N, F, F) is J^T J at z over the columns ``free``.
     """
     z = np.asarray(z)
     n = z.shape[0]
     dtype = z.dtype
     run = np.asarray(run, bool)
-    views = np.asarray(jnp.sum(records.weight > 0, axis=1))
+    views = np.sum(np.asarray(records.weight) > 0, axis=1)
     batch = min(settings.lm_batch, _bucket(n))
-    loss = np.zeros(n, dtype)
+    # A fresh state (loss +inf): the first step of each vertex evaluates its normal equations (_lm_step).
+    loss = np.full(n, np.inf, dtype)
     hess = np.zeros((n, len(free), len(free)), dtype)
     grad = np.zeros((n, len(free)), dtype)
-    for index, width in _batches(np.flatnonzero(run), views, batch):  # normal equations at the start
-        part = _normal_equations_batch(jnp.asarray(z[index]), _take_records(records, index, width),
-                                       _take(frames, index), settings, free)
-        loss[index], hess[index], grad[index] = (np.asarray(x) for x in part)
     state = _LMState(z, loss, np.full(n, 1e-3, dtype), np.zeros(n, np.int32), ~run, hess, grad, loss.copy())
     while True:
         active = np.flatnonzero(~state.done)
         if active.size == 0:
-            return state.z, state.loss, state.iterations
+            return state.z, state.loss, state.iterations, state.hess
         fields = [x.copy() for x in state]
         for index, width in _batches(active, views, batch):
             part = _lm_rounds(_take(state, index), _take_records(records, index, width), _take(frames, index),
@@ -863,20 +942,27 @@ def _robust_weights(z, v: _Vertex, frame: _Frame, settings: FitSettings):
     return (keep / jnp.maximum(jnp.sum(keep), 1)).astype(v.weight.dtype), jnp.any(outlier)
 
 
-def _finalize(z, loss, v: _Vertex, frame: _Frame, settings: FitSettings):
-    """Decoded parameters, linear solution and Gauss-Newton uncertainties at the solution of one vertex."""
-    normal, eta, sigma_s, sigma_ss = _decode(z, frame, settings.sigma_ss_fixed)
+def _finalize(z, loss, hess, v: _Vertex, frame: _Frame, settings: FitSettings):
+    """Decoded parameters, linear solution and Gauss-Newton uncertainties at the solution of one vertex.
+
+    hess: J^T J at z over :func:`_free_parameters` ``(settings)`` as the LM carried it, used when the
+    normal was fitted (those are then every column); otherwise the Jacobian is evaluated here."""
+    normal, eta, sigma_s, sigma_ss = _decode(z, frame, _fixed_sigma_ss(v, settings))
     terms = _model_terms(normal, eta, sigma_s, sigma_ss, v, lobes=settings.lobes)
     rho_d, spec = _linear_solution(terms, v, settings)
     # The uncertainties (hence the confidence) always treat the normal as unknown: holding it
     # fixed does not make it better known.
     free = _free_parameters(dataclasses.replace(settings, fit_normal=True))
     basis = jnp.eye(5, dtype=z.dtype)[np.asarray(free)]  # (F, 5)
-    _, jac = _residuals_and_jacobian(z, v, frame, settings, free)
-    held = 1 - jnp.sum(basis, 0)  # (5,) 1 for the columns not fitted
+    fitted = _column_mask(v, free, z.dtype)  # (F,) 0: a roughness the vertex's model holds
+    if not settings.fit_normal:
+        _, jac = _residuals_and_jacobian(z, v, frame, settings, free)
+        jac = jac * fitted
+        hess = jac.T @ jac
+    held = 1 - fitted @ basis  # (5,) 1 for the columns not fitted
     views = jnp.sum(v.weight > 0)
-    dof = jnp.maximum(9 * views - len(free), 1)
-    normal_matrix = basis.T @ (jac.T @ jac) @ basis
+    dof = jnp.maximum(9 * views - jnp.sum(fitted), 1)
+    normal_matrix = basis.T @ hess @ basis
     regular = normal_matrix + 1e-9 * jnp.diag(jnp.diag(normal_matrix)) + jnp.diag(held)
     cov = (loss / dof) * solve_spd(regular + 1e-12 * jnp.eye(5, dtype=z.dtype), jnp.eye(5, dtype=z.dtype))
     deta_dz = (ETA_BOUNDS[1] - ETA_BOUNDS[0]) * jax.nn.sigmoid(z[2]) * (1 - jax.nn.sigmoid(z[2]))
@@ -884,7 +970,7 @@ def _finalize(z, loss, v: _Vertex, frame: _Frame, settings: FitSettings):
     # A tangent offset dz rotates the normal by about |dz| / (1 + |z|^2) radians.
     normal_std = jnp.sqrt(jnp.maximum(cov[0, 0] + cov[1, 1], 0)) / (1 + z[0] ** 2 + z[1] ** 2)
     return dict(normal=normal, eta=eta, sigma_s=sigma_s, sigma_ss=sigma_ss, rho_d=rho_d * v.scale,
-                rho_s=spec[0] * v.scale, rho_ss=spec[1:] * v.scale, views_used=views,
+                rho_s=spec[0] * v.scale, rho_ss=spec[1:] * v.scale,
                 eta_std=eta_std, normal_std_deg=jnp.degrees(normal_std))
 
 
@@ -894,8 +980,8 @@ def _robust_weights_batch(z, records, frames, settings):
 
 
 @partial(jax.jit, static_argnames=("settings",))
-def _finalize_batch(z, loss, records, frames, settings):
-    return jax.vmap(lambda zz, ll, v, f: _finalize(zz, ll, v, f, settings))(z, loss, records, frames)
+def _finalize_batch(z, loss, hess, records, frames, settings):
+    return jax.vmap(lambda zz, ll, hh, v, f: _finalize(zz, ll, hh, v, f, settings))(z, loss, hess, records, frames)
 
 
 @partial(jax.jit, static_argnames=("settings",))
@@ -950,35 +1036,48 @@ def _compact_views(obs: Observations, usable: np.ndarray) -> Observations:
     return Observations(*[gather(x) for x in obs._replace(usable=usable)])
 
 
-def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings,
+def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings, lobe_mask, fixed,
                virtual: VirtualSamples | None = None, valid: int | None = None):
-    """Fit one chunk; rows from ``valid`` on are padding (copies of a real row): LM skips them, and
-    the vertices with too few usable views."""
-    keep, records, frames, z0 = _select_and_prepare(obs, normal0, prior, settings, virtual)
+    """Fit one chunk with per-vertex models (lobe_mask (N, 2), fixed (N,), :func:`model_arrays`); rows
+    from ``valid`` on are padding (copies of a real row): LM skips them, and the vertices with too few
+    usable views."""
+    keep, records, frames, z0 = _to_host(_select_and_prepare(obs, normal0, prior, settings, virtual))
+    records = records._replace(lobe_mask=lobe_mask, sigma_ss_fixed=fixed)
     n = z0.shape[0]
     enough = np.asarray(keep).sum(1) >= settings.min_views
-    active = enough & (np.arange(n) < (n if valid is None else valid))
-    z = _best_start(z0, records, frames, settings)
+    rows = np.flatnonzero(enough & (np.arange(n) < (n if valid is None else valid)))
+    active = np.zeros(n, bool)
+    active[rows] = True
+    batch = min(settings.lm_batch, _bucket(n))
+    # Every per-vertex kernel runs on the vertices fitted, in batches of similar view counts.
+    best_start = lambda z: _map_batches(partial(_best_start, settings=settings), rows, records, frames, batch, z,  # noqa: E731
+                                        out=np.array(z))
+    z = best_start(z0)
     # Stage 1: normal and eta with the roughnesses held; stage 2: everything.
-    z, _, it_normal = _run_lm(z, records, frames, settings, _free_parameters(settings, lobes=False), active,
-                              settings.normal_stage_iterations)
-    z = _best_start(jnp.asarray(z), records, frames, settings)  # lobes again, now that the normal is close
-    z, loss, it_all = _run_lm(z, records, frames, settings, _free_parameters(settings), active,
-                              settings.max_iterations)
+    z, _, it_normal, _ = _run_lm(z, records, frames, settings, _free_parameters(settings, lobes=False), active,
+                                 settings.normal_stage_iterations)
+    z = best_start(z)  # lobes again, now that the normal is close
+    free = _free_parameters(settings)
+    z, loss, it_all, hess = _run_lm(z, records, frames, settings, free, active, settings.max_iterations)
     iterations = it_normal + it_all
     # Robust pass: drop outlier views and continue only the vertices that had any.
-    weight, changed = _robust_weights_batch(jnp.asarray(z), records, frames, settings)
+    weight, changed = _map_batches(partial(_robust_weights_batch, settings=settings), rows, records, frames, batch, z,
+                                   out=(np.array(records.weight), np.zeros(n, bool)))
     records = records._replace(weight=weight)
-    changed = np.asarray(changed) & active
+    changed = changed & active
     if changed.any():
-        z_new, loss_new, it_robust = _run_lm(z, records, frames, settings, _free_parameters(settings), changed,
-                                             settings.max_iterations)
+        z_new, loss_new, it_robust, hess_new = _run_lm(z, records, frames, settings, free, changed,
+                                                       settings.max_iterations)
         z = np.where(changed[:, None], z_new, z)
         loss = np.where(changed, loss_new, loss)
+        hess = np.where(changed[:, None, None], hess_new, hess)
         iterations = iterations + it_robust
-    out = _finalize_batch(jnp.asarray(z), jnp.asarray(loss), records, frames, settings)
-    out = {k: np.asarray(v) for k, v in out.items()}
-    out.update(loss=loss, iterations=iterations, enough=enough)
+    out = _map_batches(partial(_finalize_batch, settings=settings), rows, records, frames, batch, z, loss, hess)
+    if out is None:  # no vertex to fit: placeholders (every vertex keeps its prior, see fit_vertices)
+        out = {k: np.zeros((n,) + shape, z.dtype) for k, shape in
+               (("normal", (3,)), ("eta", ()), ("sigma_s", ()), ("sigma_ss", ()), ("rho_d", (3,)), ("rho_s", ()),
+                ("rho_ss", (3,)), ("eta_std", ()), ("normal_std_deg", ()))}
+    out.update(loss=loss, iterations=iterations, enough=enough, views_used=np.sum(weight > 0, axis=1))
     return out
 
 
@@ -991,7 +1090,8 @@ def confidence_from_uncertainty(normal_std_deg, eta_std, normal_scale_deg=3.0, e
 
 
 def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings = FitSettings(),
-                 progress=None, virtual: VirtualSamples | None = None) -> FitResult:
+                 progress=None, virtual: VirtualSamples | None = None, models=None,
+                 sigma_ss_fixed: float = DEFAULT_FIXED_SIGMA_SS) -> FitResult:
     """Fit the pBRDF and normal of N vertices.
 
     obs: :class:`Observations` with batch (N, K). normal0: (N, 3) starting normals (e.g. the mesh
@@ -999,6 +1099,11 @@ def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSe
     N): eta, sigma_s, sigma_ss start the LM; rho_s and rho_ss are the ridge target of the linear
     solve. virtual: optional :class:`VirtualSamples` (batch N), added to the specular loss with
     weight ``settings.lambda_g`` (specular augmentation); None fits the real views alone.
+    models: (N,) per-vertex model codes (:data:`MODELS`), capped at :func:`model_of` ``(settings)``;
+    None: every vertex has that model. Model 2 fixes sigma_ss at ``settings.sigma_ss_fixed`` when set,
+    else at ``sigma_ss_fixed``; model-0 vertices take no virtual samples (no lobe to augment). The
+    model is data to the compiled kernels, not a static setting: one compilation serves every mix
+    of models (an unused lobe costs its Jacobian column, about a tenth of an LM step).
     Returns a :class:`FitResult` of numpy arrays;
     vertices with fewer than ``settings.min_views`` usable views keep the prior (status "too few
     views", confidence 0), non-finite fits keep the prior (status "failed", confidence 0). Never NaN.
@@ -1008,6 +1113,17 @@ def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSe
     n = np.shape(obs.diffuse)[0]
     normal0 = np.asarray(normal0, dtype)
     prior = PBRDFParams(*[np.asarray(x, dtype) for x in prior])
+    top = model_of(settings)
+    models = np.full(n, top) if models is None else np.minimum(np.asarray(models, np.int64), top)
+    if models.shape != (n,):
+        raise ValueError(f"fit_vertices: {models.shape} models for {n} vertices")
+    lobe_mask, fixed = model_arrays(models, sigma_ss_fixed if settings.sigma_ss_fixed is None
+                                    else settings.sigma_ss_fixed)
+    lobe_mask, fixed = lobe_mask.astype(dtype), fixed.astype(dtype)
+    if virtual is not None:  # model 0 has no lobe to augment
+        virtual = virtual._replace(weight=np.where((models > 0)[:, None], np.asarray(virtual.weight), 0))
+    # The kernels fit the most complex model; each vertex's own model is data (lobe_mask, fixed).
+    settings = dataclasses.replace(settings, lobes="full", sigma_ss_fixed=None)
     chunks = []
     for start in range(0, n, settings.chunk_size):
         stop = min(n, start + settings.chunk_size)
@@ -1015,7 +1131,7 @@ def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSe
         index = np.minimum(np.arange(start, start + _bucket(stop - start)), stop - 1)
         index = index[:min(index.size, settings.chunk_size)]
         out = _fit_chunk(Observations(*[np.asarray(x)[index] for x in obs]), normal0[index],
-                         PBRDFParams(*[x[index] for x in prior]), settings,
+                         PBRDFParams(*[x[index] for x in prior]), settings, lobe_mask[index], fixed[index],
                          None if virtual is None else VirtualSamples(*[np.asarray(x)[index] for x in virtual]),
                          valid=stop - start)
         chunks.append({k: v[:stop - start] for k, v in out.items()})

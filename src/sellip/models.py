@@ -20,7 +20,7 @@ candidate whose held-out loss exceeds the best one's by at most ``tolerance`` (r
 ``standard_errors`` standard errors of the paired per-vertex difference is chosen.
 
 :func:`fit_by_model` fits N vertices with per-vertex models: one :func:`sellip.fit.fit_vertices`
-call per model present (the lobe set is compiled in), results scattered back.
+call, the models being data to its compiled kernels (one compilation for every mix of models).
 """
 
 from __future__ import annotations
@@ -30,17 +30,13 @@ import logging
 from dataclasses import dataclass
 from typing import NamedTuple
 
-import jax
 import numpy as np
 
 from sellip import augment
-from sellip.fit import FitResult, FitSettings, Observations, VirtualSamples, fit_vertices
+from sellip.fit import MODELS, FitResult, FitSettings, Observations, VirtualSamples, fit_vertices, model_of
 from sellip.pbrdf import PBRDFParams
 
 log = logging.getLogger(__name__)
-
-MODELS = (0, 1, 2, 3)
-"""The model codes, simplest first (:data:`sellip.params.MODEL_NAMES`)."""
 
 
 @dataclass(frozen=True)
@@ -66,15 +62,6 @@ class SelectionSettings:
             raise ValueError("model_selection tolerance and standard_errors must be >= 0")
         if not 0.02 <= self.sigma_ss_fixed <= 1:
             raise ValueError(f"model_selection sigma_ss_fixed must be in [0.02, 1], got {self.sigma_ss_fixed}")
-
-
-def model_of(settings: FitSettings) -> int:
-    """The model code a FitSettings fits (:data:`MODELS`)."""
-    if settings.lobes == "diffuse":
-        return 0
-    if settings.lobes == "specular":
-        return 1
-    return 2 if settings.sigma_ss_fixed is not None else 3
 
 
 def settings_for_model(settings: FitSettings, model: int, sigma_ss_fixed: float = 0.9) -> FitSettings:
@@ -202,33 +189,15 @@ def fit_by_model(obs: Observations, normal0, prior: PBRDFParams, models, setting
                  sigma_ss_fixed: float = 0.9, progress=None, virtual: VirtualSamples | None = None) -> FitResult:
     """:func:`sellip.fit.fit_vertices` of N vertices, each with its own model (N,) (:data:`MODELS`).
 
-    One call per model present, with :func:`settings_for_model` (``settings``, model,
-    ``sigma_ss_fixed``); the results are scattered back to the vertices' rows. Model-0 vertices
-    get no virtual samples (they have no lobe to augment). ``progress(done)`` counts all vertices.
+    Model 2 fixes sigma_ss at ``settings.sigma_ss_fixed`` when set, else at ``sigma_ss_fixed``; models
+    are capped at what ``settings`` allow; model-0 vertices get no virtual samples (they have no lobe
+    to augment). ``progress(done)`` counts all vertices.
     """
     models = np.asarray(models)
     n = np.shape(obs.diffuse)[0]
     if models.shape != (n,):
         raise ValueError(f"fit_by_model: {models.shape} models for {n} vertices")
-    normal0 = np.asarray(normal0)
-    parts, done = [], 0
-    for model in np.unique(models):
-        rows = np.flatnonzero(models == model)
-        take = lambda x, rows=rows: np.asarray(x)[rows]  # noqa: E731
-        first = done
-        result = fit_vertices(Observations(*[take(x) for x in obs]), normal0[rows], PBRDFParams(*[take(x) for x in prior]),
-                              settings_for_model(settings, int(model), sigma_ss_fixed),
-                              progress=None if progress is None else (lambda k, first=first: progress(first + k)),
-                              virtual=None if virtual is None or model == 0 else VirtualSamples(*[take(x) for x in virtual]))
-        done += rows.size
-        parts.append((rows, result))
-    if not parts:
+    if n == 0:
         raise ValueError("fit_by_model needs at least one vertex")
-
-    def scatter(*leaves):
-        out = np.empty((n,) + np.shape(leaves[0])[1:], np.asarray(leaves[0]).dtype)
-        for (rows, _), leaf in zip(parts, leaves):
-            out[rows] = leaf
-        return out
-
-    return jax.tree_util.tree_map(scatter, *[result for _, result in parts])
+    return fit_vertices(obs, normal0, prior, settings, progress=progress, virtual=virtual, models=models,
+                        sigma_ss_fixed=sigma_ss_fixed)
