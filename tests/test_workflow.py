@@ -29,8 +29,13 @@ def tiny_config(workdir: Path) -> dict:
         "iterations": ITERATIONS,
         "demo": {"scene": "tiny", "views": 24, "width": 320, "height": 256, "seed": 3},
         "init": {"hull_resolution": 64, "max_vertices": 2500},
+        # Fit shards are whole observation chunks: 256-vertex chunks split ~2.4k vertices over both shards.
+        "observe": {"vertex_chunk": 256},
         "remesh": {"depth": 6},
-        "fit": {"shards": SHARDS, "compilation_cache": str(workdir / "jax_cache"), "settings": {"min_views": 6}},
+        # One XLA cache for every run of the session (the base temporary folder): the second run loads the
+        # kernels the first compiled, as a user's second run would.
+        "fit": {"shards": SHARDS, "compilation_cache": str(workdir.parent / "jax_cache"), "settings": {"min_views": 6}},
+        "augment": {"max_samples": 4096},
         "evaluate": {"held_out_views": ["v005", "v017"], "render_views": ["v000"], "supersample": 1},
     }
 

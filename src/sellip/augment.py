@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from dataclasses import dataclass
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -338,6 +339,27 @@ def _delta_step(z, delta, samples, settings: FitSettings, lambda_theta, max_delt
 _delta_step_jit = jax.jit(_delta_step, static_argnames=("settings", "steps"))
 
 
+@partial(jax.jit, static_argnames=("settings",))
+def _pool_solution(z, delta, samples: _Samples, settings: FitSettings, lambda_theta):
+    """At the solution z of a cluster fit: its loss, albedos (4,), eta, sigma_s, sigma_ss, and per sample
+    the measured lobe value (J,) and its shading R+(theta_d)/R+(0) x S (J,) (their ratio is comparable to
+    :func:`lobe_curve`, plotted against theta_h + delta). One compiled kernel, not op-by-op dispatch."""
+    res, spec = _cluster_residuals(z, delta, None, samples, settings, lambda_theta)
+    frame = fit._Frame(*(jnp.array([0.0, 0.0, 1.0], z.dtype),) * 3)
+    _, eta, sigma_s, sigma_ss = fit._decode(z, frame, settings.sigma_ss_fixed)
+    terms = fit._model_terms(samples.normal, eta, sigma_s, sigma_ss, samples.record, theta_h_offset=delta)
+    measured = (samples.record.obs_s - samples.rho_d * terms["d_is"][:, None]) @ samples.record.color
+    shading = terms["r_is"] / fit.fresnel(jnp.ones((), z.dtype), eta).r_plus
+    return jnp.sum(res**2), spec, eta, sigma_s, sigma_ss, measured, shading
+
+
+@partial(jax.jit, static_argnames=("settings",))
+def _sample_losses(z, delta, spec, samples: _Samples, settings: FitSettings, lambda_theta):
+    """The cluster loss of each sample (J,) with the lobe (z, albedos ``spec``) and deltas held."""
+    res, _ = _cluster_residuals(z, delta, spec, samples, settings, lambda_theta)
+    return jnp.sum(res**2, 1)
+
+
 def lobe_fit_settings(settings: FitSettings) -> FitSettings:
     """The fields of ``settings`` the cluster fit uses (loss weights, lobe set, view selection), the
     others at their defaults: the jitted lobe kernels take the settings as a static argument, so
@@ -415,25 +437,18 @@ def _fit_pool(pool: _Pool, eta0: float, fit_settings: FitSettings, settings: Aug
         z = solve(z, delta)
         delta = _delta_step_jit(jnp.asarray(z, dtype), delta, samples, fit_settings, lambda_theta, max_delta)
     z = solve(z, delta)
-    zj = jnp.asarray(z, dtype)
-    res, spec = _cluster_residuals(zj, delta, None, samples, fit_settings, lambda_theta)
-    frame = fit._Frame(*(jnp.array([0.0, 0.0, 1.0], dtype),) * 3)
-    _, eta, sigma_s, sigma_ss = (float(x) if np.ndim(x) == 0 else x for x in fit._decode(zj, frame,
-                                                                                          fit_settings.sigma_ss_fixed))
-    # Plot samples: the measured lobe value per unit shading (comparable to lobe_curve) against theta_h + delta.
-    terms = fit._model_terms(samples.normal, jnp.asarray(eta, dtype), jnp.asarray(sigma_s, dtype),
-                             jnp.asarray(sigma_ss, dtype), samples.record, theta_h_offset=delta)
-    r_plus0 = float(fit.fresnel(jnp.ones((), dtype), jnp.asarray(eta, dtype)).r_plus)
-    measured = (samples.record.obs_s - samples.rho_d * terms["d_is"][:, None]) @ samples.record.color
-    shading = terms["r_is"] / r_plus0
-    ok = np.asarray((shading > 1e-6) & (jnp.arange(shading.shape[0]) < count))
+    loss, spec, eta, sigma_s, sigma_ss, measured, shading = _pool_solution(jnp.asarray(z, dtype), delta, samples,
+                                                                          fit_settings, lambda_theta)
+    eta, sigma_s, sigma_ss = float(eta), float(sigma_s), float(sigma_ss)
+    measured, shading = np.asarray(measured), np.asarray(shading)
+    ok = (shading > 1e-6) & (np.arange(shading.shape[0]) < count)
     theta_h = np.degrees(np.arccos(np.clip(np.sum(np.asarray(samples.normal) * _unit(
         np.asarray(samples.record.to_light) + np.asarray(samples.record.to_camera)), -1), -1, 1)))
     return ClusterLobe(eta=eta, sigma_s=sigma_s, sigma_ss=sigma_ss, rho_s=float(spec[0]) * scale,
                        rho_ss=np.asarray(spec[1:], np.float64) * scale, samples=int(count),
-                       loss=float(jnp.sum(res**2)),
+                       loss=float(loss),
                        theta_h_deg=(theta_h + np.degrees(np.asarray(delta)))[ok],
-                       value=(np.asarray(measured / jnp.where(shading > 1e-6, shading, 1)) * scale)[ok])
+                       value=(measured / np.where(shading > 1e-6, shading, 1) * scale)[ok])
 
 
 def lobe_sample_losses(lobe: ClusterLobe, pool: _Pool, fit_settings: FitSettings,
@@ -454,8 +469,7 @@ def lobe_sample_losses(lobe: ClusterLobe, pool: _Pool, fit_settings: FitSettings
     delta = jnp.zeros(samples.normal.shape[0], dtype)
     for _ in range(delta_rounds if fit_settings.lobes != "diffuse" else 0):
         delta = _delta_step_jit(z, delta, samples, fit_settings, lambda_theta, max_delta, spec=spec)
-    res, _ = _cluster_residuals(z, delta, spec, samples, fit_settings, lambda_theta)
-    return np.asarray(jnp.sum(res**2, 1), np.float64)[:pool.count]
+    return np.asarray(_sample_losses(z, delta, spec, samples, fit_settings, lambda_theta), np.float64)[:pool.count]
 
 
 def _unit(v):
