@@ -377,9 +377,14 @@ class FakeRunner:
         return 7.0, 3.0
 
 
+# Two factors with one value each, independent of the presets' values.
+TWO_FACTORS = (sweep.Factor("augment", "augment.enabled", (False,), "aug {}"),
+               sweep.Factor("sigma_ss", "fit.settings.sigma_ss_fixed", (0.9,), "σss {}"))
+
+
 def test_run_sweep_repeats_reuses_the_upstream_and_resumes(tmp_path):
     runner = FakeRunner(tmp_path)
-    variants, records = sweep.run_sweep(["tiny"], "quick", tmp_path, runner, only=["augment", "sigma_ss"])
+    variants, records = sweep.run_sweep(["tiny"], "quick", tmp_path, runner, factors=TWO_FACTORS)
     assert [v.name for v in variants] == ["tiny__base", "tiny__augment-off", "tiny__sigma_ss-0.9"]
     names = [name for name, _, _ in runner.calls]
     # A new fit setting compiles (a new cache entry): run again, time the second run; augment-off reuses the
@@ -394,10 +399,11 @@ def test_run_sweep_repeats_reuses_the_upstream_and_resumes(tmp_path):
     assert records[0]["cold_cpu_s"] == 3.0 and records[1]["cold_cpu_s"] is None
     # A second sweep runs nothing; --force runs the variants again (not the capture or the upstream).
     runner.calls.clear()
-    again = sweep.run_sweep(["tiny"], "quick", tmp_path, runner, only=["augment", "sigma_ss"])[1]
+    again = sweep.run_sweep(["tiny"], "quick", tmp_path, runner, factors=TWO_FACTORS)[1]
     assert runner.calls == [] and [r["run_s"] for r in again] == [7.0] * 3
     runner.compiled.clear()  # a cold cache: with repeat=1 the base runs once all the same
-    once = sweep.run_sweep(["tiny"], "quick", tmp_path, runner, only=["augment"], repeat=1, force=True)[1]
+    once = sweep.run_sweep(["tiny"], "quick", tmp_path, runner, only=["augment"], repeat=1, force=True,
+                           factors=TWO_FACTORS)[1]
     assert [name for name, _, _ in runner.calls] == ["tiny__base", "tiny__augment-off"]
     assert once[0]["compiled"] == 1 and once[0]["cold_cpu_s"] is None and once[0]["deterministic"] is None
     row = sweep.sweep_row(variants[0], _metrics(), once[0], "quick")
