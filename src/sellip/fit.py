@@ -354,15 +354,6 @@ def _fixed_sigma_ss(v: _Vertex, settings: FitSettings):
     return settings.sigma_ss_fixed if v.sigma_ss_fixed is None else v.sigma_ss_fixed
 
 
-def _column_mask(v: _Vertex, free: tuple[int, ...], dtype):
-    """(F,) 1 for the columns of ``free`` that the vertex's model fits, 0 for a roughness it does not
-    have or holds (every column without a per-vertex model)."""
-    if v.lobe_mask is None:
-        return jnp.ones(len(free), dtype)
-    fits = (1, 1, 1, v.lobe_mask[0], v.lobe_mask[1] * jnp.isnan(v.sigma_ss_fixed))
-    return jnp.stack([jnp.asarray(fits[i], dtype) for i in free])
-
-
 def _view_frames(v: _Vertex) -> ViewFrames:
     if v.frames is not None:
         return v.frames
@@ -817,9 +808,10 @@ def _map_batches(kernel, rows: np.ndarray, records: _Vertex, frames: _Frame, bat
 
 
 def _fitted_columns(records: _Vertex, free: tuple[int, ...], hold_lobes: bool = False) -> np.ndarray:
-    """(N, F) 1 for the columns of ``free`` each vertex moves: its model's (:func:`_column_mask`), without
-    the roughnesses when ``hold_lobes`` (the first stage, while the normal may still be a few degrees
-    off: a sharp lobe would otherwise collapse onto one bright view)."""
+    """(N, F) 1 for the columns of ``free`` each vertex moves: those its model fits (not the roughness
+    of a lobe it lacks, nor a fixed sigma_ss; every column without per-vertex models), without the
+    roughnesses when ``hold_lobes`` (the first stage, while the normal may still be a few degrees off:
+    a sharp lobe would otherwise collapse onto one bright view)."""
     n = len(records.weight)
     dtype = np.asarray(records.weight).dtype
     if records.lobe_mask is None:
@@ -966,11 +958,12 @@ def _robust_weights(z, v: _Vertex, frame: _Frame, settings: FitSettings):
     return (keep / jnp.maximum(jnp.sum(keep), 1)).astype(v.weight.dtype), jnp.any(outlier)
 
 
-def _finalize(z, loss, hess, v: _Vertex, frame: _Frame, settings: FitSettings):
+def _finalize(z, loss, hess, fitted, v: _Vertex, frame: _Frame, settings: FitSettings):
     """Decoded parameters, linear solution and Gauss-Newton uncertainties at the solution of one vertex.
 
     hess: J^T J at z over :func:`_free_parameters` ``(settings)`` as the LM carried it, used when the
-    normal was fitted (those are then every column); otherwise the Jacobian is evaluated here."""
+    normal was fitted (those are then every column); otherwise the Jacobian is evaluated here.
+    fitted (F,): :func:`_fitted_columns` of the vertex over the columns with the normal free."""
     normal, eta, sigma_s, sigma_ss = _decode(z, frame, _fixed_sigma_ss(v, settings))
     terms = _model_terms(normal, eta, sigma_s, sigma_ss, v, lobes=settings.lobes)
     rho_d, spec = _linear_solution(terms, v, settings)
@@ -978,7 +971,6 @@ def _finalize(z, loss, hess, v: _Vertex, frame: _Frame, settings: FitSettings):
     # fixed does not make it better known.
     free = _free_parameters(dataclasses.replace(settings, fit_normal=True))
     basis = jnp.eye(5, dtype=z.dtype)[np.asarray(free)]  # (F, 5)
-    fitted = _column_mask(v, free, z.dtype)  # (F,) 0: a roughness the vertex's model holds
     if not settings.fit_normal:
         _, jac = _residuals_and_jacobian(z, v, frame, settings, free)
         jac = jac * fitted
@@ -1004,8 +996,9 @@ def _robust_weights_batch(z, records, frames, settings):
 
 
 @partial(jax.jit, static_argnames=("settings",))
-def _finalize_batch(z, loss, hess, records, frames, settings):
-    return jax.vmap(lambda zz, ll, hh, v, f: _finalize(zz, ll, hh, v, f, settings))(z, loss, hess, records, frames)
+def _finalize_batch(z, loss, hess, fitted, records, frames, settings):
+    return jax.vmap(lambda zz, ll, hh, ff, v, f: _finalize(zz, ll, hh, ff, v, f, settings))(z, loss, hess, fitted,
+                                                                                          records, frames)
 
 
 @partial(jax.jit, static_argnames=("settings",))
@@ -1094,7 +1087,9 @@ def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSett
         loss = np.where(changed, loss_new, loss)
         hess = np.where(changed[:, None, None], hess_new, hess)
         iterations = iterations + it_robust
-    out = _map_batches(partial(_finalize_batch, settings=settings), rows, records, frames, batch, z, loss, hess)
+    fitted = _fitted_columns(records, _free_parameters(dataclasses.replace(settings, fit_normal=True)))
+    out = _map_batches(partial(_finalize_batch, settings=settings), rows, records, frames, batch, z, loss, hess,
+                       fitted)
     if out is None:  # no vertex to fit: placeholders (every vertex keeps its prior, see fit_vertices)
         out = {k: np.zeros((n,) + shape, z.dtype) for k, shape in
                (("normal", (3,)), ("eta", ()), ("sigma_s", ()), ("sigma_ss", ()), ("rho_d", (3,)), ("rho_s", ()),
