@@ -59,14 +59,21 @@ def _cameras(rng, views, max_zenith_deg):
 
 
 def _make_scene(seed=0, n=120, views=40, noise=0.005):
-    rng = np.random.default_rng(seed)
-    material = np.arange(n) % len(MATERIALS)
-    table = [np.array([m[i] for m in MATERIALS]) for i in range(6)]
+    return material_scene(np.random.default_rng(seed), MATERIALS, np.arange(n) % len(MATERIALS), views, noise)
+
+
+def material_scene(rng, materials, material, views, noise, oblique_deg=(40, 60)):
+    """Surface points of the given materials (rows of ``materials``: eta, rho_d, rho_s, sigma_s, rho_ss,
+    sigma_ss; ``material`` (n,) indexes them) rendered with the full model in ``views`` cameras: a
+    quarter face the cameras (tilt < 8 deg), the others are tilted by ``oblique_deg`` (a range, deg) and
+    never see their highlight. Returns params, normals, positions, material, facing, obs, up, right."""
+    n = len(material)
+    table = [np.array([m[i] for m in materials]) for i in range(6)]
     params = PBRDFParams(eta=table[0][material], rho_d=table[1][material] * rng.uniform(0.95, 1.05, (n, 3)),
                          rho_s=table[2][material], sigma_s=table[3][material], rho_ss=table[4][material],
                          sigma_ss=table[5][material])
     facing = rng.random(n) < 0.25
-    tilt = np.radians(np.where(facing, rng.uniform(0, 8, n), rng.uniform(40, 60, n)))
+    tilt = np.radians(np.where(facing, rng.uniform(0, 8, n), rng.uniform(*oblique_deg, n)))
     azimuth = rng.uniform(0, 2 * np.pi, n)
     normals = np.stack([np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth), np.cos(tilt)], -1)
     positions = rng.uniform(-0.03, 0.03, (n, 3))

@@ -12,7 +12,7 @@ import json
 
 import numpy as np
 import pytest
-from test_augment import _cameras, _render
+from test_augment import material_scene
 
 from sellip import augment, cli, models
 from sellip import fit as fit_module
@@ -31,23 +31,11 @@ SELECTION = models.SelectionSettings(max_samples=1000)  # the lobe fits' shape: 
 
 
 def _make_scene(seed=0, views=40, noise=0.005):
-    rng = np.random.default_rng(seed)
     names = list(MATERIALS)
     material = np.repeat(np.arange(len(names)), PER_MATERIAL)
-    n = material.size
-    table = [np.array([MATERIALS[name][i] for name in names]) for i in range(6)]
-    params = PBRDFParams(eta=table[0][material], rho_d=table[1][material] * rng.uniform(0.95, 1.05, (n, 3)),
-                         rho_s=table[2][material], sigma_s=table[3][material], rho_ss=table[4][material],
-                         sigma_ss=table[5][material])
-    facing = rng.random(n) < 0.25
-    tilt = np.radians(np.where(facing, rng.uniform(0, 8, n), rng.uniform(10, 60, n)))
-    azimuth = rng.uniform(0, 2 * np.pi, n)
-    normals = np.stack([np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth), np.cos(tilt)], -1)
-    positions = rng.uniform(-0.03, 0.03, (n, 3))
-    centres, up, right = _cameras(rng, views, 25.0)
-    obs = _render(params, normals, positions, centres, up, right, noise, rng)
-    return {"params": params, "normals": normals, "positions": positions, "material": material, "names": names,
-            "obs": obs, "up": up, "right": right}
+    scene = material_scene(np.random.default_rng(seed), [MATERIALS[name] for name in names], material, views, noise,
+                           oblique_deg=(10, 60))
+    return {**scene, "names": names}
 
 
 def _rows(obs, rows):
