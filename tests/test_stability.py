@@ -300,6 +300,26 @@ def test_case_row_reads_the_figures_the_flagging_and_finiteness(tmp_path):
     assert row["nonfinite"] == "model.ply:eta 1; params.zarr:eta 1; metrics.json 1"
 
 
+def test_infinite_uncertainty_is_by_design_only_where_it_is_unknown(tmp_path):
+    """+inf std: not fitted (status != 0) or singular covariance (confidence 0). Anywhere else, and NaN
+    anywhere, it is a defect."""
+    from sellip.params import write_params
+
+    def bad(status, confidence, eta_std):
+        folder = tmp_path / f"run{len(list(tmp_path.iterdir()))}"
+        write_params(folder / "final" / "params.zarr", {
+            "vertices": np.zeros((3, 3)), "normals": np.tile([0.0, 0.0, 1.0], (3, 1)), "eta": np.full(3, 1.5),
+            "rho_d": np.full((3, 3), 0.5), "rho_s": np.zeros(3), "sigma_s": np.full(3, 0.3),
+            "rho_ss": np.zeros((3, 3)), "sigma_ss": np.full(3, 0.6), "status": np.asarray(status, np.int8),
+            "confidence": np.asarray(confidence, np.float32), "eta_std": np.asarray(eta_std, np.float32),
+            "normal_std_deg": np.ones(3, np.float32)})
+        return stability.nonfinite_outputs(folder).get("params.zarr:eta_std", 0)
+
+    assert bad([0, 1, 0], [0.5, 0.0, 0.0], [0.1, np.inf, np.inf]) == 0
+    assert bad([0, 1, 0], [0.5, 0.0, 0.2], [np.inf, np.inf, 0.1]) == 1
+    assert bad([0, 1, 0], [0.5, 0.0, 0.0], [0.1, np.nan, np.nan]) == 2
+
+
 def test_finiteness_check_reports_missing_outputs(tmp_path):
     assert stability.nonfinite_outputs(tmp_path) == {"model.ply": -1, "params.zarr": -1, "renders": -1,
                                                      "metrics.json": -1}

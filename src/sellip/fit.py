@@ -157,7 +157,7 @@ class FitResult(NamedTuple):
     """Per-vertex results, each batch-first: normal (N, 3), params (PBRDFParams with batch N),
     status (N,) int, confidence (N,) in [0, 1], loss (N,), views_used (N,), iterations (N,), and the
     Gauss-Newton standard deviations normal_std_deg (N,) and eta_std (N,) the confidence comes from
-    (inf where the vertex was not fitted)."""
+    (inf where the vertex was not fitted or its Gauss-Newton matrix is singular; confidence 0 there)."""
 
     normal: jnp.ndarray
     params: PBRDFParams

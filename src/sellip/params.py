@@ -5,7 +5,8 @@ A store holds, for N vertices (DESIGN §4 names, float32 unless noted), chunked 
     vertices (N, 3), normals (N, 3), eta (N,), rho_d (N, 3), rho_s (N,), sigma_s (N,),
     rho_ss (N, 3), sigma_ss (N,), confidence (N,), status (N,) int8, loss (N,),
     views_used (N,) int16, iterations (N,) int16, normal_std_deg (N,) and eta_std (N,) (the fit's
-    Gauss-Newton standard deviations, inf where not fitted); the final store adds model (N,) uint8
+    Gauss-Newton standard deviations, inf where not fitted or where the
+    Gauss-Newton matrix is singular, both with confidence 0); the final store adds model (N,) uint8
     (:data:`MODEL_NAMES`) and cluster (N,) int32
 
 ``status`` is 0 fitted, 1 too few views, 2 failed (:data:`sellip.fit.STATUS_NAMES`). Vertices

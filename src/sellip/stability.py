@@ -306,15 +306,16 @@ def _count_nonfinite(values) -> int:
     return int(np.size(values) - np.count_nonzero(np.isfinite(values))) if values.dtype.kind in "fc" else 0
 
 
-INFINITE_WHEN_NOT_FITTED = ("normal_std_deg", "eta_std")
-"""params.zarr arrays that are +inf by design where a vertex was not fitted (status != 0, sellip.params)."""
+INFINITE_WHEN_UNKNOWN = ("normal_std_deg", "eta_std")
+"""params.zarr arrays that are +inf by design where the uncertainty is unknown: a vertex not fitted
+(status != 0), or fitted with a singular Gauss-Newton matrix (confidence 0; sellip.params)."""
 
 
 def nonfinite_outputs(results_dir: str | Path) -> dict[str, int]:
     """Non-finite values per output array of a finished run: every vertex property of final/model.ply, every
-    array of final/params.zarr (except +inf in INFINITE_WHEN_NOT_FITTED at vertices not fitted), every array
-    of the .npz files under final/renders, and metrics.json (NaN or Infinity literals). Returns only the
-    arrays with any ({} when all is finite); a missing output counts -1."""
+    array of final/params.zarr (except +inf in INFINITE_WHEN_UNKNOWN where the uncertainty is unknown),
+    every array of the .npz files under final/renders, and metrics.json (NaN or Infinity literals). Returns
+    only the arrays with any ({} when all is finite); a missing output counts -1."""
     import warnings
 
     import zarr
@@ -337,10 +338,12 @@ def nonfinite_outputs(results_dir: str | Path) -> dict[str, int]:
             warnings.simplefilter("ignore")
             group = zarr.open_group(str(params), mode="r")
             arrays = {name: np.asarray(array[...]) for name, array in group.arrays()}
-        not_fitted = arrays["status"] != 0 if "status" in arrays else np.zeros(0, bool)
+        unknown = np.zeros(0, bool)
+        if "status" in arrays and "confidence" in arrays:
+            unknown = (arrays["status"] != 0) | (arrays["confidence"] == 0)
         for name, values in arrays.items():
-            if name in INFINITE_WHEN_NOT_FITTED and values.shape == not_fitted.shape:
-                values = np.where(not_fitted & (values == np.inf), 0.0, values)
+            if name in INFINITE_WHEN_UNKNOWN and values.shape == unknown.shape:
+                values = np.where(unknown & (values == np.inf), 0.0, values)
             if (count := _count_nonfinite(values)):
                 bad[f"params.zarr:{name}"] = count
     else:
