@@ -1,12 +1,14 @@
 """The Snakemake workflow end to end: real `snakemake --cores 2` runs on a tiny synthetic capture
-(synth -> ingest -> known poses -> initial mesh -> two iterations of observe / sharded fit /
+(synth -> ingest -> known poses -> initial mesh -> one iteration of observe / sharded fit /
 clusters / refit / Poisson remesh -> final refit -> model, renders, metrics), checked against
-the ground truth; resumability after SIGKILL; one fit job per shard, pass and iteration."""
+the ground truth; resumability after SIGKILL (in the last iteration of a copy of that run); one
+fit job per shard, pass and iteration."""
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -18,7 +20,7 @@ import pytest
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-ITERATIONS = 2
+ITERATIONS = 1
 SHARDS = 2
 
 
@@ -90,8 +92,9 @@ def test_tiny_capture_reconstructs_close_to_the_ground_truth(tiny_run):
     for name in ("normals", "eta", "rho_d", "rho_s", "sigma_s", "rho_ss", "sigma_ss", "confidence"):
         assert np.all(np.isfinite(store[name])), name
     assert (results / "final" / "renders").is_dir() and any((results / "final" / "renders").glob("*.png"))
-    # Measured 2026-11-21 on this scene (24 views of 160x128 demosaiced pixels, a 4 cm sphere, two
-    # iterations): normal median 2.9 deg, eta median 11.1 %, Chamfer 0.95 mm, held-out PSNR 23.7 dB.
+    # Measured 2026-11-24 on this scene (24 views of 160x128 demosaiced pixels, a 4 cm sphere): one
+    # iteration, normal median 3.2 deg, eta median 10.7 %, Chamfer 0.97 mm, held-out PSNR 23.8 dB (two
+    # iterations: 2.9 deg, 10.3 %, 0.95 mm, 23.2 dB; one keeps the suite inside CI's time).
     # Bounds that catch regressions, not targets (see docs/reconstruction.md).
     assert metrics["normal_error_deg"]["all"]["median"] < 4.0
     assert metrics["eta_relative_error_pct"]["median"] < 14.0
@@ -118,23 +121,35 @@ def _kill_when(command, env, ready: Path, timeout: float = 900) -> None:
         process.wait()
 
 
-def test_killed_run_resumes_without_redoing_finished_jobs(tiny_run, tmp_path):
+def test_killed_run_resumes_without_redoing_finished_jobs(tiny_run, tmp_path_factory):
+    """A copy of the finished run with its last iteration and outputs removed (Snakemake's metadata kept), so
+    the killed run redoes one iteration, not the whole pipeline: SIGKILL once the last iteration's fit is
+    gathered, then resume. The copy sits beside the first run so that both configs name the same XLA cache."""
     from sellip.params import read_params
 
-    results = tmp_path / "results" / "tiny"
-    command, env = _command(tmp_path, "--cores", "2")
-    _kill_when(command, env, results / "iter" / "1" / "fit.zarr")
-    # Jobs that finished well before the kill. (The job that wrote iter/1/fit.zarr may have been killed
-    # before Snakemake recorded it as complete: re-running it is then correct.)
+    workdir = tmp_path_factory.mktemp("resumed")
+    shutil.copytree(tiny_run, workdir, symlinks=True, dirs_exist_ok=True)
+    results = workdir / "results" / "tiny"
+    for stale in (results / "iter" / str(ITERATIONS), results / "final"):
+        shutil.rmtree(stale)
+    (results / "metrics.json").unlink()
+    # Outputs of the jobs before the last iteration: neither the killed run nor the resumed one may redo them.
     finished = {path: path.stat().st_mtime_ns for path in
                 [results / "mesh" / "init.ply", results / "hdr.zarr" / "zarr.json",
-                 results / "iter" / "0" / "refit.zarr" / "zarr.json", results / "iter" / "0" / "mesh.ply"]}
+                 results / "iter" / "0" / "refit.zarr" / "zarr.json",
+                 results / "iter" / str(ITERATIONS - 1) / "mesh.ply"]}
+    command, env = _command(workdir, "--cores", "2")
+    _kill_when(command, env, results / "iter" / str(ITERATIONS) / "fit.zarr")
+    # (The job that wrote the last fit.zarr may have been killed before Snakemake recorded it as complete:
+    # re-running it is then correct.)
     assert not (results / "final" / "model.ply").exists()
-    _snakemake(tmp_path, "--unlock")
-    out = _snakemake(tmp_path, "--cores", "2", "--rerun-incomplete").stdout
+    _snakemake(workdir, "--unlock")
+    resumed_run = _snakemake(workdir, "--cores", "2", "--rerun-incomplete")
+    log = resumed_run.stdout + resumed_run.stderr  # Snakemake logs "rule NAME:" per job on stderr
     for path, mtime in finished.items():
         assert path.stat().st_mtime_ns == mtime, f"{path} was made again"
-    assert "rule init_mesh:" not in out and "rule merge_hdr:" not in out
+    assert "rule init_mesh:" not in log and "rule merge_hdr:" not in log and "rule remesh_poisson:" not in log
+    assert "rule finalize_model:" in log and "rule evaluate_model:" in log
     resumed = read_params(results / "final" / "params.zarr")
     uninterrupted = read_params(tiny_run / "results" / "tiny" / "final" / "params.zarr")
     for name in ("vertices", "normals", "eta", "rho_d", "sigma_s", "confidence"):
