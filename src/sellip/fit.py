@@ -768,9 +768,10 @@ def _batches(active: np.ndarray, views: np.ndarray, batch: int):
     Vertices are ordered by their number of used views, so each batch can drop the slots none of
     its vertices uses (views are at the front, :func:`_compact_views`); widths are rounded by
     :func:`_view_bucket` (few compiled shapes). A last batch of at most a quarter of ``batch`` is
-    that quarter: the vertices still running after most have converged are few, and one more
-    compiled size steps 6 % more lanes than every power of two down to 64 would, with half the kernels. Short batches repeat their vertices (identical work, harmless writes). Yields
-    (index (size,), width)."""
+    padded to that quarter, any other to ``batch``: the vertices still running after most have
+    converged are few, and two sizes compile half the kernels that every power of two down to 64
+    would, for about 6 % more lanes stepped. Short batches repeat their vertices (identical work,
+    harmless writes). Yields (index (size,), width)."""
     order = active[np.argsort(views[active], kind="stable")]
     for start in range(0, order.size, batch):
         size = batch if order.size - start > batch // 4 else batch // 4
