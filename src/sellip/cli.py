@@ -20,7 +20,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "hdr-previews": ("hdr_previews", "PNG previews (s0, DoLP, AoLP, diffuse, specular) of the HDR images"),
     "observe": ("observe", "per-vertex, per-view observations (visibility, HDR samples, geometry) of a mesh"),
     "sfm": ("sfm", "camera poses: known poses.csv, SfM (pycolmap), or SfM verified against poses.csv"),
-    "init-mesh": ("init_mesh", "initial mesh from silhouettes and SfM points (screened Poisson)"),
+    "init-mesh": ("init_mesh", "initial mesh from silhouettes and SfM points (screened Poisson), or a scan checked "
+                              "against the silhouettes"),
     "fit": ("fit", "per-vertex pBRDF and normal fit of one vertex shard"),
     "gather-fit": ("gather_fit", "assemble the fit shards of an iteration into params.zarr"),
     "cluster-lobes": ("cluster_lobes", "material clusters and per-cluster specular lobes (augmentation)"),

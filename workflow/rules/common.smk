@@ -7,6 +7,7 @@ from pathlib import Path
 
 import yaml
 
+from snakemake.exceptions import WorkflowError
 from snakemake.settings.types import DeploymentMethod
 from snakemake.utils import validate
 
@@ -29,6 +30,11 @@ if not config["capture"]:
     with open(Path(workflow.basedir) / "config" / "config.yaml") as defaults_file:
         _defaults = yaml.safe_load(defaults_file)
     config.update(_unless_set(config, _defaults, config["demo"].get("overrides") or {}))
+
+# init.mode mesh without a mesh: say so in words (the schema's own message would be "'' is too short").
+if (config.get("init") or {}).get("mode") == "mesh" and not (config.get("init") or {}).get("mesh_path"):
+    raise WorkflowError("config: init.mode 'mesh' needs init.mesh_path, the mesh file to start from (PLY or OBJ, "
+                        "in the world of the poses, metres; relative to the capture folder unless absolute)")
 
 validate(config, "../../config/config.schema.yaml")
 
@@ -55,6 +61,14 @@ def capture_dir():
 def capture_file(name):
     """A file of the capture; for the built-in demo it is an output of synth_capture."""
     return str(Path(capture_dir()) / name)
+
+
+def user_mesh():
+    """The mesh file init.mode 'mesh' starts from (config init.mesh_path; a relative path lies in the capture
+    folder, an absolute one is used as is), as a list: empty in the other modes."""
+    if config["init"]["mode"] != "mesh":
+        return []
+    return [capture_file(os.path.expanduser(config["init"]["mesh_path"]))]  # Path(capture) / absolute = absolute
 
 
 RESULTS = f"results/{config['name']}"

@@ -46,11 +46,14 @@ rule init_mesh:
         hdr=f"{RESULTS}/hdr.zarr",
         cameras=f"{RESULTS}/cameras.csv",
         sfm=f"{RESULTS}/sfm",
+        # init.mode mesh: the user's mesh is an input, so a changed scan re-runs what follows.
+        user_mesh=user_mesh(),
     output:
         mesh=f"{RESULTS}/mesh/init.ply",
         info=f"{RESULTS}/mesh/init.json",
     params:
         mode=config["init"]["mode"],
+        mesh_path=lambda wildcards, input: " ".join(f"--mesh-path {shlex.quote(p)}" for p in input.user_mesh),
         hull_resolution=config["init"]["hull_resolution"],
         min_inside_fraction=config["init"]["min_inside_fraction"],
         poisson_depth=config["init"]["poisson_depth"],
@@ -66,7 +69,7 @@ rule init_mesh:
         f"{RESULTS}/benchmarks/init_mesh.tsv"
     shell:
         SELLIP + " init-mesh --hdr {input.hdr} --cameras {input.cameras} --sfm {input.sfm}"
-        " --output {output.mesh} --mode {params.mode} --hull-resolution {params.hull_resolution}"
+        " --output {output.mesh} --mode {params.mode} {params.mesh_path} --hull-resolution {params.hull_resolution}"
         " --min-inside-fraction {params.min_inside_fraction} --poisson-depth {params.poisson_depth}"
         " --target-depth {params.target_depth} --max-vertices {params.max_vertices}"
         " --mask-threshold {params.mask_threshold} --threads {threads} > {log} 2>&1"

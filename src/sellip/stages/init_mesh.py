@@ -1,17 +1,22 @@
 """``sellip init-mesh``: the initial mesh (rule ``init_mesh``, DESIGN §2 mesh_init).
 
     sellip init-mesh --hdr results/NAME/hdr.zarr --cameras results/NAME/cameras.csv --sfm results/NAME/sfm
-                     --output results/NAME/mesh/init.ply [--mode hull|mvs] [--max-vertices 30000] [options]
+                     --output results/NAME/mesh/init.ply [--mode hull|mvs|mesh] [--mesh-path scan.ply]
+                     [--max-vertices 30000] [options]
 
 ``hull`` (default, CPU): silhouettes of the flash-lit object (:func:`sellip.geometry.silhouette_masks`),
 a visual hull robust to a few bad masks, fused with the SfM points when ``sfm/sparse`` exists, screened
 Poisson at depth 7, cleaned, remeshed to the density of depth 9 (at most ``--max-vertices``), see
 :func:`sellip.geometry.initial_mesh`. ``mvs`` (needs pycolmap built with CUDA and an SfM model): COLMAP
-PatchMatch stereo and fusion give the oriented points instead of the hull surface.
+PatchMatch stereo and fusion give the oriented points instead of the hull surface. ``mesh``: the mesh in
+``--mesh-path`` (a scan in the cameras.csv world, metres; PLY or OBJ) is resampled to ``--max-vertices`` and
+checked against the silhouettes (:func:`sellip.geometry.user_initial_mesh`); a mesh that does not fit them stops
+the stage with an error naming the file and what is off (units, place, frame).
 
 Written (atomically): the mesh PLY (x y z nx ny nz float32, triangles) in the cameras.csv world, and
 beside it ``<stem>.json``: vertex and face counts, hull and fusion statistics, per-view silhouette
-disagreement, timings. A warning names the views whose silhouette disagrees with the hull.
+disagreement, timings (mode mesh: the source file, its counts and ``check``, the figures of the silhouette
+check). A warning names the views whose silhouette disagrees with the hull (or with the supplied mesh).
 """
 
 from __future__ import annotations
@@ -32,11 +37,48 @@ from sellip.stages.sfm import add_image_arguments, diffuse_view, intrinsics_matr
 
 log = logging.getLogger(__name__)
 
-MODES = ("hull", "mvs")
+MODES = ("hull", "mvs", "mesh")
+
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off")
+"""Mesh files ``init.mode: mesh`` reads (open3d); PLY and OBJ are the documented ones."""
 
 
 class InitMeshError(RuntimeError):
-    """The initial mesh cannot be built with the given inputs (e.g. mvs without CUDA)."""
+    """The initial mesh cannot be built with the given inputs (e.g. mvs without CUDA, a supplied mesh that does
+    not fit the silhouettes)."""
+
+
+def read_user_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """A triangle mesh file (open3d): vertices (V, 3) float64, faces (F, 3) int64 and the file's vertex normals
+    (V, 3) or None. Vertices at the same position are merged (a triangle soup, as STL and some PLY writers
+    store it, would otherwise fall apart into single triangles); degenerate and duplicated faces are dropped.
+    Raises InitMeshError naming the file when it is missing, unreadable, or has no triangles."""
+    import open3d as o3d
+
+    path = Path(path)
+    if not path.is_file():
+        raise InitMeshError(f"{path}: the mesh file of init.mode 'mesh' (init.mesh_path) does not exist")
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise InitMeshError(f"{path}: not a mesh file that init.mode 'mesh' reads ({', '.join(MESH_SUFFIXES)})")
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        mesh = o3d.io.read_triangle_mesh(str(path))
+    if len(mesh.vertices) == 0:
+        raise InitMeshError(f"{path}: cannot be read as a triangle mesh (open3d finds no vertices: damaged, or not a "
+                            f"{path.suffix.lstrip('.').upper()} file)")
+    if len(mesh.triangles) == 0:
+        raise InitMeshError(f"{path}: has {len(mesh.vertices)} vertices but no triangles (a point cloud?); "
+                            "init.mode 'mesh' needs a triangle mesh")
+    mesh.remove_duplicated_vertices()
+    mesh.remove_degenerate_triangles()
+    mesh.remove_duplicated_triangles()
+    mesh.remove_unreferenced_vertices()
+    vertices, faces = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.triangles, np.int64)
+    if len(faces) == 0 or not np.isfinite(vertices).all():
+        raise InitMeshError(f"{path}: has no usable triangles (all degenerate) or non-finite vertex coordinates")
+    normals = np.asarray(mesh.vertex_normals, np.float64) if mesh.has_vertex_normals() else None
+    if normals is not None and not (np.isfinite(normals).all() and np.linalg.norm(normals, axis=1).mean() > 0.5):
+        normals = None  # zeros or NaN: no orientation to learn from
+    return vertices, faces, normals
 
 
 def sparse_observations(sfm_dir: Path, view_ids: list[str]) -> tuple[np.ndarray, list[np.ndarray], np.ndarray] | None:
@@ -97,11 +139,23 @@ def mvs_points(hdr, sfm_dir: Path, view_ids: list[str], masks: np.ndarray, threa
 
 def run_stage(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: str | Path, output: str | Path,
               mode: str = "hull", options: geometry.InitMeshOptions = geometry.InitMeshOptions(),
-              mask_options: dict | None = None, disagreement_warn: float = 0.05) -> dict:
-    """Run the stage (see the module docstring); returns the report written beside the mesh."""
+              mask_options: dict | None = None, disagreement_warn: float = 0.05,
+              mesh_path: str | Path | None = None) -> dict:
+    """Run the stage (see the module docstring); returns the report written beside the mesh.
+
+    mesh_path: the mesh of mode ``mesh`` (required there, ignored otherwise), as given (the workflow resolves
+    ``init.mesh_path`` against the capture folder).
+    """
     from sellip.stages.merge_hdr import read_hdr
 
     started = time.perf_counter()
+    if mode == "mesh":
+        if not mesh_path:
+            raise InitMeshError("init.mode 'mesh' needs the mesh file: set init.mesh_path (--mesh-path)")
+        user_mesh = read_user_mesh(mesh_path)  # before the silhouettes: a bad file fails fast
+    elif mesh_path:
+        log.warning("init.mode %r: the mesh %s is not used (init.mesh_path is read with init.mode 'mesh' only)",
+                    mode, mesh_path)
     hdr = read_hdr(hdr_path)
     view_ids, rotations, translations = read_cameras(cameras_path)
     unknown = [v for v in view_ids if v not in hdr.view_ids]
@@ -110,20 +164,30 @@ def run_stage(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: str | Pat
     all_masks = view_masks(hdr, mask_options or {})
     masks = all_masks[[hdr.view_ids.index(v) for v in view_ids]]
     intrinsics = intrinsics_matrix(hdr.intrinsics)
-    sfm_dir = Path(sfm_dir)
-    sparse = sparse_observations(sfm_dir, view_ids)
-    extra = mvs_points(hdr, sfm_dir, view_ids, masks, options.threads) if mode == "mvs" else None
-    mesh = geometry.initial_mesh(masks, intrinsics, rotations, translations, options,
-                                 *(sparse if sparse is not None else (None, None, None)), extra_points=extra)
+    if mode == "mesh":
+        vertices, faces, normals = user_mesh
+        mesh = geometry.user_initial_mesh(vertices, faces, masks, intrinsics, rotations, translations, options,
+                                          normals=normals)
+        if mesh.check.problems:
+            raise InitMeshError(f"{mesh_path}: the mesh (init.mesh_path) does not fit the silhouettes of the "
+                                f"{len(view_ids)} views of {cameras_path}: " + "; ".join(mesh.check.problems))
+        disagreement, against, advice = 1.0 - mesh.check.inside_fraction, "the supplied mesh", ""
+        extra_report = {"mesh_path": str(mesh_path), "check": mesh.check.stats(view_ids)}
+    else:
+        sfm_dir = Path(sfm_dir)
+        sparse = sparse_observations(sfm_dir, view_ids)
+        extra = mvs_points(hdr, sfm_dir, view_ids, masks, options.threads) if mode == "mvs" else None
+        mesh = geometry.initial_mesh(masks, intrinsics, rotations, translations, options,
+                                     *(sparse if sparse is not None else (None, None, None)), extra_points=extra)
+        disagreement, against, extra_report = mesh.carving.disagreement, "the visual hull", {}
+        advice = f"; min_inside_fraction {options.min_inside_fraction:.2f} tolerates a few bad masks"
 
-    disagreement = mesh.carving.disagreement
     disagreeing = [v for v, d in zip(view_ids, disagreement) if d > disagreement_warn]
     if disagreeing:
-        log.warning("%d of %d silhouettes disagree with the visual hull (more than %.0f%% of the hull outside the "
-                    "mask): %s. Check the poses of these views or the mask threshold (init.mask_threshold); "
-                    "min_inside_fraction %.2f tolerates a few bad masks.", len(disagreeing), len(view_ids),
-                    100 * disagreement_warn, ", ".join(disagreeing[:30]), options.min_inside_fraction)
-    report = dict(mesh.stats, mode=mode, views=len(view_ids),
+        log.warning("%d of %d silhouettes disagree with %s (more than %.0f%% of it outside the mask): %s. Check "
+                    "the poses of these views or the mask threshold (sfm.mask_threshold)%s.", len(disagreeing),
+                    len(view_ids), against, 100 * disagreement_warn, ", ".join(disagreeing[:30]), advice)
+    report = dict(mesh.stats, mode=mode, views=len(view_ids), **extra_report,
                   silhouette_disagreement={v: float(d) for v, d in zip(view_ids, disagreement)},
                   disagreeing_views=disagreeing, total_s=time.perf_counter() - started)
     output = Path(output)
@@ -149,6 +213,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sfm", required=True, type=Path, help="the sfm folder (sparse model, report)")
     parser.add_argument("--output", required=True, type=Path, help="mesh PLY to write (+ .json beside it)")
     parser.add_argument("--mode", choices=MODES, default="hull")
+    parser.add_argument("--mesh-path", type=Path, default=None,
+                        help="mode mesh: the mesh to start from (PLY/OBJ, in the cameras.csv world, metres)")
     parser.add_argument("--hull-resolution", type=int, default=defaults.hull_resolution)
     parser.add_argument("--min-inside-fraction", type=float, default=defaults.min_inside_fraction)
     parser.add_argument("--poisson-depth", type=int, default=defaults.poisson_depth)
@@ -163,7 +229,7 @@ def main(args: argparse.Namespace) -> int:
                                        max_vertices=args.max_vertices, threads=args.threads)
     try:
         run_stage(args.hdr, args.cameras, args.sfm, args.output, mode=args.mode, options=options,
-                  mask_options={"threshold": args.mask_threshold})
+                  mask_options={"threshold": args.mask_threshold}, mesh_path=args.mesh_path)
     except (InitMeshError, ValueError) as exc:
         log.error("%s", exc)
         return 1
