@@ -372,3 +372,35 @@ def test_bad_inputs_raise_errors_naming_the_file(tmp_path, rendered, caplog):
         pair_views(["v000", "v001"], ["v000", "v009"], paths["hdr"], paths["cameras"])
     with pytest.raises(ObserveError, match="not an observation store"):
         load_observations(tmp_path / "nowhere.zarr")
+
+
+def test_edge_margin_drops_samples_near_the_silhouette(rendered, observed):
+    """With ``edge_margin`` a sample must lie that many pixels inside the object's silhouette in the image:
+    the ones nearer (grazing views of the sphere's rim, whose bilinear and demosaicing kernels reach the
+    background) are dropped, every other usable sample stays, and its values are unchanged."""
+    mesh = rendered["mesh"]
+    observer = Observer(ObserveMesh(mesh.vertices, mesh.normals, mesh.faces),
+                        ObserveSettings(threads=2, edge_margin=3.0))
+    from sellip.observe import silhouette_distance
+
+    dropped_total = 0
+    for k, (camera, light) in enumerate(zip(rendered["cameras"], rendered["lights"])):
+        view = observer.observe(camera, light.position, rendered["analyzers"][k], rendered["valid"][k])
+        plain = observed[k]
+        assert not np.any(view.usable & ~plain.usable)
+        np.testing.assert_array_equal(view.diffuse[view.usable], plain.diffuse[view.usable])
+        distance = silhouette_distance(rendered["analyzers"][k], rendered["valid"][k])
+        pixels = np.rint(camera.project(mesh.vertices)).astype(int)
+        inside = np.zeros(len(pixels), bool)
+        ok = plain.usable
+        inside[ok] = distance[pixels[ok, 1], pixels[ok, 0]] >= 3.0
+        np.testing.assert_array_equal(view.usable, plain.usable & inside)
+        dropped = plain.usable & ~view.usable
+        # What is dropped is mostly the rim (grazing views at the sphere's silhouette); the rest borders
+        # the occluder's cast shadow, a dark hole in the silhouette where the kernels mix lit and unlit.
+        n = rendered["n_big"]
+        truth = _truth(rendered, k)
+        rim_or_shadow = (truth["cos_view"] < 0.5) | (truth["shadow"] < 0.01)
+        assert np.mean(rim_or_shadow[:n][dropped[:n]]) > 0.95
+        dropped_total += int(dropped.sum())
+    assert dropped_total > 50

@@ -253,7 +253,7 @@ def _cluster_residuals(z, delta, spec, samples: _Samples, settings: FitSettings,
     i_d = (v.obs_d - reflect * terms["r_id"][:, None]) @ v.color
     i_alpha = (v.obs_a - reflect * terms["r_ia"][:, None]) @ v.color
     i_beta = (v.obs_s - reflect * terms["r_is"][:, None]) @ v.color
-    dop_measured = jnp.sqrt(i_alpha**2 + i_beta**2 + 1e-30) / jnp.maximum(i_d, 1e-6)
+    dop_measured = fit.measured_dop(terms, i_d, i_alpha, i_beta)
     sqrt_w = jnp.sqrt(w)
     res_psi = jnp.sqrt(settings.lambda_psi) * sqrt_w * (terms["dop"] - dop_measured)
     res_s = jnp.sqrt(settings.lambda_s) * sqrt_w[:, None] * (diffuse_s + reflect * terms["r_is"][:, None] - v.obs_s)
@@ -529,3 +529,29 @@ def virtual_samples(labels, lobes: list[ClusterLobe] | None, settings: FitSettin
     return VirtualSamples(theta_h=np.broadcast_to(theta, (labels.size, theta.size)).astype(dtype),
                           reflectance=reflectance.astype(dtype),
                           weight=np.where(has[:, None], weight[None], 0.0).astype(dtype))
+
+
+ETA_SOURCES = {0: "material", 1: "vertex"}
+"""Codes of ``eta_source`` in final/params.zarr and model.ply: the vertex carries its material
+cluster's eta, or its own (its data differ from the material's significantly)."""
+
+
+def material_eta(eta, eta_std, labels, cluster_eta, deviation_sigmas: float = 3.0, std_floor: float = 0.01):
+    """eta as a material property (DESIGN §7): each vertex takes its cluster's eta unless its own
+    fitted eta differs from it by more than ``deviation_sigmas`` of its own uncertainty.
+
+    eta, eta_std (N,): the vertices' fitted eta and its Gauss-Newton std (inf where unknown: such a
+    vertex always takes the material's); labels (N,) int cluster of each vertex; cluster_eta (K,).
+    ``std_floor`` keeps an overconfident fit (a few views, a tiny std) from splitting off on noise.
+    ``deviation_sigmas`` <= 0 keeps every vertex's own eta. Returns (eta (N,), source (N,) uint8
+    with :data:`ETA_SOURCES` codes). A per-vertex eta map is then piecewise constant where the
+    object is, and keeps a real boundary or a deviating spot where the data demand it.
+    """
+    eta = np.asarray(eta, np.float64)
+    if deviation_sigmas <= 0:
+        return eta.copy(), np.ones(len(eta), np.uint8)
+    cluster_eta = np.asarray(cluster_eta, np.float64)
+    material = cluster_eta[np.asarray(labels, np.intp)]
+    scale = np.maximum(np.nan_to_num(np.asarray(eta_std, np.float64), nan=np.inf), std_floor)
+    own = np.isfinite(scale) & (np.abs(eta - material) > deviation_sigmas * scale)
+    return np.where(own, eta, material), own.astype(np.uint8)

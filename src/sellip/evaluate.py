@@ -101,6 +101,25 @@ def angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1)))
 
 
+def eta_per_material(eta: np.ndarray, eta_gt: np.ndarray, material: np.ndarray | None) -> dict | None:
+    """η per ground-truth material (paper Table 1): the median of its vertices' η against the true one.
+
+    eta, eta_gt (N,) of the confident vertices, material (N,) their true material label (None: no labels,
+    returns None). Returns {"materials": {label: {eta_true, eta, error_pct, vertices}}, "mean_error_pct",
+    "max_error_pct"}.
+    """
+    if material is None or len(eta) == 0:
+        return None
+    rows = {}
+    for label in np.unique(material):
+        members = material == label
+        true, ours = float(np.median(eta_gt[members])), float(np.median(eta[members]))
+        rows[str(int(label))] = {"eta_true": true, "eta": ours, "error_pct": 100 * abs(ours - true) / true,
+                                 "vertices": int(members.sum())}
+    errors = [row["error_pct"] for row in rows.values()]
+    return {"materials": rows, "mean_error_pct": float(np.mean(errors)), "max_error_pct": float(np.max(errors))}
+
+
 def parameter_errors(model: ParamMesh, truth: ParamMesh, confident: np.ndarray,
                      similarity: Similarity | None = None) -> dict:
     """Normal, η, diffuse-albedo and roughness errors at each model vertex's nearest ground-truth vertex.
@@ -131,7 +150,9 @@ def parameter_errors(model: ParamMesh, truth: ParamMesh, confident: np.ndarray,
     sigma_ss_error = np.abs(at(p.sigma_ss, has_single) - at(t.sigma_ss, nearest)[has_single])
     return {
         "normal_error_deg": {"all": _summary(angle, True), "confident": _summary(angle[confident], True)},
-        "eta_relative_error_pct": _summary(eta_error),
+        "eta_relative_error_pct": _summary(eta_error, True),
+        "eta_per_material": eta_per_material(at(p.eta, confident), eta_gt,
+                                             None if truth.material is None else at(truth.material, nearest)[confident]),
         "rho_d_relative_rmse": albedo,
         "sigma_s_abs_error": _summary(sigma_s_error),
         "sigma_ss_abs_error": _summary(sigma_ss_error),

@@ -476,6 +476,18 @@ def _predictions(terms, rho_d, spec):
     return pred, reflect
 
 
+def measured_dop(terms, i_d, i_alpha, i_beta):
+    """The measured diffuse DoP (K,) that L_psi compares with the model's: the mono diffuse
+    polarization (I_alpha, I_beta) (K,) each projected on the model's azimuth direction, over I_d (K,).
+
+    Not the magnitude |(I_alpha, I_beta)| / I_d: the magnitude of a noisy vector is biased upwards
+    (sensor noise and demosaicing's false polarization are rectified), and eta with it: +2 to +5 %
+    per material on sphere_ior at 612x512 (docs/accuracy.md). The projection is linear in the
+    observations, so zero-mean noise stays zero-mean; L_phi fits the direction.
+    """
+    return (i_alpha * terms["dir_a"] + i_beta * terms["dir_b"]) / jnp.maximum(i_d, 1e-6)
+
+
 def _residuals_from_terms(terms, v: _Vertex, settings: FitSettings):
     """Weighted residual vector (9K,) (plus 3M with virtual samples) of one vertex from its
     :func:`_model_terms`; the albedos are solved in closed form inside."""
@@ -487,7 +499,7 @@ def _residuals_from_terms(terms, v: _Vertex, settings: FitSettings):
     i_alpha = (v.obs_a - reflect * terms["r_ia"][:, None]) @ v.color
     i_beta = (v.obs_s - reflect * terms["r_is"][:, None]) @ v.color
     gamma = polar.safe_sqrt(i_alpha**2 + i_beta**2)
-    dop_measured = gamma / jnp.maximum(i_d, 1e-6)
+    dop_measured = measured_dop(terms, i_d, i_alpha, i_beta)
     sqrt_w = jnp.sqrt(w)
     res_psi = jnp.sqrt(settings.lambda_psi) * sqrt_w * (terms["dop"] - dop_measured)
     res_d = jnp.sqrt(settings.lambda_d) * sqrt_w[:, None] * (pred_d - v.obs_d)

@@ -102,6 +102,8 @@ class ObserveSettings:
     occlusion_tolerance: float = 1e-3
     shadow_offset: float = 0.5
     min_cos: float = 0.0
+    edge_margin: float = 0.0
+    mask_threshold: float = 0.03
     threads: int = 0
 
     def __post_init__(self):
@@ -109,6 +111,9 @@ class ObserveSettings:
             raise ValueError(f"vertex_chunk and view_chunk must be >= 1, got {self.vertex_chunk}, {self.view_chunk}")
         if not 0 <= self.occlusion_tolerance < 1:
             raise ValueError(f"occlusion_tolerance must be in [0, 1), got {self.occlusion_tolerance}")
+        if self.edge_margin < 0 or not 0 < self.mask_threshold < 1:
+            raise ValueError(f"need edge_margin >= 0 and mask_threshold in (0, 1), got {self.edge_margin}, "
+                             f"{self.mask_threshold}")
         if self.shadow_offset < 0 or not -1 <= self.min_cos < 1:
             raise ValueError(f"need shadow_offset >= 0 and min_cos in [-1, 1), got {self.shadow_offset}, "
                              f"{self.min_cos}")
@@ -270,6 +275,24 @@ def bilinear_sample(image: np.ndarray, valid: np.ndarray | None, pixels: np.ndar
     return values, ok
 
 
+def silhouette_distance(analyzers: np.ndarray, valid: np.ndarray | None, threshold: float = 0.03) -> np.ndarray:
+    """(H, W) float32: each pixel's distance (pixels) to the nearest pixel outside the object's silhouette.
+
+    The silhouette is that of :func:`sellip.geometry.silhouette_masks` on I_d = 2 I90 of ``analyzers``
+    (H, W, 4, C); 0 outside it. A sample closer to the silhouette than the demosaicing and bilinear
+    kernels reach mixes the object with the background, differently in each analyzer image: false
+    polarization where the diffuse DoP that eta rests on is largest (docs/observe.md).
+    """
+    from scipy import ndimage
+
+    from sellip.geometry import silhouette_masks
+
+    diffuse = 2 * np.asarray(analyzers[..., 2, :], np.float32)
+    mask = silhouette_masks(diffuse[None], None if valid is None else np.asarray(valid, bool)[None],
+                            threshold=threshold)[0]
+    return ndimage.distance_transform_edt(mask).astype(np.float32)
+
+
 # --------------------------------------------------------------------------- one view
 
 
@@ -342,6 +365,10 @@ class Observer:
         candidates = np.flatnonzero(front_facing)
         footprint = bilinear_footprint(pixels[candidates], width, height)
         rows = np.flatnonzero(footprint.valid(valid)) if valid is not None else np.arange(len(candidates))
+        if settings.edge_margin > 0:
+            inside = silhouette_distance(analyzers, valid, settings.mask_threshold)
+            near = np.rint(pixels[candidates[rows]]).astype(np.intp)
+            rows = rows[inside[near[:, 1], near[:, 0]] >= settings.edge_margin]
         index = candidates[rows]  # the vertices still in the running; rows: their footprints
         valid_pixels = np.zeros(count, bool)
         valid_pixels[index] = True

@@ -14,6 +14,7 @@ rule finalize_model:
         params=directory(f"{RESULTS}/final/params.zarr"),
     params:
         clusters=lambda wildcards, input: f"--clusters {input.clusters}" if input.clusters else "",
+        eta_deviation_sigmas=config["final"]["eta_deviation_sigmas"],
     conda:
         "../../envs/fit.yaml"
     log:
@@ -22,7 +23,8 @@ rule finalize_model:
         f"{RESULTS}/benchmarks/finalize_model.tsv"
     shell:
         SELLIP + " finalize --params {input.params} --mesh {input.mesh} --output-model {output.model}"
-        " --output-params {output.params} {params.clusters} > {log} 2>&1"
+        " --output-params {output.params} {params.clusters}"
+        " --eta-deviation-sigmas {params.eta_deviation_sigmas} > {log} 2>&1"
 
 
 rule render_outputs:

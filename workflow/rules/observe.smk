@@ -21,6 +21,8 @@ rule gather_observations:
         occlusion_tolerance=config["observe"]["occlusion_tolerance"],
         shadow_offset=config["observe"]["shadow_offset"],
         min_cos=config["observe"]["min_cos"],
+        edge_margin=config["observe"]["edge_margin"],
+        mask_threshold=config["sfm"]["mask_threshold"],
         missing_poses=config["observe"]["missing_poses"],
         held_out=" ".join(config["evaluate"]["held_out_views"]),
         max_views=(f"--max-views {config['observe']['max_views']}"
@@ -37,5 +39,6 @@ rule gather_observations:
         " --capture {params.capture} --output {output} --vertex-chunk {params.vertex_chunk}"
         " --view-chunk {params.view_chunk} --occlusion-tolerance {params.occlusion_tolerance}"
         " --shadow-offset {params.shadow_offset} --min-cos {params.min_cos}"
+        " --edge-margin {params.edge_margin} --mask-threshold {params.mask_threshold}"
         " --missing-poses {params.missing_poses} --exclude-views {params.held_out} {params.max_views}"
         " --threads {threads} > {log} 2>&1"

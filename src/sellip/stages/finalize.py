@@ -25,9 +25,12 @@ log = logging.getLogger(__name__)
 
 
 def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_params: Path,
-              clusters: Path | None = None, model: int = 3) -> dict:
+              clusters: Path | None = None, model: int = 3, eta_deviation_sigmas: float = 3.0) -> dict:
     """Write the final model PLY and parameter store; returns a summary dict. The per-vertex model is
-    the store's ``model``; ``model`` is the code of every vertex of a store that has none."""
+    the store's ``model``; ``model`` is the code of every vertex of a store that has none. With
+    ``clusters``, eta is its material cluster's unless a vertex's own differs by more than
+    ``eta_deviation_sigmas`` of its std (:func:`sellip.augment.material_eta`; <= 0: every vertex's own)."""
+    from sellip.augment import material_eta
     from sellip.io import write_param_mesh
     from sellip.observe import read_mesh
     from sellip.params import (
@@ -40,6 +43,7 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
         write_params,
     )
     from sellip.render import ParamMesh
+    from sellip.stages.cluster_lobes import read_lobes
 
     if model not in MODEL_NAMES:
         raise ValueError(f"--model must be one of {sorted(MODEL_NAMES)}, got {model}")
@@ -51,13 +55,19 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
                           f"({mesh.num_vertices}): the final pass must fit the final mesh")
     n = len(vertices)
     cluster = np.zeros(n, np.int32)
+    eta, eta_source = np.asarray(store["eta"], np.float64), np.ones(n, np.uint8)
     if clusters is not None:
-        labels_path = Path(clusters) / "labels.npy"
-        if not labels_path.is_file():
-            raise ParamsError(f"{labels_path}: missing (expected the cluster label of every vertex)")
-        cluster = np.load(labels_path).astype(np.int32)
+        try:
+            labels, lobes = read_lobes(clusters)
+        except ValueError as exc:
+            raise ParamsError(str(exc)) from None
+        cluster = labels.astype(np.int32)
         if cluster.shape != (n,):
-            raise ParamsError(f"{labels_path}: {cluster.shape[0]} labels for {n} vertices")
+            raise ParamsError(f"{Path(clusters) / 'labels.npy'}: {cluster.shape[0]} labels for {n} vertices")
+        eta_std = np.asarray(store.get("eta_std", np.full(n, np.inf)), np.float64)
+        eta, eta_source = material_eta(eta, eta_std, cluster, [lobe.eta for lobe in lobes], eta_deviation_sigmas)
+        log.info("eta per material: %d of %d vertices keep their own eta (more than %g std from their cluster's %s)",
+                 int(eta_source.sum()), n, eta_deviation_sigmas, np.round([lobe.eta for lobe in lobes], 3).tolist())
     if "model" in store:
         models = np.asarray(store["model"], np.uint8)
         if not np.isin(models, sorted(MODEL_NAMES)).all():
@@ -66,20 +76,22 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
     else:
         models = np.full(n, model, np.uint8)
         log.info("%s has no model array: every vertex gets model %d", params_path, model)
-    params = params_from(store, np.float64)
+    params = params_from(store, np.float64)._replace(eta=eta)
     confidence = np.asarray(store.get("confidence", np.zeros(n)), np.float32)
     output_model = Path(output_model)
     output_model.parent.mkdir(parents=True, exist_ok=True)
     tmp = output_model.with_name(output_model.name + ".tmp.ply")
     write_param_mesh(tmp, ParamMesh(vertices, mesh.faces, store["normals"], params),
-                     extra={"confidence": confidence, "model": models})
+                     extra={"confidence": confidence, "model": models, "eta_source": eta_source})
     tmp.replace(output_model)
     arrays = {name: store[name] for name in store if name != "attrs"}
-    arrays.update(model=models, cluster=cluster)
+    arrays.update(model=models, cluster=cluster, eta=eta.astype(np.float32), eta_source=eta_source,
+                  eta_vertex=np.asarray(store["eta"], np.float32))
     write_params(output_params, arrays, attrs={**store["attrs"], "model_names": {str(k): v for k, v in
                                                                                   MODEL_NAMES.items()}})
     summary = {"vertices": n, "faces": len(mesh.faces), "confidence_median": float(np.median(confidence)),
-               "eta_median": float(np.median(store["eta"])), "fields": list(PARAM_FIELDS),
+               "eta_median": float(np.median(eta)), "eta_own_vertices": int(eta_source.sum()),
+               "fields": list(PARAM_FIELDS),
                "vertices_per_model": {str(m): int(np.sum(models == m)) for m in sorted(MODEL_NAMES)}}
     log.info("wrote %s and %s: %d vertices, %d faces, median confidence %.2f, median eta %.3f, vertices per model %s",
              output_model, output_params, n, len(mesh.faces), summary["confidence_median"], summary["eta_median"],
@@ -93,6 +105,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--output-model", type=Path, required=True, help="final model PLY")
     parser.add_argument("--output-params", type=Path, required=True, help="final params.zarr")
     parser.add_argument("--clusters", type=Path, default=None, help="cluster_lobes output of the last pass")
+    parser.add_argument("--eta-deviation-sigmas", type=float, default=3.0,
+                        help="a vertex keeps its own eta (not its material cluster's) when it differs by more than "
+                             "this many of its std (<= 0: every vertex its own)")
     parser.add_argument("--model", type=int, default=3,
                         help="model code of every vertex when the store has no model array (sellip.params.MODEL_NAMES)")
 
@@ -102,7 +117,8 @@ def main(args: argparse.Namespace) -> int:
     from sellip.params import ParamsError
 
     try:
-        run_stage(args.params, args.mesh, args.output_model, args.output_params, args.clusters, args.model)
+        run_stage(args.params, args.mesh, args.output_model, args.output_params, args.clusters, args.model,
+                  args.eta_deviation_sigmas)
     except (ParamsError, ObserveError, ValueError) as error:
         log.error("%s", error)
         return 1

@@ -1,0 +1,115 @@
+"""The accuracy ladder (docs/accuracy.md): one capture through rungs that each add one source of error.
+
+    python benchmarks/accuracy_ladder.py --scene sphere_ior --views 24 --width 612 --height 512 \
+        [--rungs render sensor mesh hull] [--iterations 1] [--workdir results/bench/ladder] [--cores 2]
+
+Rungs (each resumable: a rung whose result file exists is not run again):
+
+- ``render``: the true mesh observed in noise-free images rendered at the HDR grid (sellip.ladder);
+- ``sensor``: the true mesh observed in the capture's HDR images (sensor noise, mosaic, ingest);
+- ``mesh``: the whole workflow (``snakemake``) with ``init.mode: mesh`` from the true mesh;
+- ``hull``: the whole workflow from the visual hull (the default).
+
+Prints one table row per rung: eta per material (mean and worst error of the per-material medians),
+eta per vertex (median, p90), normal error (median, p90), and for the workflow rungs the held-out
+PSNR; writes ``ladder.json`` and ``ladder.md`` in the workdir.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def workflow_rung(capture: Path, name: str, results: Path, iterations: int, cores: int, extra: list[str]) -> dict:
+    """Run the workflow on ``capture`` and return the figures of its metrics.json."""
+    metrics = results / name / "metrics.json"
+    if not metrics.is_file():
+        command = [sys.executable, "-m", "snakemake", "--cores", str(cores), "--workflow-profile",
+                   str(ROOT / "workflow/profiles/default"), "--snakefile", str(ROOT / "Snakefile"),
+                   "--directory", str(results.parent), "--config", f"capture={capture}", f"name={name}",
+                   f"iterations={iterations}", *extra]
+        subprocess.run(command, check=True, cwd=ROOT)
+    m = json.loads(metrics.read_text())
+    held_out = m.get("psnr_held_out") or {}
+    return {"eta_per_material": m.get("eta_per_material"),
+            "eta_vertex_median_pct": m["eta_relative_error_pct"]["median"],
+            "eta_vertex_p90_pct": m["eta_relative_error_pct"].get("p90"),
+            "normal_median_deg": m["normal_error_deg"]["all"]["median"],
+            "normal_p90_deg": m["normal_error_deg"]["all"].get("p90"),
+            "held_out_psnr_db": held_out.get("mean_db")}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scene", default="sphere_ior")
+    parser.add_argument("--views", type=int, default=24)
+    parser.add_argument("--width", type=int, default=612)
+    parser.add_argument("--height", type=int, default=512)
+    parser.add_argument("--rungs", nargs="+", default=["render", "sensor", "mesh", "hull"],
+                        choices=["render", "sensor", "mesh", "hull"])
+    parser.add_argument("--iterations", type=int, default=1, help="outer iterations of the workflow rungs")
+    parser.add_argument("--edge-margin", type=float, default=2.0, help="observe.edge_margin of every rung")
+    parser.add_argument("--workdir", type=Path, default=ROOT / "results/bench/ladder")
+    parser.add_argument("--cores", type=int, default=2)
+    args = parser.parse_args(argv)
+
+    from sellip.io import GROUND_TRUTH_MESH
+    from sellip.ladder import fit_true_mesh, render_hdr
+    from sellip.observe import ObserveSettings
+    from sellip.stages.linearize import linearize_capture
+    from sellip.stages.merge_hdr import merge_capture
+    from sellip.stages.synth import synthesize_capture
+
+    tag = f"{args.scene}_{args.views}v_{args.width}x{args.height}"
+    work = (args.workdir / tag).resolve()
+    capture = work / "capture"
+    if not (capture / "capture.yaml").is_file():
+        synthesize_capture(args.scene, capture, views=args.views, width=args.width, height=args.height, progress=False)
+    hdr = work / "hdr.zarr"
+    if not hdr.exists():
+        linearize_capture(capture, work / "linear.zarr", threads=args.cores)
+        merge_capture(work / "linear.zarr", hdr, threads=args.cores)
+    observe = ObserveSettings(edge_margin=args.edge_margin, threads=args.cores)
+    cache = str(work / "jax_cache")
+    rows = {}
+    for rung in args.rungs:
+        out = work / f"{rung}.json"
+        if not out.is_file():
+            if rung == "render":
+                clean = render_hdr(capture, hdr, work / "render_hdr.zarr")
+                figures = fit_true_mesh(capture, clean, work / "render", observe, cache)
+            elif rung == "sensor":
+                figures = fit_true_mesh(capture, hdr, work / "sensor", observe, cache)
+            else:
+                extra = []
+                if rung == "mesh":
+                    extra = [f"init={{mode: mesh, mesh_path: {capture / GROUND_TRUTH_MESH}}}"]
+                figures = workflow_rung(capture, f"{tag}_{rung}", work / "results", args.iterations, args.cores, extra)
+            out.write_text(json.dumps(figures, indent=2))
+        rows[rung] = json.loads(out.read_text())
+
+    header = ("| rung | η per material mean / worst % | η per vertex median / p90 % | normal median / p90 ° "
+              "| held-out PSNR dB |\n|---|---|---|---|---|")
+    lines = [header]
+    for rung, f in rows.items():
+        per = f.get("eta_per_material") or {}
+        psnr = f.get("held_out_psnr_db")
+        lines.append(f"| {rung} | {per.get('mean_error_pct', float('nan')):.2f} / {per.get('max_error_pct', float('nan')):.2f} "
+                     f"| {f['eta_vertex_median_pct']:.2f} / {f['eta_vertex_p90_pct'] or float('nan'):.2f} "
+                     f"| {f['normal_median_deg']:.2f} / {f['normal_p90_deg'] or float('nan'):.2f} "
+                     f"| {'–' if psnr is None else f'{psnr:.1f}'} |")
+    table = "\n".join(lines)
+    print(f"{tag}\n{table}")
+    (work / "ladder.json").write_text(json.dumps(rows, indent=2))
+    (work / "ladder.md").write_text(f"{tag}\n\n{table}\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
