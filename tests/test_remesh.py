@@ -86,6 +86,14 @@ def test_remesh_and_finalize_stages_write_readable_models(tmp_path):
     write_params(tmp_path / "last.zarr", final)
     (tmp_path / "clusters").mkdir()
     np.save(tmp_path / "clusters" / "labels.npy", (mesh.vertices[:, 0] > 0).astype(np.int32))
+    import pandas as pd
+
+    from sellip.stages.cluster_lobes import LOBE_COLUMNS
+
+    lobe = {"vertices": m // 2, "sigma_s": 0.3, "sigma_ss": 0.6, "rho_s": 0.5, "rho_ss_r": 0.0, "rho_ss_g": 0.0,
+            "rho_ss_b": 0.0, "samples": 100, "loss": 0.1, "model": 3}
+    pd.DataFrame([{**lobe, "cluster": k, "eta": eta} for k, eta in enumerate((1.4, 1.6))])[list(LOBE_COLUMNS)].to_csv(
+        tmp_path / "clusters" / "lobes.csv", index=False)
     finalize.run_stage(tmp_path / "last.zarr", tmp_path / "mesh.ply", tmp_path / "final" / "model.ply",
                        tmp_path / "final" / "params.zarr", tmp_path / "clusters", model=3)
     model_vertex, model_faces = read_ply(tmp_path / "final" / "model.ply")
@@ -94,6 +102,10 @@ def test_remesh_and_finalize_stages_write_readable_models(tmp_path):
     np.testing.assert_array_equal(model_faces, read_ply(tmp_path / "mesh.ply")[1])
     store = read_params(tmp_path / "final" / "params.zarr")
     np.testing.assert_array_equal(store["cluster"], (mesh.vertices[:, 0] > 0).astype(np.int32))
+    # No eta_std in the store: no vertex's own eta is known well enough, each takes its cluster's (DESIGN §7).
+    np.testing.assert_array_equal(store["eta_source"], 0)
+    np.testing.assert_allclose(store["eta"], np.where(mesh.vertices[:, 0] > 0, 1.6, 1.4), rtol=1e-6)
+    np.testing.assert_allclose(model_vertex["eta"], store["eta"], rtol=1e-6)
     # open3d reads the model with its normals.
     import open3d as o3d
 

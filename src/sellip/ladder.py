@@ -94,6 +94,9 @@ def figures(fit: dict, truth) -> dict:
     from sellip.fit import STATUS_FITTED
 
     fitted = np.asarray(fit["status"]) == STATUS_FITTED
+    if not fitted.any():
+        raise ValueError(f"no vertex of the {len(fitted)} was fitted (too few usable views each): "
+                         "use more views or a larger capture")
     eta_true = np.asarray(truth.params.eta, np.float64)[fitted]
     eta = np.asarray(fit["eta"], np.float64)[fitted]
     error = 100 * np.abs(eta - eta_true) / eta_true
