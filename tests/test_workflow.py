@@ -32,7 +32,9 @@ def tiny_config(workdir: Path) -> dict:
         "demo": {"scene": "tiny", "views": 24, "width": 320, "height": 256, "seed": 3},
         "init": {"hull_resolution": 64, "max_vertices": 2500},
         # Fit shards are whole observation chunks: 256-vertex chunks split ~2.4k vertices over both shards.
-        "observe": {"vertex_chunk": 256},
+        # The 2-px silhouette margin drops 38 % of the samples of a 160x128-pixel capture: normal median
+        # 4.73 deg instead of < 4 (docs/accuracy.md). Off here; the bounds below are about everything else.
+        "observe": {"vertex_chunk": 256, "edge_margin": 0.0},
         "remesh": {"depth": 6},
         # One XLA cache for every run of the session (the base temporary folder): the second run loads the
         # kernels the first compiled, as a user's second run would.
