@@ -16,7 +16,7 @@ import pytest
 from sellip.conventions import observations_from_analyzers, stokes_to_analyzers
 from sellip.io import CaptureWriter, write_ply
 from sellip.observe import (ObserveError, ObserveMesh, ObserveSettings, Observer, bilinear_sample,
-                            load_observations, read_mesh)
+                            load_observations, read_mesh, silhouette_distance)
 from sellip.pbrdf import PBRDFParams, full_stokes
 from sellip.render import Camera, ParamMesh, Renderer, flash_light
 from sellip.scenes import icosphere, look_at_rotation
@@ -381,8 +381,6 @@ def test_edge_margin_drops_samples_near_the_silhouette(rendered, observed):
     mesh = rendered["mesh"]
     observer = Observer(ObserveMesh(mesh.vertices, mesh.normals, mesh.faces),
                         ObserveSettings(threads=2, edge_margin=3.0))
-    from sellip.observe import silhouette_distance
-
     dropped_total = 0
     for k, (camera, light) in enumerate(zip(rendered["cameras"], rendered["lights"])):
         view = observer.observe(camera, light.position, rendered["analyzers"][k], rendered["valid"][k])
