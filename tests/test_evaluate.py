@@ -113,6 +113,23 @@ def test_geometry_errors_of_a_grown_sphere_are_the_radius_difference(truth):
     assert geometry["chamfer_mm"] == pytest.approx(2.0, abs=0.15)
 
 
+def test_geometry_series_follows_the_meshes_of_the_loop(truth):
+    """Three meshes (grown 5 %, 2.5 %, exact) with fitted normals 3 deg off: Chamfer 2, 1, 0 mm to the truth and
+    1 mm between consecutive meshes; the fitted-normal error counts only the vertices asked for."""
+    meshes = [ParamMesh(truth.vertices * scale, truth.faces, truth.normals, None) for scale in (1.05, 1.025, 1.0)]
+    counted = np.arange(truth.num_vertices) % 2 == 0
+    fitted = [(_tilted(truth.normals, 3.0), counted), None]
+    rows = evaluate.geometry_series(meshes, fitted, truth)
+    assert [row["mesh"] for row in rows] == [0, 1, 2] and rows[0]["chamfer_to_previous_mm"] is None
+    for row, expected in zip(rows, (2.0, 1.0, 0.0)):
+        assert row["chamfer_mm"] == pytest.approx(expected, abs=0.15)
+        assert row["mesh_normal_deg"]["median"] == pytest.approx(0.0, abs=1e-6)
+    assert rows[1]["chamfer_to_previous_mm"] == pytest.approx(1.0, abs=0.15)
+    assert rows[0]["fitted_normal_deg"]["median"] == pytest.approx(3.0, abs=1e-6)
+    assert rows[0]["fitted_normal_deg"]["vertices"] == counted.sum() and "fitted_normal_deg" not in rows[1]
+    assert "chamfer_mm" not in evaluate.geometry_series(meshes, fitted, None)[2]
+
+
 def test_camera_alignment_recovers_the_similarity(tiny_run):
     view_ids, rotations, translations = read_cameras(tiny_run["cameras"])
     sim = Similarity(0.8, Rotation.from_euler("zyx", [10, 20, 30], degrees=True).as_matrix(), np.array([1.0, 2, 3]))

@@ -170,7 +170,7 @@ def test_sweep_row_flattens_metrics_and_adds_the_shared_upstream_time():
     assert np.isnan(sweep.sweep_row(variant, _metrics(), {"run_s": 1.0}, "quick")["cpu_s"])
     assert row["total_s"] == 62.5 and row["fit_s"] == 30.0 and row["cluster_s"] == 9.0 and row["jobs_s"] == 100.0
     assert row["normal_median_deg"] == 10.0 and row["eta_mean_pct"] == 17.0 and row["psnr_held_out_db"] == 20.0
-    assert np.isnan(row["psnr_new_light_db"]) and np.isnan(row["remesh_s"])
+    assert np.isnan(row["psnr_new_light_db"]) and np.isnan(row["refine_s"])
     assert row["value"] == "1" and row["name"] == "demo__sigma_ss-1"
     table = sweep.sweep_table([row])
     assert len(table) == 1

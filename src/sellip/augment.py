@@ -552,6 +552,6 @@ def material_eta(eta, eta_std, labels, cluster_eta, deviation_sigmas: float = 3.
         return eta.copy(), np.ones(len(eta), np.uint8)
     cluster_eta = np.asarray(cluster_eta, np.float64)
     material = cluster_eta[np.asarray(labels, np.intp)]
-    scale = np.maximum(np.nan_to_num(np.asarray(eta_std, np.float64), nan=np.inf), std_floor)
+    scale = np.maximum(np.nan_to_num(np.asarray(eta_std, np.float64), nan=np.inf, posinf=np.inf), std_floor)
     own = np.isfinite(scale) & (np.abs(eta - material) > deviation_sigmas * scale)
     return np.where(own, eta, material), own.astype(np.uint8)

@@ -25,7 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "fit": ("fit", "per-vertex pBRDF and normal fit of one vertex shard"),
     "gather-fit": ("gather_fit", "assemble the fit shards of an iteration into params.zarr"),
     "cluster-lobes": ("cluster_lobes", "material clusters and per-cluster specular lobes (augmentation)"),
-    "remesh": ("remesh", "screened Poisson mesh from fitted normals; parameters carried to the new vertices"),
+    "refine-geometry": ("refine_geometry", "the mesh moved to agree with the fitted normals (normal integration)"),
     "finalize": ("finalize", "the final model: model.ply and params.zarr"),
     "render-outputs": ("render_outputs", "renders, Mueller images, AoLP/DoP and parameter maps of a model"),
     "evaluate": ("evaluate", "figures of merit against the ground truth (metrics.json)"),

@@ -170,6 +170,43 @@ def geometry_errors(model: ParamMesh, truth: ParamMesh, similarity: Similarity |
             "model_to_truth_mm": 1000 * d.a_to_b, "truth_to_model_mm": 1000 * d.b_to_a, "samples": samples}
 
 
+def geometry_series(meshes: list[ParamMesh], fitted: list[tuple[np.ndarray, np.ndarray] | None],
+                    truth: ParamMesh | None, similarity: Similarity | None = None, samples: int = 20000,
+                    seed: int = 0) -> list[dict]:
+    """How the geometry converged: one row per mesh of the loop (the initial mesh, then each iteration's).
+
+    ``fitted``: per mesh, the normals (N, 3) fitted at its vertices and the (N,) bool vertices to count
+    (confident), or None. Each row: ``chamfer_to_previous_mm``; against ``truth`` (None: left out)
+    ``chamfer_mm``, ``hausdorff_mm``, the mesh's normal error and the fitted normals' error at the
+    nearest ground-truth vertex (``mesh_normal_deg`` / ``fitted_normal_deg``: median and p90).
+    """
+    rows = []
+    for index, mesh in enumerate(meshes):
+        row: dict = {"mesh": index, "vertices": mesh.num_vertices, "chamfer_to_previous_mm": None}
+        if index:
+            previous = meshes[index - 1]
+            moved = mesh_distances(np.asarray(mesh.vertices), np.asarray(mesh.faces), np.asarray(previous.vertices),
+                                   np.asarray(previous.faces), count=samples, seed=seed)
+            row["chamfer_to_previous_mm"] = 1000 * moved.chamfer
+        if truth is not None:
+            geometry = geometry_errors(mesh, truth, similarity, samples=samples, seed=seed)
+            row.update(chamfer_mm=geometry["chamfer_mm"], hausdorff_mm=geometry["hausdorff_mm"])
+            moved_mesh = transform_mesh(mesh, similarity)
+            _, nearest = cKDTree(np.asarray(truth.vertices, np.float64)).query(np.asarray(moved_mesh.vertices), k=1)
+            true_normals = np.asarray(truth.normals, np.float64)[nearest]
+            row["mesh_normal_deg"] = _summary(angular_error_deg(np.asarray(moved_mesh.normals, np.float64),
+                                                                true_normals), True)
+            if index < len(fitted) and fitted[index] is not None:
+                normals, counted = fitted[index]
+                if similarity is not None:
+                    normals = np.asarray(normals, np.float64) @ np.asarray(similarity.rotation).T
+                counted = np.asarray(counted, bool)
+                row["fitted_normal_deg"] = _summary(angular_error_deg(np.asarray(normals, np.float64)[counted],
+                                                                      true_normals[counted]), True)
+        rows.append(row)
+    return rows
+
+
 # --------------------------------------------------------------------------- images
 
 

@@ -23,6 +23,10 @@ Public API::
     depth_vertex_count(vertices_at_depth, depth, target_depth) -> int
     mesh_area(vertices, faces) -> float
     vertex_normals(vertices, faces) -> (V, 3)
+    mesh_edges(faces) -> (E, 2)
+    blend_normals(fitted, geometric, confidence) -> (N, 3)
+    refine_from_normals(vertices, faces, fitted_normals, confidence, smoothness=0.01, anchor=1e-3,
+                        rounds=3, reference=None) -> (V, 3)   # the geometry update: normal integration
     InitMeshOptions(...); initial_mesh(masks, intrinsics, rotations, translations, options, sparse_points=None,
                                        sparse_views=None, sparse_errors=None, extra_points=None) -> InitialMesh
     orient_outward(vertices, faces, normals=None) -> (faces, consistent)
@@ -569,22 +573,76 @@ def blend_normals(fitted: np.ndarray, geometric: np.ndarray, confidence: np.ndar
     return np.where(length > 1e-9, blended / np.maximum(length, 1e-12), geometric)
 
 
-def remesh_from_normals(vertices: np.ndarray, fitted_normals: np.ndarray, confidence: np.ndarray,
-                        geometric_normals: np.ndarray, target_vertices: int, depth: int = 9,
-                        point_weight: float = 4.0, trim_density: float | None = 2.0) -> tuple[np.ndarray, np.ndarray]:
-    """The geometry update of one iteration (paper §4.4): screened Poisson (:func:`poisson_surface`)
-    of the vertices (N, 3) with their fitted normals blended towards the mesh's own normals by
-    confidence (:func:`blend_normals`), the largest component, remeshed isotropically to about
-    ``target_vertices`` so the fit keeps the same work per iteration. Returns vertices (V, 3) and
-    faces (F, 3)."""
-    normals = blend_normals(fitted_normals, geometric_normals, confidence)
-    new_vertices, new_faces = poisson_surface(vertices, normals, depth=depth, trim_density=trim_density,
-                                              point_weight=point_weight)
-    if len(new_faces) == 0:
-        raise ValueError(f"screened Poisson at depth {depth} of {len(vertices)} points gave no surface")
-    new_vertices, new_faces = largest_component(new_vertices, new_faces)
-    new_vertices, new_faces = remesh_to_count(new_vertices, new_faces, target_vertices)
-    return largest_component(new_vertices, new_faces)
+def mesh_edges(faces: np.ndarray) -> np.ndarray:
+    """The unique undirected edges (E, 2) of a triangle mesh, each as (smaller, larger) vertex index."""
+    faces = np.asarray(faces, np.int64)
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    return np.unique(edges, axis=0)
+
+
+def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals: np.ndarray,
+                        confidence: np.ndarray, smoothness: float = 0.01, anchor: float = 1e-3,
+                        rounds: int = 3, reference: np.ndarray | None = None) -> np.ndarray:
+    """The geometry update of one iteration (paper §4.4): the mesh's vertices (V, 3) moved along its
+    normals so that its surface agrees with the fitted normals (V, 3), as far as their ``confidence``
+    (V,) in [0, 1] allows. Returns the new vertices (V, 3); the faces (F, 3) are kept.
+
+    Normal integration on the mesh: each vertex moves by an offset d along its current normal m; every
+    edge (i, j) should be perpendicular to the mean t_ij of the target normals at its ends (exact on
+    a sphere at any edge length), the targets being the fitted normals blended towards the mesh's by
+    confidence (:func:`blend_normals`). The offsets minimise, in one sparse linear solve per round (conjugate gradients),
+
+        sum_ij c_ij (t_ij . (x_j + d_j m_j - x_i - d_i m_i))^2 + smoothness sum_ij (d_i - d_j)^2
+        + anchor sum_i (d_i - c_i m_i . (r_i - x_i))^2,
+
+    with c_ij = sqrt(c_i c_j) and r the ``reference`` vertices (V, 3) of the same mesh (default: the
+    current ones, i.e. d_i^2). A vertex is held at the reference as far as it is confident, else
+    where it is. Every term is a squared length, so the weights have no units: the
+    normals set the shape, ``smoothness`` keeps the offsets continuous where the fit is unsure, and
+    the small ``anchor`` holds what normals cannot tell (the mean offset, the shape far from any
+    confident vertex) at the reference surface. The loop passes its initial mesh: anchored to the
+    current surface instead, small biases of the normals add up over the iterations (the demo shrank
+    by about 0.6 mm per iteration). ``rounds`` re-linearise around the moved surface.
+    Confidence 0 everywhere leaves every vertex where it was (the offsets solve a system whose
+    right-hand side is zero). Screened Poisson from the same points cannot do this: it reconstructs
+    the surface through the sample positions, so their errors stay (docs/geometry_update.md).
+    """
+    from scipy import sparse
+    from scipy.sparse.linalg import cg, spsolve
+
+    vertices = np.asarray(vertices, np.float64)
+    weight = np.clip(np.nan_to_num(np.asarray(confidence, np.float64)), 0, 1)
+    reference = vertices if reference is None else np.asarray(reference, np.float64)
+    if reference.shape != vertices.shape:
+        raise ValueError(f"reference vertices {reference.shape} do not match the mesh's {vertices.shape}")
+    reference = vertices + weight[:, None] * (reference - vertices)
+    edges = mesh_edges(faces)
+    i, j = edges[:, 0], edges[:, 1]
+    rows = np.concatenate([np.arange(len(edges))] * 2)
+    columns = np.concatenate([i, j])
+    edge_weight = np.sqrt(np.sqrt(weight[i] * weight[j]))  # square root of c_ij: it scales the rows
+    difference = sparse.csr_matrix((np.concatenate([-np.ones(len(edges)), np.ones(len(edges))]), (rows, columns)),
+                                   shape=(len(edges), len(vertices)))
+    regulariser = smoothness * (difference.T @ difference) + anchor * sparse.identity(len(vertices))
+    target = blend_normals(np.asarray(fitted_normals, np.float64), vertex_normals(vertices, faces), weight)
+    edge_normal = target[i] + target[j]
+    edge_normal /= np.maximum(np.linalg.norm(edge_normal, axis=1, keepdims=True), 1e-12)
+    for _ in range(rounds):
+        normals = vertex_normals(vertices, faces)
+        values = np.concatenate([-np.sum(edge_normal * normals[i], 1), np.sum(edge_normal * normals[j], 1)])
+        system = sparse.csr_matrix((values * np.concatenate([edge_weight] * 2), (rows, columns)),
+                                   shape=(len(edges), len(vertices)))
+        residual = -edge_weight * np.sum(edge_normal * (vertices[j] - vertices[i]), 1)
+        matrix = (system.T @ system + regulariser).tocsr()
+        right = system.T @ residual + anchor * np.sum(normals * (reference - vertices), axis=1)
+        # Conjugate gradients with a Jacobi preconditioner: 7x faster than a direct solve at 160k vertices
+        # and 1 nm from it at this tolerance; the direct solve where it does not converge.
+        offsets, info = cg(matrix, right, rtol=1e-8, maxiter=10 * int(np.sqrt(len(vertices))) + 1000,
+                           M=sparse.diags(1.0 / matrix.diagonal()))
+        if info != 0:
+            offsets = spsolve(matrix.tocsc(), right)
+        vertices = vertices + offsets[:, None] * normals
+    return vertices
 
 
 # --------------------------------------------------------------------------- the initial mesh

@@ -335,6 +335,36 @@ def timings_figure(rules: dict[str, dict]):
     return fig
 
 
+def convergence_figure(rows: list[dict]):
+    """The geometry over the loop (rows of :func:`sellip.evaluate.geometry_series`): Chamfer to the previous
+    mesh and to the truth (mm, left), median normal error of the mesh and of the fitted normals (deg, right)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8.0, 3.2), dpi=110, layout="constrained")
+    left, right = fig.subplots(1, 2)
+    x = [row["mesh"] for row in rows]
+
+    def series(key, sub=None):
+        values = [row.get(key) for row in rows]
+        values = [v.get(sub) if isinstance(v, dict) else v for v in values] if sub else values
+        return [np.nan if v is None else v for v in values]
+
+    left.plot(x, series("chamfer_to_previous_mm"), "o-", label="to the previous mesh")
+    if any(row.get("chamfer_mm") is not None for row in rows):
+        left.plot(x, series("chamfer_mm"), "s-", label="to the ground truth")
+    left.set(xlabel="mesh (0: initial; i: after iteration i-1)", ylabel="Chamfer distance (mm)")
+    left.legend(fontsize=8)
+    if any(row.get("mesh_normal_deg") for row in rows):
+        right.plot(x, series("mesh_normal_deg", "median"), "s-", label="mesh normals")
+        right.plot(x, series("fitted_normal_deg", "median"), "o-", label="fitted normals (confident)")
+        right.set(xlabel="mesh", ylabel="normal error, median (deg)")
+        right.legend(fontsize=8)
+    else:
+        right.set_axis_off()
+        right.text(0.5, 0.5, "no ground truth", ha="center", va="center")
+    return fig
+
+
 def save_figure(fig, path: str | Path) -> Path:
     """Write a matplotlib figure as PNG."""
     fig.savefig(path, format="png")

@@ -94,14 +94,12 @@ FACTORS: tuple[Factor, ...] = (
     Factor("augment", "augment.enabled", (False,), "aug {}"),
     Factor("sigma_ss", "fit.settings.sigma_ss_fixed", (0.9, 1.0), "σss {}"),
     Factor("model_selection", "model_selection.enabled", (False,), "selection {}"),
-    Factor("remesh_depth", "remesh.depth", {"quick": (7,), "full": (8, 9)}, "depth {}"),
     Factor("lm_cap", "fit.settings.max_iterations", {"quick": (10,), "full": (5, 10, 60)}, "LM {}"),
     Factor("dtype", "fit.dtype", ("float64",), "{}"),
 )
 """The factors, in sweep order. Adding one is one line here. Every factor of issue #9 in both presets; the
-full one tries more values (iterations 1-8 of 10, 12 and 24 of 36 views, depth 8 and 9 over 7, LM caps 5, 10
-and 60 over 30), the quick one a value or two around its smaller base (iterations 1 and 3 of 2, 12 of 24
-views, depth 7 over 6, LM cap 10)."""
+full one tries more values (iterations 1-8 of 10, 12 and 24 of 36 views, LM caps 5, 10 and 60 over 30), the
+quick one a value or two around its smaller base (iterations 1 and 3 of 2, 12 of 24 views, LM cap 10)."""
 
 SCENE_FACTORS: dict[str, dict[str, tuple[str, ...]]] = {"quick": {"sphere_ior": ("model_selection",)}}
 """Per preset and scene, the only factors swept there (a scene not named: every factor). In the quick preset
@@ -115,7 +113,6 @@ _QUICK = {
     "init": {"hull_resolution": 64, "max_vertices": 1500},
     # Shards are whole observation chunks: 256-vertex chunks split ~1.5k vertices evenly over both shards.
     "observe": {"vertex_chunk": 256},
-    "remesh": {"depth": 6},
     "fit": {"shards": 2, "settings": {"min_views": 6}},
     "augment": {"max_samples": 4096, "settings": {"virtual_count": 45, "virtual_step_deg": 2.0}},
     "evaluate": {"held_out_views": ["v005", "v017"], "render_views": ["v000"], "supersample": 1},
@@ -126,7 +123,6 @@ _FULL = {
     "demo": {"views": 36, "width": 612, "height": 512, "seed": 0},
     "init": {"max_vertices": 6000},
     "observe": {"vertex_chunk": 1024},
-    "remesh": {"depth": 7},
     "fit": {"shards": 2},
     "augment": {"settings": {"virtual_count": 45, "virtual_step_deg": 2.0}},
     "evaluate": {"held_out_views": ["v004", "v013", "v022", "v031"], "render_views": ["v000"], "supersample": 1},
@@ -135,9 +131,9 @@ _FULL = {
 PRESETS: dict[str, dict] = {"quick": _QUICK, "full": _FULL}
 """Base configuration of each preset (over config/config.yaml; the same for every scene).
 
-quick: 24 views at 320x256 (2 held out), ~1.5k vertices, Poisson depth 6, 2 iterations, 6 usable views
+quick: 24 views at 320x256 (2 held out), ~1.5k vertices, 2 iterations, 6 usable views
 per vertex suffice, cluster lobes from at most 4096 samples. full: the built-in demo's own settings (36
-views at 612x512, 4 held out, 6k vertices, depth 7, 10 iterations). Both: 45 virtual samples 2 deg apart
+views at 612x512, 4 held out, 6k vertices, 10 iterations). Both: 45 virtual samples 2 deg apart
 (the demo's), one rendered view, observation chunks that split the vertices over both fit shards."""
 
 
@@ -292,7 +288,7 @@ def pareto_front(cost, loss) -> np.ndarray:
 
 
 TIME_RULES = {"fit_s": "fit_pbrdf", "cluster_s": "cluster_lobes", "observe_s": "gather_observations",
-              "gather_s": "gather_fit", "remesh_s": "remesh_poisson", "render_s": "render_outputs",
+              "gather_s": "gather_fit", "refine_s": "refine_geometry", "render_s": "render_outputs",
               "evaluate_s": "evaluate_model", "init_mesh_s": "init_mesh"}
 """Per-rule job-time columns of sweep.csv and their rules (metrics.json timings, summed over jobs)."""
 

@@ -47,7 +47,7 @@ wildcard_constraints:
 
 
 ITERATIONS = int(config["iterations"])
-"""Outer iterations (observe -> fit -> augment -> remesh); pass ITERATIONS is the final refit."""
+"""Outer iterations (observe -> fit -> augment -> refine geometry); pass ITERATIONS is the final refit."""
 
 
 DEMO_CAPTURE = f"captures/{config['demo']['scene']}"
@@ -100,7 +100,7 @@ def params_of(it):
 
 
 def mesh_of(it):
-    """The mesh of iteration `it`: the initial mesh at 0, else the Poisson mesh of iteration it-1."""
+    """The mesh of iteration `it`: the initial mesh at 0, else the mesh refined by iteration it-1."""
     return f"{RESULTS}/mesh/init.ply" if int(it) == 0 else f"{RESULTS}/iter/{int(it) - 1}/mesh.ply"
 
 

@@ -65,9 +65,13 @@ rule evaluate_model:
         hdr=f"{RESULTS}/hdr.zarr",
         capture=capture_file("capture.yaml"),
         renders=f"{RESULTS}/final/renders",  # evaluated last: its timings cover every other stage
+        meshes=[mesh_of(it) for it in range(ITERATIONS + 1)],
+        fits=[f"{RESULTS}/iter/{it}/fit.zarr" for it in range(ITERATIONS)],
     output:
         metrics=report(f"{RESULTS}/metrics.json", caption="../report/metrics.rst", category="Metrics"),
         timings=report(f"{RESULTS}/final/timings.png", caption="../report/timings.rst", category="Metrics"),
+        convergence=report(f"{RESULTS}/final/geometry_convergence.png", caption="../report/convergence.rst",
+                           category="Metrics"),
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
         benchmarks=f"{RESULTS}/benchmarks",
@@ -81,7 +85,9 @@ rule evaluate_model:
     shell:
         SELLIP + " evaluate --model {input.model} --params {input.params} --cameras {input.cameras}"
         " --hdr {input.hdr} --capture {params.capture} --benchmarks {params.benchmarks}"
-        " --held-out {params.held_out} --output {output.metrics} --timings-plot {output.timings} > {log} 2>&1"
+        " --held-out {params.held_out} --output {output.metrics} --timings-plot {output.timings}"
+        " --iteration-meshes {input.meshes} --iteration-fits {input.fits} --convergence-plot {output.convergence}"
+        " > {log} 2>&1"
 
 
 onsuccess:

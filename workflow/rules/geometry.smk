@@ -75,26 +75,24 @@ rule init_mesh:
         " --mask-threshold {params.mask_threshold} --threads {threads} > {log} 2>&1"
 
 
-rule remesh_poisson:
+rule refine_geometry:
     input:
         params=get_params,
         mesh=get_mesh,
         reference=f"{RESULTS}/mesh/init.ply",
     output:
-        f"{RESULTS}/iter/{{it}}/mesh.ply",
+        mesh=f"{RESULTS}/iter/{{it}}/mesh.ply",
+        summary=f"{RESULTS}/iter/{{it}}/mesh.ply.json",
     params:
-        depth=lambda wildcards: at_iteration(config["remesh"]["depth"], wildcards.it),
-        point_weight=lambda wildcards: at_iteration(config["remesh"]["point_weight"], wildcards.it),
-        trim_density=config["remesh"]["trim_density"],
-        target=lambda wildcards, input: (f"--target-vertices {config['remesh']['target_vertices']}"
-                                         if config["remesh"]["target_vertices"] else f"--reference-mesh {input.reference}"),
+        smoothness=lambda wildcards: at_iteration(config["refine_geometry"]["smoothness"], wildcards.it),
+        anchor=lambda wildcards: at_iteration(config["refine_geometry"]["anchor"], wildcards.it),
+        rounds=config["refine_geometry"]["rounds"],
     conda:
         "../../envs/geometry.yaml"
     log:
-        f"{RESULTS}/logs/remesh_poisson/{{it}}.log",
+        f"{RESULTS}/logs/refine_geometry/{{it}}.log",
     benchmark:
-        f"{RESULTS}/benchmarks/remesh_poisson/{{it}}.tsv"
+        f"{RESULTS}/benchmarks/refine_geometry/{{it}}.tsv"
     shell:
-        SELLIP + " remesh --params {input.params} --mesh {input.mesh} --output {output} --depth {params.depth}"
-        " --point-weight {params.point_weight} --trim-density {params.trim_density} {params.target}"
-        " > {log} 2>&1"
+        SELLIP + " refine-geometry --params {input.params} --mesh {input.mesh} --output {output.mesh}"
+        " --reference-mesh {input.reference} --smoothness {params.smoothness} --anchor {params.anchor} --rounds {params.rounds} > {log} 2>&1"

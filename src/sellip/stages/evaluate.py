@@ -35,7 +35,7 @@ import numpy as np
 from sellip import evaluate
 from sellip.io import GROUND_TRUTH_MESH, CaptureError, read_capture, read_param_mesh
 from sellip.observe import ObserveError
-from sellip.outputs import NEW_LIGHT_OFFSET_M, moved_flash, save_figure, timings_figure
+from sellip.outputs import NEW_LIGHT_OFFSET_M, convergence_figure, moved_flash, save_figure, timings_figure
 from sellip.params import ParamsError, read_params
 from sellip.render import Camera, Renderer, flash_light
 from sellip.stages.render_outputs import OutputsError, load_cameras, model_confidence
@@ -76,6 +76,32 @@ def _moved_camera(camera: Camera, similarity) -> Camera:
     return Camera(camera.intrinsics, rotation, translation, camera.width, camera.height, camera.distortion)
 
 
+def geometry_convergence(mesh_paths: list, fit_paths: list, truth, similarity) -> list[dict]:
+    """:func:`sellip.evaluate.geometry_series` of the loop's mesh files and first-pass fit stores."""
+    from sellip.observe import read_mesh
+    from sellip.render import ParamMesh
+
+    meshes, fitted = [], []
+    for index, path in enumerate(mesh_paths):
+        mesh = read_mesh(path)
+        meshes.append(ParamMesh(mesh.vertices, mesh.faces, mesh.normals, params=None))
+        if index < len(fit_paths):
+            store = read_params(fit_paths[index])
+            counted = (store["status"] == 0) & (store["confidence"] > 0)
+            fitted.append((store["normals"], counted))
+    rows = evaluate.geometry_series(meshes, fitted, truth, similarity)
+    for row in rows:
+        log.info("mesh %d: moved %s mm, Chamfer to the truth %s mm, mesh normals %s deg, fitted %s deg", row["mesh"],
+                 _rounded(row["chamfer_to_previous_mm"]), _rounded(row.get("chamfer_mm")),
+                 _rounded((row.get("mesh_normal_deg") or {}).get("median")),
+                 _rounded((row.get("fitted_normal_deg") or {}).get("median")))
+    return rows
+
+
+def _rounded(value, digits: int = 3):
+    return None if value is None else round(float(value), digits)
+
+
 def _mean_db(per_view: dict) -> float | None:
     values = [v["psnr_db"] for v in per_view.values() if v.get("psnr_db") is not None]
     return float(np.mean(values)) if values else None
@@ -85,8 +111,13 @@ def run_stage(model_path: str | Path, cameras_path: str | Path, hdr_path: str | 
               output: str | Path, params_path: str | Path | None = None, benchmarks: str | Path | None = None,
               held_out: list[str] | None = None, sim3_from_sfm: bool = False, sfm_report: str | Path | None = None,
               supersample: int = 2, geometry_samples: int = 50000, timings_plot: str | Path | None = None,
-              new_light_offset_cam=NEW_LIGHT_OFFSET_M) -> dict:
-    """Compute the figures of merit and write ``output`` (metrics.json); returns the metrics."""
+              new_light_offset_cam=NEW_LIGHT_OFFSET_M, iteration_meshes: list | None = None,
+              iteration_fits: list | None = None, convergence_plot: str | Path | None = None) -> dict:
+    """Compute the figures of merit and write ``output`` (metrics.json); returns the metrics.
+
+    ``iteration_meshes``: the loop's meshes in order (the initial one, then each iteration's), and
+    ``iteration_fits``: the first-pass fit store of each (its fitted normals): ``geometry_iterations``
+    in metrics.json and the ``convergence_plot``."""
     started = time.perf_counter()
     model_path, capture_path, output = Path(model_path), Path(capture_path), Path(output)
     if not model_path.is_file():
@@ -190,6 +221,16 @@ def run_stage(model_path: str | Path, cameras_path: str | Path, hdr_path: str | 
             log.info("new light at %s: PSNR %s dB", view_id, new_light[view_id]["psnr_db"])
         metrics["psnr_new_light"] = {"views": new_light, "mean_db": _mean_db(new_light)}
 
+    # How the geometry converged over the loop.
+    metrics["geometry_iterations"] = None
+    if iteration_meshes:
+        metrics["geometry_iterations"] = geometry_convergence(iteration_meshes, iteration_fits or [], truth,
+                                                              similarity)
+        if convergence_plot is not None:
+            save_figure(convergence_figure(metrics["geometry_iterations"]), convergence_plot)
+    else:
+        reasons["geometry_iterations"] = "no --iteration-meshes given"
+
     # Stage timings.
     metrics["timings"] = None
     if benchmarks is None:
@@ -227,6 +268,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--geometry-samples", type=int, default=50000,
                         help="surface samples per mesh for Chamfer/Hausdorff (default: 50000)")
     parser.add_argument("--timings-plot", type=Path, default=None, help="also write a per-rule wall-time PNG")
+    parser.add_argument("--iteration-meshes", type=Path, nargs="*", default=[],
+                        help="the loop's meshes in order (initial, then each iteration's): geometry_iterations")
+    parser.add_argument("--iteration-fits", type=Path, nargs="*", default=[],
+                        help="the first-pass fit store (fit.zarr) of each of those meshes (fitted normals)")
+    parser.add_argument("--convergence-plot", type=Path, default=None, help="also write the convergence PNG")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -237,7 +283,8 @@ def main(args: argparse.Namespace) -> int:
         run_stage(args.model, args.cameras, args.hdr, args.capture, args.output, params_path=args.params,
                   benchmarks=args.benchmarks, held_out=args.held_out, sim3_from_sfm=args.sim3_from_sfm,
                   sfm_report=args.sfm_report, supersample=args.supersample, geometry_samples=args.geometry_samples,
-                  timings_plot=args.timings_plot)
+                  timings_plot=args.timings_plot, iteration_meshes=args.iteration_meshes,
+                  iteration_fits=args.iteration_fits, convergence_plot=args.convergence_plot)
     except (OutputsError, CaptureError, ObserveError, ParamsError) as exc:
         log.error("%s", exc)
         return 1
