@@ -151,8 +151,8 @@ def parameter_errors(model: ParamMesh, truth: ParamMesh, confident: np.ndarray,
     return {
         "normal_error_deg": {"all": _summary(angle, True), "confident": _summary(angle[confident], True)},
         "eta_relative_error_pct": _summary(eta_error, True),
-        "eta_per_material": eta_per_material(at(p.eta, confident), eta_gt,
-                                             None if truth.material is None else at(truth.material, nearest)[confident]),
+        "eta_per_material": eta_per_material(
+            at(p.eta, confident), eta_gt, None if truth.material is None else at(truth.material, nearest)[confident]),
         "rho_d_relative_rmse": albedo,
         "sigma_s_abs_error": _summary(sigma_s_error),
         "sigma_ss_abs_error": _summary(sigma_ss_error),

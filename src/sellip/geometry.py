@@ -504,7 +504,7 @@ def _face_components(faces: np.ndarray, vertex_count: int) -> tuple[np.ndarray, 
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    edges = mesh_edges(faces)
     graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(vertex_count, vertex_count))
     _, vertex_labels = connected_components(graph, directed=False)
     labels = vertex_labels[faces[:, 0]]
@@ -590,7 +590,8 @@ def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals:
     Normal integration on the mesh: each vertex moves by an offset d along its current normal m; every
     edge (i, j) should be perpendicular to the mean t_ij of the target normals at its ends (exact on
     a sphere at any edge length), the targets being the fitted normals blended towards the mesh's by
-    confidence (:func:`blend_normals`). The offsets minimise, in one sparse linear solve per round (conjugate gradients),
+    confidence (:func:`blend_normals`). The offsets minimise, in one sparse linear solve per round
+    (conjugate gradients),
 
         sum_ij c_ij (t_ij . (x_j + d_j m_j - x_i - d_i m_i))^2 + smoothness sum_ij (d_i - d_j)^2
         + anchor sum_i (d_i - c_i m_i . (r_i - x_i))^2,

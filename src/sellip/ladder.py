@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sellip.io import GROUND_TRUTH_MESH, read_capture, read_param_mesh, write_ply
+from sellip.io import GROUND_TRUTH_MESH, read_capture, read_param_mesh, write_param_mesh
 
 
 def render_hdr(capture: str | Path, hdr: str | Path, output: str | Path, supersample: int = 2) -> Path:
@@ -77,8 +77,7 @@ def fit_true_mesh(capture: str | Path, hdr: str | Path, workdir: str | Path, obs
     workdir.mkdir(parents=True, exist_ok=True)
     truth = read_param_mesh(capture / GROUND_TRUTH_MESH)
     mesh = workdir / "true_mesh.ply"
-    write_ply(mesh, {**{axis: truth.vertices[:, i] for i, axis in enumerate("xyz")},
-                     **{f"n{axis}": truth.normals[:, i] for i, axis in enumerate("xyz")}}, truth.faces)
+    write_param_mesh(mesh, truth)
     shutil.rmtree(workdir / "observations.zarr", ignore_errors=True)
     observe_stage.run_stage(mesh, capture / "poses.csv", hdr, capture, workdir / "observations.zarr",
                             observe_settings or ObserveSettings())

@@ -8,8 +8,8 @@ The mesh's vertices move along its normals until its surface agrees with the ite
 normals, as far as the fit's normal confidence allows (:func:`sellip.geometry.refine_from_normals`,
 docs/geometry_update.md); what normals cannot tell (the mean offset, the shape far from any confident
 normal) is held at ``--reference-mesh`` (the loop's initial mesh, so that small biases of the normals
-do not add up over the iterations; default: ``--mesh``). The faces stay, so every vertex keeps its parameters (the next fit's warm
-start) and the vertex count does not drift. Written atomically as a model PLY
+do not add up over the iterations; default: ``--mesh``). The faces stay, so every vertex keeps its
+parameters (the next fit's warm start) and the vertex count does not drift. Written atomically as a model PLY
 (:func:`sellip.io.write_param_mesh`) with the normals of the new surface and the ``confidence``: the
 mesh of the next iteration. Beside it, ``<output>.json`` says how far the surface moved and how far the
 fitted normals were from the mesh's before and after (a convergence figure that needs no ground truth).
@@ -28,14 +28,11 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 
-def _angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
-
-
 def run_stage(params_path: Path, mesh_path: Path, output: Path, smoothness: float = 0.01, anchor: float = 1e-3,
               rounds: int = 3, min_confidence: float = 0.5, reference_mesh: Path | None = None) -> dict:
     """Write the next iteration's mesh ``output`` and ``<output>.json``; returns the summary written there.
     ``min_confidence``: the vertices whose normal agreement is reported."""
+    from sellip.evaluate import angular_error_deg
     from sellip.fit import confidence_from_uncertainty
     from sellip.geometry import mesh_distances, refine_from_normals, vertex_normals
     from sellip.io import write_param_mesh
@@ -79,12 +76,13 @@ def run_stage(params_path: Path, mesh_path: Path, output: Path, smoothness: floa
     offsets = np.linalg.norm(new_vertices - mesh.vertices, axis=1)
 
     def agreement(normals):
-        return float(np.median(_angles_deg(fitted[confident], normals[confident]))) if confident.any() else None
+        return float(np.median(angular_error_deg(fitted[confident], normals[confident]))) if confident.any() else None
 
     summary = {"vertices": len(new_vertices), "confident_vertices": int(confident.sum()),
                "moved_chamfer_mm": 1e3 * moved.chamfer, "moved_hausdorff_mm": 1e3 * moved.hausdorff,
                "offset_median_mm": 1e3 * float(np.median(offsets)), "offset_max_mm": 1e3 * float(offsets.max()),
-               "fitted_vs_mesh_before_deg": agreement(vertex_normals(mesh.vertices, mesh.faces)), "fitted_vs_mesh_after_deg": agreement(new_normals),
+               "fitted_vs_mesh_before_deg": agreement(vertex_normals(mesh.vertices, mesh.faces)),
+               "fitted_vs_mesh_after_deg": agreement(new_normals),
                "seconds": time.perf_counter() - started}
     tmp.replace(output)
     Path(f"{output}.json").write_text(json.dumps(summary, indent=1))
