@@ -180,10 +180,17 @@ def _fake_benchmarks(results, vertices=1200):
 
 
 def test_stage_timings_sum_per_rule_and_count_vertex_fits(tmp_path):
+    from sellip.timing import format_report
+
     bench = _fake_benchmarks(tmp_path, vertices=1200)
+    logs = tmp_path / "logs" / "fit_pbrdf" / "0" / "fit"
+    logs.mkdir(parents=True)
+    for shard, (read, fit) in (("1-of-2", (0.25, 1.0)), ("2-of-2", (0.5, 1.25))):  # the job logs' phases lines
+        (logs / f"{shard}.log").write_text(f"warning\n2026 INFO sellip: {format_report({'read': read, 'fit': fit})}\n")
     timings = evaluate.stage_timings(bench)
-    assert timings["rules"]["fit_pbrdf"] == {"s": 4.0, "jobs": 2}
-    assert timings["rules"]["merge_hdr"] == {"s": 3.5, "jobs": 1}
+    assert timings["rules"]["fit_pbrdf"] == {"s": 4.0, "jobs": 2, "phases": {"read": 0.75, "fit": 2.25},
+                                             "phases_jobs": 2}
+    assert timings["rules"]["merge_hdr"] == {"s": 3.5, "jobs": 1, "phases": {}, "phases_jobs": 0}
     assert timings["total_s"] == pytest.approx(8.0)
     assert timings["vertex_fits"] == 1200 and timings["vertex_fits_per_s"] == pytest.approx(300.0)
 

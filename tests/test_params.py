@@ -56,3 +56,39 @@ def test_params_round_trip_and_errors(tmp_path):
     with pytest.raises(ParamsError, match="nothing.zarr"):
         read_params(tmp_path / "nothing.zarr")
     np.testing.assert_array_equal(transfer_nearest(arrays["vertices"], arrays["vertices"][[3, 7]]), [3, 7])
+
+
+def test_gather_keeps_the_starting_normal_of_unfitted_vertices(tmp_path):
+    """Parameters of unfitted vertices come from their fitted neighbours, normals do not: the fit hands
+    back each unfitted vertex's starting (mesh) normal, which gather-fit keeps."""
+    from sellip.fit import STATUS_FITTED, STATUS_TOO_FEW_VIEWS
+    from sellip.observe import ObservationWriter, ObserveMesh, ObserveSettings
+    from sellip.stages import gather_fit
+
+    rng = np.random.default_rng(1)
+    n = 40
+    normals = rng.normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)  # every vertex its own direction
+    vertices = 0.01 * rng.normal(size=(n, 3))
+    ObservationWriter(tmp_path / "observations.zarr", ObserveMesh(vertices, normals, np.zeros((0, 3), np.int64)),
+                      ["v0"], {"camera_up": np.eye(3)[1:2], "light_axis": np.eye(3)[:1]},
+                      ObserveSettings(vertex_chunk=16, view_chunk=1))
+    fitted = np.arange(n) % 3 != 0
+    eta = np.where(fitted, 1.5, np.nan)
+    shards = []
+    for start, stop in ((0, 16), (16, n)):
+        rows = slice(start, stop)
+        k = stop - start
+        path = tmp_path / f"{start}.npz"
+        np.savez(path, start=start, stop=stop, normal=normals[rows],
+                 status=np.where(fitted[rows], STATUS_FITTED, STATUS_TOO_FEW_VIEWS),
+                 confidence=np.where(fitted[rows], 0.9, 0.0), loss=np.zeros(k), views_used=np.full(k, 5),
+                 iterations=np.ones(k), normal_std_deg=np.ones(k), eta_std=np.ones(k), eta=eta[rows],
+                 rho_d=np.full((k, 3), 0.3), rho_s=np.full(k, 0.1), sigma_s=np.full(k, 0.2),
+                 rho_ss=np.zeros((k, 3)), sigma_ss=np.full(k, 0.6))
+        shards.append(path)
+    gather_fit.run_stage(tmp_path / "observations.zarr", shards[::-1], tmp_path / "fit.zarr")
+    store = read_params(tmp_path / "fit.zarr")
+    np.testing.assert_allclose(store["normals"], normals, atol=1e-6)
+    np.testing.assert_allclose(store["eta"], 1.5, atol=1e-6)  # filled from the fitted neighbours
+    np.testing.assert_array_equal(store["confidence"] > 0, fitted)

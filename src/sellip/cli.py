@@ -12,6 +12,8 @@ import importlib
 import logging
 import sys
 
+from sellip import timing
+
 # command name -> (module under sellip.stages, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("synth", "generate a synthetic capture"),
@@ -48,16 +50,22 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one stage; its last log line is where the job's time went (:mod:`sellip.timing`)."""
+    clock = timing.start()
     argv = sys.argv[1:] if argv is None else list(argv)
     command = next((a for a in argv if not a.startswith("-")), None)
-    args = build_parser(command if command in COMMANDS else None).parse_args(argv)
+    with timing.phase("imports"):
+        args = build_parser(command if command in COMMANDS else None).parse_args(argv)
+        module = importlib.import_module(f"sellip.stages.{args._module}")
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
-    module = importlib.import_module(f"sellip.stages.{args._module}")
-    return int(module.main(args) or 0)
+    with timing.phase("run"):
+        status = int(module.main(args) or 0)
+    logging.getLogger("sellip").info(timing.format_report(clock.report()))
+    return status
 
 
 if __name__ == "__main__":

@@ -264,7 +264,12 @@ def stage_timings(benchmarks_dir: str | Path, results_dir: str | Path | None = N
     summed over the passes that have fit_pbrdf benchmarks (``fit_pbrdf/{it}/{pass}/{shard}.tsv``), divided
     by those jobs' summed wall time (per core-second of a single-threaded shard job)
     (``results_dir`` defaults to the parent of ``benchmarks_dir``); None with a reason when not available.
+    Per rule also ``phases``: the seconds of each part of its jobs (:mod:`sellip.timing`: start-up, imports,
+    read, trace, compile, fit, write ...) summed from the phases line of each job's log, the log at the same
+    path under ``results_dir/logs`` (``phases_jobs``: how many logs had one).
     """
+    from sellip.timing import read_job_phases
+
     benchmarks_dir = Path(benchmarks_dir)
     results_dir = Path(results_dir) if results_dir is not None else benchmarks_dir.parent
     rules: dict[str, dict] = {}
@@ -273,9 +278,14 @@ def stage_timings(benchmarks_dir: str | Path, results_dir: str | Path | None = N
         relative = path.relative_to(benchmarks_dir)
         rule = relative.parts[0].removesuffix(".tsv")
         seconds = _benchmark_seconds(path)
-        entry = rules.setdefault(rule, {"s": 0.0, "jobs": 0})
+        entry = rules.setdefault(rule, {"s": 0.0, "jobs": 0, "phases": {}, "phases_jobs": 0})
         entry["s"] += seconds
         entry["jobs"] += 1
+        phases = read_job_phases(results_dir / "logs" / relative.with_suffix(".log"))
+        if phases:
+            entry["phases_jobs"] += 1
+            for name, value in phases.items():
+                entry["phases"][name] = entry["phases"].get(name, 0.0) + float(value)
         if rule == FIT_RULE and len(relative.parts) >= 4:
             key = relative.parts[1:3]  # (iteration, pass)
             fit_seconds[key] = fit_seconds.get(key, 0.0) + seconds

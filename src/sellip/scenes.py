@@ -2,8 +2,8 @@
 
 Public API::
 
-    SCENES: tuple of scene names ("demo", "sphere_ior", "tiny", "tiny_dark", "tiny_white", "tiny_mirror",
-            "tiny_bumpy")
+    SCENES: tuple of scene names ("demo", "demo_feathers", "sphere_ior", "tiny", "tiny_dark", "tiny_white",
+            "tiny_mirror", "tiny_bumpy", "tiny_relief")
     build_scene(name) -> Scene                       # mesh with per-vertex pBRDF parameters, fixed per name
     handheld_orbit(views, width, height, rng, ...) -> list[Camera]
     device_intrinsics(width, height) -> (3, 3) K    # the 25 mm lens on the IMX250 scaled to width
@@ -15,11 +15,13 @@ always the same object; the capture seed only moves the cameras and the noise.
 Scenes:
 
 - ``demo``: an owl-like blob about 12 cm tall: ear tufts, eye sockets and a
-  beak, a facial disc, wing creases (concavities that cast flash shadows) and
-  feather-scale bumps (~0.3 mm). Three materials (DEMO_MATERIALS): plumage
+  beak, a facial disc, wing creases (concavities that cast flash shadows); its
+  feathers are in the albedo. Three materials (DEMO_MATERIALS): plumage
   (eta 1.48, sigma_s 0.28), facial disc and belly with single scattering
   (eta 1.36, sigma_s 0.42), glossy eyes and beak (eta 1.62, sigma_s 0.09).
   The albedo is a cellular "feather" texture with detail at a few pixels.
+- ``demo_feathers``: the demo with a feather relief (0.35 mm ridges between 3 mm
+  cells) finer than its pixels: a hard case (docs/accuracy.md: it biases eta low).
 - ``sphere_ior``: a 6 cm-radius textured sphere split into seven wedges with
   the refractive indices of the paper's Table 1 (SPHERE_IOR_ETAS).
 - ``tiny``: a 4 cm-radius sphere with two materials, coarse mesh, for tests.
@@ -29,6 +31,8 @@ Scenes:
   a dark diffuse albedo). Same flash power as ``tiny``: the rig, not the object, sets it.
 - ``tiny_bumpy``: the ``tiny`` materials on a sphere with three 4 mm bumps and three 4 mm dents (finer
   mesh, 10242 vertices): shape detail for the initial-mesh cases of the stability suite.
+- ``tiny_relief``: the ``tiny`` materials with the demo_feathers relief (40962 vertices): sub-pixel
+  surface detail for the stability suite.
 """
 
 from __future__ import annotations
@@ -41,7 +45,8 @@ from scipy.spatial import cKDTree
 from sellip.pbrdf import PBRDFParams
 from sellip.render import Camera, ParamMesh
 
-SCENES = ("demo", "sphere_ior", "tiny", "tiny_dark", "tiny_white", "tiny_mirror", "tiny_bumpy")
+SCENES = ("demo", "demo_feathers", "sphere_ior", "tiny", "tiny_dark", "tiny_white", "tiny_mirror", "tiny_bumpy",
+          "tiny_relief")
 
 DEVICE_WIDTH_PX = 2448
 DEVICE_FX_PX = 7246.0
@@ -160,8 +165,21 @@ def _params_from_regions(materials, region: np.ndarray, rho_d: np.ndarray) -> PB
 # --------------------------------------------------------------------------- scenes
 
 
-def _demo() -> Scene:
-    """The owl-like blob (see the module docstring). Facing +x, z up, about 12 cm tall."""
+FEATHER_RELIEF_M = 0.00035
+"""Height of the demo_feathers relief (ridges between ~3 mm feather cells, slopes up to ~16 deg): the demo's
+owl had it until the accuracy ladder showed it is finer than a 612x512 pixel (0.5 mm), so every pixel
+averages several normals and the polarization it sees is depolarized (docs/accuracy.md)."""
+
+
+def feather_relief(f1: np.ndarray, edge: np.ndarray, cell_rad: float, height_m: float) -> np.ndarray:
+    """Radius offset (N,) metres of cellular feathers from :func:`cellular`'s F1 and F2 - F1 (radians):
+    ridges of ``height_m`` between cells of angular size ``cell_rad``, a dimple of 4/7 of that at each centre."""
+    return height_m * (np.clip(edge / (0.35 * cell_rad), 0, 1) - 4 / 7 * np.exp(-(f1 / (0.25 * cell_rad)) ** 2))
+
+
+def _demo(relief_m: float = 0.0, name: str = "demo") -> Scene:
+    """The owl-like blob (see the module docstring). Facing +x, z up, about 12 cm tall; ``relief_m``:
+    height of the feather relief (0: the feathers are in the albedo only)."""
     rng = np.random.default_rng(20220804)
     d, faces = icosphere(7)
     x, y, z = d[:, 0], d[:, 1], d[:, 2]
@@ -182,10 +200,10 @@ def _demo() -> Scene:
         radius -= 0.0035 * np.exp(-0.5 * ((wing - 0.75) / 0.06) ** 2) * (z < 0.5)
     radius += sum(0.004 * bump(d, _direction(side * 25, -72), 0.12) for side in (1, -1))  # feet
 
-    # Feathers: cellular bumps (~5 mm cells) with grooves between them.
+    # Feathers: cells of ~3 mm (their albedo below; with relief_m, ridges between them).
     f1, edge, cell = cellular(d, 2500, rng)
     cell_size = np.sqrt(4 * np.pi / 2500)
-    radius += 0.00035 * np.clip(edge / (0.35 * cell_size), 0, 1) - 0.0002 * np.exp(-(f1 / (0.25 * cell_size)) ** 2)
+    radius += feather_relief(f1, edge, cell_size, relief_m)
     vertices = d * radius[:, None]
 
     # Regions: 0 plumage, 1 facial disc and belly, 2 eyes and beak.
@@ -210,7 +228,7 @@ def _demo() -> Scene:
 
     mesh = ParamMesh(vertices=vertices, faces=faces, normals=vertex_normals(vertices, faces),
                      params=_params_from_regions(DEMO_MATERIALS, region, albedo), material=region)
-    return Scene("demo", mesh, DEMO_MATERIALS, flash_power=64000.0)
+    return Scene(name, mesh, DEMO_MATERIALS, flash_power=64000.0)
 
 
 def _sphere_ior() -> Scene:
@@ -245,19 +263,26 @@ TINY_BUMP_WIDTH_RAD = 0.2
 
 
 def _two_material_sphere(name: str, materials: tuple[Material, Material], checker_gain: tuple[float, float],
-                         flash_power: float = TINY_FLASH_POWER, subdivisions: int = 4, bumps=()) -> Scene:
+                         flash_power: float = TINY_FLASH_POWER, subdivisions: int = 4, bumps=(),
+                         relief_m: float = 0.0) -> Scene:
     """A 4 cm sphere (icosphere of ``subdivisions``: 4 gives 2562 vertices), ``materials`` on the top and bottom
     halves, and a checker texture (12 azimuth sectors x 8 bands) that scales each material's rho_d by
     ``checker_gain`` (dark, light). ``bumps``: ((azimuth, elevation) deg, height m) Gaussian bumps of
-    TINY_BUMP_WIDTH_RAD added to the radius (the normals are then the surface's)."""
+    TINY_BUMP_WIDTH_RAD added to the radius; ``relief_m``: :func:`feather_relief` of that height between cells
+    of 3.3 mm (as the demo_feathers owl's) added too (with either, the normals are the surface's)."""
     d, faces = icosphere(subdivisions)
     region = (d[:, 2] < 0).astype(np.int64)
     azimuth = np.arctan2(d[:, 1], d[:, 0])
     checker = ((np.floor(azimuth / (np.pi / 6)) + np.floor(d[:, 2] / 0.25)) % 2).astype(np.int64)
     albedo = np.array([m.rho_d for m in materials])[region] * np.asarray(checker_gain, np.float64)[checker][:, None]
     radius = 0.04 + sum(height * bump(d, _direction(*where), TINY_BUMP_WIDTH_RAD) for where, height in bumps)
-    vertices = radius[:, None] * d if bumps else 0.04 * d
-    normals = vertex_normals(vertices, faces) if bumps else d.copy()
+    if relief_m:
+        cell_rad = 0.0033 / 0.04
+        f1, edge, _ = cellular(d, round(4 * np.pi / cell_rad**2), np.random.default_rng(7))
+        radius = radius + feather_relief(f1, edge, cell_rad, relief_m)
+    shaped = bool(bumps) or bool(relief_m)
+    vertices = radius[:, None] * d if shaped else 0.04 * d
+    normals = vertex_normals(vertices, faces) if shaped else d.copy()
     mesh = ParamMesh(vertices=vertices, faces=faces, normals=normals,
                      params=_params_from_regions(materials, region, albedo), material=region)
     return Scene(name, mesh, materials, flash_power=flash_power)
@@ -277,6 +302,17 @@ def _tiny_bumpy() -> Scene:
     """The tiny sphere's materials on a finer sphere (10242 vertices) with three 4 mm bumps and three 4 mm dents
     (TINY_BUMPS): shape detail that an over-smoothed initial mesh loses and a visual hull cannot carve."""
     return _two_material_sphere("tiny_bumpy", TINY_MATERIALS, (0.6, 1.2), subdivisions=5, bumps=TINY_BUMPS)
+
+
+def _tiny_relief() -> Scene:
+    """The tiny sphere with the demo_feathers relief (0.35 mm ridges between 3.3 mm cells, 40962 vertices): surface
+    detail finer than a pixel of the stability suite's 320x256 (about 1 mm), which depolarizes what a pixel sees."""
+    return _two_material_sphere("tiny_relief", TINY_MATERIALS, (0.6, 1.2), subdivisions=6, relief_m=FEATHER_RELIEF_M)
+
+
+def _demo_feathers() -> Scene:
+    """The demo owl with its feather relief (FEATHER_RELIEF_M)."""
+    return _demo(FEATHER_RELIEF_M, "demo_feathers")
 
 
 def _tiny_dark() -> Scene:
@@ -303,8 +339,9 @@ def _tiny_mirror() -> Scene:
     return _two_material_sphere("tiny_mirror", materials, (0.6, 1.0))
 
 
-_BUILDERS = {"demo": _demo, "sphere_ior": _sphere_ior, "tiny": _tiny, "tiny_dark": _tiny_dark,
-             "tiny_white": _tiny_white, "tiny_mirror": _tiny_mirror, "tiny_bumpy": _tiny_bumpy}
+_BUILDERS = {"demo": _demo, "demo_feathers": _demo_feathers, "sphere_ior": _sphere_ior, "tiny": _tiny,
+             "tiny_dark": _tiny_dark, "tiny_white": _tiny_white, "tiny_mirror": _tiny_mirror, "tiny_bumpy": _tiny_bumpy,
+             "tiny_relief": _tiny_relief}
 
 
 def build_scene(name: str) -> Scene:

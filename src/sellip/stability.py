@@ -4,8 +4,8 @@ Each case is a real Snakemake run of the repository's workflow on a small synthe
 ``tiny`` sphere at 320x256, 36 views, two iterations: :func:`base_config`) with one thing broken:
 the material (paper §6: very dark, white and rough, near-mirror), the capture (12 or 24 views, 4x
 sensor noise, the flash position off by 1 cm, missing and corrupt frames) or the geometry (a sphere
-with 4 mm bumps and dents from the default and from an over-smoothed initial mesh; the initial mesh
-perturbed by 1 mm along the normals); ``baseline`` breaks nothing. Per case: the
+with 4 mm bumps and dents from the default and from an over-smoothed initial mesh; relief finer than a
+pixel; the initial mesh perturbed by 1 mm along the normals); ``baseline`` breaks nothing. Per case: the
 figures of merit of metrics.json, whether every output is finite, and how well the per-vertex
 confidence flags the vertices whose normal (or η) is wrong. docs/benchmarks.md has the table.
 
@@ -129,6 +129,8 @@ CASES: tuple[Case, ...] = (
          config={"demo": {"scene": "tiny_bumpy"}}),
     Case("bumpy_smooth", "geometry", "tiny_bumpy from an over-smoothed initial mesh (hull 16 voxels, Poisson "
          "depth 4)", config={"demo": {"scene": "tiny_bumpy"}, "init": {"hull_resolution": 16, "poisson_depth": 4}}),
+    Case("relief", "geometry", "surface relief finer than a pixel: 0.35 mm ridges between 3.3 mm cells "
+         "(scene tiny_relief; a pixel is about 1 mm)", config={"demo": {"scene": "tiny_relief"}}),
     Case("init_perturbed", "geometry", "initial mesh perturbed along its normals (1 mm RMS, seeded)",
          perturb_m=0.001),
 )

@@ -170,6 +170,9 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
     """Cluster the vertices of ``params``, choose each cluster's model (``selection``:
     :class:`sellip.models.SelectionSettings`, default on), fit the cluster lobes on ``observations``,
     write ``output``."""
+    from sellip.timing import mark
+
+    mark("imports")
     import jax
 
     from sellip.stages.fit import enable_compilation_cache
@@ -187,6 +190,7 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
     settings = settings or AugmentSettings()
     fit_settings = fit_settings or FitSettings()
     selection = selection or SelectionSettings()
+    mark("read")
     store = read_params(params)
     group = open_observations(observations)
     total = int(group.attrs["num_vertices"])
@@ -194,6 +198,7 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
     if not same_vertices(np.asarray(group["vertices"][...]), store["vertices"]):
         raise ObserveError(observations, f"holds {total} vertices that are not the {n} vertices of {params} "
                                          "(cluster-lobes needs the params and observations of the same mesh)")
+    mark("cluster")
     clustering = cluster_materials(store["eta"], store["rho_d"], store["status"], store["confidence"], settings, seed)
     k = len(clustering.centres)
     log.info("K = %d clusters (BIC over K: %s), %d merges", k,
@@ -211,7 +216,9 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
         # Enough vertices for max_samples samples at >= 8 usable views each, a seeded subset.
         limit = max(64, settings.max_samples // 8)
         rows = np.sort(rng.choice(members, limit, replace=False)) if members.size > limit else members
+        mark("read")
         obs = _load_rows(group, rows)
+        mark("select")
         eta0 = float(np.median(store["eta"][members]))
         began = time.perf_counter()
         if selection.enabled:
@@ -227,6 +234,7 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
                             "seconds": time.perf_counter() - began})
         else:
             model = model_of(fit_settings)
+        mark("fit")
         lobe = fit_cluster_lobe(obs, store["normals"][rows], store["rho_d"][rows], eta0,
                                 settings_for_model(fit_settings, model, selection.sigma_ss_fixed), settings,
                                 seed=seed + cluster)
@@ -241,6 +249,7 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
                          "sigma_s": lobe.sigma_s, "sigma_ss": lobe.sigma_ss, "rho_s": lobe.rho_s,
                          **{f"rho_ss_{c}": float(lobe.rho_ss[i]) for i, c in enumerate("rgb")},
                          "samples": lobe.samples, "loss": lobe.loss, "model": model})
+    mark("write")
     table = lobes_schema().validate(pd.DataFrame(rows_out, columns=list(LOBE_COLUMNS)))
     vertex_models = np.asarray(models, np.uint8)[clustering.labels]
     counts = {str(m): int(np.sum(vertex_models == m)) for m in sorted(MODEL_NAMES)}

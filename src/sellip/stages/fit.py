@@ -104,6 +104,9 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
     """Fit one shard and write ``output`` (.npz, atomically); with ``lobes`` the augmented refit.
     Every vertex is fitted with its model (module docstring); ``fixed_sigma_ss`` is model 2's
     sigma_ss when ``settings.sigma_ss_fixed`` is None. Returns a summary dict."""
+    from sellip.timing import mark
+
+    mark("imports")
     import jax
 
     if dtype == "float64":
@@ -120,6 +123,7 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
         transfer_nearest,
     )
 
+    mark("read")
     settings = settings or FitSettings()
     group = open_observations(observations)
     total = int(group.attrs["num_vertices"])
@@ -165,12 +169,14 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
     per_model = {int(m): int(np.sum(models == m)) for m in np.unique(models)}
     log.info("models from %s: %s vertices per model (model 2's sigma_ss %s)", source, per_model,
              settings.sigma_ss_fixed if settings.sigma_ss_fixed is not None else fixed_sigma_ss)
+    mark("fit")
     began = time.perf_counter()
     if n:
         result = fit_by_model(obs, normal0, start_params, models, settings, fixed_sigma_ss,
                               progress=lambda done: log.info("fitted %d / %d vertices (%.0f s)", done, n,
                                                              time.perf_counter() - began), virtual=virtual)
     seconds = time.perf_counter() - began
+    mark("write")
     arrays = {"start": np.asarray(start), "stop": np.asarray(stop)}
     if n:
         arrays.update(normal=result.normal, status=result.status, confidence=result.confidence, loss=result.loss,

@@ -5,8 +5,10 @@
                       --output results/NAME/iter/0/fit.zarr
 
 The shards must cover the store's vertices exactly once. Vertices that could not be fitted
-(too few views, failed) get parameters and normals interpolated from their fitted neighbours
-and confidence 0 (DESIGN §7); they keep their ``model`` (their cluster's, not fitted). The store
+(too few views, failed) get parameters interpolated from their fitted neighbours and confidence 0
+(DESIGN §7); they keep their starting normal (the mesh's: a neighbour's normal belongs to another
+part of the surface; interpolating them left the demo's unlit underside 17 deg median off its own
+mesh) and their ``model`` (their cluster's, not fitted). The store
 layout is :mod:`sellip.params`; ``model`` (the model each vertex was fitted with) is written when
 every shard has it.
 """
@@ -50,7 +52,7 @@ def run_stage(observations: Path, shards: list[Path], output: Path) -> dict:
     arrays = {name: np.concatenate([p[name] for p in parts]) for name in names}
     vertices = np.asarray(group["vertices"][:])
     fitted = arrays["status"] == STATUS_FITTED
-    for name in ("normal", *PARAM_FIELDS):
+    for name in PARAM_FIELDS:
         arrays[name] = fill_from_neighbours(vertices, arrays[name], fitted)
     arrays["normal"] /= np.maximum(np.linalg.norm(arrays["normal"], axis=1, keepdims=True), 1e-12)
     arrays["confidence"] = np.where(fitted, arrays["confidence"], 0.0)

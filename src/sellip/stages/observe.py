@@ -116,7 +116,9 @@ def run_stage(mesh_path: str | Path, cameras_path: str | Path, hdr_path: str | P
     from sellip.stages.linearize import atomic_directory, progress_logger
     from sellip.stages.merge_hdr import read_hdr
     from sellip.stages.sfm import read_cameras
+    from sellip.timing import mark
 
+    mark("read")
     started = time.perf_counter()
     capture = read_capture(capture_path, check_files=False)  # raw frames are ingest's business
     light = capture.config["light"]
@@ -157,6 +159,7 @@ def run_stage(mesh_path: str | Path, cameras_path: str | Path, hdr_path: str | P
     observer = Observer(mesh, settings)
     usable_views = np.zeros(mesh.num_vertices, np.int32)
     passed = np.zeros(len(Visibility._fields), np.int64)  # vertex-views passing each test (cumulative)
+    mark("observe")
     done = progress_logger(len(pairs), "observed views", log)
     with atomic_directory(output) as tmp:
         view_axes = {"camera_up": np.stack([c.up for c in cameras]), "light_axis": np.stack([f.axis for f in flashes])}
