@@ -218,6 +218,10 @@ def test_evaluate_cli_on_a_perfect_model(tiny_run, tmp_path):
     for view in held_out:
         assert metrics["psnr_held_out"]["views"][view]["psnr_db"] > 60
         assert metrics["psnr_held_out"]["views"][view]["scale"] == pytest.approx(7.0, rel=1e-4)
+        # The model is the ground truth: the ceiling is the model's own PSNR.
+        assert metrics["psnr_held_out"]["views"][view]["ground_truth_psnr_db"] == pytest.approx(
+            metrics["psnr_held_out"]["views"][view]["psnr_db"])
+    assert metrics["psnr_held_out"]["ground_truth_mean_db"] == pytest.approx(metrics["psnr_held_out"]["mean_db"])
     assert metrics["psnr_new_light"]["mean_db"] == evaluate.PSNR_MAX_DB
     assert metrics["timings"]["vertex_fits_per_s"] == pytest.approx(300.0)
     assert plot.stat().st_size > 1000

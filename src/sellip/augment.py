@@ -23,7 +23,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 from dataclasses import dataclass
-from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -32,6 +31,7 @@ import numpy as np
 
 from sellip import fit
 from sellip.fit import FitSettings, Observations, VirtualSamples
+from sellip.kernels import kernel
 
 log = logging.getLogger(__name__)
 
@@ -281,7 +281,12 @@ def _pool_samples(obs: Observations, normals, rho_d, settings: FitSettings, max_
     settings = lobe_fit_settings(settings)
     obs = Observations(*[np.asarray(x, dtype) if np.asarray(x).dtype.kind == "f" else np.asarray(x) for x in obs])
     normals = np.asarray(normals, dtype) / np.linalg.norm(normals, axis=-1, keepdims=True)
-    keep = np.asarray(fit._select(Observations(*[jnp.asarray(x) for x in obs]), jnp.asarray(normals), settings))
+    # Rows padded to 2048 or a power of two (repeats, cut off after): one compiled view selection serves clusters
+    # and pools of any size (each size was a trace and a compile or cache load, 24 per demo job).
+    n = len(normals)
+    rows = np.minimum(np.arange(fit._bucket(n, minimum=2048)), max(n - 1, 0))
+    keep = np.asarray(fit._select(Observations(*[jnp.asarray(np.asarray(x)[rows]) for x in obs]),
+                                  jnp.asarray(normals[rows]), settings))[:n]
     vertex, view = np.nonzero(keep)
     if vertex.size > max_samples:
         pick = np.sort(rng.choice(vertex.size, max_samples, replace=False))
@@ -312,8 +317,9 @@ def _stacked_residuals(z, delta, samples, settings, lambda_theta):
     return _cluster_residuals(z, delta, None, samples, settings, lambda_theta)[0].ravel()
 
 
-_stacked = jax.jit(_stacked_residuals, static_argnames=("settings",))
-_stacked_jacobian = jax.jit(jax.jacfwd(_stacked_residuals), static_argnames=("settings",))
+_stacked = kernel(_stacked_residuals, static_argnames=("settings",))
+_stacked_jacobian = kernel(jax.jacfwd(_stacked_residuals), static_argnames=("settings",),
+                           name="sellip.augment._stacked_jacobian")
 
 
 def _delta_step(z, delta, samples, settings: FitSettings, lambda_theta, max_delta, steps: int = 3, spec=None):
@@ -336,10 +342,10 @@ def _delta_step(z, delta, samples, settings: FitSettings, lambda_theta, max_delt
     return delta
 
 
-_delta_step_jit = jax.jit(_delta_step, static_argnames=("settings", "steps"))
+_delta_step_jit = kernel(_delta_step, static_argnames=("settings", "steps"))
 
 
-@partial(jax.jit, static_argnames=("settings",))
+@kernel(static_argnames=("settings",))
 def _pool_solution(z, delta, samples: _Samples, settings: FitSettings, lambda_theta):
     """At the solution z of a cluster fit: its loss, albedos (4,), eta, sigma_s, sigma_ss, and per sample
     the measured lobe value (J,) and its shading R+(theta_d)/R+(0) x S (J,) (their ratio is comparable to
@@ -353,7 +359,7 @@ def _pool_solution(z, delta, samples: _Samples, settings: FitSettings, lambda_th
     return jnp.sum(res**2), spec, eta, sigma_s, sigma_ss, measured, shading
 
 
-@partial(jax.jit, static_argnames=("settings",))
+@kernel(static_argnames=("settings",))
 def _sample_losses(z, delta, spec, samples: _Samples, settings: FitSettings, lambda_theta):
     """The cluster loss of each sample (J,) with the lobe (z, albedos ``spec``) and deltas held."""
     res, _ = _cluster_residuals(z, delta, spec, samples, settings, lambda_theta)

@@ -40,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sellip import polar
+from sellip.kernels import kernel
 from sellip.conventions import observations_from_analyzers, stokes_to_analyzers
 from sellip.fresnel import fresnel
 from sellip.pbrdf import (PBRDFParams, ViewFrames, diffuse_stokes, lobe_factor, lobe_stokes, reflection_stokes,
@@ -692,7 +693,7 @@ def _lm_step(state: _LMState, v: _Vertex, frame: _Frame, settings: FitSettings, 
             jnp.where(fresh, ~better, converged | stalled), fresh)
 
 
-@partial(jax.jit, static_argnames=("settings", "steps", "free"))
+@kernel(static_argnames=("settings", "steps", "free"))
 def _lm_rounds(state: _LMState, records: _Vertex, frames: _Frame, settings: FitSettings, steps: int,
                free: tuple[int, ...]) -> _LMState:
     """Up to ``steps`` LM iterations for a batch, stopping early when every vertex is done. Which
@@ -731,7 +732,7 @@ ROUGHNESS_GRID = ((0.05, 0.6), (0.1, 0.6), (0.2, 0.6), (0.3, 0.6), (0.45, 0.6),
 non-convex in roughness."""
 
 
-@partial(jax.jit, static_argnames=("settings",))
+@kernel(static_argnames=("settings",))
 def _best_start(z0, records: _Vertex, frames: _Frame, settings: FitSettings):
     """Per vertex, the lowest-loss start among the warm start and :data:`ROUGHNESS_GRID`. (N, 5).
 
@@ -1003,24 +1004,24 @@ def _finalize(z, loss, hess, fitted, v: _Vertex, frame: _Frame, settings: FitSet
                 eta_std=eta_std, normal_std_deg=jnp.degrees(normal_std))
 
 
-@partial(jax.jit, static_argnames=("settings",))
+@kernel(static_argnames=("settings",))
 def _robust_weights_batch(z, records, frames, settings):
     return jax.vmap(lambda zz, v, f: _robust_weights(zz, v, f, settings))(z, records, frames)
 
 
-@partial(jax.jit, static_argnames=("settings",))
+@kernel(static_argnames=("settings",))
 def _finalize_batch(z, loss, hess, fitted, records, frames, settings):
     return jax.vmap(lambda zz, ll, hh, ff, v, f: _finalize(zz, ll, hh, ff, v, f, settings))(z, loss, hess, fitted,
                                                                                           records, frames)
 
 
-@partial(jax.jit, static_argnames=("settings",))
+@kernel(static_argnames=("settings",))
 def _select(obs: Observations, normal0, settings: FitSettings):
     normal0 = polar.safe_normalize(normal0, fallback=jnp.array([0.0, 0.0, 1.0], obs.diffuse.dtype))
     return select_views(obs, normal0, settings)
 
 
-@partial(jax.jit, static_argnames=("lambda_g",))
+@kernel(static_argnames=("lambda_g",))
 def _prepare_batch(obs: Observations, keep, normal0, prior: PBRDFParams, virtual: VirtualSamples | None = None,
                    lambda_g: float = 0.0):
     dtype = obs.diffuse.dtype

@@ -88,14 +88,18 @@ def settings_from_pairs(pairs: list[str]):
 
 
 def enable_compilation_cache(directory: str | Path | None) -> None:
-    """Reuse XLA compilations across processes (every shard job compiles the same kernels)."""
+    """Reuse XLA compilations across processes (every shard job compiles the same kernels), and the
+    exported kernels under ``directory/exported`` (:mod:`sellip.kernels`: no tracing in later jobs)."""
     if not directory:
         return
     import jax
 
+    from sellip import kernels
+
     Path(directory).mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(Path(directory).resolve()))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    kernels.enable(Path(directory).resolve() / "exported")
 
 
 def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: Path | None = None,
