@@ -224,6 +224,14 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
                      str(tmp_path / "refit.npz"), "--output", str(tmp_path / "refit.zarr")]) == 0
     store = read_params(tmp_path / "refit.zarr")
     np.testing.assert_array_equal(store["model"], vertex_models)
+    # An iteration between selections inherits the models (no candidate fitted), as many as allowed.
+    for extra, top in (([], 1), (["--set", "lobes=diffuse"], 0)):
+        assert cli.main(["cluster-lobes", "--params", str(tmp_path / "refit.zarr"), "--observations",
+                         str(tmp_path / "observations.zarr"), "--output", str(tmp_path / "inherited"), *small,
+                         "--set", "lobes=specular", *extra, "--inherit-models"]) == 0
+        inherited = json.loads((tmp_path / "inherited" / "clusters.json").read_text())["model_selection"]
+        assert inherited["inherited"] and all(c["inherited"] and not c["candidates"] for c in inherited["clusters"])
+        np.testing.assert_array_equal(np.load(tmp_path / "inherited" / "models.npy"), np.minimum(vertex_models, top))
     # The final model carries the store's models (not a constant).
     n = len(vertex_models)
     write_ply(tmp_path / "mesh.ply", {**{k: scene["positions"][:, i] for i, k in enumerate("xyz")},

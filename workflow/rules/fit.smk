@@ -30,10 +30,14 @@ def cluster_settings_args(wildcards):
     return settings_args({key: at_iteration(value, int(wildcards.it)) for key, value in config["fit"]["settings"].items()})
 
 
-def model_selection_args():
-    """The model-selection options of `sellip cluster-lobes` from config `model_selection` (DESIGN §7)."""
+def model_selection_args(wildcards):
+    """The model-selection options of `sellip cluster-lobes` from config `model_selection` (DESIGN §7):
+    candidates are fitted at iteration 0, every `every`-th iteration and the final pass; the others
+    inherit their vertices' models (`--inherit-models`)."""
     selection = config["model_selection"]
-    return (f"--{'' if selection['enabled'] else 'no-'}model-selection"
+    it = int(wildcards.it)
+    inherit = " --inherit-models" if it % int(selection["every"]) and it != ITERATIONS else ""
+    return (f"--{'' if selection['enabled'] else 'no-'}model-selection{inherit}"
             f" --candidates {' '.join(str(m) for m in selection['candidates'])}"
             f" --held-out-fraction {selection['held_out_fraction']} --selection-tolerance {selection['tolerance']}"
             f" --selection-standard-errors {selection['standard_errors']}"
@@ -104,7 +108,7 @@ rule cluster_lobes:
         max_samples=config["augment"]["max_samples"],
         min_cluster_vertices=config["augment"]["min_cluster_vertices"],
         settings=cluster_settings_args,
-        selection=model_selection_args(),
+        selection=model_selection_args,
         cache=config["fit"]["compilation_cache"],
     threads: config["fit"]["threads"]
     conda:

@@ -7,7 +7,7 @@
                          [--set lambda_psi=100 ...]
                          [--no-model-selection] [--candidates 0 1 2 3] [--held-out-fraction 0.25]
                          [--selection-tolerance 0.01] [--selection-standard-errors 1]
-                         [--fixed-sigma-ss 0.9] [--selection-max-samples 4096]
+                         [--fixed-sigma-ss 0.9] [--selection-max-samples 4096] [--inherit-models]
 
 Writes the directory ``--output`` (built under a temporary name, then renamed) with
 
@@ -23,6 +23,9 @@ Model selection (DESIGN §7, :mod:`sellip.models`, on unless ``--no-model-select
 the simplest model whose held-out loss is within the tolerance of the best; the cluster's lobe is
 then fitted with that model. Without it every cluster gets the model of the fit settings (3, or 2
 with ``--set sigma_ss_fixed=...``). The fit settings (``--set``) are also the most complex model allowed.
+With ``--inherit-models`` (iterations between selections, config ``model_selection.every``) no candidate
+is fitted: each cluster takes the model most of its vertices have in ``--params`` (their ``model``, from
+the previous iteration), capped by what the settings allow; a store without models selects as usual.
 
 The numerics are :mod:`sellip.augment` and :mod:`sellip.models`; ``sellip fit --lobes DIR`` turns
 the result into virtual samples and fits every vertex with its model. ``--set`` overrides
@@ -166,7 +169,8 @@ def plot_lobes(path: Path, lobes, color_of, models=None) -> None:
 
 
 def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, settings=None,
-              fit_settings=None, compilation_cache: str | None = None, selection=None) -> dict:
+              fit_settings=None, compilation_cache: str | None = None, selection=None,
+              inherit_models: bool = False) -> dict:
     """Cluster the vertices of ``params``, choose each cluster's model (``selection``:
     :class:`sellip.models.SelectionSettings`, default on), fit the cluster lobes on ``observations``,
     write ``output``."""
@@ -207,6 +211,14 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
         log.info("model selection: candidates %s, %.0f %% of each cluster's vertices held out, tolerance %g + %g SE",
                  allowed_models(fit_settings, selection.candidates), 100 * selection.held_out_fraction,
                  selection.tolerance, selection.standard_errors)
+    allowed = allowed_models(fit_settings, selection.candidates)
+    inherited = None
+    if selection.enabled and inherit_models:
+        if "model" in store:
+            inherited = np.asarray(store["model"], np.int64)
+            log.info("models inherited from %s (no candidate fits this iteration)", params)
+        else:
+            log.warning("%s has no models to inherit: selecting", params)
     rng = np.random.default_rng(seed)
     lobes, rows_out, colors, models, choices = [], [], [], [], []
     for cluster in range(k):
@@ -221,7 +233,15 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
         mark("select")
         eta0 = float(np.median(store["eta"][members]))
         began = time.perf_counter()
-        if selection.enabled:
+        if inherited is not None:
+            counts_here = np.bincount(inherited[clustering.labels == cluster], minlength=len(MODEL_NAMES))
+            model = min(int(np.argmax(counts_here)), allowed[-1])
+            reason = (f"model {model}: inherited, most of its vertices had it in {Path(params).name} "
+                      f"({', '.join(f'model {m}: {c}' for m, c in enumerate(counts_here) if c)})")
+            log.info("cluster %d: %s", cluster, reason)
+            choices.append({"cluster": cluster, "model": model, "name": MODEL_NAMES[model], "reason": reason,
+                            "inherited": True, "candidates": {}, "seconds": time.perf_counter() - began})
+        elif selection.enabled:
             choice = select_model(obs, store["normals"][rows], store["rho_d"][rows], eta0, fit_settings, selection,
                                   settings, seed=seed + cluster)
             model = choice.model
@@ -268,7 +288,7 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
                "clustered_vertices": int(clustering.used.sum()), "vertices": n, "seed": seed,
                "settings": dataclasses.asdict(settings),
                "model_selection": {"enabled": selection.enabled, "settings": dataclasses.asdict(selection),
-                                   "allowed": allowed_models(fit_settings, selection.candidates),
+                                   "allowed": allowed, "inherited": inherited is not None,
                                    "models": [int(m) for m in models], "vertices_per_model": counts,
                                    "clusters": choices}}
     (tmp / "clusters.json").write_text(json.dumps(summary, indent=2))
@@ -295,6 +315,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
     parser.add_argument("--model-selection", action=argparse.BooleanOptionalAction, default=selection.enabled,
                         help="choose each cluster's model on held-out vertices (default on)")
+    parser.add_argument("--inherit-models", action="store_true",
+                        help="no candidate fits: each cluster takes its vertices' most common model in --params")
     parser.add_argument("--candidates", type=int, nargs="+", default=list(selection.candidates),
                         help="model codes tried (sellip.params.MODEL_NAMES)")
     parser.add_argument("--held-out-fraction", type=float, default=selection.held_out_fraction)
@@ -325,7 +347,7 @@ def main(args: argparse.Namespace) -> int:
                                       standard_errors=args.selection_standard_errors,
                                       sigma_ss_fixed=args.fixed_sigma_ss, max_samples=args.selection_max_samples)
         run_stage(args.params, args.observations, args.output, args.seed, settings,
-                  settings_from_pairs(args.overrides), args.compilation_cache, selection)
+                  settings_from_pairs(args.overrides), args.compilation_cache, selection, args.inherit_models)
     except (ObserveError, ParamsError, ValueError) as error:
         log.error("%s", error)
         return 1
