@@ -64,3 +64,18 @@ def test_cli_logs_the_phases_line_and_it_reads_back(tmp_path):
     assert timing.read_job_phases(tmp_path / "missing.log") is None
     (tmp_path / "empty.log").write_text("nothing here\n")
     assert timing.read_job_phases(tmp_path / "empty.log") is None
+
+
+def test_phase_table_splits_overheads_from_work():
+    rules = {"fit_pbrdf": {"s": 10.0, "jobs": 2, "phases_jobs": 2,
+                           "phases": {"startup": 1.0, "imports": 1.5, "read": 0.5, "trace": 1.0, "lower": 0.5,
+                                      "compile": 2.0, "cache_load": 0.25, "fit": 2.0, "select": 0.25, "write": 0.1,
+                                      "other": 0.4, "total": 9.5}},
+             "merge_hdr": {"s": 2.0, "jobs": 1, "phases_jobs": 0, "phases": {}}}
+    lines = timing.phase_table(rules).splitlines()
+    cells = [c.strip() for c in lines[2].strip("|").split("|")]
+    assert cells[:3] == ["fit_pbrdf", "2", "10.0"]
+    # startup, imports, read, trace + lower, compile, cache load, write, work (fit + select + other), snakemake
+    assert cells[3:] == ["1.0", "1.5", "0.5", "1.5", "2.0", "0.2", "0.1", "2.6", "0.5"]
+    assert lines[3].startswith("| merge_hdr | 1 | 2.0 | –")
+    assert lines[-1].startswith("| **all** | 3 | **12.0**")

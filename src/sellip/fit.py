@@ -40,9 +40,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from sellip import polar
-from sellip.kernels import kernel
 from sellip.conventions import observations_from_analyzers, stokes_to_analyzers
 from sellip.fresnel import fresnel
+from sellip.kernels import kernel
 from sellip.pbrdf import (PBRDFParams, ViewFrames, diffuse_stokes, lobe_factor, lobe_stokes, reflection_stokes,
                           surface_terms, view_frames)
 

@@ -79,7 +79,7 @@ class Kernel:
         self.static_argnames = tuple(static_argnames)
         self.signature = inspect.signature(fn)
         self.jitted = jax.jit(fn, static_argnames=self.static_argnames)
-        self.calls: dict[str, object] = {}
+        self.calls: dict[tuple, object] = {}
         self.failed = False
         self.name = name or f"{fn.__module__}.{fn.__qualname__}"  # the key: unique per kernel, stable per run
 
@@ -93,13 +93,17 @@ class Kernel:
         dynamic = [bound.arguments[name] for name in dynamic_names]
         leaves, tree = jax.tree_util.tree_flatten(dynamic)
         leaves = [jnp.asarray(leaf) for leaf in leaves]
-        key = hashlib.sha256(repr((self.name, sorted((k, repr(v)) for k, v in static.items()), dynamic_names,
-                                   str(tree), [(np.shape(x), str(x.dtype)) for x in leaves], jax.__version__,
-                                   bool(jax.config.jax_enable_x64), jax.default_backend())).encode()).hexdigest()
-        call = self.calls.get(key)
+        # In-process key: cheap (static arguments are hashable, as jax.jit requires); the file name's hash
+        # is computed only when this process has not met the signature yet.
+        signature = (tuple(sorted(static.items())), tuple(dynamic_names), tree,
+                     tuple((x.shape, x.dtype) for x in leaves), bool(jax.config.jax_enable_x64))
+        call = self.calls.get(signature)
         if call is None:
+            key = hashlib.sha256(repr((self.name, sorted((k, repr(v)) for k, v in static.items()), dynamic_names,
+                                       str(tree), [(np.shape(x), str(x.dtype)) for x in leaves], jax.__version__,
+                                       bool(jax.config.jax_enable_x64), jax.default_backend())).encode()).hexdigest()
             try:
-                call = self.calls[key] = self._load_or_export(key, static, dynamic_names, tree, leaves)
+                call = self.calls[signature] = self._load_or_export(key, static, dynamic_names, tree, leaves)
             except Exception as exc:  # noqa: BLE001 - an unexportable kernel still runs, traced as usual
                 log.warning("%s: not exported (%s: %s); tracing it in every process", self.name,
                             type(exc).__name__, exc)

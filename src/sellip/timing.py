@@ -181,6 +181,7 @@ def phase_table(rules: dict) -> str:
     header = ["rule", "jobs", "wall s", *(name for name, _ in COLUMNS), "work", "snakemake"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     total = {name: 0.0 for name in header[2:]}
+    claimed = {part for _, parts in COLUMNS for part in parts} | {"total"}
     for rule, entry in sorted(rules.items(), key=lambda item: -item[1]["s"]):
         phases = entry.get("phases") or {}
         cells = [rule, str(entry["jobs"]), f"{entry['s']:.1f}"]
@@ -188,7 +189,6 @@ def phase_table(rules: dict) -> str:
         if not phases:
             lines.append("| " + " | ".join(cells + ["–"] * (len(header) - 3)) + " |")
             continue
-        claimed = {part for _, parts in COLUMNS for part in parts} | {"total"}
         values = {name: sum(phases.get(part, 0.0) for part in parts) for name, parts in COLUMNS}
         values["work"] = sum(v for k, v in phases.items() if k not in claimed)
         values["snakemake"] = entry["s"] - phases.get("total", 0.0) if entry.get("phases_jobs") == entry["jobs"] \

@@ -207,11 +207,10 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
     k = len(clustering.centres)
     log.info("K = %d clusters (BIC over K: %s), %d merges", k,
              {key: round(value, 1) for key, value in clustering.bic.items()}, len(clustering.merges))
+    allowed = allowed_models(fit_settings, selection.candidates)
     if selection.enabled:
         log.info("model selection: candidates %s, %.0f %% of each cluster's vertices held out, tolerance %g + %g SE",
-                 allowed_models(fit_settings, selection.candidates), 100 * selection.held_out_fraction,
-                 selection.tolerance, selection.standard_errors)
-    allowed = allowed_models(fit_settings, selection.candidates)
+                 allowed, 100 * selection.held_out_fraction, selection.tolerance, selection.standard_errors)
     inherited = None
     if selection.enabled and inherit_models:
         if "model" in store:
@@ -235,7 +234,8 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
         began = time.perf_counter()
         if inherited is not None:
             counts_here = np.bincount(inherited[clustering.labels == cluster], minlength=len(MODEL_NAMES))
-            model = min(int(np.argmax(counts_here)), allowed[-1])
+            # The most common model, or the most complex allowed one below it.
+            model = max((m for m in allowed if m <= int(np.argmax(counts_here))), default=allowed[0])
             reason = (f"model {model}: inherited, most of its vertices had it in {Path(params).name} "
                       f"({', '.join(f'model {m}: {c}' for m, c in enumerate(counts_here) if c)})")
             log.info("cluster %d: %s", cluster, reason)
