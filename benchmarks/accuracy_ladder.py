@@ -10,6 +10,8 @@ Rungs (each resumable: a rung whose result file exists is not run again):
 - ``mesh``: the whole workflow (``snakemake``) with ``init.mode: mesh`` from the true mesh;
 - ``hull``: the whole workflow from the visual hull (the default).
 
+The workflow rungs hold four views out of the fit (spread evenly over the capture) for the held-out PSNR.
+
 Prints one table row per rung: eta per material (mean and worst error of the per-material medians),
 eta per vertex (median, p90), normal error (median, p90), and for the workflow rungs the held-out
 PSNR; writes ``ladder.json`` and ``ladder.md`` in the workdir.
@@ -26,15 +28,19 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def workflow_rung(capture: Path, name: str, results: Path, iterations: int, cores: int, extra: list[str]) -> dict:
-    """Run the workflow on ``capture`` and return the figures of its metrics.json."""
+def workflow_rung(capture: Path, name: str, results: Path, iterations: int, cores: int, overrides: dict) -> dict:
+    """Run the workflow on ``capture`` (config.yaml, then ``overrides``) and return the figures of its metrics.json."""
+    import yaml
+
+    from sellip.stability import snakemake_command
+
     metrics = results / name / "metrics.json"
     if not metrics.is_file():
-        command = [sys.executable, "-m", "snakemake", "--cores", str(cores), "--workflow-profile",
-                   str(ROOT / "workflow/profiles/default"), "--snakefile", str(ROOT / "Snakefile"),
-                   "--directory", str(results.parent), "--config", f"capture={capture}", f"name={name}",
-                   f"iterations={iterations}", *extra]
-        subprocess.run(command, check=True, cwd=ROOT)
+        config = results.parent / "configs" / f"{name}.yaml"
+        config.parent.mkdir(parents=True, exist_ok=True)
+        config.write_text(yaml.safe_dump({"capture": str(capture), "name": name, "iterations": iterations, **overrides}))
+        subprocess.run(snakemake_command(ROOT / "Snakefile", results.parent, config, "--cores", str(cores)),
+                       check=True, cwd=results.parent)
     m = json.loads(metrics.read_text())
     held_out = m.get("psnr_held_out") or {}
     return {"eta_per_material": m.get("eta_per_material"),
@@ -43,6 +49,15 @@ def workflow_rung(capture: Path, name: str, results: Path, iterations: int, core
             "normal_median_deg": m["normal_error_deg"]["all"]["median"],
             "normal_p90_deg": m["normal_error_deg"]["all"].get("p90"),
             "held_out_psnr_db": held_out.get("mean_db")}
+
+
+def held_out_views(capture: Path, count: int = 4) -> list[str]:
+    """``count`` view ids spread evenly over the capture order (the workflow rungs' held-out PSNR)."""
+    import pandas as pd
+
+    views = list(dict.fromkeys(pd.read_csv(capture / "frames.csv")["view_id"].astype(str)))
+    step = len(views) / count
+    return [views[int(step / 2 + i * step)] for i in range(count)]
 
 
 def main(argv=None) -> int:
@@ -87,10 +102,12 @@ def main(argv=None) -> int:
             elif rung == "sensor":
                 figures = fit_true_mesh(capture, hdr, work / "sensor", observe, cache)
             else:
-                extra = []
+                overrides = {"observe": {"edge_margin": args.edge_margin},
+                             "evaluate": {"held_out_views": held_out_views(capture)}}
                 if rung == "mesh":
-                    extra = [f"init={{mode: mesh, mesh_path: {capture / GROUND_TRUTH_MESH}}}"]
-                figures = workflow_rung(capture, f"{tag}_{rung}", work / "results", args.iterations, args.cores, extra)
+                    overrides["init"] = {"mode": "mesh", "mesh_path": str(capture / GROUND_TRUTH_MESH)}
+                figures = workflow_rung(capture, f"{tag}_{rung}", work / "results", args.iterations, args.cores,
+                                        overrides)
             out.write_text(json.dumps(figures, indent=2))
         rows[rung] = json.loads(out.read_text())
 

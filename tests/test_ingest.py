@@ -110,11 +110,13 @@ def test_linearize_per_position_black_saturated_and_dead():
 @pytest.mark.parametrize("color_layout, polarizer_layout",
                          [("RGGB", IMX250), ("GBRG", IMX250), ("BGGR", [[0, 45], [90, 135]]), ("mono", IMX250)])
 def test_demosaic_is_exact_for_affine_fields_per_analyzer(color_layout, polarizer_layout):
-    """Each (analyzer, colour) sees its own affine field; output at the cell centres must equal it: any
-    mixing of analyzers or colours, or a phase error, breaks the equality."""
+    """Each analyzer sees its own affine field, each colour a gain of it (the colour ratio per analyzer and
+    colour): output at the cell centres must equal it. Any mixing of analyzers or colours, or a phase
+    error, breaks the equality (colour-ratio demosaicing is exact where the ratio to G is constant)."""
     layout = mosaic_layout(polarizer_layout, color_layout)
     height, width, channels = 32, 48, layout.channels
-    coef = np.random.default_rng(1).uniform(0.1, 0.3, (4, channels, 3)) * [1, 3e-3, 4e-3]
+    rng = np.random.default_rng(1)
+    coef = rng.uniform(0.1, 0.3, (4, 1, 3)) * [1, 3e-3, 4e-3] * rng.uniform(0.5, 1.5, (4, channels, 1))
     y, x = np.mgrid[0:height, 0:width].astype(np.float64)
     a, c = layout.analyzer_map(height, width), layout.color_map(height, width)
     field = coef[a, c, 0] + coef[a, c, 1] * x + coef[a, c, 2] * y
@@ -125,7 +127,44 @@ def test_demosaic_is_exact_for_affine_fields_per_analyzer(color_layout, polarize
     assert out.shape == (height // 2, width // 2, 4, channels)
     xc, yc = cell_centres(height, width)
     truth = coef[..., 0] + coef[..., 1] * xc[..., None, None] + coef[..., 2] * yc[..., None, None]
-    np.testing.assert_allclose(out[2:-2, 2:-2], truth[2:-2, 2:-2], atol=2e-5)
+    # three cells in: G's own interpolation at the border cells (zero padding) is not exact, and R and B use it
+    np.testing.assert_allclose(out[3:-3, 3:-3], truth[3:-3, 3:-3], atol=2e-5)
+
+
+def test_colours_share_the_guide_resolution_and_polarization():
+    """A texture of period 16 raw pixels (8 cells), one hue, uniform partial polarization: interpolated by
+    their ratio to G, R and B are as sharp as G and carry about G's polarization; bilinear on their own (every
+    second cell) they are blurred and their DoP is off twice as much as G's. Measured (RMS over the
+    interior): intensity 1.6 / 2.0 % guided, 9.2 / 9.6 % bilinear (G 6.2 %); DoP error 0.0079 / 0.0085
+    guided, 0.0132 / 0.0135 bilinear (G 0.0068)."""
+    import dataclasses
+
+    layout = mosaic_layout(IMX250, "RGGB")
+    height, width, period = 64, 96, 16.0
+    hue = np.array([0.7, 1.0, 0.45])
+    polarization = 1 + 0.2 * np.cos(np.radians(2 * (np.array(ANALYZER_ANGLES_DEG) - 30.0)))
+    texture = lambda x, y: 0.6 + 0.3 * np.sin(2 * np.pi * x / period) * np.cos(2 * np.pi * y / (1.3 * period))  # noqa: E731
+    y, x = np.mgrid[0:height, 0:width].astype(np.float64)
+    a, c = layout.analyzer_map(height, width), layout.color_map(height, width)
+    linear = (0.5 * texture(x, y) * hue[c] * polarization[a]).astype(np.float32)
+    sensor = {"width": width, "height": height, "black_level": 0, "white_level": 4095}
+    plan = ingest.make_ingest_plan(sensor, plain_camera(width, height), layout)
+    xc, yc = cell_centres(height, width)
+    truth = (0.5 * texture(xc, yc)[..., None, None] * polarization[:, None] * hue)[3:-3, 3:-3]
+
+    def dop(v):  # (H, W, 4, C) -> (H, W, C)
+        i0, i45, i90, i135 = (v[:, :, ANALYZER_ANGLES_DEG.index(angle)] for angle in (0, 45, 90, 135))
+        return np.hypot(i0 - i90, i45 - i135) / (i0 + i90)
+
+    errors = {}
+    for name, demosaic_plan in (("guided", plan.demosaic), ("bilinear", dataclasses.replace(plan.demosaic, guide=None))):
+        out = ingest.remap(ingest.demosaic(linear, demosaic_plan), plan.remap)[3:-3, 3:-3]
+        errors[name] = (np.sqrt(np.mean(((out - truth) / truth) ** 2, axis=(0, 1, 2))),
+                        np.sqrt(np.mean((dop(out) - dop(truth)) ** 2, axis=(0, 1))))
+    (intensity, dop_error), (intensity_bilinear, dop_bilinear) = errors["guided"], errors["bilinear"]
+    assert plan.demosaic.guide == 1
+    assert np.all(intensity[[0, 2]] < 0.4 * intensity_bilinear[[0, 2]])
+    assert np.all(dop_error[[0, 2]] < 1.35 * dop_error[1]) and np.all(dop_bilinear[[0, 2]] > 1.8 * dop_error[1])
 
 
 def test_invalid_pixel_spoils_only_its_own_analyzer_neighbourhood():
