@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 from pathlib import Path
 
@@ -29,18 +28,16 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def workflow_rung(capture: Path, name: str, results: Path, iterations: int, cores: int, overrides: dict) -> dict:
-    """Run the workflow on ``capture`` (config.yaml, then ``overrides``) and return the figures of its metrics.json."""
-    import yaml
-
-    from sellip.stability import snakemake_command
+    """Run the workflow on ``capture`` (config.yaml, then ``overrides``; log in ``results/<name>.log``) and
+    return the figures of its metrics.json."""
+    from sellip.sweep import SnakemakeRunner
 
     metrics = results / name / "metrics.json"
     if not metrics.is_file():
-        config = results.parent / "configs" / f"{name}.yaml"
-        config.parent.mkdir(parents=True, exist_ok=True)
-        config.write_text(yaml.safe_dump({"capture": str(capture), "name": name, "iterations": iterations, **overrides}))
-        subprocess.run(snakemake_command(ROOT / "Snakefile", results.parent, config, "--cores", str(cores)),
-                       check=True, cwd=results.parent)
+        log = results / f"{name}.log"
+        print(f"{name}: snakemake, log {log}", flush=True)
+        SnakemakeRunner(results.parent, cores=cores)(
+            {"capture": str(capture), "name": name, "iterations": iterations, **overrides}, [], log)
     m = json.loads(metrics.read_text())
     held_out = m.get("psnr_held_out") or {}
     return {"eta_per_material": m.get("eta_per_material"),
@@ -49,15 +46,6 @@ def workflow_rung(capture: Path, name: str, results: Path, iterations: int, core
             "normal_median_deg": m["normal_error_deg"]["all"]["median"],
             "normal_p90_deg": m["normal_error_deg"]["all"].get("p90"),
             "held_out_psnr_db": held_out.get("mean_db")}
-
-
-def held_out_views(capture: Path, count: int = 4) -> list[str]:
-    """``count`` view ids spread evenly over the capture order (the workflow rungs' held-out PSNR)."""
-    import pandas as pd
-
-    views = list(dict.fromkeys(pd.read_csv(capture / "frames.csv")["view_id"].astype(str)))
-    step = len(views) / count
-    return [views[int(step / 2 + i * step)] for i in range(count)]
 
 
 def main(argv=None) -> int:
@@ -77,6 +65,7 @@ def main(argv=None) -> int:
     from sellip.io import GROUND_TRUTH_MESH
     from sellip.ladder import fit_true_mesh, render_hdr
     from sellip.observe import ObserveSettings
+    from sellip.stability import held_out_views
     from sellip.stages.linearize import linearize_capture
     from sellip.stages.merge_hdr import merge_capture
     from sellip.stages.synth import synthesize_capture
@@ -103,7 +92,7 @@ def main(argv=None) -> int:
                 figures = fit_true_mesh(capture, hdr, work / "sensor", observe, cache)
             else:
                 overrides = {"observe": {"edge_margin": args.edge_margin},
-                             "evaluate": {"held_out_views": held_out_views(capture)}}
+                             "evaluate": {"held_out_views": held_out_views(args.views, 4)}}
                 if rung == "mesh":
                     overrides["init"] = {"mode": "mesh", "mesh_path": str(capture / GROUND_TRUTH_MESH)}
                 figures = workflow_rung(capture, f"{tag}_{rung}", work / "results", args.iterations, args.cores,

@@ -272,11 +272,7 @@ def demosaic(linear: np.ndarray, plan: DemosaicPlan) -> np.ndarray:
     cells = analyzer_cells(linear, plan.phases)
     planes = np.empty((plan.channels,) + cells.shape, np.float32)  # colour planes, returned channels-last
     sparse = np.empty_like(cells)
-    order = list(range(plan.channels))
-    if plan.guide is not None:
-        order.remove(plan.guide)
-        order.insert(0, plan.guide)
-    for c in order:
+    for c in sorted(range(plan.channels), key=lambda c: c != plan.guide):  # the guide first
         kernel = plan.kernels[c]
         if kernel is None:
             planes[c] = cells

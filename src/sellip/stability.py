@@ -140,9 +140,11 @@ CASE_NAMES = tuple(case.name for case in CASES)
 # --------------------------------------------------------------------------- configuration
 
 
-def held_out_views(views: int) -> list[str]:
-    """Two evaluation views a quarter and three quarters along the orbit."""
-    return [f"v{views // 4:03d}", f"v{3 * views // 4:03d}"]
+def held_out_views(views: int, count: int = 2) -> list[str]:
+    """``count`` evaluation views of a synthetic capture of ``views`` views (ids v000, v001, ...), spread
+    evenly over the orbit: for two, a quarter and three quarters along it."""
+    step = views / count
+    return [f"v{int(step / 2 + i * step):03d}" for i in range(count)]
 
 
 def base_config(workdir: str | Path, views: int = BASE_VIEWS, iterations: int = 2,
