@@ -277,7 +277,7 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
     assert "not the 60 vertices" in caplog.text and not (tmp_path / "c2").exists()
 
 
-def test_material_eta_is_piecewise_constant_and_keeps_real_deviations():
+def test_material_value_is_piecewise_constant_and_keeps_real_deviations():
     """eta per material (DESIGN §7): on a two-material scene the noisy per-vertex eta becomes its cluster's
     (a piecewise-constant map with the boundary where the clusters meet), a spot whose own eta differs
     significantly keeps it, and a vertex of unknown uncertainty takes the material's."""
@@ -289,7 +289,7 @@ def test_material_eta_is_piecewise_constant_and_keeps_real_deviations():
     spot = np.arange(20, 30)  # a real deviation in material 0, measured well
     eta[spot], eta_std[spot] = 1.9, 0.01
     eta_std[5] = np.inf
-    out, source = augment.material_eta(eta, eta_std, labels, [1.45, 1.62], deviation_sigmas=3.0)
+    out, source = augment.material_or_own(eta, eta_std, labels, [1.45, 1.62], deviation_sigmas=3.0)
     own = source.astype(bool)
     assert own[spot].all()
     np.testing.assert_array_equal(out[spot], eta[spot])
@@ -297,6 +297,6 @@ def test_material_eta_is_piecewise_constant_and_keeps_real_deviations():
     assert not own[5]
     assert own.sum() <= len(spot) + 3  # 3 sigma: about 0.3 % of the others split off on noise
     assert np.median(np.abs(out - truth)[~own]) == 0 and np.median(np.abs(eta - truth)[~own]) > 0.02
-    kept, all_own = augment.material_eta(eta, eta_std, labels, [1.45, 1.62], deviation_sigmas=0)
+    kept, all_own = augment.material_or_own(eta, eta_std, labels, [1.45, 1.62], deviation_sigmas=0)
     np.testing.assert_array_equal(kept, eta)
     assert all_own.all()

@@ -182,6 +182,20 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
     np.testing.assert_array_equal(store["eta_source"], 0)
     np.testing.assert_allclose(store["eta"], np.where(mesh.vertices[:, 0] > 0, 1.6, 1.4), rtol=1e-6)
     np.testing.assert_allclose(model_vertex["eta"], store["eta"], rtol=1e-6)
+    # Nor sigma_s_std: the specular lobe is the cluster's too, and each vertex's own fit is kept beside it.
+    np.testing.assert_array_equal(store["lobe_source"], 0)
+    np.testing.assert_allclose(model_vertex["sigma_s"], 0.3, rtol=1e-6)
+    np.testing.assert_allclose(model_vertex["rho_s"], 0.5, rtol=1e-6)
+    np.testing.assert_allclose(store["sigma_s_vertex"], mesh.params.sigma_s, rtol=1e-6)
+    # With a well-known sigma_s that differs from the cluster's, a vertex keeps its own lobe (sigma_s and rho_s).
+    own = np.arange(m) < 5
+    write_params(tmp_path / "last.zarr", {**final, "sigma_s_std": np.where(own, 0.005, 0.2)})
+    finalize.run_stage(tmp_path / "last.zarr", tmp_path / "mesh.ply", tmp_path / "final" / "model.ply",
+                       tmp_path / "final" / "params.zarr", tmp_path / "clusters", model=3)
+    store = read_params(tmp_path / "final" / "params.zarr")
+    np.testing.assert_array_equal(store["lobe_source"], own)
+    np.testing.assert_allclose(store["sigma_s"], np.where(own, mesh.params.sigma_s, 0.3), rtol=1e-6)
+    np.testing.assert_allclose(store["rho_s"], np.where(own, mesh.params.rho_s, 0.5), rtol=1e-6)
     # open3d reads the model with its normals.
     import open3d as o3d
 

@@ -75,6 +75,19 @@ def test_a_transformed_kernel_exports_under_its_own_name(exported):
     assert {p.name.split("-")[0] for p in exported.glob("*.jaxexport")} == {"loss_jacobian", "loss"}
 
 
+def test_changed_code_exports_anew_instead_of_loading_a_stale_kernel(exported, monkeypatch):
+    """The key holds the package's source hash: after an upgrade (any sellip file changed), a kernel of the
+    same name and shapes is traced and exported again, not loaded from the old export."""
+    assert kernels.code_version() == kernels.code_version() and len(kernels.code_version()) == 64
+    pair, x = Pair(jnp.ones(3), jnp.ones((2, 2))), jnp.ones(3)
+    kernels.kernel(_model, static_argnames=("scale",), name="tests.model_versioned")(pair, x, scale=1.0)
+    assert len(list(exported.glob("*.jaxexport"))) == 1
+    monkeypatch.setattr(kernels, "code_version", lambda: "another version")
+    TRACES.clear()
+    kernels.kernel(_model, static_argnames=("scale",), name="tests.model_versioned")(pair, x, scale=1.0)
+    assert TRACES == [1.0] and len(list(exported.glob("*.jaxexport"))) == 2
+
+
 def test_without_a_folder_it_is_plain_jit(tmp_path):
     fn = kernels.kernel(_model, static_argnames=("scale",), name="tests.model_plain")
     out = fn(Pair(jnp.ones(2), jnp.ones((2, 2))), jnp.ones(2), scale=1.0)

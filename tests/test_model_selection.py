@@ -253,7 +253,7 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
         k = len(normal0)
         return models.FitResult(normal=normal0, params=prior, status=np.zeros(k, np.int32), confidence=np.ones(k),
                                 loss=np.zeros(k), views_used=np.full(k, 8), iterations=np.ones(k, np.int32),
-                                normal_std_deg=np.ones(k), eta_std=np.ones(k))
+                                normal_std_deg=np.ones(k), eta_std=np.ones(k), sigma_s_std=np.ones(k))
 
     monkeypatch.setattr(models, "fit_by_model", fake_fit)
     for extra, expected in (([], vertex_models), (["--set", "lobes=diffuse"], np.zeros(n))):

@@ -83,7 +83,8 @@ def test_gather_keeps_the_starting_normal_of_unfitted_vertices(tmp_path):
         np.savez(path, start=start, stop=stop, normal=normals[rows],
                  status=np.where(fitted[rows], STATUS_FITTED, STATUS_TOO_FEW_VIEWS),
                  confidence=np.where(fitted[rows], 0.9, 0.0), loss=np.zeros(k), views_used=np.full(k, 5),
-                 iterations=np.ones(k), normal_std_deg=np.ones(k), eta_std=np.ones(k), eta=eta[rows],
+                 iterations=np.ones(k), normal_std_deg=np.ones(k), eta_std=np.ones(k), sigma_s_std=np.ones(k),
+                 eta=eta[rows],
                  rho_d=np.full((k, 3), 0.3), rho_s=np.full(k, 0.1), sigma_s=np.full(k, 0.2),
                  rho_ss=np.zeros((k, 3)), sigma_ss=np.full(k, 0.6))
         shards.append(path)

@@ -537,27 +537,28 @@ def virtual_samples(labels, lobes: list[ClusterLobe] | None, settings: FitSettin
                           weight=np.where(has[:, None], weight[None], 0.0).astype(dtype))
 
 
-ETA_SOURCES = {0: "material", 1: "vertex"}
-"""Codes of ``eta_source`` in final/params.zarr and model.ply: the vertex carries its material
-cluster's eta, or its own (its data differ from the material's significantly)."""
+VALUE_SOURCES = {0: "material", 1: "vertex"}
+"""Codes of ``eta_source`` and ``lobe_source`` in final/params.zarr and model.ply: the vertex carries its
+material cluster's value, or its own (its data differ from the material's significantly)."""
 
 
-def material_eta(eta, eta_std, labels, cluster_eta, deviation_sigmas: float = 3.0, std_floor: float = 0.01):
-    """eta as a material property (DESIGN §7): each vertex takes its cluster's eta unless its own
-    fitted eta differs from it by more than ``deviation_sigmas`` of its own uncertainty.
+def material_or_own(value, value_std, labels, cluster_value, deviation_sigmas: float = 3.0, std_floor: float = 0.01):
+    """A property of the material, not of the vertex (DESIGN §7: no more model than the scene needs): each
+    vertex takes its cluster's value unless its own fitted value differs from it by more than
+    ``deviation_sigmas`` of its own uncertainty.
 
-    eta, eta_std (N,): the vertices' fitted eta and its Gauss-Newton std (inf where unknown: such a
-    vertex always takes the material's); labels (N,) int cluster of each vertex; cluster_eta (K,).
-    ``std_floor`` keeps an overconfident fit (a few views, a tiny std) from splitting off on noise.
-    ``deviation_sigmas`` <= 0 keeps every vertex's own eta. Returns (eta (N,), source (N,) uint8
-    with :data:`ETA_SOURCES` codes). A per-vertex eta map is then piecewise constant where the
-    object is, and keeps a real boundary or a deviating spot where the data demand it.
+    value, value_std (N,): the vertices' fitted value (eta, sigma_s) and its Gauss-Newton std (inf where
+    unknown: such a vertex always takes the material's); labels (N,) int cluster of each vertex;
+    cluster_value (K,). ``std_floor`` keeps an overconfident fit (a few views, a tiny std) from splitting
+    off on noise. ``deviation_sigmas`` <= 0 keeps every vertex's own value. Returns (value (N,), source (N,)
+    uint8 with :data:`VALUE_SOURCES` codes). The map is then piecewise constant where the object is, and
+    keeps a real boundary or a deviating spot where the data demand it.
     """
-    eta = np.asarray(eta, np.float64)
+    value = np.asarray(value, np.float64)
     if deviation_sigmas <= 0:
-        return eta.copy(), np.ones(len(eta), np.uint8)
-    cluster_eta = np.asarray(cluster_eta, np.float64)
-    material = cluster_eta[np.asarray(labels, np.intp)]
-    scale = np.maximum(np.nan_to_num(np.asarray(eta_std, np.float64), nan=np.inf, posinf=np.inf), std_floor)
-    own = np.isfinite(scale) & (np.abs(eta - material) > deviation_sigmas * scale)
-    return np.where(own, eta, material), own.astype(np.uint8)
+        return value.copy(), np.ones(len(value), np.uint8)
+    cluster_value = np.asarray(cluster_value, np.float64)
+    material = cluster_value[np.asarray(labels, np.intp)]
+    scale = np.maximum(np.nan_to_num(np.asarray(value_std, np.float64), nan=np.inf, posinf=np.inf), std_floor)
+    own = np.isfinite(scale) & (np.abs(value - material) > deviation_sigmas * scale)
+    return np.where(own, value, material), own.astype(np.uint8)

@@ -158,7 +158,9 @@ class FitResult(NamedTuple):
     """Per-vertex results, each batch-first: normal (N, 3), params (PBRDFParams with batch N),
     status (N,) int, confidence (N,) in [0, 1], loss (N,), views_used (N,), iterations (N,), and the
     Gauss-Newton standard deviations normal_std_deg (N,) and eta_std (N,) the confidence comes from
-    (inf where the vertex was not fitted or its Gauss-Newton matrix is singular; confidence 0 there)."""
+    (inf where the vertex was not fitted or its Gauss-Newton matrix is singular; confidence 0 there),
+    and sigma_s_std (N,), the same for the specular roughness (whether a vertex's lobe differs from
+    its material's, :func:`sellip.augment.material_or_own`)."""
 
     normal: jnp.ndarray
     params: PBRDFParams
@@ -169,6 +171,7 @@ class FitResult(NamedTuple):
     iterations: jnp.ndarray
     normal_std_deg: jnp.ndarray
     eta_std: jnp.ndarray
+    sigma_s_std: jnp.ndarray
 
 
 # --- reparameterization -------------------------------------------------------------------
@@ -997,11 +1000,13 @@ def _finalize(z, loss, hess, fitted, v: _Vertex, frame: _Frame, settings: FitSet
     cov = (loss / dof) * solve_spd(regular + 1e-12 * jnp.eye(5, dtype=z.dtype), jnp.eye(5, dtype=z.dtype))
     deta_dz = (ETA_BOUNDS[1] - ETA_BOUNDS[0]) * jax.nn.sigmoid(z[2]) * (1 - jax.nn.sigmoid(z[2]))
     eta_std = jnp.sqrt(jnp.maximum(cov[2, 2], 0)) * deta_dz
+    dsigma_dz = (SIGMA_BOUNDS[1] - LOBE_GAP - SIGMA_BOUNDS[0]) * jax.nn.sigmoid(z[3]) * (1 - jax.nn.sigmoid(z[3]))
+    sigma_s_std = jnp.sqrt(jnp.maximum(cov[3, 3], 0)) * dsigma_dz
     # A tangent offset dz rotates the normal by about |dz| / (1 + |z|^2) radians.
     normal_std = jnp.sqrt(jnp.maximum(cov[0, 0] + cov[1, 1], 0)) / (1 + z[0] ** 2 + z[1] ** 2)
     return dict(normal=normal, eta=eta, sigma_s=sigma_s, sigma_ss=sigma_ss, rho_d=rho_d * v.scale,
                 rho_s=spec[0] * v.scale, rho_ss=spec[1:] * v.scale,
-                eta_std=eta_std, normal_std_deg=jnp.degrees(normal_std))
+                eta_std=eta_std, sigma_s_std=sigma_s_std, normal_std_deg=jnp.degrees(normal_std))
 
 
 @kernel(static_argnames=("settings",))
@@ -1107,7 +1112,7 @@ def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSett
     if out is None:  # no vertex to fit: placeholders (every vertex keeps its prior, see fit_vertices)
         out = {k: np.zeros((n,) + shape, z.dtype) for k, shape in
                (("normal", (3,)), ("eta", ()), ("sigma_s", ()), ("sigma_ss", ()), ("rho_d", (3,)), ("rho_s", ()),
-                ("rho_ss", (3,)), ("eta_std", ()), ("normal_std_deg", ()))}
+                ("rho_ss", (3,)), ("eta_std", ()), ("sigma_s_std", ()), ("normal_std_deg", ()))}
     out.update(loss=loss, iterations=iterations, enough=enough, views_used=np.sum(weight > 0, axis=1))
     return out
 
@@ -1187,7 +1192,8 @@ def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSe
     return FitResult(normal=pick(out["normal"], normal0), params=params, status=status.astype(np.int32),
                      confidence=confidence, loss=np.where(ok, out["loss"], 0.0).astype(dtype),
                      views_used=out["views_used"].astype(np.int32), iterations=out["iterations"],
-                     normal_std_deg=uncertain(out["normal_std_deg"]), eta_std=uncertain(out["eta_std"]))
+                     normal_std_deg=uncertain(out["normal_std_deg"]), eta_std=uncertain(out["eta_std"]),
+                     sigma_s_std=uncertain(out["sigma_s_std"]))
 
 
 def default_prior(n, dtype=np.float32) -> PBRDFParams:

@@ -16,6 +16,7 @@ Public API::
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import inspect
 import logging
@@ -33,6 +34,18 @@ log = logging.getLogger(__name__)
 
 _FOLDER: Path | None = None
 _REGISTERED: set[type] = set()
+
+
+@functools.cache
+def code_version() -> str:
+    """A hash of every source file of the sellip package: part of each exported kernel's key, so that a
+    changed kernel (or a function it calls, in any module) is exported anew, never loaded stale."""
+    digest = hashlib.sha256()
+    root = Path(__file__).resolve().parent
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
 
 
 def enable(folder: str | Path | None) -> None:
@@ -99,7 +112,8 @@ class Kernel:
                      tuple((x.shape, x.dtype) for x in leaves), bool(jax.config.jax_enable_x64))
         call = self.calls.get(signature)
         if call is None:
-            key = hashlib.sha256(repr((self.name, sorted((k, repr(v)) for k, v in static.items()), dynamic_names,
+            key = hashlib.sha256(repr((self.name, code_version(), sorted((k, repr(v)) for k, v in static.items()),
+                                       dynamic_names,
                                        str(tree), [(np.shape(x), str(x.dtype)) for x in leaves], jax.__version__,
                                        bool(jax.config.jax_enable_x64), jax.default_backend())).encode()).hexdigest()
             try:

@@ -4,10 +4,11 @@ A store holds, for N vertices (DESIGN §4 names, float32 unless noted), chunked 
 
     vertices (N, 3), normals (N, 3), eta (N,), rho_d (N, 3), rho_s (N,), sigma_s (N,),
     rho_ss (N, 3), sigma_ss (N,), confidence (N,), status (N,) int8, loss (N,),
-    views_used (N,) int16, iterations (N,) int16, normal_std_deg (N,) and eta_std (N,) (the fit's
-    Gauss-Newton standard deviations, inf where not fitted or where the
-    Gauss-Newton matrix is singular, both with confidence 0); the final store adds model (N,) uint8
-    (:data:`MODEL_NAMES`) and cluster (N,) int32
+    views_used (N,) int16, iterations (N,) int16, normal_std_deg (N,), eta_std (N,) and sigma_s_std (N,)
+    (the fit's Gauss-Newton standard deviations, inf where not fitted or where the
+    Gauss-Newton matrix is singular, all with confidence 0); the final store adds model (N,) uint8
+    (:data:`MODEL_NAMES`), cluster (N,) int32, eta_source and lobe_source (N,) uint8
+    (:data:`sellip.augment.VALUE_SOURCES`) and eta_vertex, sigma_s_vertex, rho_s_vertex (N,) (each vertex's own fit)
 
 ``status`` is 0 fitted, 1 too few views, 2 failed (:data:`sellip.fit.STATUS_NAMES`). Vertices
 that could not be fitted hold parameters interpolated from their fitted neighbours and
@@ -27,7 +28,8 @@ from sellip.pbrdf import PBRDFParams
 
 PARAM_FIELDS = ("eta", "rho_d", "rho_s", "sigma_s", "rho_ss", "sigma_ss")
 EXTRA_FIELDS = {"confidence": np.float32, "status": np.int8, "loss": np.float32, "views_used": np.int16,
-                "iterations": np.int16, "model": np.uint8, "cluster": np.int32, "eta_source": np.uint8}
+                "iterations": np.int16, "model": np.uint8, "cluster": np.int32, "eta_source": np.uint8,
+                "lobe_source": np.uint8}
 
 MODEL_NAMES = {0: "diffuse", 1: "diffuse + specular", 2: "diffuse + specular + single scattering (sigma_ss fixed)",
                3: "diffuse + specular + single scattering"}

@@ -309,7 +309,7 @@ def _count_nonfinite(values) -> int:
     return int(np.size(values) - np.count_nonzero(np.isfinite(values))) if values.dtype.kind in "fc" else 0
 
 
-INFINITE_WHEN_UNKNOWN = ("normal_std_deg", "eta_std")
+INFINITE_WHEN_UNKNOWN = ("normal_std_deg", "eta_std", "sigma_s_std")
 """params.zarr arrays that are +inf by design where the uncertainty is unknown: a vertex not fitted
 (status != 0), or fitted with a singular Gauss-Newton matrix (confidence 0; sellip.params)."""
 

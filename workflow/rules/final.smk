@@ -15,6 +15,7 @@ rule finalize_model:
     params:
         clusters=lambda wildcards, input: f"--clusters {input.clusters}" if input.clusters else "",
         eta_deviation_sigmas=config["final"]["eta_deviation_sigmas"],
+        lobe_deviation_sigmas=config["final"]["lobe_deviation_sigmas"],
     conda:
         "../../envs/fit.yaml"
     log:
@@ -24,7 +25,8 @@ rule finalize_model:
     shell:
         SELLIP + " finalize --params {input.params} --mesh {input.mesh} --output-model {output.model}"
         " --output-params {output.params} {params.clusters}"
-        " --eta-deviation-sigmas {params.eta_deviation_sigmas} > {log} 2>&1"
+        " --eta-deviation-sigmas {params.eta_deviation_sigmas}"
+        " --lobe-deviation-sigmas {params.lobe_deviation_sigmas} > {log} 2>&1"
 
 
 rule render_outputs:

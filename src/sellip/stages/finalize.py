@@ -23,14 +23,21 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
+LOBE_STD_FLOOR = 0.01
+"""The least std of a vertex's sigma_s in the lobe's material-or-own test (an overconfident fit does not
+split off on noise)."""
+
 
 def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_params: Path,
-              clusters: Path | None = None, model: int = 3, eta_deviation_sigmas: float = 3.0) -> dict:
+              clusters: Path | None = None, model: int = 3, eta_deviation_sigmas: float = 3.0,
+              lobe_deviation_sigmas: float = 3.0, lobe_std_floor: float = LOBE_STD_FLOOR) -> dict:
     """Write the final model PLY and parameter store; returns a summary dict. The per-vertex model is
     the store's ``model``; ``model`` is the code of every vertex of a store that has none. With
     ``clusters``, eta is its material cluster's unless a vertex's own differs by more than
-    ``eta_deviation_sigmas`` of its std (:func:`sellip.augment.material_eta`; <= 0: every vertex's own)."""
-    from sellip.augment import material_eta
+    ``eta_deviation_sigmas`` of its std, and so is the specular lobe (sigma_s with rho_s, one lobe) unless
+    the vertex's sigma_s differs by more than ``lobe_deviation_sigmas`` of its std (at least
+    ``lobe_std_floor``) (:func:`sellip.augment.material_or_own`; <= 0: every vertex's own)."""
+    from sellip.augment import material_or_own
     from sellip.io import write_param_mesh
     from sellip.observe import read_mesh
     from sellip.params import (
@@ -56,6 +63,8 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
     n = len(vertices)
     cluster = np.zeros(n, np.int32)
     eta, eta_source = np.asarray(store["eta"], np.float64), np.ones(n, np.uint8)
+    sigma_s, rho_s = np.asarray(store["sigma_s"], np.float64), np.asarray(store["rho_s"], np.float64)
+    lobe_source = np.ones(n, np.uint8)
     if clusters is not None:
         try:
             labels, lobes = read_lobes(clusters)
@@ -65,9 +74,16 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
         if cluster.shape != (n,):
             raise ParamsError(f"{Path(clusters) / 'labels.npy'}: {cluster.shape[0]} labels for {n} vertices")
         eta_std = np.asarray(store.get("eta_std", np.full(n, np.inf)), np.float64)
-        eta, eta_source = material_eta(eta, eta_std, cluster, [lobe.eta for lobe in lobes], eta_deviation_sigmas)
+        eta, eta_source = material_or_own(eta, eta_std, cluster, [lobe.eta for lobe in lobes], eta_deviation_sigmas)
         log.info("eta per material: %d of %d vertices keep their own eta (more than %g std from their cluster's %s)",
                  int(eta_source.sum()), n, eta_deviation_sigmas, np.round([lobe.eta for lobe in lobes], 3).tolist())
+        sigma_s_std = np.asarray(store.get("sigma_s_std", np.full(n, np.inf)), np.float64)
+        sigma_s, lobe_source = material_or_own(sigma_s, sigma_s_std, cluster, [lobe.sigma_s for lobe in lobes],
+                                               lobe_deviation_sigmas, lobe_std_floor)
+        rho_s = np.where(lobe_source == 1, rho_s, np.asarray([lobe.rho_s for lobe in lobes])[cluster])
+        log.info("specular lobe per material: %d of %d vertices keep their own (sigma_s more than %g std from their "
+                 "cluster's %s)", int(lobe_source.sum()), n, lobe_deviation_sigmas,
+                 np.round([lobe.sigma_s for lobe in lobes], 3).tolist())
     if "model" in store:
         models = np.asarray(store["model"], np.uint8)
         if not np.isin(models, sorted(MODEL_NAMES)).all():
@@ -76,21 +92,26 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
     else:
         models = np.full(n, model, np.uint8)
         log.info("%s has no model array: every vertex gets model %d", params_path, model)
-    params = params_from(store, np.float64)._replace(eta=eta)
+    params = params_from(store, np.float64)._replace(eta=eta, sigma_s=sigma_s, rho_s=rho_s)
     confidence = np.asarray(store.get("confidence", np.zeros(n)), np.float32)
     output_model = Path(output_model)
     output_model.parent.mkdir(parents=True, exist_ok=True)
     tmp = output_model.with_name(output_model.name + ".tmp.ply")
     write_param_mesh(tmp, ParamMesh(vertices, mesh.faces, store["normals"], params),
-                     extra={"confidence": confidence, "model": models, "eta_source": eta_source})
+                     extra={"confidence": confidence, "model": models, "eta_source": eta_source,
+                            "lobe_source": lobe_source})
     tmp.replace(output_model)
     arrays = {name: store[name] for name in store if name != "attrs"}
     arrays.update(model=models, cluster=cluster, eta=eta.astype(np.float32), eta_source=eta_source,
-                  eta_vertex=np.asarray(store["eta"], np.float32))
+                  eta_vertex=np.asarray(store["eta"], np.float32), sigma_s=sigma_s.astype(np.float32),
+                  rho_s=rho_s.astype(np.float32), lobe_source=lobe_source,
+                  sigma_s_vertex=np.asarray(store["sigma_s"], np.float32),
+                  rho_s_vertex=np.asarray(store["rho_s"], np.float32))
     write_params(output_params, arrays, attrs={**store["attrs"], "model_names": {str(k): v for k, v in
                                                                                   MODEL_NAMES.items()}})
     summary = {"vertices": n, "faces": len(mesh.faces), "confidence_median": float(np.median(confidence)),
                "eta_median": float(np.median(eta)), "eta_own_vertices": int(eta_source.sum()),
+               "lobe_own_vertices": int(lobe_source.sum()),
                "fields": list(PARAM_FIELDS),
                "vertices_per_model": {str(m): int(np.sum(models == m)) for m in sorted(MODEL_NAMES)}}
     log.info("wrote %s and %s: %d vertices, %d faces, median confidence %.2f, median eta %.3f, vertices per model %s",
@@ -108,6 +129,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eta-deviation-sigmas", type=float, default=3.0,
                         help="a vertex keeps its own eta (not its material cluster's) when it differs by more than "
                              "this many of its std (<= 0: every vertex its own)")
+    parser.add_argument("--lobe-deviation-sigmas", type=float, default=3.0,
+                        help="a vertex keeps its own specular lobe (sigma_s and rho_s, not its material cluster's) "
+                             "when its sigma_s differs by more than this many of its std (<= 0: every vertex its own)")
     parser.add_argument("--model", type=int, default=3,
                         help="model code of every vertex when the store has no model array (sellip.params.MODEL_NAMES)")
 
@@ -118,7 +142,7 @@ def main(args: argparse.Namespace) -> int:
 
     try:
         run_stage(args.params, args.mesh, args.output_model, args.output_params, args.clusters, args.model,
-                  args.eta_deviation_sigmas)
+                  args.eta_deviation_sigmas, args.lobe_deviation_sigmas)
     except (ParamsError, ObserveError, ValueError) as error:
         log.error("%s", error)
         return 1

@@ -185,7 +185,8 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
     if n:
         arrays.update(normal=result.normal, status=result.status, confidence=result.confidence, loss=result.loss,
                       views_used=result.views_used, iterations=result.iterations,
-                      normal_std_deg=result.normal_std_deg, eta_std=result.eta_std, model=models,
+                      normal_std_deg=result.normal_std_deg, eta_std=result.eta_std,
+                      sigma_s_std=result.sigma_s_std, model=models,
                       **{name: getattr(result.params, name) for name in result.params._fields})
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)

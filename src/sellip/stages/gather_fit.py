@@ -46,7 +46,7 @@ def run_stage(observations: Path, shards: list[Path], output: Path) -> dict:
         raise ParamsError(f"{observations}: the shards cover [0, {covered}) of {total} vertices")
     parts = [p for p in parts if int(p["stop"]) > int(p["start"])]
     names = ("normal", "status", "confidence", "loss", "views_used", "iterations", "normal_std_deg", "eta_std",
-             *PARAM_FIELDS)
+             "sigma_s_std", *PARAM_FIELDS)
     if parts and all("model" in p for p in parts):
         names += ("model",)
     arrays = {name: np.concatenate([p[name] for p in parts]) for name in names}
