@@ -23,20 +23,16 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-LOBE_STD_FLOOR = 0.01
-"""The least std of a vertex's sigma_s in the lobe's material-or-own test (an overconfident fit does not
-split off on noise)."""
-
 
 def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_params: Path,
               clusters: Path | None = None, model: int = 3, eta_deviation_sigmas: float = 3.0,
-              lobe_deviation_sigmas: float = 3.0, lobe_std_floor: float = LOBE_STD_FLOOR) -> dict:
+              lobe_deviation_sigmas: float = 3.0) -> dict:
     """Write the final model PLY and parameter store; returns a summary dict. The per-vertex model is
     the store's ``model``; ``model`` is the code of every vertex of a store that has none. With
     ``clusters``, eta is its material cluster's unless a vertex's own differs by more than
     ``eta_deviation_sigmas`` of its std, and so is the specular lobe (sigma_s with rho_s, one lobe) unless
     the vertex's sigma_s differs by more than ``lobe_deviation_sigmas`` of its std (at least
-    ``lobe_std_floor``) (:func:`sellip.augment.material_or_own`; <= 0: every vertex's own)."""
+    0.01, the rule's floor) (:func:`sellip.augment.material_or_own`; <= 0: every vertex's own)."""
     from sellip.augment import material_or_own
     from sellip.io import write_param_mesh
     from sellip.observe import read_mesh
@@ -79,7 +75,7 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
                  int(eta_source.sum()), n, eta_deviation_sigmas, np.round([lobe.eta for lobe in lobes], 3).tolist())
         sigma_s_std = np.asarray(store.get("sigma_s_std", np.full(n, np.inf)), np.float64)
         sigma_s, lobe_source = material_or_own(sigma_s, sigma_s_std, cluster, [lobe.sigma_s for lobe in lobes],
-                                               lobe_deviation_sigmas, lobe_std_floor)
+                                               lobe_deviation_sigmas)
         rho_s = np.where(lobe_source == 1, rho_s, np.asarray([lobe.rho_s for lobe in lobes])[cluster])
         log.info("specular lobe per material: %d of %d vertices keep their own (sigma_s more than %g std from their "
                  "cluster's %s)", int(lobe_source.sum()), n, lobe_deviation_sigmas,
