@@ -580,9 +580,108 @@ def mesh_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(edges, axis=0)
 
 
+def signed_distance(mask: np.ndarray) -> np.ndarray:
+    """(H, W) float32 distance in pixels from each pixel centre to the boundary of the (H, W) bool ``mask``,
+    negative inside. The boundary lies half a pixel outside the mask's outermost pixel centres."""
+    mask = np.asarray(mask, bool)
+    inside = ndimage.distance_transform_edt(mask)
+    outside = ndimage.distance_transform_edt(~mask)
+    return np.where(mask, 0.5 - inside, outside - 0.5).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class SilhouetteConstraints:
+    """Where the observed silhouettes put the mesh's contour (:func:`silhouette_constraints`).
+
+    vertex: (K,) int, the contour vertex of each constraint; direction: (K, 3), the world direction g for which
+    moving that vertex by dx moves its view's predicted silhouette outward by g . dx metres (at the vertex's
+    depth); offset: (K,) metres, how far the observed silhouette lies outside the predicted one there; view: (K,)
+    int, the view of each; pixel: (K,) metres per pixel at the vertex's depth. The constraints were measured at the
+    vertices given to :func:`silhouette_constraints`.
+    """
+
+    vertex: np.ndarray
+    direction: np.ndarray
+    offset: np.ndarray
+    view: np.ndarray
+    pixel: np.ndarray
+
+    @staticmethod
+    def concatenate(parts: list[SilhouetteConstraints]) -> SilhouetteConstraints:
+        if not parts:
+            return SilhouetteConstraints(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64),
+                                         np.zeros(0))
+        return SilhouetteConstraints(*(np.concatenate([getattr(p, name) for p in parts])
+                                       for name in ("vertex", "direction", "offset", "view", "pixel")))
+
+    @property
+    def offset_px(self) -> np.ndarray:
+        """(K,) the offsets in pixels."""
+        return self.offset / self.pixel
+
+    def __len__(self) -> int:
+        return len(self.vertex)
+
+
+def silhouette_constraints(vertices: np.ndarray, normals: np.ndarray, intrinsics: np.ndarray, rotation: np.ndarray,
+                           translation: np.ndarray, observed: np.ndarray, predicted: np.ndarray, view: int = 0,
+                           band_px: float = 1.0, max_cos: float = 0.3, min_alignment: float = 0.5,
+                           max_offset_px: float = 3.0) -> SilhouetteConstraints:
+    """The silhouette constraints of one view: vertices (V, 3) with unit normals (V, 3) on the mesh's contour,
+    and how far the ``observed`` silhouette (H, W) bool lies outside the ``predicted`` one (the mesh's, made by
+    the same operator from a render of the current model, so that what the operator cuts from a dim limb cuts
+    both alike) at each vertex's projection.
+
+    A contour vertex projects within ``band_px`` of the predicted boundary, its normal is within
+    ``max_cos`` of perpendicular to its view ray, and its projected normal points out across the boundary
+    (cosine with the predicted silhouette's outward gradient at least ``min_alignment``). Offsets larger than
+    ``max_offset_px`` (a mask that cut or added a piece) are dropped. intrinsics (3, 3) of the masks' pixel
+    grid (undistorted), rotation (3, 3), translation (3,): cam_from_world.
+    """
+    vertices, normals = np.asarray(vertices, np.float64), np.asarray(normals, np.float64)
+    k, rotation = np.asarray(intrinsics, np.float64), np.asarray(rotation, np.float64)
+    cam = vertices @ rotation.T + np.asarray(translation, np.float64)
+    depth = cam[:, 2]
+    safe = np.where(depth > 1e-9, depth, 1.0)
+    u = (k[0, 0] * cam[:, 0] + k[0, 1] * cam[:, 1]) / safe + k[0, 2]
+    v = k[1, 1] * cam[:, 1] / safe + k[1, 2]
+    height, width = predicted.shape
+    ray = cam / np.linalg.norm(cam, axis=1, keepdims=True)
+    candidate = ((depth > 1e-9) & (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
+                 & (np.abs(np.sum(ray * (normals @ rotation.T), axis=1)) < max_cos))
+    index = np.flatnonzero(candidate)
+    where = np.stack([v[index], u[index]])
+    sdf_predicted = signed_distance(predicted)
+    at = ndimage.map_coordinates(sdf_predicted, where, order=1, mode="nearest")
+    near = np.abs(at) < band_px
+    index, where, at = index[near], where[:, near], at[near]
+    gradient = np.stack([ndimage.map_coordinates(g, where, order=1, mode="nearest")
+                         for g in np.gradient(sdf_predicted)[::-1]], axis=1)  # (K, 2): d/du, d/dv
+    outward = gradient / np.maximum(np.linalg.norm(gradient, axis=1, keepdims=True), 1e-9)
+    # d(u, v)/d(world point): the pinhole's Jacobian in camera coordinates times the rotation.
+    x, y, z = cam[index, 0], cam[index, 1], depth[index]
+    jacobian_cam = np.zeros((len(index), 2, 3))
+    jacobian_cam[:, 0, 0] = k[0, 0] / z
+    jacobian_cam[:, 0, 1] = k[0, 1] / z
+    jacobian_cam[:, 0, 2] = -(k[0, 0] * x + k[0, 1] * y) / z ** 2
+    jacobian_cam[:, 1, 1] = k[1, 1] / z
+    jacobian_cam[:, 1, 2] = -k[1, 1] * y / z ** 2
+    jacobian = jacobian_cam @ rotation  # (K, 2, 3)
+    projected_normal = np.einsum("kij,kj->ki", jacobian, normals[index])
+    alignment = np.sum(projected_normal * outward, axis=1) / np.maximum(np.linalg.norm(projected_normal, axis=1), 1e-12)
+    metres_per_px = z / np.sqrt(k[0, 0] * k[1, 1])
+    offset_px = at - ndimage.map_coordinates(signed_distance(observed), where, order=1, mode="nearest")
+    keep = (alignment >= min_alignment) & (np.abs(offset_px) <= max_offset_px)
+    direction = metres_per_px[:, None] * np.einsum("kij,ki->kj", jacobian, outward)
+    return SilhouetteConstraints(index[keep], direction[keep], (offset_px * metres_per_px)[keep],
+                                 np.full(int(keep.sum()), view, np.int64), metres_per_px[keep])
+
+
 def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals: np.ndarray,
                         confidence: np.ndarray, smoothness: float = 0.01, anchor: float = 1e-3,
-                        rounds: int = 3, reference: np.ndarray | None = None) -> np.ndarray:
+                        rounds: int = 3, reference: np.ndarray | None = None,
+                        silhouettes: SilhouetteConstraints | None = None,
+                        silhouette_weight: float = 0.1) -> np.ndarray:
     """The geometry update of one iteration (paper §4.4): the mesh's vertices (V, 3) moved along its
     normals so that its surface agrees with the fitted normals (V, 3), as far as their ``confidence``
     (V,) in [0, 1] allows. Returns the new vertices (V, 3); the faces (F, 3) are kept.
@@ -607,11 +706,17 @@ def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals:
     Confidence 0 everywhere leaves every vertex where it was (the offsets solve a system whose
     right-hand side is zero). Screened Poisson from the same points cannot do this: it reconstructs
     the surface through the sample positions, so their errors stay (docs/geometry_update.md).
+
+    ``silhouettes`` (:func:`silhouette_constraints`, measured at ``vertices``) add
+    ``silhouette_weight sum_k (g_k . (x_i + d_i m_i - x0_i) - offset_k)^2``: each contour vertex moves its
+    view's silhouette onto the observed one. This is what fixes the mean offset and size that normals cannot tell,
+    and that the anchor would otherwise keep from the initial mesh.
     """
     from scipy import sparse
     from scipy.sparse.linalg import cg, spsolve
 
     vertices = np.asarray(vertices, np.float64)
+    measured_at = vertices
     weight = np.clip(np.nan_to_num(np.asarray(confidence, np.float64)), 0, 1)
     reference = vertices if reference is None else np.asarray(reference, np.float64)
     if reference.shape != vertices.shape:
@@ -636,6 +741,12 @@ def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals:
         residual = -edge_weight * np.sum(edge_normal * (vertices[j] - vertices[i]), 1)
         matrix = (system.T @ system + regulariser).tocsr()
         right = system.T @ residual + anchor * np.sum(normals * (reference - vertices), axis=1)
+        if silhouettes is not None and len(silhouettes) and silhouette_weight > 0:
+            at = silhouettes.vertex
+            along = np.sum(silhouettes.direction * normals[at], axis=1)
+            missing = silhouettes.offset - np.sum(silhouettes.direction * (vertices[at] - measured_at[at]), axis=1)
+            matrix = (matrix + sparse.diags(silhouette_weight * np.bincount(at, along ** 2, len(vertices)))).tocsr()
+            right = right + silhouette_weight * np.bincount(at, along * missing, len(vertices))
         # Conjugate gradients with a Jacobi preconditioner: 7x faster than a direct solve at 160k vertices
         # and 1 nm from it at this tolerance; the direct solve where it does not converge.
         offsets, info = cg(matrix, right, rtol=1e-8, maxiter=10 * int(np.sqrt(len(vertices))) + 1000,

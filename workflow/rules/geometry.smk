@@ -80,6 +80,9 @@ rule refine_geometry:
         params=get_params,
         mesh=get_mesh,
         reference=f"{RESULTS}/mesh/init.ply",
+        hdr=f"{RESULTS}/hdr.zarr",
+        cameras=f"{RESULTS}/cameras.csv",
+        capture=capture_file("capture.yaml"),
     output:
         mesh=f"{RESULTS}/iter/{{it}}/mesh.ply",
         summary=f"{RESULTS}/iter/{{it}}/mesh.ply.json",
@@ -87,6 +90,10 @@ rule refine_geometry:
         smoothness=lambda wildcards: at_iteration(config["refine_geometry"]["smoothness"], wildcards.it),
         anchor=lambda wildcards: at_iteration(config["refine_geometry"]["anchor"], wildcards.it),
         rounds=config["refine_geometry"]["rounds"],
+        silhouette=lambda wildcards: at_iteration(config["refine_geometry"]["silhouette"], wildcards.it),
+        capture=lambda wildcards, input: Path(input.capture).parent,
+        held_out=" ".join(config["evaluate"]["held_out_views"]),
+        mask_threshold=config["sfm"]["mask_threshold"],
     conda:
         "../../envs/geometry.yaml"
     log:
@@ -95,4 +102,6 @@ rule refine_geometry:
         f"{RESULTS}/benchmarks/refine_geometry/{{it}}.tsv"
     shell:
         SELLIP + " refine-geometry --params {input.params} --mesh {input.mesh} --output {output.mesh}"
-        " --reference-mesh {input.reference} --smoothness {params.smoothness} --anchor {params.anchor} --rounds {params.rounds} > {log} 2>&1"
+        " --reference-mesh {input.reference} --smoothness {params.smoothness} --anchor {params.anchor} --rounds {params.rounds}"
+        " --silhouette {params.silhouette} --cameras {input.cameras} --hdr {input.hdr} --capture {params.capture}"
+        " --exclude-views {params.held_out} --mask-threshold {params.mask_threshold} > {log} 2>&1"

@@ -3,16 +3,21 @@
     sellip refine-geometry --params results/NAME/iter/3/refit.zarr --mesh results/NAME/iter/2/mesh.ply
                            --output results/NAME/iter/3/mesh.ply [--reference-mesh results/NAME/mesh/init.ply]
                            [--smoothness 0.01] [--anchor 0.001] [--rounds 3]
+                           [--silhouette 0.01 --cameras results/NAME/cameras.csv --hdr results/NAME/hdr.zarr
+                            --capture CAPTURE --exclude-views v004 ... --mask-threshold 0.03]
 
-The mesh's vertices move along its normals until its surface agrees with the iteration's fitted
-normals, as far as the fit's normal confidence allows (:func:`sellip.geometry.refine_from_normals`,
-docs/geometry_update.md); what normals cannot tell (the mean offset, the shape far from any confident
-normal) is held at ``--reference-mesh`` (the loop's initial mesh, so that small biases of the normals
-do not add up over the iterations; default: ``--mesh``). The faces stay, so every vertex keeps its
-parameters (the next fit's warm start) and the vertex count does not drift. Written atomically as a model PLY
-(:func:`sellip.io.write_param_mesh`) with the normals of the new surface and the ``confidence``: the
-mesh of the next iteration. Beside it, ``<output>.json`` says how far the surface moved and how far the
-fitted normals were from the mesh's before and after (a convergence figure that needs no ground truth).
+The mesh's vertices move along its normals until its surface agrees with the iteration's fitted normals, as far
+as the fit's normal confidence allows (:func:`sellip.geometry.refine_from_normals`, docs/geometry_update.md);
+what normals cannot tell (the mean offset, the shape far from any confident normal) is held at ``--reference-
+mesh`` (the loop's initial mesh, so that small biases of the normals do not add up over the iterations; default:
+``--mesh``). With ``--silhouette`` > 0 the photographs' silhouettes hold the mean offset and size instead: the
+current model is rendered in every view but the held-out ones, the same silhouette operator is applied to the
+render and to the photograph, and each contour vertex moves the model's silhouette onto the photograph's
+(:func:`measure_silhouettes`, :func:`sellip.geometry.silhouette_constraints`). The faces stay, so every vertex
+keeps its parameters (the next fit's warm start) and the vertex count does not drift. Written atomically as a
+model PLY (:func:`sellip.io.write_param_mesh`) with the normals of the new surface and the ``confidence``: the
+mesh of the next iteration. Beside it, ``<output>.json`` says how far the surface moved and how far the fitted
+normals were from the mesh's before and after (a convergence figure that needs no ground truth).
 """
 
 from __future__ import annotations
@@ -28,13 +33,63 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 
+def predicted_diffuse(renderer, camera, light: dict, supersample: int = 2) -> np.ndarray:
+    """I_d = 2 I90 (H, W, C) of the current model rendered in ``camera`` under the capture's flash (capture.yaml
+    ``light``), its background at a tiny positive value: the silhouette operator then ranks the same pixels as in a
+    photograph, whose background is noise, not zero (:func:`sellip.geometry.silhouette_masks` takes its level from
+    a percentile of the positive pixels)."""
+    from sellip.render import flash_light
+
+    flash = flash_light(camera, light["position_m"], polarizer_deg=float(light["polarizer_deg"]))
+    diffuse = 2 * renderer.render(camera, flash, supersample=supersample).analyzers[..., 2, :]
+    return np.where(np.isfinite(diffuse) & (diffuse > 0), diffuse, 1e-12).astype(np.float32)
+
+
+def measure_silhouettes(mesh, shading_normals: np.ndarray, params, cameras_path: Path, hdr_path: Path,
+                        capture_path: Path, exclude_views=(), mask_options: dict | None = None):
+    """The silhouette constraints of every view of cameras.csv but ``exclude_views`` (the held-out ones):
+    the observed silhouette of each photograph against the same operator's silhouette of the current model
+    (``mesh`` with ``shading_normals`` (V, 3) and ``params``) rendered in that view
+    (:func:`sellip.geometry.silhouette_constraints`). Returns the constraints and a per-view summary
+    (constraints; the mean and RMS offset in pixels, positive where the photograph's silhouette lies outside)."""
+    from sellip.geometry import SilhouetteConstraints, silhouette_constraints, silhouette_masks, vertex_normals
+    from sellip.io import read_capture
+    from sellip.render import ParamMesh, Renderer
+    from sellip.stages.render_outputs import load_cameras
+    from sellip.stages.sfm import diffuse_view
+
+    light = read_capture(capture_path, check_files=False).config["light"]
+    cameras, hdr = load_cameras(cameras_path, hdr_path)
+    renderer = Renderer(ParamMesh(mesh.vertices, mesh.faces, shading_normals, params))
+    normals = vertex_normals(mesh.vertices, mesh.faces)
+    options = mask_options or {}
+    parts, per_view = [], {}
+    views = [v for v in cameras if v not in set(exclude_views)]
+    for index, view in enumerate(views):
+        camera = cameras[view]
+        diffuse, valid = diffuse_view(hdr, hdr.view_ids.index(view))
+        observed = silhouette_masks(diffuse[None], valid[None], **options)[0]
+        predicted = silhouette_masks(predicted_diffuse(renderer, camera, light)[None], **options)[0]
+        part = silhouette_constraints(mesh.vertices, normals, camera.intrinsics, camera.rotation, camera.translation,
+                                      observed, predicted, view=index)
+        parts.append(part)
+        per_view[view] = {"constraints": len(part),
+                          "offset_px_mean": float(np.mean(part.offset_px)) if len(part) else None,
+                          "offset_px_rms": float(np.sqrt(np.mean(part.offset_px ** 2))) if len(part) else None}
+    return SilhouetteConstraints.concatenate(parts), per_view
+
+
 def run_stage(params_path: Path, mesh_path: Path, output: Path, smoothness: float = 0.01, anchor: float = 1e-3,
-              rounds: int = 3, min_confidence: float = 0.5, reference_mesh: Path | None = None) -> dict:
+              rounds: int = 3, min_confidence: float = 0.5, reference_mesh: Path | None = None,
+              silhouette: float = 0.0, cameras_path: Path | None = None, hdr_path: Path | None = None,
+              capture_path: Path | None = None, exclude_views=(), mask_options: dict | None = None) -> dict:
     """Write the next iteration's mesh ``output`` and ``<output>.json``; returns the summary written there.
-    ``min_confidence``: the vertices whose normal agreement is reported."""
+    ``min_confidence``: the vertices whose normal agreement is reported. ``silhouette`` > 0: the weight of the
+    silhouette constraints of the photographs (``cameras_path``, ``hdr_path``, ``capture_path`` needed; the
+    ``exclude_views`` not used; ``mask_options`` of :func:`sellip.geometry.silhouette_masks`)."""
     from sellip.evaluate import angular_error_deg
     from sellip.fit import confidence_from_uncertainty
-    from sellip.geometry import mesh_distances, refine_from_normals, vertex_normals
+    from sellip.geometry import blend_normals, mesh_distances, refine_from_normals, vertex_normals
     from sellip.io import write_param_mesh
     from sellip.observe import read_mesh
     from sellip.params import PARAM_FIELDS, ParamsError, params_from, read_params, same_vertices
@@ -63,10 +118,22 @@ def run_stage(params_path: Path, mesh_path: Path, output: Path, smoothness: floa
     log.info("%s: %d vertices, %d with normal confidence >= %.2f (median %.2f); smoothness %g, anchor %g, "
              "%d rounds", params_path, len(vertices), int(confident.sum()), min_confidence,
              float(np.median(normal_confidence)), smoothness, anchor, rounds)
-    new_vertices = refine_from_normals(mesh.vertices, mesh.faces, fitted, normal_confidence, smoothness=smoothness,
-                                       anchor=anchor, rounds=rounds, reference=reference)
-    new_normals = vertex_normals(new_vertices, mesh.faces)
     params = params_from({name: store[name] for name in PARAM_FIELDS}, np.float64)
+    silhouettes, per_view = None, {}
+    if silhouette > 0:
+        if None in (cameras_path, hdr_path, capture_path):
+            raise ValueError("the silhouette constraints (silhouette > 0) need cameras.csv, hdr.zarr and the capture")
+        shading = blend_normals(fitted, vertex_normals(mesh.vertices, mesh.faces), normal_confidence)
+        silhouettes, per_view = measure_silhouettes(mesh, shading, params, cameras_path, hdr_path, capture_path,
+                                                    exclude_views, mask_options)
+        log.info("silhouettes of %d views: %d constraints; the photographs' outside the model's by %.3f px on "
+                 "average (RMS %.3f px)", len(per_view), len(silhouettes),
+                 *((float(np.mean(silhouettes.offset_px)), float(np.sqrt(np.mean(silhouettes.offset_px ** 2))))
+                   if len(silhouettes) else (np.nan, np.nan)))
+    new_vertices = refine_from_normals(mesh.vertices, mesh.faces, fitted, normal_confidence, smoothness=smoothness,
+                                       anchor=anchor, rounds=rounds, reference=reference, silhouettes=silhouettes,
+                                       silhouette_weight=silhouette)
+    new_normals = vertex_normals(new_vertices, mesh.faces)
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
     tmp = output.with_name(output.name + ".tmp.ply")
@@ -83,6 +150,9 @@ def run_stage(params_path: Path, mesh_path: Path, output: Path, smoothness: floa
                "offset_median_mm": 1e3 * float(np.median(offsets)), "offset_max_mm": 1e3 * float(offsets.max()),
                "fitted_vs_mesh_before_deg": agreement(vertex_normals(mesh.vertices, mesh.faces)),
                "fitted_vs_mesh_after_deg": agreement(new_normals),
+               "silhouette_weight": silhouette,
+               "silhouette_constraints": 0 if silhouettes is None else len(silhouettes),
+               "silhouette_offset_px": per_view,
                "seconds": time.perf_counter() - started}
     tmp.replace(output)
     Path(f"{output}.json").write_text(json.dumps(summary, indent=1))
@@ -105,6 +175,16 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rounds", type=int, default=3, help="linearisations around the moved surface")
     parser.add_argument("--reference-mesh", type=Path, default=None,
                         help="the mesh (same faces) whose surface the anchor holds (default: --mesh)")
+    parser.add_argument("--silhouette", type=float, default=0.0,
+                        help="weight of the photographs' silhouettes (no units; 0: none; needs --cameras, --hdr, "
+                             "--capture)")
+    parser.add_argument("--cameras", type=Path, default=None, help="cameras.csv (for the silhouettes)")
+    parser.add_argument("--hdr", type=Path, default=None, help="hdr.zarr (for the silhouettes)")
+    parser.add_argument("--capture", type=Path, default=None, help="capture folder (capture.yaml light)")
+    parser.add_argument("--exclude-views", nargs="*", default=[], help="views whose silhouettes are not used "
+                        "(the held-out views)")
+    parser.add_argument("--mask-threshold", type=float, default=0.03,
+                        help="silhouette threshold, a fraction of each view's robust maximum (sfm.mask_threshold)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -113,7 +193,9 @@ def main(args: argparse.Namespace) -> int:
 
     try:
         run_stage(args.params, args.mesh, args.output, args.smoothness, args.anchor, args.rounds,
-                  reference_mesh=args.reference_mesh)
+                  reference_mesh=args.reference_mesh, silhouette=args.silhouette, cameras_path=args.cameras,
+                  hdr_path=args.hdr, capture_path=args.capture, exclude_views=args.exclude_views,
+                  mask_options={"threshold": args.mask_threshold})
     except (ParamsError, ObserveError, ValueError) as error:
         log.error("%s", error)
         return 1
