@@ -595,24 +595,22 @@ class SilhouetteConstraints:
 
     vertex: (K,) int, the contour vertex of each constraint; direction: (K, 3), the world direction g for which
     moving that vertex by dx moves its view's predicted silhouette outward by g . dx metres (at the vertex's
-    depth); offset: (K,) metres, how far the observed silhouette lies outside the predicted one there; view: (K,)
-    int, the view of each; pixel: (K,) metres per pixel at the vertex's depth. The constraints were measured at the
-    vertices given to :func:`silhouette_constraints`.
+    depth); offset: (K,) metres, how far the observed silhouette lies outside the predicted one there; pixel: (K,)
+    metres per pixel at the vertex's depth. The constraints were measured at the vertices given to
+    :func:`silhouette_constraints`.
     """
 
     vertex: np.ndarray
     direction: np.ndarray
     offset: np.ndarray
-    view: np.ndarray
     pixel: np.ndarray
 
     @staticmethod
     def concatenate(parts: list[SilhouetteConstraints]) -> SilhouetteConstraints:
         if not parts:
-            return SilhouetteConstraints(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64),
-                                         np.zeros(0))
+            return SilhouetteConstraints(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
         return SilhouetteConstraints(*(np.concatenate([getattr(p, name) for p in parts])
-                                       for name in ("vertex", "direction", "offset", "view", "pixel")))
+                                       for name in ("vertex", "direction", "offset", "pixel")))
 
     @property
     def offset_px(self) -> np.ndarray:
@@ -624,7 +622,7 @@ class SilhouetteConstraints:
 
 
 def silhouette_constraints(vertices: np.ndarray, normals: np.ndarray, intrinsics: np.ndarray, rotation: np.ndarray,
-                           translation: np.ndarray, observed: np.ndarray, predicted: np.ndarray, view: int = 0,
+                           translation: np.ndarray, observed: np.ndarray, predicted: np.ndarray,
                            band_px: float = 1.0, max_cos: float = 0.3, min_alignment: float = 0.5,
                            max_offset_px: float = 3.0) -> SilhouetteConstraints:
     """The silhouette constraints of one view: vertices (V, 3) with unit normals (V, 3) on the mesh's contour,
@@ -640,15 +638,15 @@ def silhouette_constraints(vertices: np.ndarray, normals: np.ndarray, intrinsics
     """
     vertices, normals = np.asarray(vertices, np.float64), np.asarray(normals, np.float64)
     k, rotation = np.asarray(intrinsics, np.float64), np.asarray(rotation, np.float64)
-    cam = vertices @ rotation.T + np.asarray(translation, np.float64)
-    depth = cam[:, 2]
-    safe = np.where(depth > 1e-9, depth, 1.0)
-    u = (k[0, 0] * cam[:, 0] + k[0, 1] * cam[:, 1]) / safe + k[0, 2]
-    v = k[1, 1] * cam[:, 1] / safe + k[1, 2]
+    translation = np.asarray(translation, np.float64)
+    pixels, depth = _project(vertices, k, rotation, translation)
+    u, v = pixels[:, 0], pixels[:, 1]
     height, width = predicted.shape
-    ray = cam / np.linalg.norm(cam, axis=1, keepdims=True)
+    centre = -rotation.T @ translation
+    ray = vertices - centre
+    facing = np.sum(ray * normals, axis=1) / np.linalg.norm(ray, axis=1)
     candidate = ((depth > 1e-9) & (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
-                 & (np.abs(np.sum(ray * (normals @ rotation.T), axis=1)) < max_cos))
+                 & (np.abs(facing) < max_cos))
     index = np.flatnonzero(candidate)
     where = np.stack([v[index], u[index]])
     sdf_predicted = signed_distance(predicted)
@@ -659,7 +657,8 @@ def silhouette_constraints(vertices: np.ndarray, normals: np.ndarray, intrinsics
                          for g in np.gradient(sdf_predicted)[::-1]], axis=1)  # (K, 2): d/du, d/dv
     outward = gradient / np.maximum(np.linalg.norm(gradient, axis=1, keepdims=True), 1e-9)
     # d(u, v)/d(world point): the pinhole's Jacobian in camera coordinates times the rotation.
-    x, y, z = cam[index, 0], cam[index, 1], depth[index]
+    cam = vertices[index] @ rotation.T + translation
+    x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
     jacobian_cam = np.zeros((len(index), 2, 3))
     jacobian_cam[:, 0, 0] = k[0, 0] / z
     jacobian_cam[:, 0, 1] = k[0, 1] / z
@@ -673,15 +672,14 @@ def silhouette_constraints(vertices: np.ndarray, normals: np.ndarray, intrinsics
     offset_px = at - ndimage.map_coordinates(signed_distance(observed), where, order=1, mode="nearest")
     keep = (alignment >= min_alignment) & (np.abs(offset_px) <= max_offset_px)
     direction = metres_per_px[:, None] * np.einsum("kij,ki->kj", jacobian, outward)
-    return SilhouetteConstraints(index[keep], direction[keep], (offset_px * metres_per_px)[keep],
-                                 np.full(int(keep.sum()), view, np.int64), metres_per_px[keep])
+    return SilhouetteConstraints(index[keep], direction[keep], (offset_px * metres_per_px)[keep], metres_per_px[keep])
 
 
 def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals: np.ndarray,
                         confidence: np.ndarray, smoothness: float = 0.01, anchor: float = 1e-3,
                         rounds: int = 3, reference: np.ndarray | None = None,
                         silhouettes: SilhouetteConstraints | None = None,
-                        silhouette_weight: float = 0.1) -> np.ndarray:
+                        silhouette_weight: float = 0.01) -> np.ndarray:
     """The geometry update of one iteration (paper §4.4): the mesh's vertices (V, 3) moved along its
     normals so that its surface agrees with the fitted normals (V, 3), as far as their ``confidence``
     (V,) in [0, 1] allows. Returns the new vertices (V, 3); the faces (F, 3) are kept.

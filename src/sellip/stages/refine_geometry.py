@@ -45,14 +45,15 @@ def predicted_diffuse(renderer, camera, light: dict, supersample: int = 2) -> np
     return np.where(np.isfinite(diffuse) & (diffuse > 0), diffuse, 1e-12).astype(np.float32)
 
 
-def measure_silhouettes(mesh, shading_normals: np.ndarray, params, cameras_path: Path, hdr_path: Path,
-                        capture_path: Path, exclude_views=(), mask_options: dict | None = None):
+def measure_silhouettes(mesh, mesh_normals: np.ndarray, shading_normals: np.ndarray, params, cameras_path: Path,
+                        hdr_path: Path, capture_path: Path, exclude_views=(), mask_options: dict | None = None):
     """The silhouette constraints of every view of cameras.csv but ``exclude_views`` (the held-out ones):
     the observed silhouette of each photograph against the same operator's silhouette of the current model
-    (``mesh`` with ``shading_normals`` (V, 3) and ``params``) rendered in that view
+    (``mesh`` with its geometric ``mesh_normals`` (V, 3), shaded with ``shading_normals`` (V, 3) and ``params``)
+    rendered in that view
     (:func:`sellip.geometry.silhouette_constraints`). Returns the constraints and a per-view summary
     (constraints; the mean and RMS offset in pixels, positive where the photograph's silhouette lies outside)."""
-    from sellip.geometry import SilhouetteConstraints, silhouette_constraints, silhouette_masks, vertex_normals
+    from sellip.geometry import SilhouetteConstraints, silhouette_constraints, silhouette_masks
     from sellip.io import read_capture
     from sellip.render import ParamMesh, Renderer
     from sellip.stages.render_outputs import load_cameras
@@ -61,17 +62,16 @@ def measure_silhouettes(mesh, shading_normals: np.ndarray, params, cameras_path:
     light = read_capture(capture_path, check_files=False).config["light"]
     cameras, hdr = load_cameras(cameras_path, hdr_path)
     renderer = Renderer(ParamMesh(mesh.vertices, mesh.faces, shading_normals, params))
-    normals = vertex_normals(mesh.vertices, mesh.faces)
     options = mask_options or {}
     parts, per_view = [], {}
-    views = [v for v in cameras if v not in set(exclude_views)]
-    for index, view in enumerate(views):
+    excluded = set(exclude_views)
+    for view in (v for v in cameras if v not in excluded):
         camera = cameras[view]
         diffuse, valid = diffuse_view(hdr, hdr.view_ids.index(view))
         observed = silhouette_masks(diffuse[None], valid[None], **options)[0]
         predicted = silhouette_masks(predicted_diffuse(renderer, camera, light)[None], **options)[0]
-        part = silhouette_constraints(mesh.vertices, normals, camera.intrinsics, camera.rotation, camera.translation,
-                                      observed, predicted, view=index)
+        part = silhouette_constraints(mesh.vertices, mesh_normals, camera.intrinsics, camera.rotation,
+                                      camera.translation, observed, predicted)
         parts.append(part)
         per_view[view] = {"constraints": len(part),
                           "offset_px_mean": float(np.mean(part.offset_px)) if len(part) else None,
@@ -119,13 +119,14 @@ def run_stage(params_path: Path, mesh_path: Path, output: Path, smoothness: floa
              "%d rounds", params_path, len(vertices), int(confident.sum()), min_confidence,
              float(np.median(normal_confidence)), smoothness, anchor, rounds)
     params = params_from({name: store[name] for name in PARAM_FIELDS}, np.float64)
+    mesh_normals = vertex_normals(mesh.vertices, mesh.faces)
     silhouettes, per_view = None, {}
     if silhouette > 0:
         if None in (cameras_path, hdr_path, capture_path):
             raise ValueError("the silhouette constraints (silhouette > 0) need cameras.csv, hdr.zarr and the capture")
-        shading = blend_normals(fitted, vertex_normals(mesh.vertices, mesh.faces), normal_confidence)
-        silhouettes, per_view = measure_silhouettes(mesh, shading, params, cameras_path, hdr_path, capture_path,
-                                                    exclude_views, mask_options)
+        shading = blend_normals(fitted, mesh_normals, normal_confidence)
+        silhouettes, per_view = measure_silhouettes(mesh, mesh_normals, shading, params, cameras_path, hdr_path,
+                                                    capture_path, exclude_views, mask_options)
         log.info("silhouettes of %d views: %d constraints; the photographs' outside the model's by %.3f px on "
                  "average (RMS %.3f px)", len(per_view), len(silhouettes),
                  *((float(np.mean(silhouettes.offset_px)), float(np.sqrt(np.mean(silhouettes.offset_px ** 2))))
@@ -148,7 +149,7 @@ def run_stage(params_path: Path, mesh_path: Path, output: Path, smoothness: floa
     summary = {"vertices": len(new_vertices), "confident_vertices": int(confident.sum()),
                "moved_chamfer_mm": 1e3 * moved.chamfer, "moved_hausdorff_mm": 1e3 * moved.hausdorff,
                "offset_median_mm": 1e3 * float(np.median(offsets)), "offset_max_mm": 1e3 * float(offsets.max()),
-               "fitted_vs_mesh_before_deg": agreement(vertex_normals(mesh.vertices, mesh.faces)),
+               "fitted_vs_mesh_before_deg": agreement(mesh_normals),
                "fitted_vs_mesh_after_deg": agreement(new_normals),
                "silhouette_weight": silhouette,
                "silhouette_constraints": 0 if silhouettes is None else len(silhouettes),
