@@ -186,6 +186,36 @@ def test_silhouette_masks_keep_real_holes_and_fill_dark_texture():
     assert (mask != truth).mean() < 0.01
 
 
+def test_boundary_distance_measures_a_sub_pixel_shift_of_a_dim_limb():
+    """Two lit disks, radii 0.1-0.7 px apart, whose brightness falls smoothly to the limb (a Lambertian sphere under
+    a co-located flash, box filtered over each pixel) with background noise: at 400 points up to a pixel from the
+    boundary, the difference of the two boundary distances along the outward direction is the shift, on average
+    within 0.02 px and 0.13 px RMS; the masks' own distances (their staircases) are off by 0.22-0.30 px RMS."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(5)
+    centre, radius, sub = np.array([157.3, 121.8]), 61.7, 8
+    fine = (np.arange(WIDTH * sub) + 0.5) / sub - 0.5, (np.arange(HEIGHT * sub) + 0.5) / sub - 0.5
+    distance = np.hypot(fine[0][None, :] - centre[0], fine[1][:, None] - centre[1])
+
+    def limb(r):
+        image = np.sqrt(np.clip(1 - (distance / r) ** 2, 0, None)).reshape(HEIGHT, sub, WIDTH, sub).mean(axis=(1, 3))
+        return geometry.Silhouette.of((image + rng.normal(0, 1e-4, image.shape).clip(0))[..., None])
+
+    angle = rng.uniform(0, 2 * np.pi, 400)
+    outward = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    points = centre + (radius + rng.uniform(-1.0, 1.0, len(angle)))[:, None] * outward
+    inner = limb(radius)
+    for shift in (0.1, 0.3, 0.7):
+        outer = limb(radius + shift)
+        found = geometry.boundary_distance(inner, points, outward) - geometry.boundary_distance(outer, points, outward)
+        by_mask = np.subtract(*(ndimage.map_coordinates(geometry.signed_distance(s.mask), points[:, ::-1].T, order=1)
+                                for s in (inner, outer)))
+        assert abs(np.mean(found) - shift) < 0.02, (shift, np.mean(found))
+        error, mask_error = (np.sqrt(np.mean((x - shift) ** 2)) for x in (found, by_mask))
+        assert error < 0.15 and error < 0.5 * mask_error, (shift, error, mask_error)
+
+
 def test_visual_hull_tolerates_a_bad_mask_and_reports_it():
     vertices, faces = sphere(0.05)
     cameras = orbit(24)

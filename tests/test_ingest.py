@@ -131,6 +131,26 @@ def test_demosaic_is_exact_for_affine_fields_per_analyzer(color_layout, polarize
     np.testing.assert_allclose(out[3:-3, 3:-3], truth[3:-3, 3:-3], atol=2e-5)
 
 
+@pytest.mark.parametrize("color_layout", ["RGGB", "mono"])
+def test_one_analyzer_plan_develops_that_analyzer_alone(color_layout):
+    """analyzer_plan(plan, k) develops a mosaic (distorted lens: the remap too) into analyzer k of the full
+    plan's output, and reads nothing of the other analyzers' pixels (they may be anything)."""
+    layout = mosaic_layout(IMX250, color_layout)
+    height, width = 32, 48
+    rng = np.random.default_rng(4)
+    mosaic = rng.uniform(0.1, 0.9, (height, width)).astype(np.float32)
+    camera = {**plain_camera(width, height), "distortion": [-0.1, 0.02, 0.001, -0.001, 0.0]}
+    plan = ingest.make_ingest_plan({"width": width, "height": height, "black_level": 0, "white_level": 65535},
+                                   camera, layout)
+    full = ingest.develop(mosaic, plan)
+    for k in range(4):
+        others = mosaic.copy()
+        others[layout.analyzer_map(height, width) != k] = rng.uniform(0, 5, np.sum(layout.analyzer_map(height, width) != k))
+        one = ingest.develop(others, ingest.analyzer_plan(plan, k))
+        assert one.shape == full[..., k:k + 1, :].shape
+        np.testing.assert_allclose(one, full[..., k:k + 1, :], rtol=1e-6, atol=1e-7)
+
+
 def test_colours_share_the_guide_resolution_and_polarization():
     """A texture of period 16 raw pixels (8 cells), one hue, uniform partial polarization: interpolated by
     their ratio to G, R and B are as sharp as G and carry about G's polarization; bilinear on their own (every

@@ -10,6 +10,10 @@ Public API::
     surface_samples(vertices, faces, count, seed=0) -> (count, 3)
     mesh_distances(vertices_a, faces_a, vertices_b, faces_b, count=50000, seed=0) -> MeshDistances
     silhouette_masks(images, valid=None, threshold=0.03, ...) -> (V, H, W) bool
+    silhouette_level(image, valid=None, threshold=0.03, percentile=99) -> (luminance (H, W), level)
+    Silhouette(mask, luminance, level); Silhouette.of(image, valid=None, **mask_options)
+    signed_distance(mask) -> (H, W)                      # pixels, negative inside
+    boundary_distance(silhouette, points, outward) -> (K,)   # the same, to a fraction of a pixel
     VoxelGrid(origin, voxel_size, shape)                 # .centers(), .from_bounds(lo, hi, resolution)
     view_volume_bounds(intrinsics, rotations, translations, width, height) -> (lo (3,), hi (3,))
     carve(masks, intrinsics, rotations, translations, grid, min_inside_fraction=0.9, min_views=3) -> Carving
@@ -25,8 +29,11 @@ Public API::
     vertex_normals(vertices, faces) -> (V, 3)
     mesh_edges(faces) -> (E, 2)
     blend_normals(fitted, geometric, confidence) -> (N, 3)
+    SilhouetteConstraints(vertex, direction, offset, pixel)
+    silhouette_constraints(vertices, normals, intrinsics, rotation, translation, observed, predicted, ...)
     refine_from_normals(vertices, faces, fitted_normals, confidence, smoothness=0.01, anchor=1e-3,
-                        rounds=3, reference=None) -> (V, 3)   # the geometry update: normal integration
+                        rounds=3, reference=None, silhouettes=None, silhouette_weight=0.01,
+                        smoothness_unconfident=1.0) -> (V, 3)   # the geometry update: normal integration
     InitMeshOptions(...); initial_mesh(masks, intrinsics, rotations, translations, options, sparse_points=None,
                                        sparse_views=None, sparse_errors=None, extra_points=None) -> InitialMesh
     orient_outward(vertices, faces, normals=None) -> (faces, consistent)
@@ -42,6 +49,7 @@ batch first. Every function is pure (no I/O); open3d and pymeshlab are used as n
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass
 
@@ -201,6 +209,18 @@ def _disk(radius: int) -> np.ndarray:
     return (r[:, None] ** 2 + r[None, :] ** 2) <= radius * radius
 
 
+def silhouette_level(image: np.ndarray, valid: np.ndarray | None = None, threshold: float = 0.03,
+                     percentile: float = 99.0) -> tuple[np.ndarray, float]:
+    """The luminance (H, W) float32 (mean over channels of an (H, W) or (H, W, C) image, NaN as 0) and the level
+    above which :func:`silhouette_masks` calls a pixel object: ``threshold`` times the ``percentile`` of its
+    non-zero ``valid`` pixels (0 for an image with none)."""
+    image = np.asarray(image)
+    luminance = image.mean(axis=-1) if image.ndim == 3 else image
+    luminance = np.nan_to_num(luminance.astype(np.float32), nan=0.0)
+    usable = luminance > 0 if valid is None else (luminance > 0) & np.asarray(valid, bool)
+    return luminance, float(threshold * np.percentile(luminance[usable], percentile)) if usable.any() else 0.0
+
+
 def silhouette_masks(images: np.ndarray, valid: np.ndarray | None = None, threshold: float = 0.03,
                      percentile: float = 99.0, open_px: int = 1, close_px: int = 2,
                      max_hole_fraction: float = 0.02, min_blob_fraction: float = 0.01) -> np.ndarray:
@@ -216,14 +236,11 @@ def silhouette_masks(images: np.ndarray, valid: np.ndarray | None = None, thresh
     the largest removed. Returns (V, H, W) bool.
     """
     images = np.asarray(images)
-    luminance = images.mean(axis=-1) if images.ndim == 4 else images
-    luminance = np.nan_to_num(luminance.astype(np.float32), nan=0.0)
-    masks = np.zeros(luminance.shape, bool)
-    for k, image in enumerate(luminance):
-        usable = image > 0 if valid is None else (image > 0) & valid[k]
-        if not usable.any():
+    masks = np.zeros(images.shape[:3], bool)
+    for k in range(len(images)):
+        image, level = silhouette_level(images[k], None if valid is None else valid[k], threshold, percentile)
+        if level <= 0:
             continue
-        level = threshold * np.percentile(image[usable], percentile)
         mask = image > level
         if valid is not None:
             mask |= ~valid[k] & ndimage.binary_dilation(mask)
@@ -590,6 +607,54 @@ def signed_distance(mask: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class Silhouette:
+    """One view's silhouette: the ``mask`` (H, W) bool of :func:`silhouette_masks`, and the ``luminance`` (H, W)
+    and ``level`` it was cut at, which place its boundary to a fraction of a pixel (:func:`boundary_distance`)."""
+
+    mask: np.ndarray
+    luminance: np.ndarray
+    level: float
+
+    @staticmethod
+    def of(image: np.ndarray, valid: np.ndarray | None = None, **options) -> Silhouette:
+        """The silhouette of one (H, W) or (H, W, C) image; ``options`` of :func:`silhouette_masks`."""
+        levels = {k: options[k] for k in ("threshold", "percentile") if k in options}
+        luminance, level = silhouette_level(image, valid, **levels)
+        mask = silhouette_masks(np.asarray(image)[None], None if valid is None else np.asarray(valid, bool)[None],
+                                **options)[0]
+        return Silhouette(mask, luminance, level)
+
+    @functools.cached_property
+    def distance(self) -> np.ndarray:
+        """(H, W) :func:`signed_distance` of the mask (computed once)."""
+        return signed_distance(self.mask)
+
+
+def boundary_distance(silhouette: Silhouette, points: np.ndarray, outward: np.ndarray, reach_px: float = 1.5,
+                      step_px: float = 0.125) -> np.ndarray:
+    """(K,) signed distance in pixels (negative inside) from points (K, 2) (column, row; pixel centres at integers)
+    to the ``silhouette``'s boundary along the unit directions ``outward`` (K, 2): where the luminance, bilinear
+    between pixel centres, falls through the level. Of such crossings within ``reach_px`` of the mask's own
+    boundary (:func:`signed_distance`), the nearest to it; where there is none, the mask's distance.
+
+    The mask's distance is quantised by its pixels (a straight edge at an angle is a staircase, up to half a
+    pixel off); the crossing is not."""
+    points, outward = np.asarray(points, np.float64), np.asarray(outward, np.float64)
+    coarse = ndimage.map_coordinates(silhouette.distance, points[:, ::-1].T, order=1, mode="nearest")
+    steps = np.arange(-reach_px, reach_px + step_px / 2, step_px)
+    along = -coarse[:, None] + steps[None, :]  # (K, S): where the mask puts the boundary, and around it
+    where = points[:, None, :] + along[..., None] * outward[:, None, :]
+    level = ndimage.map_coordinates(silhouette.luminance, [where[..., 1].ravel(), where[..., 0].ravel()], order=1,
+                                    mode="nearest").reshape(along.shape) - silhouette.level
+    falls = (level[:, :-1] > 0) & (level[:, 1:] <= 0)
+    fraction = level[:, :-1] / np.where(falls, level[:, :-1] - level[:, 1:], 1.0)
+    crossing = np.where(falls, along[:, :-1] + fraction * step_px, np.inf)
+    nearest = np.argmin(np.abs(crossing + coarse[:, None]), axis=1)
+    best = crossing[np.arange(len(points)), nearest]
+    return np.where(np.isfinite(best), -best, coarse)
+
+
+@dataclass(frozen=True)
 class SilhouetteConstraints:
     """Where the observed silhouettes put the mesh's contour (:func:`silhouette_constraints`).
 
@@ -622,13 +687,15 @@ class SilhouetteConstraints:
 
 
 def silhouette_constraints(vertices: np.ndarray, normals: np.ndarray, intrinsics: np.ndarray, rotation: np.ndarray,
-                           translation: np.ndarray, observed: np.ndarray, predicted: np.ndarray,
+                           translation: np.ndarray, observed: Silhouette | np.ndarray,
+                           predicted: Silhouette | np.ndarray,
                            band_px: float = 1.0, max_cos: float = 0.3, min_alignment: float = 0.5,
                            max_offset_px: float = 3.0) -> SilhouetteConstraints:
     """The silhouette constraints of one view: vertices (V, 3) with unit normals (V, 3) on the mesh's contour,
-    and how far the ``observed`` silhouette (H, W) bool lies outside the ``predicted`` one (the mesh's, made by
+    and how far the ``observed`` silhouette lies outside the ``predicted`` one (the mesh's, made by
     the same operator from a render of the current model, so that what the operator cuts from a dim limb cuts
-    both alike) at each vertex's projection.
+    both alike) at each vertex's projection. Each is a :class:`Silhouette`, whose boundary is placed to a
+    fraction of a pixel (:func:`boundary_distance`), or an (H, W) bool mask, whose boundary is its pixels'.
 
     A contour vertex projects within ``band_px`` of the predicted boundary, its normal is within
     ``max_cos`` of perpendicular to its view ray, and its projected normal points out across the boundary
@@ -641,7 +708,8 @@ def silhouette_constraints(vertices: np.ndarray, normals: np.ndarray, intrinsics
     translation = np.asarray(translation, np.float64)
     pixels, depth = _project(vertices, k, rotation, translation)
     u, v = pixels[:, 0], pixels[:, 1]
-    height, width = predicted.shape
+    predicted_mask = predicted.mask if isinstance(predicted, Silhouette) else np.asarray(predicted, bool)
+    height, width = predicted_mask.shape
     centre = -rotation.T @ translation
     ray = vertices - centre
     facing = np.sum(ray * normals, axis=1) / np.linalg.norm(ray, axis=1)
@@ -649,13 +717,19 @@ def silhouette_constraints(vertices: np.ndarray, normals: np.ndarray, intrinsics
                  & (np.abs(facing) < max_cos))
     index = np.flatnonzero(candidate)
     where = np.stack([v[index], u[index]])
-    sdf_predicted = signed_distance(predicted)
-    at = ndimage.map_coordinates(sdf_predicted, where, order=1, mode="nearest")
-    near = np.abs(at) < band_px
-    index, where, at = index[near], where[:, near], at[near]
+    sdf_predicted = predicted.distance if isinstance(predicted, Silhouette) else signed_distance(predicted_mask)
     gradient = np.stack([ndimage.map_coordinates(g, where, order=1, mode="nearest")
                          for g in np.gradient(sdf_predicted)[::-1]], axis=1)  # (K, 2): d/du, d/dv
     outward = gradient / np.maximum(np.linalg.norm(gradient, axis=1, keepdims=True), 1e-9)
+
+    def distance(silhouette, where, outward):
+        if isinstance(silhouette, Silhouette):
+            return boundary_distance(silhouette, where[::-1].T, outward)
+        return ndimage.map_coordinates(signed_distance(silhouette), where, order=1, mode="nearest")
+
+    at = distance(predicted, where, outward)
+    near = np.abs(at) < band_px
+    index, where, at, outward = index[near], where[:, near], at[near], outward[near]
     # d(u, v)/d(world point): the pinhole's Jacobian in camera coordinates times the rotation.
     cam = vertices[index] @ rotation.T + translation
     x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
@@ -669,7 +743,7 @@ def silhouette_constraints(vertices: np.ndarray, normals: np.ndarray, intrinsics
     projected_normal = np.einsum("kij,kj->ki", jacobian, normals[index])
     alignment = np.sum(projected_normal * outward, axis=1) / np.maximum(np.linalg.norm(projected_normal, axis=1), 1e-12)
     metres_per_px = z / np.sqrt(k[0, 0] * k[1, 1])
-    offset_px = at - ndimage.map_coordinates(signed_distance(observed), where, order=1, mode="nearest")
+    offset_px = at - distance(observed, where, outward)
     keep = (alignment >= min_alignment) & (np.abs(offset_px) <= max_offset_px)
     direction = metres_per_px[:, None] * np.einsum("kij,ki->kj", jacobian, outward)
     return SilhouetteConstraints(index[keep], direction[keep], (offset_px * metres_per_px)[keep], metres_per_px[keep])
@@ -679,7 +753,7 @@ def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals:
                         confidence: np.ndarray, smoothness: float = 0.01, anchor: float = 1e-3,
                         rounds: int = 3, reference: np.ndarray | None = None,
                         silhouettes: SilhouetteConstraints | None = None,
-                        silhouette_weight: float = 0.01) -> np.ndarray:
+                        silhouette_weight: float = 0.01, smoothness_unconfident: float = 1.0) -> np.ndarray:
     """The geometry update of one iteration (paper §4.4): the mesh's vertices (V, 3) moved along its
     normals so that its surface agrees with the fitted normals (V, 3), as far as their ``confidence``
     (V,) in [0, 1] allows. Returns the new vertices (V, 3); the faces (F, 3) are kept.
@@ -690,13 +764,17 @@ def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals:
     confidence (:func:`blend_normals`). The offsets minimise, in one sparse linear solve per round
     (conjugate gradients),
 
-        sum_ij c_ij (t_ij . (x_j + d_j m_j - x_i - d_i m_i))^2 + smoothness sum_ij (d_i - d_j)^2
+        sum_ij c_ij (t_ij . (x_j + d_j m_j - x_i - d_i m_i))^2
+        + sum_ij (smoothness + smoothness_unconfident (1 - c_ij)) (d_i - d_j)^2
         + anchor sum_i (d_i - c_i m_i . (r_i - x_i))^2,
 
     with c_ij = sqrt(c_i c_j) and r the ``reference`` vertices (V, 3) of the same mesh (default: the
     current ones, i.e. d_i^2). A vertex is held at the reference as far as it is confident, else
     where it is. Every term is a squared length, so the weights have no units: the
-    normals set the shape, ``smoothness`` keeps the offsets continuous where the fit is unsure, and
+    normals set the shape, ``smoothness`` keeps the offsets continuous, ``smoothness_unconfident`` (about the
+    normals' own weight) makes them nearly constant where the fit says nothing (there the surface moves with
+    its neighbours; without it the silhouettes pulled single contour vertices out of an unseen underside and
+    roughened it over the iterations, docs/geometry_update.md), and
     the small ``anchor`` holds what normals cannot tell (the mean offset, the shape far from any
     confident vertex) at the reference surface. The loop passes its initial mesh: anchored to the
     current surface instead, small biases of the normals add up over the iterations (the demo shrank
@@ -727,7 +805,11 @@ def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals:
     edge_weight = np.sqrt(np.sqrt(weight[i] * weight[j]))  # square root of c_ij: it scales the rows
     difference = sparse.csr_matrix((np.concatenate([-np.ones(len(edges)), np.ones(len(edges))]), (rows, columns)),
                                    shape=(len(edges), len(vertices)))
-    regulariser = smoothness * (difference.T @ difference) + anchor * sparse.identity(len(vertices))
+    # Smooth offsets, much stiffer where the normals say nothing (1 - c_ij): there the surface moves with its
+    # neighbours, so that a silhouette cannot pull one vertex out of it.
+    smooth = np.sqrt(smoothness + smoothness_unconfident * (1 - np.sqrt(weight[i] * weight[j])))
+    regulariser = ((sparse.diags(smooth) @ difference).T @ (sparse.diags(smooth) @ difference)
+                   + anchor * sparse.identity(len(vertices)))
     target = blend_normals(np.asarray(fitted_normals, np.float64), vertex_normals(vertices, faces), weight)
     edge_normal = target[i] + target[j]
     edge_normal /= np.maximum(np.linalg.norm(edge_normal, axis=1, keepdims=True), 1e-12)

@@ -50,7 +50,7 @@ HDR (:func:`merge_hdr`)
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -465,7 +465,25 @@ def process_frame(raw: np.ndarray, plan: IngestPlan, black: np.ndarray | None = 
         raise IngestError(f"expected a mosaic of shape {plan.raw_shape}, got {raw.shape}")
     linear, invalid = linearize(raw, plan.black if black is None else black, plan.white_level, plan.saturation)
     linear[invalid] = np.nan
-    images = demosaic(linear, plan.demosaic)  # (4, Hc, Wc, C)
+    return develop(linear, plan)
+
+
+def analyzer_plan(plan: IngestPlan, analyzer: int) -> IngestPlan:
+    """``plan`` for one analyzer (index into ANALYZER_ANGLES_DEG): :func:`develop` then returns
+    (H/2, W/2, 1, C), the same values as its analyzer ``analyzer`` of the full plan, in a quarter of the time."""
+    one = slice(analyzer, analyzer + 1)
+    dem = plan.demosaic
+    return replace(plan, demosaic=replace(dem, phases=dem.phases[one], present=dem.present[:, one],
+                                          inv_norm=dem.inv_norm[:, one]),
+                   remap=replace(plan.remap, index=plan.remap.index[one], weight=plan.remap.weight[one]))
+
+
+def develop(linear: np.ndarray, plan: IngestPlan) -> np.ndarray:
+    """A linear mosaic (H, W) float32 (NaN where invalid) -> colour-corrected, undistorted analyzer images
+    (H/2, W/2, 4, C) float32: demosaicing, the colour matrix, the remap. What :func:`process_frame` does after
+    :func:`linearize`; also what makes a render look like an ingested photograph
+    (:func:`sellip.stages.refine_geometry.predicted_diffuse`)."""
+    images = demosaic(np.asarray(linear, np.float32), plan.demosaic)  # (4, Hc, Wc, C)
     if plan.color_matrix is not None:
         images = apply_color_matrix(images, plan.color_matrix)
     return remap(images, plan.remap)

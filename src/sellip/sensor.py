@@ -121,6 +121,21 @@ def mosaic_sample(analyzers: np.ndarray, layout: MosaicLayout, color_transform=N
     return np.einsum("hwc,hwc->hw", rows, chosen)
 
 
+def sensor_mosaic(analyzers: np.ndarray, layout: MosaicLayout, color_matrix=None) -> np.ndarray:
+    """The noiseless linear mosaic (H, W) that linear-sRGB analyzer images (H, W, 4, 3) put on the sensor:
+    camera RGB by the inverse of ``color_matrix`` (camera RGB -> linear sRGB, (3, 3); None: identity), or
+    luminance for a mono sensor, sampled by ``layout``."""
+    return mosaic_sample(analyzers, layout, sensor_colors(layout, color_matrix))
+
+
+def sensor_colors(layout: MosaicLayout, color_matrix=None) -> np.ndarray:
+    """(K, 3) what each of the sensor's K colours sees of linear sRGB: the inverse of ``color_matrix`` (camera RGB
+    -> linear sRGB; None: identity), or the luminance for a mono sensor."""
+    if layout.channels == 1:
+        return SRGB_LUMINANCE[None, :]
+    return np.linalg.inv(np.asarray(np.eye(3) if color_matrix is None else color_matrix, np.float64))
+
+
 def simulate_raw(analyzers: np.ndarray, sensor: SensorModel, scale: float, rng: np.random.Generator | None,
                  noise: bool = True) -> np.ndarray:
     """Raw mosaic (H, W) uint16 from linear-sRGB analyzer images (H, W, 4, 3) (I0, I45, I90, I135).
@@ -130,12 +145,7 @@ def simulate_raw(analyzers: np.ndarray, sensor: SensorModel, scale: float, rng: 
     """
     if analyzers.shape[:2] != (sensor.height, sensor.width):
         raise ValueError(f"analyzer images are {analyzers.shape[:2]}, sensor is {(sensor.height, sensor.width)}")
-    layout = sensor.layout
-    if layout.channels == 1:
-        to_sensor = SRGB_LUMINANCE[None, :]
-    else:
-        to_sensor = np.linalg.inv(np.asarray(sensor.color_matrix, np.float64))  # linear sRGB -> camera RGB
-    signal_dn = np.clip(mosaic_sample(analyzers, layout, to_sensor), 0, None) * scale
+    signal_dn = np.clip(sensor_mosaic(analyzers, sensor.layout, sensor.color_matrix), 0, None) * scale
     if noise:
         # Cap the Poisson mean far above saturation: the output clips there anyway.
         electrons = rng.poisson(np.minimum(signal_dn, 4.0 * sensor.white_level) * sensor.gain_e_per_dn)

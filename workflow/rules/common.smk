@@ -123,8 +123,15 @@ def get_fit_prior(wildcards):
 
 
 def get_lobes(wildcards):
-    """The cluster lobes a refit adds virtual samples from (nothing for the first pass)."""
-    return [f"{RESULTS}/iter/{wildcards.it}/clusters"] if wildcards.pass_ == "refit" else []
+    """The cluster lobes a pass adds virtual samples from: a refit its own iteration's; the final pass's first fit
+    the previous iteration's (it then has the refit's settings and runs its compiled program instead of compiling
+    one of its own); nothing for the other first passes."""
+    it = int(wildcards.it)
+    if wildcards.pass_ == "refit":
+        return [f"{RESULTS}/iter/{it}/clusters"]
+    if it == ITERATIONS and it > 0 and augmented(it - 1) and augmented(it):
+        return [f"{RESULTS}/iter/{it - 1}/clusters"]
+    return []
 
 
 def get_final_outputs():

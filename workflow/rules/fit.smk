@@ -13,11 +13,12 @@ def settings_args(settings):
 
 def fit_settings_args(wildcards):
     """`--set KEY=VALUE` for the FitSettings of this iteration and pass: config `fit.settings`
-    (lists are per iteration), then `augment.settings` for a refit, then `final.settings` for the
-    final pass (iteration ITERATIONS: normals from the final geometry, pBRDF only)."""
+    (lists are per iteration), then `augment.settings` for a pass with virtual samples (a refit, and the
+    final pass's first fit: get_lobes), then `final.settings` for the final pass (iteration ITERATIONS:
+    normals from the final geometry, pBRDF only)."""
     it = int(wildcards.it)
     settings = {key: at_iteration(value, it) for key, value in config["fit"]["settings"].items()}
-    if wildcards.pass_ == "refit":
+    if get_lobes(wildcards):
         settings.update(config["augment"]["settings"])
     if it == ITERATIONS:
         settings.update(config["final"]["settings"])

@@ -88,6 +88,8 @@ rule refine_geometry:
         summary=f"{RESULTS}/iter/{{it}}/mesh.ply.json",
     params:
         smoothness=lambda wildcards: at_iteration(config["refine_geometry"]["smoothness"], wildcards.it),
+        smoothness_unconfident=lambda wildcards: at_iteration(config["refine_geometry"]["smoothness_unconfident"],
+                                                              wildcards.it),
         anchor=lambda wildcards: at_iteration(config["refine_geometry"]["anchor"], wildcards.it),
         rounds=config["refine_geometry"]["rounds"],
         silhouette=lambda wildcards: at_iteration(config["refine_geometry"]["silhouette"], wildcards.it),
@@ -102,6 +104,7 @@ rule refine_geometry:
         f"{RESULTS}/benchmarks/refine_geometry/{{it}}.tsv"
     shell:
         SELLIP + " refine-geometry --params {input.params} --mesh {input.mesh} --output {output.mesh}"
-        " --reference-mesh {input.reference} --smoothness {params.smoothness} --anchor {params.anchor} --rounds {params.rounds}"
+        " --reference-mesh {input.reference} --smoothness {params.smoothness}"
+        " --smoothness-unconfident {params.smoothness_unconfident} --anchor {params.anchor} --rounds {params.rounds}"
         " --silhouette {params.silhouette} --cameras {input.cameras} --hdr {input.hdr} --capture {params.capture}"
         " --exclude-views {params.held_out} --mask-threshold {params.mask_threshold} > {log} 2>&1"

@@ -17,7 +17,9 @@ With ``--lobes`` (the output of ``sellip cluster-lobes``: labels.npy, models.npy
 is the augmented refit (docs/augment.md): every vertex gets the virtual specular samples of its
 cluster's lobe. The prior is then the same iteration's first-pass params store (same vertices):
 the fit starts from its normals as well as its parameters (and holds them with
-``--set fit_normal=false``).
+``--set fit_normal=false``). The workflow's final pass gives its first fit the previous iteration's
+lobes and refit settings: its prior is then on another mesh, so it starts from the (final) mesh's
+normals, and it runs the refit's compiled program (one compilation fewer, docs/speed.md).
 
 Models (DESIGN §7, :mod:`sellip.models`): every vertex is fitted with its own model, from
 ``--lobes``'s models.npy, else from the prior store's ``model`` (nearest vertex, as its
@@ -151,7 +153,7 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
             raise ValueError(f"{lobes}/labels.npy: {len(labels)} labels for the {total} vertices of {observations}")
         virtual = virtual_samples(labels[start:stop], cluster_lobes, settings, float_type)
         models, source = read_models(lobes, total)[start:stop], f"{lobes}/models.npy"
-        log.info("augmented refit: %d cluster lobes, %d virtual samples per vertex, lambda_g %g",
+        log.info("augmented fit: %d cluster lobes, %d virtual samples per vertex, lambda_g %g",
                  len(cluster_lobes), settings.virtual_count, settings.lambda_g)
     if prior is not None:
         previous = read_params(prior)
@@ -166,7 +168,7 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
             normal0 = previous["normals"][start:stop].astype(float_type)
             log.info("refit: starting normals from %s", prior)
         elif lobes is not None:
-            log.warning("refit: %s is not on this mesh; starting normals are the mesh normals", prior)
+            log.info("%s is on another mesh (the previous iteration's): the starting normals are the mesh's", prior)
     else:
         start_params = default_prior(n, float_type)
     models = cap_models(models, settings)

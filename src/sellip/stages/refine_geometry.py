@@ -2,7 +2,7 @@
 
     sellip refine-geometry --params results/NAME/iter/3/refit.zarr --mesh results/NAME/iter/2/mesh.ply
                            --output results/NAME/iter/3/mesh.ply [--reference-mesh results/NAME/mesh/init.ply]
-                           [--smoothness 0.01] [--anchor 0.001] [--rounds 3]
+                           [--smoothness 0.01] [--smoothness-unconfident 1] [--anchor 0.001] [--rounds 3]
                            [--silhouette 0.01 --cameras results/NAME/cameras.csv --hdr results/NAME/hdr.zarr
                             --capture CAPTURE --exclude-views v004 ... --mask-threshold 0.03]
 
@@ -33,15 +33,63 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 
-def predicted_diffuse(renderer, camera, light: dict, supersample: int = 2) -> np.ndarray:
-    """I_d = 2 I90 (H, W, C) of the current model rendered in ``camera`` under the capture's flash (capture.yaml
-    ``light``), its background at a tiny positive value: the silhouette operator then ranks the same pixels as in a
-    photograph, whose background is noise, not zero (:func:`sellip.geometry.silhouette_masks` takes its level from
-    a percentile of the positive pixels)."""
-    from sellip.render import flash_light
+def raw_camera(capture, camera):
+    """The raw sensor's camera (capture.yaml ``camera``: intrinsics at the mosaic's resolution, its lens
+    distortion) at the pose of ``camera`` (a :class:`sellip.render.Camera` at the HDR resolution)."""
+    from sellip.render import Camera
 
-    flash = flash_light(camera, light["position_m"], polarizer_deg=float(light["polarizer_deg"]))
-    diffuse = 2 * renderer.render(camera, flash, supersample=supersample).analyzers[..., 2, :]
+    lens, sensor = capture.config["camera"], capture.sensor
+    intrinsics = np.array([[lens["fx"], 0.0, lens["cx"]], [0.0, lens["fy"], lens["cy"]], [0.0, 0.0, 1.0]])
+    distortion = np.asarray(lens.get("distortion") or [0.0] * 5, np.float64)
+    return Camera(intrinsics, camera.rotation, camera.translation, int(sensor["width"]), int(sensor["height"]),
+                  distortion if np.any(distortion) else None)
+
+
+def predicted_diffuse(renderer, camera, capture, plan) -> np.ndarray:
+    """I_d = 2 I90 (H, W, C) of the current model as the photograph of ``camera`` (HDR resolution) would show it:
+    rendered at the raw sensor's resolution and lens (:func:`raw_camera`) under the capture's flash, sampled by
+    its polarization and colour mosaic and developed like a photograph (``plan``:
+    :func:`sellip.ingest.make_ingest_plan`; :func:`sellip.ingest.develop`), so that the demosaicing blurs its
+    silhouette as it blurs the photograph's. The background is a tiny positive value: the silhouette
+    operator then ranks the same pixels as in a photograph, whose background is noise, not zero
+    (:func:`sellip.geometry.silhouette_level` takes its level from a percentile of the positive pixels).
+
+    Only what I90 needs is computed: the raw pixels behind the 90-degree analyzer (one in four: the render is a
+    camera on their lattice, one sample at each pixel's centre), inside the model's box (whole mosaic periods,
+    with a margin of two for the demosaicing's reach), and that analyzer's demosaicing."""
+    from sellip.conventions import ANALYZER_ANGLES_DEG
+    from sellip.ingest import CELL, analyzer_plan, develop
+    from sellip.render import Camera, flash_light
+    from sellip.sensor import sensor_colors
+
+    light = capture.config["light"]
+    raw = raw_camera(capture, camera)
+    flash = flash_light(raw, light["position_m"], polarizer_deg=float(light["polarizer_deg"]))
+    analyzer = ANALYZER_ANGLES_DEG.index(90)
+    one = analyzer_plan(plan, analyzer)
+    dy, dx = (int(x) for x in one.demosaic.phases[0])
+    period = capture.layout.period
+    mosaic = np.zeros((raw.height, raw.width), np.float32)
+    pixels = raw.project(np.asarray(renderer.mesh.vertices, np.float64))
+    pixels = pixels[np.all(np.isfinite(pixels), axis=1)]
+    if len(pixels):
+        lo = np.clip(np.floor((pixels.min(axis=0) - 2 * period) / period) * period, 0, [raw.width, raw.height])
+        hi = np.clip(np.ceil((pixels.max(axis=0) + 2 * period) / period) * period, 0, [raw.width, raw.height])
+        (x0, y0), (x1, y1) = lo.astype(int), hi.astype(int)
+        if x1 > x0 and y1 > y0:
+            # Lattice pixel (i, j) is raw pixel (x0 + dx + CELL j, y0 + dy + CELL i).
+            intrinsics = np.array(raw.intrinsics, np.float64)
+            intrinsics[:2] /= CELL
+            intrinsics[0, 2] = (raw.intrinsics[0, 2] - x0 - dx) / CELL
+            intrinsics[1, 2] = (raw.intrinsics[1, 2] - y0 - dy) / CELL
+            lattice = Camera(intrinsics, raw.rotation, raw.translation, (x1 - x0) // CELL, (y1 - y0) // CELL,
+                             raw.distortion)
+            rgb = np.nan_to_num(renderer.render(lattice, flash, supersample=1).analyzers[..., analyzer, :])
+            rows, columns = slice(y0 + dy, y1, CELL), slice(x0 + dx, x1, CELL)
+            colors = capture.layout.color_map(raw.height, raw.width)[rows, columns]
+            seen = sensor_colors(capture.layout, capture.config["camera"].get("color_matrix"))[colors]
+            mosaic[rows, columns] = np.einsum("hwc,hwc->hw", seen, rgb)
+    diffuse = 2 * develop(mosaic, one)[..., 0, :]
     return np.where(np.isfinite(diffuse) & (diffuse > 0), diffuse, 1e-12).astype(np.float32)
 
 
@@ -50,16 +98,19 @@ def measure_silhouettes(mesh, mesh_normals: np.ndarray, shading_normals: np.ndar
     """The silhouette constraints of every view of cameras.csv but ``exclude_views`` (the held-out ones):
     the observed silhouette of each photograph against the same operator's silhouette of the current model
     (``mesh`` with its geometric ``mesh_normals`` (V, 3), shaded with ``shading_normals`` (V, 3) and ``params``)
-    rendered in that view
-    (:func:`sellip.geometry.silhouette_constraints`). Returns the constraints and a per-view summary
-    (constraints; the mean and RMS offset in pixels, positive where the photograph's silhouette lies outside)."""
-    from sellip.geometry import SilhouetteConstraints, silhouette_constraints, silhouette_masks
+    as the camera would photograph it (:func:`predicted_diffuse`), both placed to a fraction of a pixel
+    (:class:`sellip.geometry.Silhouette`, :func:`sellip.geometry.silhouette_constraints`). Returns the constraints
+    and a per-view summary (constraints; the mean and RMS offset in pixels, positive where the photograph's
+    silhouette lies outside)."""
+    from sellip.geometry import Silhouette, SilhouetteConstraints, silhouette_constraints
+    from sellip.ingest import make_ingest_plan
     from sellip.io import read_capture
     from sellip.render import ParamMesh, Renderer
     from sellip.stages.render_outputs import load_cameras
     from sellip.stages.sfm import diffuse_view
 
-    light = read_capture(capture_path, check_files=False).config["light"]
+    capture = read_capture(capture_path, check_files=False)
+    plan = make_ingest_plan(capture.sensor, capture.config["camera"], capture.layout)
     cameras, hdr = load_cameras(cameras_path, hdr_path)
     renderer = Renderer(ParamMesh(mesh.vertices, mesh.faces, shading_normals, params))
     options = mask_options or {}
@@ -68,8 +119,8 @@ def measure_silhouettes(mesh, mesh_normals: np.ndarray, shading_normals: np.ndar
     for view in (v for v in cameras if v not in excluded):
         camera = cameras[view]
         diffuse, valid = diffuse_view(hdr, hdr.view_ids.index(view))
-        observed = silhouette_masks(diffuse[None], valid[None], **options)[0]
-        predicted = silhouette_masks(predicted_diffuse(renderer, camera, light)[None], **options)[0]
+        observed = Silhouette.of(diffuse, valid, **options)
+        predicted = Silhouette.of(predicted_diffuse(renderer, camera, capture, plan), **options)
         part = silhouette_constraints(mesh.vertices, mesh_normals, camera.intrinsics, camera.rotation,
                                       camera.translation, observed, predicted)
         parts.append(part)
@@ -81,6 +132,7 @@ def measure_silhouettes(mesh, mesh_normals: np.ndarray, shading_normals: np.ndar
 
 def run_stage(params_path: Path, mesh_path: Path, output: Path, smoothness: float = 0.01, anchor: float = 1e-3,
               rounds: int = 3, min_confidence: float = 0.5, reference_mesh: Path | None = None,
+              smoothness_unconfident: float = 1.0,
               silhouette: float = 0.0, cameras_path: Path | None = None, hdr_path: Path | None = None,
               capture_path: Path | None = None, exclude_views=(), mask_options: dict | None = None) -> dict:
     """Write the next iteration's mesh ``output`` and ``<output>.json``; returns the summary written there.
@@ -115,9 +167,9 @@ def run_stage(params_path: Path, mesh_path: Path, output: Path, smoothness: floa
                               f"vs {mesh.num_vertices}, or other faces); the loop keeps the initial mesh's faces")
         reference = reference.vertices
     confident = normal_confidence >= min_confidence
-    log.info("%s: %d vertices, %d with normal confidence >= %.2f (median %.2f); smoothness %g, anchor %g, "
-             "%d rounds", params_path, len(vertices), int(confident.sum()), min_confidence,
-             float(np.median(normal_confidence)), smoothness, anchor, rounds)
+    log.info("%s: %d vertices, %d with normal confidence >= %.2f (median %.2f); smoothness %g (unconfident %g), "
+             "anchor %g, %d rounds", params_path, len(vertices), int(confident.sum()), min_confidence,
+             float(np.median(normal_confidence)), smoothness, smoothness_unconfident, anchor, rounds)
     params = params_from({name: store[name] for name in PARAM_FIELDS}, np.float64)
     mesh_normals = vertex_normals(mesh.vertices, mesh.faces)
     silhouettes, per_view = None, {}
@@ -132,8 +184,8 @@ def run_stage(params_path: Path, mesh_path: Path, output: Path, smoothness: floa
                  *((float(np.mean(silhouettes.offset_px)), float(np.sqrt(np.mean(silhouettes.offset_px ** 2))))
                    if len(silhouettes) else (np.nan, np.nan)))
     new_vertices = refine_from_normals(mesh.vertices, mesh.faces, fitted, normal_confidence, smoothness=smoothness,
-                                       anchor=anchor, rounds=rounds, reference=reference, silhouettes=silhouettes,
-                                       silhouette_weight=silhouette)
+                                       smoothness_unconfident=smoothness_unconfident, anchor=anchor, rounds=rounds,
+                                       reference=reference, silhouettes=silhouettes, silhouette_weight=silhouette)
     new_normals = vertex_normals(new_vertices, mesh.faces)
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
@@ -171,6 +223,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--output", type=Path, required=True, help="the next iteration's mesh (.ply)")
     parser.add_argument("--smoothness", type=float, default=0.01,
                         help="weight of smooth offsets against agreeing with the normals (no units)")
+    parser.add_argument("--smoothness-unconfident", type=float, default=1.0,
+                        help="weight of smooth offsets added where the normals are unsure, times 1 - confidence")
     parser.add_argument("--anchor", type=float, default=1e-3,
                         help="weight that holds the vertices where they are (no units; what normals cannot tell)")
     parser.add_argument("--rounds", type=int, default=3, help="linearisations around the moved surface")
@@ -194,7 +248,8 @@ def main(args: argparse.Namespace) -> int:
 
     try:
         run_stage(args.params, args.mesh, args.output, args.smoothness, args.anchor, args.rounds,
-                  reference_mesh=args.reference_mesh, silhouette=args.silhouette, cameras_path=args.cameras,
+                  reference_mesh=args.reference_mesh, smoothness_unconfident=args.smoothness_unconfident,
+                  silhouette=args.silhouette, cameras_path=args.cameras,
                   hdr_path=args.hdr, capture_path=args.capture, exclude_views=args.exclude_views,
                   mask_options={"threshold": args.mask_threshold})
     except (ParamsError, ObserveError, ValueError) as error:
