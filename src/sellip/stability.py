@@ -160,7 +160,7 @@ def base_config(workdir: str | Path, views: int = BASE_VIEWS, iterations: int = 
         # Fit shards are whole observation chunks: 256-vertex chunks split ~2.5k vertices evenly over both.
         "observe": {"vertex_chunk": 256},
         "fit": {"shards": 2, "compilation_cache": str(jax_cache or Path(workdir) / "jax_cache"),
-                "settings": {"min_views": 6}},
+                "settings": {"min_views": 4}},
         "evaluate": {"held_out_views": held_out_views(views), "render_views": ["v000"], "supersample": 1},
     }
 
