@@ -11,9 +11,11 @@ as the fit's normal confidence allows (:func:`sellip.geometry.refine_from_normal
 what normals cannot tell (the mean offset, the shape far from any confident normal) is held at ``--reference-
 mesh`` (the loop's initial mesh, so that small biases of the normals do not add up over the iterations; default:
 ``--mesh``). With ``--silhouette`` > 0 the photographs' silhouettes hold the mean offset and size instead: the
-current model is rendered in every view but the held-out ones, the same silhouette operator is applied to the
-render and to the photograph, and each contour vertex moves the model's silhouette onto the photograph's
-(:func:`measure_silhouettes`, :func:`sellip.geometry.silhouette_constraints`). The faces stay, so every vertex
+current model is rendered in every view but the held-out ones as the camera would photograph it (raw pixels,
+mosaic, the ingest's demosaicing: :func:`predicted_diffuse`), the same silhouette operator is applied to the
+render and to the photograph, both boundaries are placed to a fraction of a pixel, and each contour vertex moves
+the model's silhouette onto the photograph's (:func:`measure_silhouettes`,
+:func:`sellip.geometry.silhouette_constraints`). The faces stay, so every vertex
 keeps its parameters (the next fit's warm start) and the vertex count does not drift. Written atomically as a
 model PLY (:func:`sellip.io.write_param_mesh`) with the normals of the new surface and the ``confidence``: the
 mesh of the next iteration. Beside it, ``<output>.json`` says how far the surface moved and how far the fitted
