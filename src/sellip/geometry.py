@@ -238,19 +238,25 @@ def silhouette_masks(images: np.ndarray, valid: np.ndarray | None = None, thresh
     images = np.asarray(images)
     masks = np.zeros(images.shape[:3], bool)
     for k in range(len(images)):
-        image, level = silhouette_level(images[k], None if valid is None else valid[k], threshold, percentile)
-        if level <= 0:
-            continue
-        mask = image > level
-        if valid is not None:
-            mask |= ~valid[k] & ndimage.binary_dilation(mask)
-        if open_px:
-            mask = ndimage.binary_opening(mask, _disk(open_px))
-        if close_px:
-            mask = ndimage.binary_closing(np.pad(mask, close_px), _disk(close_px))[close_px:-close_px,
-                                                                                   close_px:-close_px]
-        masks[k] = _clean_components(mask, max_hole_fraction, min_blob_fraction)
+        view_valid = None if valid is None else valid[k]
+        luminance, level = silhouette_level(images[k], view_valid, threshold, percentile)
+        masks[k] = _cut(luminance, level, view_valid, open_px, close_px, max_hole_fraction, min_blob_fraction)
     return masks
+
+
+def _cut(luminance: np.ndarray, level: float, valid: np.ndarray | None, open_px: int, close_px: int,
+         max_hole_fraction: float, min_blob_fraction: float) -> np.ndarray:
+    """One view's mask of :func:`silhouette_masks` from its luminance (H, W) and level (all False at level 0)."""
+    if level <= 0:
+        return np.zeros(luminance.shape, bool)
+    mask = luminance > level
+    if valid is not None:
+        mask |= ~np.asarray(valid, bool) & ndimage.binary_dilation(mask)
+    if open_px:
+        mask = ndimage.binary_opening(mask, _disk(open_px))
+    if close_px:
+        mask = ndimage.binary_closing(np.pad(mask, close_px), _disk(close_px))[close_px:-close_px, close_px:-close_px]
+    return _clean_components(mask, max_hole_fraction, min_blob_fraction)
 
 
 def _clean_components(mask: np.ndarray, max_hole_fraction: float, min_blob_fraction: float) -> np.ndarray:
@@ -616,13 +622,13 @@ class Silhouette:
     level: float
 
     @staticmethod
-    def of(image: np.ndarray, valid: np.ndarray | None = None, **options) -> Silhouette:
-        """The silhouette of one (H, W) or (H, W, C) image; ``options`` of :func:`silhouette_masks`."""
-        levels = {k: options[k] for k in ("threshold", "percentile") if k in options}
-        luminance, level = silhouette_level(image, valid, **levels)
-        mask = silhouette_masks(np.asarray(image)[None], None if valid is None else np.asarray(valid, bool)[None],
-                                **options)[0]
-        return Silhouette(mask, luminance, level)
+    def of(image: np.ndarray, valid: np.ndarray | None = None, threshold: float = 0.03, percentile: float = 99.0,
+           open_px: int = 1, close_px: int = 2, max_hole_fraction: float = 0.02,
+           min_blob_fraction: float = 0.01) -> Silhouette:
+        """The silhouette of one (H, W) or (H, W, C) image; the options of :func:`silhouette_masks`."""
+        luminance, level = silhouette_level(image, valid, threshold, percentile)
+        return Silhouette(_cut(luminance, level, valid, open_px, close_px, max_hole_fraction, min_blob_fraction),
+                          luminance, level)
 
     @functools.cached_property
     def distance(self) -> np.ndarray:

@@ -85,7 +85,8 @@ def spread_subset(count: int, keep: int | None) -> np.ndarray:
 
 
 def hdr_camera(intrinsics: dict, rotation: np.ndarray, translation: np.ndarray, hdr_path) -> Camera:
-    """The camera of one view at the HDR resolution (hdr.zarr ``intrinsics`` attrs + a cameras.csv pose)."""
+    """The camera of one view from ``intrinsics`` (fx, fy, cx, cy, width, height[, distortion]: hdr.zarr's attrs, or
+    capture.yaml's ``camera`` at the sensor's size) and a cameras.csv pose; ``hdr_path`` names the source in errors."""
     from sellip.stages.sfm import intrinsics_matrix
 
     missing = [k for k in ("fx", "fy", "cx", "cy", "width", "height") if k not in intrinsics]

@@ -38,13 +38,10 @@ log = logging.getLogger(__name__)
 def raw_camera(capture, camera):
     """The raw sensor's camera (capture.yaml ``camera``: intrinsics at the mosaic's resolution, its lens
     distortion) at the pose of ``camera`` (a :class:`sellip.render.Camera` at the HDR resolution)."""
-    from sellip.render import Camera
+    from sellip.stages.observe import hdr_camera
 
-    lens, sensor = capture.config["camera"], capture.sensor
-    intrinsics = np.array([[lens["fx"], 0.0, lens["cx"]], [0.0, lens["fy"], lens["cy"]], [0.0, 0.0, 1.0]])
-    distortion = np.asarray(lens.get("distortion") or [0.0] * 5, np.float64)
-    return Camera(intrinsics, camera.rotation, camera.translation, int(sensor["width"]), int(sensor["height"]),
-                  distortion if np.any(distortion) else None)
+    lens = {**capture.config["camera"], "width": capture.sensor["width"], "height": capture.sensor["height"]}
+    return hdr_camera(lens, camera.rotation, camera.translation, capture.root / "capture.yaml")
 
 
 def predicted_diffuse(renderer, camera, capture, plan) -> np.ndarray:
