@@ -2,6 +2,7 @@
 
     python benchmarks/accuracy_ladder.py --scene sphere_ior --views 24 --width 612 --height 512 \
         [--rungs render sensor mesh hull] [--iterations 1] [--workdir results/bench/ladder] [--cores 2]
+        [--ceiling-vertices 6000 30000]
 
 Rungs (each resumable: a rung whose result file exists is not run again):
 
@@ -11,6 +12,9 @@ Rungs (each resumable: a rung whose result file exists is not run again):
 - ``hull``: the whole workflow from the visual hull (the default).
 
 The workflow rungs hold four views out of the fit (spread evenly over the capture) for the held-out PSNR.
+``--ceiling-vertices N ...`` also scores the held-out PSNR's ceilings (sellip.ladder.psnr_ceiling): the ground
+truth itself, and the ground truth resampled on meshes of N vertices (what a per-vertex model of N vertices can
+score at best), in ``ceiling.json``.
 
 Prints one table row per rung: eta per material (mean and worst error of the per-material medians),
 eta per vertex (median, p90), normal error (median, p90), and for the workflow rungs the held-out
@@ -60,10 +64,12 @@ def main(argv=None) -> int:
     parser.add_argument("--edge-margin", type=float, default=2.0, help="observe.edge_margin of every rung")
     parser.add_argument("--workdir", type=Path, default=ROOT / "results/bench/ladder")
     parser.add_argument("--cores", type=int, default=2)
+    parser.add_argument("--ceiling-vertices", type=int, nargs="*", default=[],
+                        help="also score the truth resampled on meshes of these vertex counts at the held-out views")
     args = parser.parse_args(argv)
 
     from sellip.io import GROUND_TRUTH_MESH
-    from sellip.ladder import fit_true_mesh, render_hdr
+    from sellip.ladder import fit_true_mesh, psnr_ceiling, render_hdr
     from sellip.observe import ObserveSettings
     from sellip.stability import held_out_views
     from sellip.stages.linearize import linearize_capture
@@ -99,6 +105,19 @@ def main(argv=None) -> int:
                                         overrides)
             out.write_text(json.dumps(figures, indent=2))
         rows[rung] = json.loads(out.read_text())
+
+    if args.ceiling_vertices:
+        out = work / "ceiling.json"
+        ceilings = json.loads(out.read_text()) if out.is_file() else {}
+        views = held_out_views(args.views, 4)
+        for count in [None, *args.ceiling_vertices]:
+            key = "truth" if count is None else str(count)
+            if key not in ceilings:
+                ceilings[key] = psnr_ceiling(capture, hdr, views, count)
+                out.write_text(json.dumps(ceilings, indent=2))
+        for key, row in ceilings.items():
+            print(f"held-out PSNR of the ground truth, {row['vertices']} vertices ({key}): {row['mean_db']:.2f} dB "
+                  f"(views {', '.join(f'{v:.1f}' for v in row['views'].values())})")
 
     header = ("| rung | η per material mean / worst % | η per vertex median / p90 % | normal median / p90 ° "
               "| held-out PSNR dB |\n|---|---|---|---|---|")

@@ -17,6 +17,11 @@ Public API::
     render_hdr(capture, hdr, output, supersample=2) -> Path       # noise-free HDR store of the true mesh
     fit_true_mesh(capture, hdr, workdir, observe_settings) -> dict  # observe + fit on the true mesh
     figures(fit, truth) -> dict                                     # eta per material / vertex, normals
+    psnr_ceiling(capture, hdr, views, vertices=None) -> dict        # held-out PSNR of the truth (resampled)
+
+:func:`psnr_ceiling` says what a per-vertex model can score at all: the true mesh and parameters, or the truth
+resampled on a mesh of a given vertex count (each vertex takes its nearest true vertex's parameters), rendered at
+the held-out views and scored against the capture's images as ``evaluate_model`` scores a model.
 """
 
 from __future__ import annotations
@@ -105,3 +110,50 @@ def figures(fit: dict, truth) -> dict:
             "eta_per_material": eta_per_material(eta, eta_true, material),
             "eta_vertex_median_pct": float(np.median(error)), "eta_vertex_p90_pct": float(np.percentile(error, 90)),
             "normal_median_deg": float(np.median(normal)), "normal_p90_deg": float(np.percentile(normal, 90))}
+
+
+def resampled_truth(truth, vertices: int):
+    """The true ParamMesh on a mesh of about ``vertices`` vertices (:func:`sellip.geometry.resample_to_count`, as the
+    ``mesh`` rung's initial mesh), each vertex with the parameters and material of its nearest true vertex."""
+    from scipy.spatial import cKDTree
+
+    from sellip.geometry import resample_to_count, vertex_normals
+    from sellip.pbrdf import PBRDFParams
+    from sellip.render import ParamMesh
+
+    points, faces = resample_to_count(np.asarray(truth.vertices, np.float64), np.asarray(truth.faces), vertices)
+    _, nearest = cKDTree(np.asarray(truth.vertices)).query(points)
+    params = PBRDFParams(*(np.asarray(value)[nearest] for value in truth.params))
+    material = None if truth.material is None else np.asarray(truth.material)[nearest]
+    return ParamMesh(vertices=points, faces=faces, normals=vertex_normals(points, faces), params=params,
+                     material=material)
+
+
+def psnr_ceiling(capture: str | Path, hdr: str | Path, views: list[str], vertices: int | None = None,
+                 supersample: int = 2) -> dict:
+    """Held-out PSNR (dB, :func:`sellip.evaluate.psnr`) of the capture's ground truth at ``views`` against the HDR
+    images of ``hdr``: the true mesh itself (``vertices`` None) or :func:`resampled_truth` at ``vertices``.
+    Returns {"vertices", "views": {view_id: dB}, "mean_db"}."""
+    from sellip import evaluate
+    from sellip.render import Renderer, flash_light
+    from sellip.stages.merge_hdr import read_hdr
+    from sellip.stages.observe import hdr_camera
+    from sellip.stages.sfm import read_cameras
+
+    capture = Path(capture)
+    light = read_capture(capture, check_files=False).config["light"]
+    truth = read_param_mesh(capture / GROUND_TRUTH_MESH)
+    model = truth if vertices is None else resampled_truth(truth, vertices)
+    store = read_hdr(hdr)
+    view_ids, rotations, translations = read_cameras(capture / "poses.csv")
+    renderer = Renderer(model)
+    scores = {}
+    for view_id in views:
+        row = view_ids.index(view_id)
+        camera = hdr_camera(store.intrinsics, rotations[row], translations[row], hdr)
+        result = renderer.render(camera, flash_light(camera, light["position_m"], float(light["polarizer_deg"])),
+                                 supersample=supersample)
+        analyzers, valid = store.view(view_id)
+        scores[view_id] = evaluate.psnr(analyzers, result.analyzers,
+                                        evaluate.render_mask(analyzers, valid, result.coverage))["psnr_db"]
+    return {"vertices": model.num_vertices, "views": scores, "mean_db": float(np.mean(list(scores.values())))}

@@ -2,8 +2,8 @@
 
 Public API::
 
-    SCENES: tuple of scene names ("demo", "demo_feathers", "sphere_ior", "tiny", "tiny_dark", "tiny_white",
-            "tiny_mirror", "tiny_bumpy", "tiny_relief")
+    SCENES: tuple of scene names ("demo", "demo_fine", "demo_feathers", "sphere_ior", "tiny", "tiny_dark",
+            "tiny_white", "tiny_mirror", "tiny_bumpy", "tiny_relief")
     build_scene(name) -> Scene                       # mesh with per-vertex pBRDF parameters, fixed per name
     handheld_orbit(views, width, height, rng, ...) -> list[Camera]
     device_intrinsics(width, height) -> (3, 3) K    # the 25 mm lens on the IMX250 scaled to width
@@ -14,13 +14,17 @@ always the same object; the capture seed only moves the cameras and the noise.
 
 Scenes:
 
-- ``demo``: an owl-like blob about 12 cm tall: ear tufts, eye sockets and a
-  beak, a facial disc, wing creases (concavities that cast flash shadows); its
+- ``demo``: an owl-like blob about 12 cm tall: ear tufts, eye sockets with 12 mm eyes and
+  a beak, a facial disc, wing creases (concavities that cast flash shadows); its
   feathers are in the albedo. Three materials (DEMO_MATERIALS): plumage
   (eta 1.48, sigma_s 0.28), facial disc and belly with single scattering
-  (eta 1.36, sigma_s 0.42), glossy eyes and beak (eta 1.62, sigma_s 0.09).
-  The albedo is a cellular "feather" texture with detail at a few pixels.
-- ``demo_feathers``: the demo with a feather relief (0.35 mm ridges between 3 mm
+  (eta 1.36, sigma_s 0.42), glossy amber eyes and beak (eta 1.62, sigma_s 0.09).
+  The albedo is soft feather patches of about 9 mm: detail the demo's 6k-vertex
+  model can carry at 612x512.
+- ``demo_fine``: the demo until 2026-11-25, with detail finer than its model: 3 mm
+  feather cells with dark edges and a speckle at the HDR pixel, 2 mm eyeballs in deep
+  sockets, dark eyes (DEMO_FINE_MATERIALS): a hard case (docs/accuracy.md).
+- ``demo_feathers``: demo_fine with a feather relief (0.35 mm ridges between 3 mm
   cells) finer than its pixels: a hard case (docs/accuracy.md: it biases eta low).
 - ``sphere_ior``: a 6 cm-radius textured sphere split into seven wedges with
   the refractive indices of the paper's Table 1 (SPHERE_IOR_ETAS).
@@ -45,8 +49,8 @@ from scipy.spatial import cKDTree
 from sellip.pbrdf import PBRDFParams
 from sellip.render import Camera, ParamMesh
 
-SCENES = ("demo", "demo_feathers", "sphere_ior", "tiny", "tiny_dark", "tiny_white", "tiny_mirror", "tiny_bumpy",
-          "tiny_relief")
+SCENES = ("demo", "demo_fine", "demo_feathers", "sphere_ior", "tiny", "tiny_dark", "tiny_white", "tiny_mirror",
+          "tiny_bumpy", "tiny_relief")
 
 DEVICE_WIDTH_PX = 2448
 DEVICE_FX_PX = 7246.0
@@ -73,8 +77,13 @@ DEMO_MATERIALS = (
     Material("plumage", eta=1.48, rho_d=(0.22, 0.14, 0.075), rho_s=1.0, sigma_s=0.28),
     Material("facial_disc", eta=1.36, rho_d=(0.28, 0.25, 0.19), rho_s=0.8, sigma_s=0.42,
              rho_ss=(0.30, 0.18, 0.09), sigma_ss=0.55),
-    Material("eyes_beak", eta=1.62, rho_d=(0.20, 0.13, 0.02), rho_s=1.0, sigma_s=0.09),
+    Material("eyes_beak", eta=1.62, rho_d=(0.42, 0.28, 0.06), rho_s=1.0, sigma_s=0.09),
 )
+"""The demo owl's materials; its eyes and beak are amber (demo_fine's are dark, DEMO_FINE_MATERIALS)."""
+
+DEMO_FINE_MATERIALS = DEMO_MATERIALS[:2] + (
+    Material("eyes_beak", eta=1.62, rho_d=(0.20, 0.13, 0.02), rho_s=1.0, sigma_s=0.09),)
+"""The demo_fine owl's materials (the demo's until 2026-11-25): dark glossy eyes and beak."""
 
 
 @dataclass(frozen=True)
@@ -177,9 +186,13 @@ def feather_relief(f1: np.ndarray, edge: np.ndarray, cell_rad: float, height_m: 
     return height_m * (np.clip(edge / (0.35 * cell_rad), 0, 1) - 4 / 7 * np.exp(-(f1 / (0.25 * cell_rad)) ** 2))
 
 
-def _demo(relief_m: float = 0.0, name: str = "demo") -> Scene:
-    """The owl-like blob (see the module docstring). Facing +x, z up, about 12 cm tall; ``relief_m``:
-    height of the feather relief (0: the feathers are in the albedo only)."""
+def _demo(relief_m: float = 0.0, name: str = "demo", fine: bool = False) -> Scene:
+    """The owl-like blob (see the module docstring). Facing +x, z up, about 12 cm tall.
+
+    ``fine=False`` (the demo): feathers in soft patches of about 9 mm and eyes of 12 mm, detail that the demo's
+    6k-vertex model (2.3 mm edges) and 612x512 pixels (0.5 mm) can carry. ``fine=True`` (demo_fine, the demo
+    until 2026-11-25): 3 mm feather cells with dark edges and a speckle of 12,000 cells at the HDR pixel, 2 mm
+    eyeballs in deep sockets. ``relief_m``: height of a feather relief between the 3 mm cells (0: none)."""
     rng = np.random.default_rng(20220804)
     d, faces = icosphere(7)
     x, y, z = d[:, 0], d[:, 1], d[:, 2]
@@ -191,16 +204,25 @@ def _demo(relief_m: float = 0.0, name: str = "demo") -> Scene:
     eyes = [_direction(24, 22), _direction(-24, 22)]
     beak = _direction(0, 8)
     radius += sum(0.017 * bump(d, e, 0.13) for e in ears)
-    radius -= sum(0.0065 * bump(d, e, 0.16) for e in eyes)           # eye sockets
-    radius += sum(0.0022 * bump(d, e, 0.05) for e in eyes)           # eyeballs inside the sockets
-    radius += 0.006 * bump(d, beak, 0.07)
+    # Eye sockets with eyeballs inside, and the beak: (socket depth, eyeball height, eyeball width, eye region
+    # width, beak height, beak width, beak region width) in metres and radians.
+    socket, eyeball, eyeball_rad, eye_rad, beak_m, beak_rad, beak_region_rad = (
+        (0.0065, 0.0022, 0.05, 0.075, 0.006, 0.07, 0.06) if fine else (0.0025, 0.003, 0.12, 0.12, 0.006, 0.12, 0.09))
+    radius -= sum(socket * bump(d, e, 0.16) for e in eyes)
+    radius += sum(eyeball * bump(d, e, eyeball_rad) for e in eyes)
+    radius += beak_m * bump(d, beak, beak_rad)
     radius += sum(0.002 * bump(d, e, 0.33) - 0.0025 * bump(d, e, 0.22) for e in eyes)  # facial disc rim
-    for side in (1, -1):  # wing creases: a concave groove along each flank
+    # Wing creases: a concave groove along each flank, 3.5 mm deep; demo_fine's is 2.8 mm wide (sigma) and ends in a
+    # step at z = 0.5; the demo's is 4.6 mm wide and fades out between z = 0.35 and 0.55 (a model of 2.3 mm edges
+    # can follow it).
+    crease_rad = 0.06 if fine else 0.1
+    crease_end = (z < 0.5) if fine else np.clip((0.55 - z) / 0.2, 0, 1) ** 2 * (3 - 2 * np.clip((0.55 - z) / 0.2, 0, 1))
+    for side in (1, -1):
         wing = np.arccos(np.clip(d @ _direction(side * 100, -10), -1, 1))
-        radius -= 0.0035 * np.exp(-0.5 * ((wing - 0.75) / 0.06) ** 2) * (z < 0.5)
+        radius -= 0.0035 * np.exp(-0.5 * ((wing - 0.75) / crease_rad) ** 2) * crease_end
     radius += sum(0.004 * bump(d, _direction(side * 25, -72), 0.12) for side in (1, -1))  # feet
 
-    # Feathers: cells of ~3 mm (their albedo below; with relief_m, ridges between them).
+    # Feather cells of ~3 mm (the fine albedo below; with relief_m, ridges between them).
     f1, edge, cell = cellular(d, 2500, rng)
     cell_size = np.sqrt(4 * np.pi / 2500)
     radius += feather_relief(f1, edge, cell_size, relief_m)
@@ -211,24 +233,40 @@ def _demo(relief_m: float = 0.0, name: str = "demo") -> Scene:
     disc = sum(bump(d, e, 0.3) for e in eyes) > 0.45
     belly = (bump(d, _direction(0, -25), 0.55) > 0.55) & (x > 0)
     region[disc | belly] = 1
-    region[(sum(bump(d, e, 0.075) for e in eyes) > 0.5) | (bump(d, beak, 0.06) > 0.5)] = 2
+    region[(sum(bump(d, e, eye_rad) for e in eyes) > 0.5) | (bump(d, beak, beak_region_rad) > 0.5)] = 2
 
-    # Albedo: per-material base colour, per-feather brightness, darker feather edges and fine speckle.
-    base = np.array([m.rho_d for m in DEMO_MATERIALS])[region]
-    feather_gain = rng.uniform(0.6, 1.35, size=2500)[cell]
-    _, fine_edge, fine_cell = cellular(d, 12000, rng)
-    speckle = rng.uniform(0.75, 1.2, size=12000)[fine_cell]
-    edge_shade = 0.55 + 0.45 * np.clip(edge / (0.25 * cell_size), 0, 1)
-    pattern = feather_gain * edge_shade * speckle
+    materials = DEMO_FINE_MATERIALS if fine else DEMO_MATERIALS
+    base = np.array([m.rho_d for m in materials])[region]
     pupils = sum(bump(d, e, 0.03) for e in eyes) > 0.5
-    albedo = base * np.where(region == 2, speckle, pattern)[:, None]
+    if fine:
+        # Per-feather brightness, darker feather edges and a speckle at the HDR pixel.
+        feather_gain = rng.uniform(0.6, 1.35, size=2500)[cell]
+        _, fine_edge, fine_cell = cellular(d, 12000, rng)
+        speckle = rng.uniform(0.75, 1.2, size=12000)[fine_cell]
+        edge_shade = 0.55 + 0.45 * np.clip(edge / (0.25 * cell_size), 0, 1)
+        pattern = np.where(region == 2, speckle, feather_gain * edge_shade * speckle)
+        bars = 40.0
+    else:
+        # Soft feather patches: 300 cells' brightness blended over a Gaussian of 0.07 rad (3 mm), and a shade
+        # that darkens each patch smoothly towards its edges.
+        sites = random_unit_vectors(300, rng)
+        gain = rng.uniform(0.65, 1.3, size=300)
+        distance, index = cKDTree(sites).query(d, k=8)
+        weight = np.exp(-0.5 * (2 * np.arcsin(np.clip(distance / 2, 0, 1)) / 0.07) ** 2) + 1e-12
+        blended = (weight * gain[index]).sum(axis=1) / weight.sum(axis=1)
+        patch_size = np.sqrt(4 * np.pi / 300)
+        f1, patch_edge, _ = cellular(d, 300, np.random.default_rng(7))
+        shade = 0.8 + 0.2 * np.sin(0.5 * np.pi * np.clip(patch_edge / (0.5 * patch_size), 0, 1)) ** 2
+        pattern = np.where(region == 2, 1.0, blended * shade)
+        bars = 12.0
+    albedo = base * pattern[:, None]
     albedo[pupils] = 0.01
-    albedo[region == 1] *= (0.8 + 0.35 * np.cos(40 * z[region == 1]) ** 2)[:, None]  # chevron bars
+    albedo[region == 1] *= (0.8 + 0.35 * np.cos(bars * z[region == 1]) ** 2)[:, None]  # chevron bars
     albedo = np.clip(albedo, 0.005, 0.6)
 
     mesh = ParamMesh(vertices=vertices, faces=faces, normals=vertex_normals(vertices, faces),
-                     params=_params_from_regions(DEMO_MATERIALS, region, albedo), material=region)
-    return Scene(name, mesh, DEMO_MATERIALS, flash_power=64000.0)
+                     params=_params_from_regions(materials, region, albedo), material=region)
+    return Scene(name, mesh, materials, flash_power=64000.0)
 
 
 def _sphere_ior() -> Scene:
@@ -310,9 +348,15 @@ def _tiny_relief() -> Scene:
     return _two_material_sphere("tiny_relief", TINY_MATERIALS, (0.6, 1.2), subdivisions=6, relief_m=FEATHER_RELIEF_M)
 
 
+def _demo_fine() -> Scene:
+    """The demo owl until 2026-11-25: detail finer than the demo's model (3 mm feathers, a speckle at the pixel,
+    2 mm eyeballs)."""
+    return _demo(0.0, "demo_fine", fine=True)
+
+
 def _demo_feathers() -> Scene:
-    """The demo owl with its feather relief (FEATHER_RELIEF_M)."""
-    return _demo(FEATHER_RELIEF_M, "demo_feathers")
+    """demo_fine with its feather relief (FEATHER_RELIEF_M)."""
+    return _demo(FEATHER_RELIEF_M, "demo_feathers", fine=True)
 
 
 def _tiny_dark() -> Scene:
@@ -339,7 +383,8 @@ def _tiny_mirror() -> Scene:
     return _two_material_sphere("tiny_mirror", materials, (0.6, 1.0))
 
 
-_BUILDERS = {"demo": _demo, "demo_feathers": _demo_feathers, "sphere_ior": _sphere_ior, "tiny": _tiny,
+_BUILDERS = {"demo": _demo, "demo_fine": _demo_fine, "demo_feathers": _demo_feathers, "sphere_ior": _sphere_ior,
+             "tiny": _tiny,
              "tiny_dark": _tiny_dark, "tiny_white": _tiny_white, "tiny_mirror": _tiny_mirror, "tiny_bumpy": _tiny_bumpy,
              "tiny_relief": _tiny_relief}
 
