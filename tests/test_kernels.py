@@ -94,9 +94,10 @@ def test_without_a_folder_it_is_plain_jit(tmp_path):
     assert float(out[1]) == 2.0 and not list(tmp_path.iterdir())
 
 
-def test_a_second_process_loads_the_fit_kernels_instead_of_tracing(tmp_path):
-    """The fit's kernels through two processes: the second traces (almost) nothing and fits the same."""
-    script = textwrap.dedent(f"""
+def _fit_script(tmp_path) -> str:
+    """A process that fits 40 vertices with the compilation cache under tmp_path/cache, saves eta to argv[1] and
+    prints its timing phases (JSON)."""
+    return textwrap.dedent(f"""
         import json, sys
         import numpy as np
         from sellip import timing
@@ -112,6 +113,11 @@ def test_a_second_process_loads_the_fit_kernels_instead_of_tracing(tmp_path):
         np.save(sys.argv[1], np.asarray(result.params.eta))
         print(json.dumps(clock.report()))
     """)
+
+
+def test_a_second_process_loads_the_fit_kernels_instead_of_tracing(tmp_path):
+    """The fit's kernels through two processes: the second traces (almost) nothing and fits the same."""
+    script = _fit_script(tmp_path)
     reports = []
     for run in range(2):
         done = subprocess.run([sys.executable, "-c", script, str(tmp_path / f"eta{run}.npy")], capture_output=True,
@@ -120,3 +126,20 @@ def test_a_second_process_loads_the_fit_kernels_instead_of_tracing(tmp_path):
     np.testing.assert_array_equal(np.load(tmp_path / "eta0.npy"), np.load(tmp_path / "eta1.npy"))
     assert list((tmp_path / "cache" / "exported").glob("_lm_rounds-*.jaxexport"))
     assert reports[1].get("trace", 0.0) < 0.25 * reports[0]["trace"]
+
+
+def test_processes_that_start_together_compile_once(tmp_path):
+    """Two fits started together on an empty cache (the shards of a pass): one compiles each kernel while the
+    other waits for it and loads the compilation from the cache; both fit the same."""
+    script = _fit_script(tmp_path)
+    runs = [subprocess.Popen([sys.executable, "-c", script, str(tmp_path / f"eta{run}.npy")], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True) for run in range(2)]
+    reports = []
+    for run in runs:
+        out, err = run.communicate(timeout=600)
+        assert run.returncode == 0, err
+        reports.append(json.loads(out.strip().splitlines()[-1]))
+    np.testing.assert_array_equal(np.load(tmp_path / "eta0.npy"), np.load(tmp_path / "eta1.npy"))
+    assert list((tmp_path / "cache" / "exported").glob("_lm_rounds-*.lock"))
+    compiled = sorted(report.get("compile", 0.0) for report in reports)
+    assert compiled[0] < 0.25 * compiled[1], reports

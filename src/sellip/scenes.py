@@ -3,7 +3,7 @@
 Public API::
 
     SCENES: tuple of scene names ("demo", "demo_fine", "demo_feathers", "sphere_ior", "tiny", "tiny_dark",
-            "tiny_white", "tiny_mirror", "tiny_bumpy", "tiny_relief")
+            "tiny_white", "tiny_mirror", "tiny_bumpy", "tiny_relief", "tiny_speckle")
     build_scene(name) -> Scene                       # mesh with per-vertex pBRDF parameters, fixed per name
     handheld_orbit(views, width, height, rng, ...) -> list[Camera]
     device_intrinsics(width, height) -> (3, 3) K    # the 25 mm lens on the IMX250 scaled to width
@@ -37,6 +37,8 @@ Scenes:
   mesh, 10242 vertices): shape detail for the initial-mesh cases of the stability suite.
 - ``tiny_relief``: the ``tiny`` materials with the demo_feathers relief (40962 vertices): sub-pixel
   surface detail for the stability suite.
+- ``tiny_speckle``: the ``tiny`` materials with demo_fine's albedo speckle in 1 mm cells (40962 vertices):
+  texture finer than the model and the pixels, for the stability suite.
 """
 
 from __future__ import annotations
@@ -50,7 +52,7 @@ from sellip.pbrdf import PBRDFParams
 from sellip.render import Camera, ParamMesh
 
 SCENES = ("demo", "demo_fine", "demo_feathers", "sphere_ior", "tiny", "tiny_dark", "tiny_white", "tiny_mirror",
-          "tiny_bumpy", "tiny_relief")
+          "tiny_bumpy", "tiny_relief", "tiny_speckle")
 
 DEVICE_WIDTH_PX = 2448
 DEVICE_FX_PX = 7246.0
@@ -302,17 +304,23 @@ TINY_BUMP_WIDTH_RAD = 0.2
 
 def _two_material_sphere(name: str, materials: tuple[Material, Material], checker_gain: tuple[float, float],
                          flash_power: float = TINY_FLASH_POWER, subdivisions: int = 4, bumps=(),
-                         relief_m: float = 0.0) -> Scene:
+                         relief_m: float = 0.0, speckle_m: float = 0.0) -> Scene:
     """A 4 cm sphere (icosphere of ``subdivisions``: 4 gives 2562 vertices), ``materials`` on the top and bottom
     halves, and a checker texture (12 azimuth sectors x 8 bands) that scales each material's rho_d by
     ``checker_gain`` (dark, light). ``bumps``: ((azimuth, elevation) deg, height m) Gaussian bumps of
     TINY_BUMP_WIDTH_RAD added to the radius; ``relief_m``: :func:`feather_relief` of that height between cells
-    of 3.3 mm (as the demo_feathers owl's) added too (with either, the normals are the surface's)."""
+    of 3.3 mm (as the demo_feathers owl's) added too (with either, the normals are the surface's); ``speckle_m``:
+    the albedo also scaled per cell of this size by a gain in 0.75-1.2 (demo_fine's speckle)."""
     d, faces = icosphere(subdivisions)
     region = (d[:, 2] < 0).astype(np.int64)
     azimuth = np.arctan2(d[:, 1], d[:, 0])
     checker = ((np.floor(azimuth / (np.pi / 6)) + np.floor(d[:, 2] / 0.25)) % 2).astype(np.int64)
     albedo = np.array([m.rho_d for m in materials])[region] * np.asarray(checker_gain, np.float64)[checker][:, None]
+    if speckle_m:
+        cells = round(4 * np.pi / (speckle_m / 0.04) ** 2)
+        rng = np.random.default_rng(11)
+        _, _, cell = cellular(d, cells, rng)
+        albedo = albedo * rng.uniform(0.75, 1.2, size=cells)[cell][:, None]
     radius = 0.04 + sum(height * bump(d, _direction(*where), TINY_BUMP_WIDTH_RAD) for where, height in bumps)
     if relief_m:
         cell_rad = 0.0033 / 0.04
@@ -346,6 +354,12 @@ def _tiny_relief() -> Scene:
     """The tiny sphere with the demo_feathers relief (0.35 mm ridges between 3.3 mm cells, 40962 vertices): surface
     detail finer than a pixel of the stability suite's 320x256 (about 1 mm), which depolarizes what a pixel sees."""
     return _two_material_sphere("tiny_relief", TINY_MATERIALS, (0.6, 1.2), subdivisions=6, relief_m=FEATHER_RELIEF_M)
+
+
+def _tiny_speckle() -> Scene:
+    """The tiny sphere with demo_fine's albedo speckle at the pixel of the stability suite's 320x256: cells of 1 mm
+    (gain 0.75-1.2), 40962 vertices: texture finer than the model (2,500 vertices) and the pixels."""
+    return _two_material_sphere("tiny_speckle", TINY_MATERIALS, (0.6, 1.2), subdivisions=6, speckle_m=0.001)
 
 
 def _demo_fine() -> Scene:
@@ -386,7 +400,7 @@ def _tiny_mirror() -> Scene:
 _BUILDERS = {"demo": _demo, "demo_fine": _demo_fine, "demo_feathers": _demo_feathers, "sphere_ior": _sphere_ior,
              "tiny": _tiny,
              "tiny_dark": _tiny_dark, "tiny_white": _tiny_white, "tiny_mirror": _tiny_mirror, "tiny_bumpy": _tiny_bumpy,
-             "tiny_relief": _tiny_relief}
+             "tiny_relief": _tiny_relief, "tiny_speckle": _tiny_speckle}
 
 
 def build_scene(name: str) -> Scene:

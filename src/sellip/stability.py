@@ -111,6 +111,8 @@ CASES: tuple[Case, ...] = (
          "(scene tiny_white)", config={"demo": {"scene": "tiny_white"}}),
     Case("mirror", "material", "near-mirror, sigma_s 0.03/0.05 over rho_d 0.03-0.08 (scene tiny_mirror)",
          config={"demo": {"scene": "tiny_mirror"}}),
+    Case("fine_texture", "material", "albedo speckle finer than a pixel and the mesh: 1 mm cells, gain 0.75-1.2 "
+         "(scene tiny_speckle; a pixel is about 1 mm)", config={"demo": {"scene": "tiny_speckle"}}),
     Case("dark_noisy", "material", "very dark albedo (tiny_dark) and sensor noise x4 together",
          config={"demo": {"scene": "tiny_dark", "noise_scale": 4.0}}),
     Case("views_24", "capture", "only 24 views (2 held out)", views=24),
