@@ -2,7 +2,7 @@
 
     python benchmarks/accuracy_ladder.py --scene sphere_ior --views 24 --width 612 --height 512 \
         [--rungs render sensor mesh hull] [--iterations 1] [--workdir results/bench/ladder] [--cores 2]
-        [--ceiling-vertices 6000 30000]
+        [--ceiling-vertices 6000 30000] [--max-vertices 6000]
 
 Rungs (each resumable: a rung whose result file exists is not run again):
 
@@ -64,6 +64,8 @@ def main(argv=None) -> int:
     parser.add_argument("--edge-margin", type=float, default=2.0, help="observe.edge_margin of every rung")
     parser.add_argument("--workdir", type=Path, default=ROOT / "results/bench/ladder")
     parser.add_argument("--cores", type=int, default=2)
+    parser.add_argument("--max-vertices", type=int, default=None,
+                        help="init.max_vertices of the workflow rungs (default: config.yaml's)")
     parser.add_argument("--ceiling-vertices", type=int, nargs="*", default=[],
                         help="also score the truth resampled on meshes of these vertex counts at the held-out views")
     args = parser.parse_args(argv)
@@ -89,7 +91,9 @@ def main(argv=None) -> int:
     cache = str(work / "jax_cache")
     rows = {}
     for rung in args.rungs:
-        out = work / f"{rung}.json"
+        # A workflow rung with its own vertex count is a run of its own (render and sensor use the true mesh).
+        suffix = f"_{args.max_vertices}v" if args.max_vertices and rung in ("mesh", "hull") else ""
+        out = work / f"{rung}{suffix}.json"
         if not out.is_file():
             if rung == "render":
                 clean = render_hdr(capture, hdr, work / "render_hdr.zarr")
@@ -99,9 +103,12 @@ def main(argv=None) -> int:
             else:
                 overrides = {"observe": {"edge_margin": args.edge_margin},
                              "evaluate": {"held_out_views": held_out_views(args.views, 4)}}
+                if args.max_vertices:
+                    overrides["init"] = {"max_vertices": args.max_vertices}
                 if rung == "mesh":
-                    overrides["init"] = {"mode": "mesh", "mesh_path": str(capture / GROUND_TRUTH_MESH)}
-                figures = workflow_rung(capture, f"{tag}_{rung}", work / "results", args.iterations, args.cores,
+                    overrides["init"] = {**overrides.get("init", {}), "mode": "mesh",
+                                         "mesh_path": str(capture / GROUND_TRUTH_MESH)}
+                figures = workflow_rung(capture, f"{tag}_{rung}{suffix}", work / "results", args.iterations, args.cores,
                                         overrides)
             out.write_text(json.dumps(figures, indent=2))
         rows[rung] = json.loads(out.read_text())

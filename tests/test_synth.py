@@ -111,6 +111,20 @@ def test_demo_fine_keeps_the_texture_at_the_pixel():
     assert np.all(build_scene("demo_fine").materials[2].rho_d < build_scene("demo").materials[2].rho_d)
 
 
+def test_the_config_schema_offers_every_scene():
+    """demo.scene in config.schema.yaml lists exactly sellip.scenes.SCENES (a scene missing there fails validation)."""
+    from pathlib import Path
+
+    import yaml
+
+    from sellip.scenes import SCENES
+
+    schema = yaml.safe_load((Path(__file__).parents[1] / "config" / "config.schema.yaml").read_text())
+    assert schema["properties"]["demo"]["properties"]["scene"]["enum"] == list(SCENES)
+    for name in ("demo_fine", "tiny_speckle"):
+        assert build_scene(name).name == name
+
+
 def test_sphere_ior_has_the_table_1_indices():
     scene = build_scene("sphere_ior")
     assert sorted(np.unique(np.round(scene.mesh.params.eta, 3))) == sorted(SPHERE_IOR_ETAS)
