@@ -300,3 +300,14 @@ def test_material_value_is_piecewise_constant_and_keeps_real_deviations():
     kept, all_own = augment.material_or_own(eta, eta_std, labels, [1.45, 1.62], deviation_sigmas=0)
     np.testing.assert_array_equal(kept, eta)
     assert all_own.all()
+
+
+def test_a_materials_eta_is_the_median_of_its_confident_vertices():
+    """cluster_medians: the median over each cluster's used vertices (an unconfident outlier does not count), the
+    fallback (the cluster lobe fit's value) for a cluster without a used vertex."""
+    from sellip.augment import cluster_medians
+
+    eta = np.array([1.40, 1.42, 1.44, 3.00, 1.60, 1.62, 1.10])
+    labels = np.array([0, 0, 0, 0, 1, 1, 2])
+    use = np.array([True, True, True, False, True, True, False])
+    np.testing.assert_allclose(cluster_medians(eta, labels, use, [1.0, 1.0, 1.55]), [1.42, 1.61, 1.55])

