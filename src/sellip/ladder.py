@@ -131,11 +131,12 @@ def resampled_truth(truth, vertices: int):
 
 def psnr_ceiling(capture: str | Path, hdr: str | Path, views: list[str], vertices: int | None = None,
                  supersample: int = 2) -> dict:
-    """Held-out PSNR (dB, :func:`sellip.evaluate.psnr`) of the capture's ground truth at ``views`` against the HDR
-    images of ``hdr``: the true mesh itself (``vertices`` None) or :func:`resampled_truth` at ``vertices``.
+    """Held-out PSNR (dB; :func:`sellip.stages.evaluate.view_psnr`, as evaluate_model scores a model) of the
+    capture's ground truth at ``views`` against the HDR images of ``hdr``: the true mesh itself (``vertices`` None)
+    or :func:`resampled_truth` at ``vertices``.
     Returns {"vertices", "views": {view_id: dB}, "mean_db"}."""
-    from sellip import evaluate
     from sellip.render import Renderer, flash_light
+    from sellip.stages.evaluate import view_psnr
     from sellip.stages.merge_hdr import read_hdr
     from sellip.stages.observe import hdr_camera
     from sellip.stages.sfm import read_cameras
@@ -151,9 +152,6 @@ def psnr_ceiling(capture: str | Path, hdr: str | Path, views: list[str], vertice
     for view_id in views:
         row = view_ids.index(view_id)
         camera = hdr_camera(store.intrinsics, rotations[row], translations[row], hdr)
-        result = renderer.render(camera, flash_light(camera, light["position_m"], float(light["polarizer_deg"])),
-                                 supersample=supersample)
-        analyzers, valid = store.view(view_id)
-        scores[view_id] = evaluate.psnr(analyzers, result.analyzers,
-                                        evaluate.render_mask(analyzers, valid, result.coverage))["psnr_db"]
+        lamp = flash_light(camera, light["position_m"], float(light["polarizer_deg"]))
+        scores[view_id] = view_psnr(renderer, camera, lamp, store, view_id, supersample)["psnr_db"]
     return {"vertices": model.num_vertices, "views": scores, "mean_db": float(np.mean(list(scores.values())))}

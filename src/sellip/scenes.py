@@ -218,7 +218,8 @@ def _demo(relief_m: float = 0.0, name: str = "demo", fine: bool = False) -> Scen
     # step at z = 0.5; the demo's is 4.6 mm wide and fades out between z = 0.35 and 0.55 (a model of 2.3 mm edges
     # can follow it).
     crease_rad = 0.06 if fine else 0.1
-    crease_end = (z < 0.5) if fine else np.clip((0.55 - z) / 0.2, 0, 1) ** 2 * (3 - 2 * np.clip((0.55 - z) / 0.2, 0, 1))
+    fade = np.clip((0.55 - z) / 0.2, 0, 1)
+    crease_end = (z < 0.5) if fine else fade**2 * (3 - 2 * fade)  # smoothstep
     for side in (1, -1):
         wing = np.arccos(np.clip(d @ _direction(side * 100, -10), -1, 1))
         radius -= 0.0035 * np.exp(-0.5 * ((wing - 0.75) / crease_rad) ** 2) * crease_end
@@ -257,7 +258,7 @@ def _demo(relief_m: float = 0.0, name: str = "demo", fine: bool = False) -> Scen
         weight = np.exp(-0.5 * (2 * np.arcsin(np.clip(distance / 2, 0, 1)) / 0.07) ** 2) + 1e-12
         blended = (weight * gain[index]).sum(axis=1) / weight.sum(axis=1)
         patch_size = np.sqrt(4 * np.pi / 300)
-        f1, patch_edge, _ = cellular(d, 300, np.random.default_rng(7))
+        _, patch_edge, _ = cellular(d, 300, np.random.default_rng(7))
         shade = 0.8 + 0.2 * np.sin(0.5 * np.pi * np.clip(patch_edge / (0.5 * patch_size), 0, 1)) ** 2
         pattern = np.where(region == 2, 1.0, blended * shade)
         bars = 12.0

@@ -107,6 +107,15 @@ def _mean_db(per_view: dict) -> float | None:
     return float(np.mean(values)) if values else None
 
 
+def view_psnr(renderer, camera: Camera, light, hdr, view_id: str, supersample: int = 2) -> dict:
+    """:func:`sellip.evaluate.psnr` of ``renderer``'s image at ``camera`` under ``light`` against the HDR store's view
+    ``view_id``, inside :func:`sellip.evaluate.render_mask`: how a model (or the ground truth) scores at a captured
+    view."""
+    result = renderer.render(camera, light, supersample=supersample)
+    analyzers, valid = hdr.view(view_id)
+    return evaluate.psnr(analyzers, result.analyzers, evaluate.render_mask(analyzers, valid, result.coverage))
+
+
 def run_stage(model_path: str | Path, cameras_path: str | Path, hdr_path: str | Path, capture_path: str | Path,
               output: str | Path, params_path: str | Path | None = None, benchmarks: str | Path | None = None,
               held_out: list[str] | None = None, sim3_from_sfm: bool = False, sfm_report: str | Path | None = None,
@@ -144,10 +153,7 @@ def run_stage(model_path: str | Path, cameras_path: str | Path, hdr_path: str | 
             held_out_psnr[view_id] = {"psnr_db": None, "reason": f"no pose in {cameras_path}"}
             continue
         camera = cameras[view_id]
-        result = renderer.render(camera, flash(camera), supersample=supersample)
-        analyzers, valid = hdr.view(view_id)
-        mask = evaluate.render_mask(analyzers, valid, result.coverage)
-        held_out_psnr[view_id] = evaluate.psnr(analyzers, result.analyzers, mask)
+        held_out_psnr[view_id] = view_psnr(renderer, camera, flash(camera), hdr, view_id, supersample)
         log.info("held-out %s: PSNR %s dB", view_id, held_out_psnr[view_id]["psnr_db"])
     metrics["psnr_held_out"] = {"views": held_out_psnr, "mean_db": _mean_db(held_out_psnr)} if held_out else None
     if not held_out:
@@ -226,10 +232,7 @@ def run_stage(model_path: str | Path, cameras_path: str | Path, hdr_path: str | 
             ceiling = {}
             for view_id in [v for v in held_out if v in cameras]:
                 camera = _moved_camera(cameras[view_id], similarity)
-                result = truth_renderer.render(camera, flash(camera), supersample=supersample)
-                analyzers, valid = hdr.view(view_id)
-                ceiling[view_id] = evaluate.psnr(analyzers, result.analyzers,
-                                                 evaluate.render_mask(analyzers, valid, result.coverage))
+                ceiling[view_id] = view_psnr(truth_renderer, camera, flash(camera), hdr, view_id, supersample)
                 metrics["psnr_held_out"]["views"][view_id]["ground_truth_psnr_db"] = ceiling[view_id]["psnr_db"]
             metrics["psnr_held_out"]["ground_truth_mean_db"] = _mean_db(ceiling)
             log.info("held-out PSNR of the ground truth itself (the ceiling): %s dB",

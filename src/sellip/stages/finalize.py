@@ -31,9 +31,9 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
     the store's ``model``; ``model`` is the code of every vertex of a store that has none. With
     ``clusters``, eta is its material cluster's (the median of the cluster's confident vertices' own eta,
     :func:`sellip.augment.cluster_medians`; the cluster lobe fit's where it has none) unless a vertex's own differs
-    by more than ``eta_deviation_sigmas`` of its std, and so is the specular lobe (the cluster lobe fit's) (sigma_s with rho_s, one lobe) unless
-    the vertex's sigma_s differs by more than ``lobe_deviation_sigmas`` of its std (at least
-    0.01, the rule's floor) (:func:`sellip.augment.material_or_own`; <= 0: every vertex's own)."""
+    by more than ``eta_deviation_sigmas`` of its std, and so is the specular lobe (the cluster lobe fit's sigma_s
+    with its rho_s) unless the vertex's sigma_s differs by more than ``lobe_deviation_sigmas`` of its std (at
+    least 0.01, the rule's floor) (:func:`sellip.augment.material_or_own`; <= 0: every vertex's own)."""
     from sellip.augment import cluster_medians, material_or_own
     from sellip.io import write_param_mesh
     from sellip.observe import read_mesh
