@@ -62,6 +62,7 @@ def main(argv=None) -> int:
                         choices=["render", "sensor", "mesh", "hull"])
     parser.add_argument("--iterations", type=int, default=1, help="outer iterations of the workflow rungs")
     parser.add_argument("--edge-margin", type=float, default=2.0, help="observe.edge_margin of every rung")
+    parser.add_argument("--max-slope", type=float, default=0.0, help="observe.max_slope of every rung (0: off)")
     parser.add_argument("--workdir", type=Path, default=ROOT / "results/bench/ladder")
     parser.add_argument("--cores", type=int, default=2)
     parser.add_argument("--max-vertices", type=int, default=None,
@@ -87,7 +88,7 @@ def main(argv=None) -> int:
     if not hdr.exists():
         linearize_capture(capture, work / "linear.zarr", threads=args.cores)
         merge_capture(work / "linear.zarr", hdr, threads=args.cores)
-    observe = ObserveSettings(edge_margin=args.edge_margin, threads=args.cores)
+    observe = ObserveSettings(edge_margin=args.edge_margin, max_slope=args.max_slope, threads=args.cores)
     cache = str(work / "jax_cache")
     rows = {}
     for rung in args.rungs:
@@ -101,7 +102,7 @@ def main(argv=None) -> int:
             elif rung == "sensor":
                 figures = fit_true_mesh(capture, hdr, work / "sensor", observe, cache)
             else:
-                overrides = {"observe": {"edge_margin": args.edge_margin},
+                overrides = {"observe": {"edge_margin": args.edge_margin, "max_slope": args.max_slope},
                              "evaluate": {"held_out_views": held_out_views(args.views, 4)}}
                 if args.max_vertices:
                     overrides["init"] = {"max_vertices": args.max_vertices}

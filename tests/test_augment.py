@@ -197,6 +197,38 @@ def test_one_material_gives_one_cluster_and_small_clusters_are_merged():
     assert np.all(merged.labels == 0)
 
 
+def test_a_cluster_cut_from_one_materials_noise_is_merged_and_a_real_region_kept():
+    """Spatial coherence (AugmentSettings.min_coherence): on a sphere of two materials (the caps z > 0.5 and
+    z <= 0.5, different albedo and eta), the first with a wide eta spread and its low-eta fifth scattered
+    over it (salt and pepper, as the demo's plumage split), k-means and BIC cut that fifth off as a third
+    cluster with a median eta 6 % low; with the vertices given it is merged back (coherence about its share
+    of the cap), and the real second material, a region, is kept."""
+    from sellip.scenes import icosphere
+
+    vertices, _ = icosphere(4)
+    rng = np.random.default_rng(0)
+    n = len(vertices)
+    cap = vertices[:, 2] > 0.5
+    eta = np.where(cap, 1.62, rng.normal(1.48, 0.02, n))
+    low = ~cap & (rng.uniform(size=n) < 0.2)
+    eta[low] = rng.normal(1.36, 0.02, low.sum())  # the noise's low tail, scattered
+    rho_d = np.where(cap[:, None], [0.42, 0.28, 0.06], [0.22, 0.14, 0.075]) * rng.uniform(0.97, 1.03, (n, 3))
+    ones = np.zeros(n, np.int32), np.ones(n)
+    plain = augment.cluster_materials(eta, rho_d, *ones)
+    assert len(plain.centres) == 3  # the scattered low-eta vertices are a cluster of their own
+    coherence = augment.spatial_coherence(plain.labels, vertices)
+    cut = int(np.argmin(coherence))
+    assert np.mean((plain.labels == cut) == low) > 0.99  # the cut is the low-eta fifth (to a few tail vertices)
+    assert coherence[cut] < 0.3 and np.delete(coherence, cut).min() > 0.7, coherence  # measured 0.20; 0.78, 0.96
+    coherent = AugmentSettings(min_coherence=0.5)
+    merged = augment.cluster_materials(eta, rho_d, *ones, coherent, vertices=vertices)
+    assert len(merged.centres) == 2 and merged.merges[0]["reason"].startswith("spatially incoherent")
+    np.testing.assert_array_equal(merged.labels == merged.labels[np.argmax(cap)], cap)  # the region kept whole
+    medians = augment.cluster_medians(eta, merged.labels, np.ones(n, bool), [1.5, 1.5])
+    assert abs(medians[merged.labels[np.argmin(cap)]] / 1.48 - 1) < 0.03  # the split's own median: 1.36
+    assert np.array_equal(augment.cluster_materials(eta, rho_d, *ones, vertices=vertices).labels, plain.labels)
+
+
 def test_clusters_and_lobes_are_deterministic_for_a_seed(scene):
     plain = scene["plain"]
     again = augment.cluster_materials(plain.params.eta, plain.params.rho_d, plain.status, plain.confidence, AUGMENT,
@@ -235,8 +267,9 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
     _write_stores(tmp_path, scene)
     clusters = tmp_path / "clusters"
     common = ["--params", str(tmp_path / "fit.zarr"), "--observations", str(tmp_path / "observations.zarr")]
+    # The scene's points of one material are scattered in space, not a region: no spatial coherence test.
     assert cli.main(["cluster-lobes", *common, "--output", str(clusters), "--seed", "0", "--max-samples", "1000",
-                     "--min-cluster-vertices", "10"]) == 0
+                     "--min-cluster-vertices", "10", "--min-coherence", "0"]) == 0
     assert sorted(p.name for p in clusters.iterdir()) == ["clusters.json", "labels.npy", "lobes.csv", "lobes.png",
                                                         "models.npy"]
     assert not list(tmp_path.glob("*.tmp"))

@@ -48,12 +48,27 @@ def _select(scene, name, seed=0, selection=SELECTION):
                                HELD, selection, LOBES, seed=seed)
 
 
+CLUSTER_KERNELS = ("_stacked", "_stacked_jacobian", "_delta_step_jit", "_pool_solution", "_sample_losses")
+
+
 @pytest.fixture(scope="module")
 def scene():
-    """The scene and the selection of each material's cluster (the true normals and albedos held)."""
+    """The scene and the selection of each material's cluster (the true normals and albedos held), and
+    the compiled forms each cluster kernel holds after them (counted from empty caches)."""
     s = _make_scene()
+    for name in CLUSTER_KERNELS:
+        getattr(augment, name).jitted.clear_cache()
     s["selection"] = {name: _select(s, name) for name in MATERIALS}
+    s["compiled"] = {name: getattr(augment, name)._cache_size() for name in CLUSTER_KERNELS}
     return s
+
+
+def test_every_candidate_model_runs_one_compiled_program(scene):
+    """The model is data to the cluster kernels, not a static argument: the four candidates of three
+    clusters (twelve lobe fits and held-out scorings) compile each kernel once."""
+    assert all(len(s.candidates) == 4 for s in scene["selection"].values())
+    # _delta_step_jit has two forms whatever the model: albedos solved (the fit) or given (the scoring).
+    assert scene["compiled"] == {name: 2 if name == "_delta_step_jit" else 1 for name in CLUSTER_KERNELS}
 
 
 def test_model_codes_settings_and_caps():
@@ -196,7 +211,9 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
 
     _write_stores(tmp_path, scene)
     stores = ["--params", str(tmp_path / "fit.zarr"), "--observations", str(tmp_path / "observations.zarr")]
-    small = ["--max-samples", "1000", "--selection-max-samples", "1000", "--min-cluster-vertices", "10"]
+    # The scene's points of one material are scattered in space, not a region: no spatial coherence test.
+    small = ["--max-samples", "1000", "--selection-max-samples", "1000", "--min-cluster-vertices", "10",
+             "--min-coherence", "0"]
     # At most model 1 (--set lobes=specular): the scattering cluster may not keep its lobe.
     assert cli.main(["cluster-lobes", *stores, "--output", str(tmp_path / "clusters"), *small,
                      "--set", "lobes=specular"]) == 0

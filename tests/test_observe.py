@@ -16,7 +16,7 @@ import pytest
 from sellip.conventions import observations_from_analyzers, stokes_to_analyzers
 from sellip.io import CaptureWriter, write_ply
 from sellip.observe import (ObserveError, ObserveMesh, ObserveSettings, Observer, bilinear_sample,
-                            load_observations, read_mesh, silhouette_distance)
+                            load_observations, read_mesh, relative_slope, silhouette_distance)
 from sellip.pbrdf import PBRDFParams, full_stokes
 from sellip.render import Camera, ParamMesh, Renderer, flash_light
 from sellip.scenes import icosphere, look_at_rotation
@@ -402,3 +402,42 @@ def test_edge_margin_drops_samples_near_the_silhouette(rendered, observed):
         assert np.mean(rim_or_shadow[:n][dropped[:n]]) > 0.95
         dropped_total += int(dropped.sum())
     assert dropped_total > 50
+
+
+def test_relative_slope_is_the_log_intensity_gradient():
+    """|grad S0| / S0 by central differences: sinh(a) on an exponential ramp exp(a x) (a for small a), in
+    either direction, the same in every colour and analyzer mix; inf where S0 is 0, NaN beside a NaN."""
+    a = 0.3
+    x = np.arange(12, dtype=np.float64)
+    ramp = np.exp(a * x)[None, :, None, None] * np.array([1.0, 0.8, 0.6, 0.8])[:, None] * np.ones((9, 1, 4, 3))
+    slope = relative_slope(ramp.astype(np.float32))
+    np.testing.assert_allclose(slope[:, 1:-1], np.sinh(a), rtol=1e-5)
+    np.testing.assert_allclose(relative_slope(np.swapaxes(ramp, 0, 1).astype(np.float32))[1:-1, :], np.sinh(a),
+                               rtol=1e-5)
+    flat = np.ones((5, 5, 4, 3), np.float32)
+    flat[2, 2] = 0.0
+    flat[0, 4] = np.nan
+    slope = relative_slope(flat)
+    assert np.isinf(slope[2, 2]) and np.isnan(slope[1, 4]) and slope[4, 0] == 0
+
+
+def test_max_slope_drops_the_samples_on_steep_intensity(rendered, observed):
+    """With ``max_slope`` a sample is dropped where a corner of its footprint has a relative slope above it
+    (the rim, shadow edges, the highlight's flanks); every other usable sample stays, with its values."""
+    mesh = rendered["mesh"]
+    observer = Observer(ObserveMesh(mesh.vertices, mesh.normals, mesh.faces), ObserveSettings(threads=2, max_slope=0.4))
+    dropped_total, kept_total = 0, 0
+    for k, (camera, light) in enumerate(zip(rendered["cameras"], rendered["lights"])):
+        view = observer.observe(camera, light.position, rendered["analyzers"][k], rendered["valid"][k])
+        plain = observed[k]
+        assert not np.any(view.usable & ~plain.usable)
+        np.testing.assert_array_equal(view.specular[view.usable], plain.specular[view.usable])
+        slope = relative_slope(rendered["analyzers"][k])
+        height, width = slope.shape
+        low = np.floor(camera.project(mesh.vertices[plain.usable])).astype(int)
+        low = np.minimum(low, [width - 2, height - 2])  # the bilinear footprint's top-left corner
+        steepest = np.max([slope[low[:, 1] + dy, low[:, 0] + dx] for dy in (0, 1) for dx in (0, 1)], axis=0)
+        np.testing.assert_array_equal(view.usable[plain.usable], steepest <= 0.4)
+        dropped_total += int(np.sum(plain.usable & ~view.usable))
+        kept_total += int(view.usable.sum())
+    assert dropped_total > 20 and kept_total > 2 * dropped_total

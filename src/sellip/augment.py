@@ -47,6 +47,11 @@ class AugmentSettings:
 
     k_max: int = 8  # K is chosen in 1..k_max
     min_cluster_vertices: int = 50  # smaller clusters are merged into their nearest neighbour
+    # A material occupies a region: a cluster whose vertices' nearest neighbours on the surface lie in it less
+    # often than this (on average) is a split of a material's noise, not a material, and is merged (0: no test;
+    # the demo uses 0.5, docs/augment.md).
+    min_coherence: float = 0.0
+    coherence_neighbours: int = 6  # the nearest vertices (3-D) that stand for a vertex's 1-ring
     min_confidence: float = 0.1  # vertices clustered and pooled: status fitted and confidence >= this
     cluster_points: int = 20000  # at most this many vertices (seeded subsample) choose K and the centres
     restarts: int = 4  # K-means++ restarts per K (the lowest inertia wins)
@@ -163,15 +168,49 @@ def choose_k(x: np.ndarray, k_max: int, rng: np.random.Generator, restarts: int 
     return k, results[k], values
 
 
+def spatial_coherence(labels, vertices, neighbours: int = 6) -> np.ndarray:
+    """(K,) per cluster of ``labels`` (N,) in 0..K-1: the share of its vertices' ``neighbours`` nearest other
+    vertices (``vertices`` (N, 3), a stand-in for the mesh's 1-ring) that are in the cluster too, averaged over
+    its vertices (NaN for an empty cluster). A material's region scores near 1 (the demo's: 0.92-0.99; sphere_ior's
+    seven: 0.92-0.97); a cluster that k-means cut out of one material's eta noise scores near its share of the
+    surface (0.34-0.38 on the demo)."""
+    return _coherence(np.asarray(labels, np.intp), _nearest(vertices, neighbours))
+
+
+def _nearest(vertices, neighbours: int) -> np.ndarray:
+    """(N, <= neighbours) the indices of each vertex's nearest other vertices."""
+    from scipy.spatial import cKDTree
+
+    vertices = np.asarray(vertices, np.float64)
+    k = min(neighbours + 1, len(vertices))
+    if k < 2:
+        return np.zeros((len(vertices), 0), np.intp)
+    return cKDTree(vertices).query(vertices, k=k)[1][:, 1:]
+
+
+def _coherence(labels, near) -> np.ndarray:
+    count = int(labels.max()) + 1 if labels.size else 0
+    if near.shape[1] == 0:
+        return np.ones(count)
+    same = (labels[near] == labels[:, None]).mean(1)
+    sums, members = np.bincount(labels, weights=same, minlength=count), np.bincount(labels, minlength=count)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return sums / members
+
+
 def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings = AugmentSettings(),
-                      seed: int = 0) -> Clustering:
+                      seed: int = 0, vertices=None) -> Clustering:
     """Material clusters of N vertices from their fitted eta (N,), rho_d (N, 3), status (N,) and confidence (N,).
 
     The vertices with status fitted and confidence >= ``min_confidence`` (a seeded subsample of at
     most ``cluster_points``) choose K (:func:`choose_k`) and the centres. A cluster with fewer than
     ``min_cluster_vertices`` of them is merged into the nearest other centre (logged), smallest first.
-    Every vertex, also unfitted ones, is labelled with its nearest centre; labels are ordered by
-    cluster size (0 the largest).
+    With ``vertices`` (N, 3), a cluster whose spatial coherence (:func:`spatial_coherence`) is below
+    ``min_coherence`` is then merged into the cluster most of its vertices' neighbours belong to, the least
+    coherent first (logged): k-means on (chroma, brightness, eta) also cuts one material along its eta noise,
+    and such a cut's median eta is biased by construction (the demo's plumage: a cluster of 396 of its vertices
+    at eta 1.325 against 1.492, coherence 0.34). Every vertex, also unfitted ones, is labelled with its nearest
+    centre; labels are ordered by cluster size (0 the largest).
     """
     rng = np.random.default_rng(seed)
     features = cluster_features(eta, rho_d)
@@ -201,6 +240,28 @@ def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings 
         members = (labels == small) | (labels == into)
         centres[into] = features[pool][members].mean(0)
         centres = centres[others]
+    near = _nearest(vertices, settings.coherence_neighbours) if vertices is not None and settings.min_coherence > 0 \
+        else None
+    while near is not None and len(centres) > 1:
+        labels = np.argmin(_squared_distances(features, centres), 1)
+        coherence = _coherence(labels, near)
+        coherence = np.where(np.isnan(coherence), np.inf, coherence)  # an empty cluster has no region to judge
+        worst = int(np.argmin(coherence))
+        if coherence[worst] >= settings.min_coherence:
+            break
+        members = np.flatnonzero(labels == worst)
+        around = labels[near[members]].ravel()
+        others = np.delete(np.arange(len(centres)), worst)
+        into = int(others[np.argmax(np.bincount(around, minlength=len(centres))[others])])
+        merges.append({"cluster": worst, "vertices": int(members.size), "into": into,
+                       "reason": f"spatially incoherent: {coherence[worst]:.2f} of its vertices' neighbours in it "
+                                 f"< min_coherence {settings.min_coherence}"})
+        log.info("cluster %d (%d vertices) merged into cluster %d: spatially incoherent (%.2f of its vertices' "
+                 "neighbours in it)", worst, members.size, into, coherence[worst])
+        merged = used & ((labels == worst) | (labels == into))
+        if merged.any():
+            centres[into] = features[merged].mean(0)
+        centres = centres[others]
     counts = np.bincount(np.argmin(_squared_distances(features[pool], centres), 1), minlength=len(centres))
     order = np.argsort(-counts, kind="stable")
     centres = centres[order]
@@ -219,18 +280,12 @@ class _Samples(NamedTuple):
     rho_d: jnp.ndarray
 
 
-def _solve_spec(terms, target_s, w, prior, lobes: str):
-    """Closed-form (rho_s, rho_ss RGB) (4,) of the cluster fit for the lobe set ``lobes``
-    (:data:`sellip.fit.LOBE_SETS`): exact NNLS for "full", a clamped 1-D least squares of rho_s for
-    "specular" (rho_ss = 0), zeros for "diffuse". target_s (J, 3): I_s minus its diffuse part."""
+def _solve_spec(terms, target_s, w, prior):
+    """Closed-form (rho_s, rho_ss RGB) (4,) of the cluster fit: exact NNLS (:func:`sellip.fit._nnls_specular`).
+    A lobe the model leaves out has a zero basis (:func:`sellip.fit._lobe_terms`): its albedo comes out 0,
+    and rho_s alone is the clamped 1-D least squares. target_s (J, 3): I_s minus its diffuse part."""
     basis_s, basis_ss = terms["lobe_s"] * terms["r_is"], terms["lobe_ss"] * terms["r_is"]
     ridge = 1e-6 * jnp.maximum(jnp.sum(w * (basis_s**2 + basis_ss**2)), 1e-12)
-    if lobes == "diffuse":
-        return jnp.zeros(4, target_s.dtype)
-    if lobes == "specular":
-        wb = w * basis_s
-        rho_s = (jnp.sum(wb @ target_s) + ridge * prior[0]) / (3 * jnp.sum(wb * basis_s) + ridge)
-        return jnp.zeros(4, target_s.dtype).at[0].set(jnp.maximum(rho_s, 0))
     return fit._nnls_specular(basis_s, basis_ss, target_s, w, prior, ridge)
 
 
@@ -239,16 +294,17 @@ def _cluster_residuals(z, delta, spec, samples: _Samples, settings: FitSettings,
 
     z (5,) as :func:`sellip.fit._decode` (the normal entries unused); delta (J,) radians; spec (4,)
     rho_s, rho_ss RGB, or None to solve them (closed form, variable projection). The lobes are
-    those of ``settings.lobes`` (a lobe left out contributes nothing). Returns (res, spec).
+    those of the record's model (``lobe_mask``, ``sigma_ss_fixed``: :func:`_with_model`; a lobe left
+    out contributes nothing). Returns (res, spec).
     """
     v = samples.record
     frame = fit._Frame(*(jnp.array([0.0, 0.0, 1.0], z.dtype),) * 3)
-    _, eta, sigma_s, sigma_ss = fit._decode(z, frame, settings.sigma_ss_fixed)
+    _, eta, sigma_s, sigma_ss = fit._decode(z, frame, fit._fixed_sigma_ss(v, settings))
     terms = fit._model_terms(samples.normal, eta, sigma_s, sigma_ss, v, theta_h_offset=delta, lobes=settings.lobes)
     w = v.weight * terms["lit"]
     diffuse_s = samples.rho_d * terms["d_is"][:, None]
     if spec is None:
-        spec = _solve_spec(terms, v.obs_s - diffuse_s, w, v.prior, settings.lobes)
+        spec = _solve_spec(terms, v.obs_s - diffuse_s, w, v.prior)
     reflect = terms["lobe_s"][:, None] * spec[0] + terms["lobe_ss"][:, None] * spec[None, 1:]
     i_d = (v.obs_d - reflect * terms["r_id"][:, None]) @ v.color
     i_alpha = (v.obs_a - reflect * terms["r_ia"][:, None]) @ v.color
@@ -278,7 +334,7 @@ def _pool_samples(obs: Observations, normals, rho_d, settings: FitSettings, max_
     the same shape, so the lobe fit compiles once per run (and once per machine with the persistent
     compilation cache)."""
     dtype = np.float64 if jax.config.jax_enable_x64 else np.float32
-    settings = lobe_fit_settings(settings)
+    settings = _kernel_settings(settings)
     obs = Observations(*[np.asarray(x, dtype) if np.asarray(x).dtype.kind == "f" else np.asarray(x) for x in obs])
     normals = np.asarray(normals, dtype) / np.linalg.norm(normals, axis=-1, keepdims=True)
     # Rows padded to 2048 or a power of two (repeats, cut off after): one compiled view selection serves clusters
@@ -352,7 +408,7 @@ def _pool_solution(z, delta, samples: _Samples, settings: FitSettings, lambda_th
     :func:`lobe_curve`, plotted against theta_h + delta). One compiled kernel, not op-by-op dispatch."""
     res, spec = _cluster_residuals(z, delta, None, samples, settings, lambda_theta)
     frame = fit._Frame(*(jnp.array([0.0, 0.0, 1.0], z.dtype),) * 3)
-    _, eta, sigma_s, sigma_ss = fit._decode(z, frame, settings.sigma_ss_fixed)
+    _, eta, sigma_s, sigma_ss = fit._decode(z, frame, fit._fixed_sigma_ss(samples.record, settings))
     terms = fit._model_terms(samples.normal, eta, sigma_s, sigma_ss, samples.record, theta_h_offset=delta)
     measured = (samples.record.obs_s - samples.rho_d * terms["d_is"][:, None]) @ samples.record.color
     shading = terms["r_is"] / fit.fresnel(jnp.ones((), z.dtype), eta).r_plus
@@ -373,6 +429,23 @@ def lobe_fit_settings(settings: FitSettings) -> FitSettings:
     keep = ("lambda_psi", "lambda_s", "lobes", "sigma_ss_fixed", "dark_threshold", "chroma_threshold",
             "outlier_threshold", "shading_outlier_floor")
     return FitSettings(**{name: getattr(settings, name) for name in keep})
+
+
+def _kernel_settings(settings: FitSettings) -> FitSettings:
+    """The static settings of the cluster kernels: :func:`lobe_fit_settings` with every lobe. The model
+    (``settings.lobes``, ``sigma_ss_fixed``) travels as data in the samples' record (:func:`_with_model`),
+    so that every candidate model of model selection runs one compiled program (four programs of five
+    kernels each were 68 s of the demo's cold cluster_lobes job of 94 s)."""
+    return dataclasses.replace(lobe_fit_settings(settings), lobes="full", sigma_ss_fixed=None)
+
+
+def _with_model(samples: _Samples, settings: FitSettings) -> _Samples:
+    """``samples`` whose record carries the model of ``settings`` (:func:`sellip.fit.model_of`) as the
+    per-vertex fit's kernels take it: lobe_mask (2,) and the fixed sigma_ss (NaN: free)."""
+    dtype = samples.record.obs_d.dtype
+    lobe_mask, fixed = fit.model_arrays(np.array([fit.model_of(settings)]), settings.sigma_ss_fixed or 0.0)
+    return samples._replace(record=samples.record._replace(lobe_mask=jnp.asarray(lobe_mask[0], dtype),
+                                                           sigma_ss_fixed=jnp.asarray(fixed[0], dtype)))
 
 
 def _free_lobe_parameters(settings: FitSettings) -> list[int]:
@@ -406,7 +479,8 @@ def _fit_pool(pool: _Pool, eta0: float, fit_settings: FitSettings, settings: Aug
     from scipy.optimize import least_squares
 
     fit_settings = lobe_fit_settings(fit_settings)
-    samples, count, scale = pool.samples, pool.count, pool.scale
+    samples, count, scale = _with_model(pool.samples, fit_settings), pool.count, pool.scale
+    static = _kernel_settings(fit_settings)  # the compiled kernels' (one program for every model)
     dtype = samples.record.obs_d.dtype
     lambda_theta = jnp.asarray(settings.lambda_theta, dtype)
     max_delta = jnp.asarray(np.radians(settings.max_theta_error_deg), dtype)
@@ -418,19 +492,19 @@ def _fit_pool(pool: _Pool, eta0: float, fit_settings: FitSettings, settings: Aug
                                     jnp.asarray(grid[:, 1], dtype), dtype))
     if fit_settings.lobes == "diffuse":  # no roughness to start from: one start
         starts = starts[:1]
-    costs = [float(jnp.sum(_stacked(jnp.asarray(s), delta, samples, fit_settings, lambda_theta) ** 2)) for s in starts]
+    costs = [float(jnp.sum(_stacked(jnp.asarray(s), delta, samples, static, lambda_theta) ** 2)) for s in starts]
     z = starts[int(np.argmin(costs))].astype(np.float64)
 
     def solve(z, delta):
         def residual(x):
             full = z.copy()
             full[free] = x
-            return np.asarray(_stacked(jnp.asarray(full, dtype), delta, samples, fit_settings, lambda_theta), np.float64)
+            return np.asarray(_stacked(jnp.asarray(full, dtype), delta, samples, static, lambda_theta), np.float64)
 
         def jacobian(x):
             full = z.copy()
             full[free] = x
-            jac = _stacked_jacobian(jnp.asarray(full, dtype), delta, samples, fit_settings, lambda_theta)
+            jac = _stacked_jacobian(jnp.asarray(full, dtype), delta, samples, static, lambda_theta)
             return np.asarray(jac, np.float64)[:, free]
 
         result = least_squares(residual, z[free], jac=jacobian, method="lm", xtol=1e-8, ftol=1e-8, max_nfev=100)
@@ -441,10 +515,10 @@ def _fit_pool(pool: _Pool, eta0: float, fit_settings: FitSettings, settings: Aug
     # Without a lobe, Delta theta_h changes nothing: one solve.
     for _ in range(settings.alternations if fit_settings.lobes != "diffuse" else 0):
         z = solve(z, delta)
-        delta = _delta_step_jit(jnp.asarray(z, dtype), delta, samples, fit_settings, lambda_theta, max_delta)
+        delta = _delta_step_jit(jnp.asarray(z, dtype), delta, samples, static, lambda_theta, max_delta)
     z = solve(z, delta)
     loss, spec, eta, sigma_s, sigma_ss, measured, shading = _pool_solution(jnp.asarray(z, dtype), delta, samples,
-                                                                          fit_settings, lambda_theta)
+                                                                          static, lambda_theta)
     eta, sigma_s, sigma_ss = float(eta), float(sigma_s), float(sigma_ss)
     measured, shading = np.asarray(measured), np.asarray(shading)
     ok = (shading > 1e-6) & (np.arange(shading.shape[0]) < count)
@@ -464,8 +538,8 @@ def lobe_sample_losses(lobe: ClusterLobe, pool: _Pool, fit_settings: FitSettings
     sample's own Delta theta_h fitted (a per-sample nuisance, with its L_theta cost) by
     ``delta_rounds`` x 3 Gauss-Newton steps. Summed, it is the cluster fit's loss on these samples:
     the held-out error of model selection (:func:`sellip.models.select_model`)."""
-    samples = pool.samples
     fit_settings = lobe_fit_settings(fit_settings)
+    samples, static = _with_model(pool.samples, fit_settings), _kernel_settings(fit_settings)
     dtype = samples.record.obs_d.dtype
     lambda_theta = jnp.asarray(settings.lambda_theta, dtype)
     max_delta = jnp.asarray(np.radians(settings.max_theta_error_deg), dtype)
@@ -474,8 +548,8 @@ def lobe_sample_losses(lobe: ClusterLobe, pool: _Pool, fit_settings: FitSettings
     spec = jnp.asarray(np.concatenate([[lobe.rho_s], np.asarray(lobe.rho_ss)]) / pool.scale, dtype)
     delta = jnp.zeros(samples.normal.shape[0], dtype)
     for _ in range(delta_rounds if fit_settings.lobes != "diffuse" else 0):
-        delta = _delta_step_jit(z, delta, samples, fit_settings, lambda_theta, max_delta, spec=spec)
-    return np.asarray(_sample_losses(z, delta, spec, samples, fit_settings, lambda_theta), np.float64)[:pool.count]
+        delta = _delta_step_jit(z, delta, samples, static, lambda_theta, max_delta, spec=spec)
+    return np.asarray(_sample_losses(z, delta, spec, samples, static, lambda_theta), np.float64)[:pool.count]
 
 
 def _unit(v):

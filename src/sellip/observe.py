@@ -94,6 +94,9 @@ class ObserveSettings:
     occlusion_tolerance: relative (fraction of the camera-vertex distance).
     shadow_offset: shadow rays start this many median edge lengths above the vertex along its normal.
     min_cos: front-facing / lit when the cosine to the camera / flash exceeds this.
+    edge_margin: a sample lies at least this many HDR pixels inside the silhouette (0: no test).
+    max_slope: no corner of a sample's bilinear footprint has an intensity slope above this
+    (:func:`relative_slope`, per HDR pixel; 0: no test).
     threads: ray-casting threads (0: all cores).
     """
 
@@ -104,6 +107,7 @@ class ObserveSettings:
     min_cos: float = 0.0
     edge_margin: float = 0.0
     mask_threshold: float = 0.03
+    max_slope: float = 0.0
     threads: int = 0
 
     def __post_init__(self):
@@ -114,6 +118,8 @@ class ObserveSettings:
         if self.edge_margin < 0 or not 0 < self.mask_threshold < 1:
             raise ValueError(f"need edge_margin >= 0 and mask_threshold in (0, 1), got {self.edge_margin}, "
                              f"{self.mask_threshold}")
+        if self.max_slope < 0:
+            raise ValueError(f"max_slope must be >= 0 (0: off), got {self.max_slope}")
         if self.shadow_offset < 0 or not -1 <= self.min_cos < 1:
             raise ValueError(f"need shadow_offset >= 0 and min_cos in [-1, 1), got {self.shadow_offset}, "
                              f"{self.min_cos}")
@@ -293,6 +299,24 @@ def silhouette_distance(analyzers: np.ndarray, valid: np.ndarray | None, thresho
     return ndimage.distance_transform_edt(mask).astype(np.float32)
 
 
+def relative_slope(analyzers: np.ndarray) -> np.ndarray:
+    """(H, W) float32: each pixel's intensity slope relative to its intensity, |grad S0| / S0 per HDR pixel
+    (central differences of the mono total intensity S0 = (I0 + I45 + I90 + I135) / 2 of ``analyzers``
+    (H, W, 4, C)); inf where S0 <= 0, NaN next to an invalid (NaN) pixel.
+
+    The fit models a sample as the reflection at one point; the pixel it comes from averages a
+    footprint, and each analyzer image was interpolated from its own mosaic cells, a pixel apart
+    (:func:`sellip.ingest.demosaic`). Where the intensity changes fast against itself (a glossy
+    highlight on a curved surface, a texture or shadow edge) neither holds: the four analyzers see
+    different parts of the slope, and the DoP that eta rests on (a few percent) carries false
+    polarization of the order of slope x offset (docs/observe.md).
+    """
+    s0 = 0.5 * np.asarray(analyzers, np.float32).sum(axis=-2).mean(axis=-1)
+    rows, columns = np.gradient(s0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(s0 > 0, np.hypot(rows, columns) / s0, np.inf).astype(np.float32)
+
+
 # --------------------------------------------------------------------------- one view
 
 
@@ -369,6 +393,9 @@ class Observer:
             inside = silhouette_distance(analyzers, valid, settings.mask_threshold)
             near = np.rint(pixels[candidates[rows]]).astype(np.intp)
             rows = rows[inside[near[:, 1], near[:, 0]] >= settings.edge_margin]
+        if settings.max_slope > 0:  # NaN (next to an invalid pixel) fails the test
+            slope = relative_slope(analyzers).reshape(-1)
+            rows = rows[np.max(slope[footprint.take(rows).corners], axis=-1) <= settings.max_slope]
         index = candidates[rows]  # the vertices still in the running; rows: their footprints
         valid_pixels = np.zeros(count, bool)
         valid_pixels[index] = True

@@ -5,31 +5,42 @@ import shutil
 import sys
 from pathlib import Path
 
-import yaml
-
 from snakemake.exceptions import WorkflowError
 from snakemake.settings.types import DeploymentMethod
 from snakemake.utils import validate
 
 
-def _unless_set(current, defaults, overrides):
-    """``current`` with ``overrides`` applied wherever its value is still the default of
-    config/config.yaml (nested dicts key by key): the user's own settings always win."""
+def _unless_set(current, user, overrides):
+    """``current`` with ``overrides`` applied wherever the user has not set the key (``user``: the settings the
+    user gave, nested dicts key by key): the user's own settings always win, also where they equal a default."""
     merged = dict(current)
     for key, value in overrides.items():
         if isinstance(value, dict) and isinstance(current.get(key), dict):
-            merged[key] = _unless_set(current[key], (defaults or {}).get(key) or {}, value)
-        elif current.get(key) == (defaults or {}).get(key):
+            merged[key] = _unless_set(current[key], (user or {}).get(key) or {}, value)
+        elif key not in (user or {}):
             merged[key] = value
     return merged
+
+
+def _user_settings():
+    """What the user set: the config files given on the command line other than config/config.yaml itself, then
+    ``--config`` (Snakemake's own merge)."""
+    from snakemake.common.configfile import load_configfile
+    from snakemake.utils import update_config
+
+    defaults = (Path(workflow.basedir) / "config" / "config.yaml").resolve()
+    user = {}
+    for path in workflow.config_settings.configfiles:
+        if Path(path).resolve() != defaults:
+            update_config(user, load_configfile(path))
+    update_config(user, dict(workflow.config_settings.config or {}))
+    return user
 
 
 # The built-in demo (no `capture` given) runs with config `demo.overrides` in place of the defaults:
 # a laptop-sized model of a small, low-resolution capture; a user's capture gets the defaults.
 if not config["capture"]:
-    with open(Path(workflow.basedir) / "config" / "config.yaml") as defaults_file:
-        _defaults = yaml.safe_load(defaults_file)
-    config.update(_unless_set(config, _defaults, config["demo"].get("overrides") or {}))
+    config.update(_unless_set(config, _user_settings(), config["demo"].get("overrides") or {}))
 
 # init.mode mesh without a mesh: say so in words (the schema's own message would be "'' is too short").
 if (config.get("init") or {}).get("mode") == "mesh" and not (config.get("init") or {}).get("mesh_path"):

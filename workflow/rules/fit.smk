@@ -108,6 +108,7 @@ rule cluster_lobes:
         k_max=config["augment"]["k_max"],
         max_samples=config["augment"]["max_samples"],
         min_cluster_vertices=config["augment"]["min_cluster_vertices"],
+        min_coherence=config["augment"]["min_coherence"],
         settings=cluster_settings_args,
         selection=model_selection_args,
         cache=config["fit"]["compilation_cache"],
@@ -121,5 +122,6 @@ rule cluster_lobes:
     shell:
         SELLIP + " cluster-lobes --params {input.params} --observations {input.observations} --output {output}"
         " --seed {params.seed} --k-max {params.k_max} --max-samples {params.max_samples}"
-        " --min-cluster-vertices {params.min_cluster_vertices} {params.settings} {params.selection}"
+        " --min-cluster-vertices {params.min_cluster_vertices} --min-coherence {params.min_coherence}"
+        " {params.settings} {params.selection}"
         " --compilation-cache {params.cache} > {log} 2>&1"

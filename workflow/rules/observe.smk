@@ -23,6 +23,7 @@ rule gather_observations:
         min_cos=config["observe"]["min_cos"],
         edge_margin=config["observe"]["edge_margin"],
         mask_threshold=config["sfm"]["mask_threshold"],
+        max_slope=config["observe"]["max_slope"],
         missing_poses=config["observe"]["missing_poses"],
         held_out=" ".join(config["evaluate"]["held_out_views"]),
         max_views=(f"--max-views {config['observe']['max_views']}"
@@ -39,6 +40,6 @@ rule gather_observations:
         " --capture {params.capture} --output {output} --vertex-chunk {params.vertex_chunk}"
         " --view-chunk {params.view_chunk} --occlusion-tolerance {params.occlusion_tolerance}"
         " --shadow-offset {params.shadow_offset} --min-cos {params.min_cos}"
-        " --edge-margin {params.edge_margin} --mask-threshold {params.mask_threshold}"
+        " --edge-margin {params.edge_margin} --mask-threshold {params.mask_threshold} --max-slope {params.max_slope}"
         " --missing-poses {params.missing_poses} --exclude-views {params.held_out} {params.max_views}"
         " --threads {threads} > {log} 2>&1"

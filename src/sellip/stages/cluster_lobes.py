@@ -3,7 +3,7 @@
     sellip cluster-lobes --params results/NAME/iter/0/fit.zarr
                          --observations results/NAME/iter/0/observations.zarr
                          --output results/NAME/iter/0/clusters --seed 0
-                         [--k-max 8] [--max-samples 20000] [--min-cluster-vertices 50]
+                         [--k-max 8] [--max-samples 20000] [--min-cluster-vertices 50] [--min-coherence 0.5]
                          [--set lambda_psi=100 ...]
                          [--no-model-selection] [--candidates 0 1 2 3] [--held-out-fraction 0.25]
                          [--selection-tolerance 0.01] [--selection-standard-errors 1]
@@ -203,7 +203,8 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
         raise ObserveError(observations, f"holds {total} vertices that are not the {n} vertices of {params} "
                                          "(cluster-lobes needs the params and observations of the same mesh)")
     mark("cluster")
-    clustering = cluster_materials(store["eta"], store["rho_d"], store["status"], store["confidence"], settings, seed)
+    clustering = cluster_materials(store["eta"], store["rho_d"], store["status"], store["confidence"], settings, seed,
+                                   vertices=store["vertices"])
     k = len(clustering.centres)
     log.info("K = %d clusters (BIC over K: %s), %d merges", k,
              {key: round(value, 1) for key, value in clustering.bic.items()}, len(clustering.merges))
@@ -310,6 +311,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--k-max", type=int, default=defaults.k_max)
     parser.add_argument("--max-samples", type=int, default=defaults.max_samples)
     parser.add_argument("--min-cluster-vertices", type=int, default=defaults.min_cluster_vertices)
+    parser.add_argument("--min-coherence", type=float, default=defaults.min_coherence,
+                        help="merge a cluster whose vertices' nearest neighbours lie in it less often than this "
+                             "(a cut through one material's noise, not a material; 0: no test)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a FitSettings field (repeatable)")
     parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
@@ -340,8 +344,10 @@ def main(args: argparse.Namespace) -> int:
     try:
         if args.k_max < 1 or args.max_samples < 1 or args.min_cluster_vertices < 1 or args.selection_max_samples < 1:
             raise ValueError("--k-max, --max-samples, --min-cluster-vertices and --selection-max-samples must be >= 1")
+        if not 0 <= args.min_coherence <= 1:
+            raise ValueError(f"--min-coherence must be in [0, 1], got {args.min_coherence}")
         settings = AugmentSettings(k_max=args.k_max, max_samples=args.max_samples,
-                                   min_cluster_vertices=args.min_cluster_vertices)
+                                   min_cluster_vertices=args.min_cluster_vertices, min_coherence=args.min_coherence)
         selection = SelectionSettings(enabled=args.model_selection, candidates=tuple(args.candidates),
                                       held_out_fraction=args.held_out_fraction, tolerance=args.selection_tolerance,
                                       standard_errors=args.selection_standard_errors,

@@ -219,6 +219,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="a sample must lie this many HDR pixels inside the object's silhouette (0: off)")
     parser.add_argument("--mask-threshold", type=float, default=defaults.mask_threshold,
                         help="silhouette threshold for --edge-margin (fraction of the view's robust maximum)")
+    parser.add_argument("--max-slope", type=float, default=defaults.max_slope,
+                        help="leave out samples whose footprint has an intensity slope above this "
+                             "(|grad S0| / S0 per HDR pixel; 0: off)")
     parser.add_argument("--missing-poses", choices=MISSING_POSES, default="skip",
                         help="HDR views without a pose in cameras.csv: leave them out, or stop")
     parser.add_argument("--threads", type=int, default=0, help="ray-casting threads (0: all cores)")
@@ -234,7 +237,8 @@ def main(args: argparse.Namespace) -> int:
         settings = ObserveSettings(vertex_chunk=args.vertex_chunk, view_chunk=args.view_chunk,
                                    occlusion_tolerance=args.occlusion_tolerance, shadow_offset=args.shadow_offset,
                                    min_cos=args.min_cos, edge_margin=args.edge_margin,
-                                   mask_threshold=args.mask_threshold, threads=args.threads)
+                                   mask_threshold=args.mask_threshold, max_slope=args.max_slope,
+                                   threads=args.threads)
     except ValueError as exc:
         log.error("bad settings: %s", exc)
         return 1
