@@ -267,9 +267,8 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
     _write_stores(tmp_path, scene)
     clusters = tmp_path / "clusters"
     common = ["--params", str(tmp_path / "fit.zarr"), "--observations", str(tmp_path / "observations.zarr")]
-    # The scene's points of one material are scattered in space, not a region: no spatial coherence test.
     assert cli.main(["cluster-lobes", *common, "--output", str(clusters), "--seed", "0", "--max-samples", "1000",
-                     "--min-cluster-vertices", "10", "--min-coherence", "0"]) == 0
+                     "--min-cluster-vertices", "10"]) == 0
     assert sorted(p.name for p in clusters.iterdir()) == ["clusters.json", "labels.npy", "lobes.csv", "lobes.png",
                                                         "models.npy"]
     assert not list(tmp_path.glob("*.tmp"))

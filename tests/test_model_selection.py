@@ -211,9 +211,7 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
 
     _write_stores(tmp_path, scene)
     stores = ["--params", str(tmp_path / "fit.zarr"), "--observations", str(tmp_path / "observations.zarr")]
-    # The scene's points of one material are scattered in space, not a region: no spatial coherence test.
-    small = ["--max-samples", "1000", "--selection-max-samples", "1000", "--min-cluster-vertices", "10",
-             "--min-coherence", "0"]
+    small = ["--max-samples", "1000", "--selection-max-samples", "1000", "--min-cluster-vertices", "10"]
     # At most model 1 (--set lobes=specular): the scattering cluster may not keep its lobe.
     assert cli.main(["cluster-lobes", *stores, "--output", str(tmp_path / "clusters"), *small,
                      "--set", "lobes=specular"]) == 0
