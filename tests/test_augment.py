@@ -343,3 +343,38 @@ def test_a_materials_eta_is_the_median_of_its_confident_vertices():
     labels = np.array([0, 0, 0, 0, 1, 1, 2])
     use = np.array([True, True, True, False, True, True, False])
     np.testing.assert_allclose(cluster_medians(eta, labels, use, [1.0, 1.0, 1.55]), [1.42, 1.61, 1.55])
+
+
+def test_a_small_region_of_another_albedo_becomes_its_own_material_and_scattered_outliers_do_not():
+    """Regions (augment._region_centres, with min_coherence): on a sphere of one textured material (log brightness
+    sd 0.1, eta 1.48 +- 0.04), two caps of 0.5 % of the surface (the demo's eyes) of another albedo and eta 1.62
+    are too small for BIC, which puts them in the one cluster (their median eta then the big material's); with
+    the vertices given they are a cluster of their own, whose median eta is theirs. The same number of vertices
+    of that albedo scattered over the sphere (no region) stay in the one cluster."""
+    from sellip.scenes import icosphere
+
+    vertices, _ = icosphere(5)
+    rng = np.random.default_rng(1)
+    n = len(vertices)
+    caps = (vertices[:, 2] > 0.99) | (vertices[:, 0] > 0.99)
+    scattered = np.zeros(n, bool)
+    scattered[rng.choice(np.flatnonzero(~caps), caps.sum(), replace=False)] = True
+    ones = np.zeros(n, np.int32), np.ones(n)
+    coherent = AugmentSettings(min_coherence=0.5)
+    for other, is_region in ((caps, True), (scattered, False)):
+        eta = np.where(other, rng.normal(1.62, 0.04, n), rng.normal(1.48, 0.04, n))
+        rho_d = np.where(other[:, None], [0.42, 0.28, 0.06], [0.22, 0.14, 0.075]) * np.exp(rng.normal(0, 0.1, (n, 1)))
+        rho_d *= rng.uniform(0.99, 1.01, (n, 3))
+        plain = augment.cluster_materials(eta, rho_d, *ones)
+        assert len(plain.centres) == 1  # too small for BIC
+        found = augment.cluster_materials(eta, rho_d, *ones, coherent, vertices=vertices)
+        if not is_region:
+            assert len(found.centres) == 1 and not found.regions
+            continue
+        assert len(found.centres) == 2 and len(found.regions) == 1, found.regions
+        assert found.regions[0]["coherence"] > 0.8
+        region = found.labels == found.labels[np.argmax(caps)]
+        np.testing.assert_array_equal(region, caps)
+        medians = augment.cluster_medians(eta, found.labels, np.ones(n, bool), [1.5, 1.5])
+        assert abs(medians[found.labels[np.argmax(caps)]] / 1.62 - 1) < 0.01
+        assert abs(np.median(eta) / 1.62 - 1) > 0.07  # what the one cluster gave them

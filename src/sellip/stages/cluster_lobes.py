@@ -16,8 +16,9 @@ Writes the directory ``--output`` (built under a temporary name, then renamed) w
 - ``lobes.csv``: one row per cluster (:func:`lobes_schema`): cluster, vertices, eta, sigma_s,
   sigma_ss, rho_s, rho_ss_r, rho_ss_g, rho_ss_b, samples, loss, model;
 - ``lobes.png``: each cluster's lobe against its samples as a function of theta_h (paper Fig. 7b);
-- ``clusters.json``: K, the BIC per K, the merges, the settings and the seed, and under
-  ``model_selection`` per cluster the chosen model, the held-out loss of every candidate and why.
+- ``clusters.json``: K, the BIC per K, the merges, the regions added (:func:`sellip.augment.cluster_materials`),
+  the settings and the seed, and under ``model_selection`` per cluster the chosen model, the held-out loss of
+  every candidate and why.
 
 Model selection (DESIGN §7, :mod:`sellip.models`, on unless ``--no-model-selection``): per cluster,
 the simplest model whose held-out loss is within the tolerance of the best; the cluster's lobe is
@@ -206,8 +207,9 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
     clustering = cluster_materials(store["eta"], store["rho_d"], store["status"], store["confidence"], settings, seed,
                                    vertices=store["vertices"])
     k = len(clustering.centres)
-    log.info("K = %d clusters (BIC over K: %s), %d merges", k,
-             {key: round(value, 1) for key, value in clustering.bic.items()}, len(clustering.merges))
+    log.info("K = %d clusters (BIC over K: %s), %d merges, %d regions", k,
+             {key: round(value, 1) for key, value in clustering.bic.items()}, len(clustering.merges),
+             len(clustering.regions))
     allowed = allowed_models(fit_settings, selection.candidates)
     if selection.enabled:
         log.info("model selection: candidates %s, %.0f %% of each cluster's vertices held out, tolerance %g + %g SE",
@@ -286,6 +288,7 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
     plot_lobes(tmp / "lobes.png", lobes, lambda i: colors[i], models)
     summary = {"k": k, "bic": {str(key): value for key, value in clustering.bic.items()},
                "k_bic": int(min(clustering.bic, key=clustering.bic.get)), "merges": clustering.merges,
+               "regions": clustering.regions,
                "clustered_vertices": int(clustering.used.sum()), "vertices": n, "seed": seed,
                "settings": dataclasses.asdict(settings),
                "model_selection": {"enabled": selection.enabled, "settings": dataclasses.asdict(selection),
