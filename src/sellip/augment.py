@@ -244,13 +244,15 @@ def _region_centres(features, used, centres, near, settings: AugmentSettings, rn
             around = near[region]
             known = used[around]  # a neighbour without a clustered fit says nothing either way
             coherence = float(region[around][known].mean()) if known.any() else 0.0
-            centre = features[region].mean(0)
-            trial = np.vstack([centres, centre])
-            taken = int(np.sum(np.argmin(_squared_distances(features[used], trial), 1) == len(centres)))
-            record = {"inside": cluster, "vertices": int(region.sum()), "coherence": round(coherence, 3),
-                      "clustered_vertices": taken}
-            if coherence < settings.min_coherence or taken < settings.min_cluster_vertices:
+            record = {"inside": cluster, "vertices": int(region.sum()), "coherence": round(coherence, 3)}
+            if coherence < settings.min_coherence:
                 log.debug("albedo outliers of cluster %d not a region: %s", cluster, record)
+                continue
+            trial = np.vstack([centres, features[region].mean(0)])
+            record["clustered_vertices"] = int(np.sum(np.argmin(_squared_distances(features[used], trial), 1)
+                                                      == len(centres)))
+            if record["clustered_vertices"] < settings.min_cluster_vertices:
+                log.debug("region inside cluster %d too small for a cluster: %s", cluster, record)
                 continue
             log.info("cluster %d holds a region of another albedo (%d vertices, coherence %.2f): a cluster of its own",
                      cluster, region.sum(), coherence)
