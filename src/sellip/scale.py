@@ -31,7 +31,6 @@ from typing import NamedTuple
 import numpy as np
 
 RULE_TERMS = {
-    "synth_capture": "VP",  # not part of a user's run
     "linearize_frames": "VP",
     "merge_hdr": "VP",
     "plot_hdr_previews": "VP",

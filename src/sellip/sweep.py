@@ -332,17 +332,15 @@ def _dig(metrics: dict, path: tuple[str, ...]):
 
 def job_cpu_seconds(benchmarks_dir: str | Path) -> dict[str, float]:
     """CPU time (s, user + system) per rule, summed over the Snakemake benchmark files under ``benchmarks_dir``
-    (the ``cpu_time`` column, mean over repeats; the rule is the first path component, as in
-    :func:`sellip.evaluate.stage_timings`). Files without the column count 0."""
-    import pandas as pd
+    (:func:`sellip.scale.job_costs`: the ``cpu_time`` column, mean over repeats). Files without the column count
+    0; no files, {}."""
+    from sellip.scale import job_costs
 
-    out: dict[str, float] = {}
-    for path in sorted(Path(benchmarks_dir).rglob("*.tsv")):
-        table = pd.read_csv(path, sep="\t")
-        rule = path.relative_to(benchmarks_dir).parts[0].removesuffix(".tsv")
-        cpu = float(table["cpu_time"].mean()) if "cpu_time" in table.columns and not table.empty else 0.0
-        out[rule] = out.get(rule, 0.0) + (cpu if np.isfinite(cpu) else 0.0)
-    return out
+    if not any(Path(benchmarks_dir).rglob("*.tsv")):
+        return {}
+    jobs = job_costs(benchmarks_dir)
+    per_rule = jobs["cpu_s"].fillna(0.0).groupby(jobs["rule"], sort=False).sum()
+    return {rule: float(cpu) for rule, cpu in per_rule.items()}
 
 
 def _number(value) -> float:
