@@ -44,9 +44,9 @@ test: $(STAMP)
 bench-stability: $(STAMP)
 	$(BIN)/sellip bench-stability --out results/bench/stability --cores $(CORES)
 
-# The speed-accuracy sweep of docs/benchmarks.md (quick preset; the demo-sized one is in that page).
+# The speed-accuracy sweep of docs/benchmarks.md at the demo's own settings (full preset; --preset quick: 320x256).
 bench-sweep: $(STAMP)
-	$(BIN)/sellip bench-sweep --scenes demo sphere_ior --preset quick --out results/bench/sweep --cores $(CORES)
+	$(BIN)/sellip bench-sweep --scenes demo sphere_ior --preset full --out results/bench/sweep --cores $(CORES)
 
 clean-results:
 	rm -rf results .snakemake

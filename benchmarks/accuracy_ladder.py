@@ -92,8 +92,11 @@ def main(argv=None) -> int:
     cache = str(work / "jax_cache")
     rows = {}
     for rung in args.rungs:
-        # A workflow rung with its own vertex count is a run of its own (render and sensor use the true mesh).
-        suffix = f"_{args.max_vertices}v" if args.max_vertices and rung in ("mesh", "hull") else ""
+        # A workflow rung with other iterations or its own vertex count is a run of its own (render and sensor
+        # fit the true mesh once).
+        suffix = ""
+        if rung in ("mesh", "hull"):
+            suffix = f"_{args.iterations}it" + (f"_{args.max_vertices}v" if args.max_vertices else "")
         out = work / f"{rung}{suffix}.json"
         if not out.is_file():
             if rung == "render":

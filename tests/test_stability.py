@@ -273,6 +273,7 @@ def _fake_run(workdir: Path, case: stability.Case, nan: bool = False) -> None:
     np.savez(results / "final" / "renders" / "mueller.npz", mueller=np.ones((2, 2, 3, 3, 3), np.float32))
     metrics = {"vertices": {"model": 2562, "confident": 2000}, "normal_error_deg": {"all": {"mean": 5.0,
                "median": 1.0, "p90": 30.0}}, "eta_relative_error_pct": {"median": 3.0},
+               "eta_per_material": {"mean_error_pct": 0.5, "max_error_pct": 0.8},
                "rho_d_relative_rmse": {"relative_rmse": 0.1}, "sigma_s_abs_error": None,
                "geometry": {"chamfer_mm": 0.5, "hausdorff_mm": 2.0}, "psnr_held_out": {"mean_db": 25.0},
                "psnr_new_light": None}
@@ -286,6 +287,7 @@ def test_case_row_reads_the_figures_the_flagging_and_finiteness(tmp_path):
     cap = build_scene("tiny").mesh.vertices[:, 2] / 0.04
     assert row["status"] == "ok" and row["outputs_finite"] and row["nonfinite"] == ""
     assert row["normal_median_deg"] == 1.0 and row["confident_share"] == pytest.approx(2000 / 2562)
+    assert row["eta_material_mean_pct"] == 0.5 and row["eta_material_max_pct"] == 0.8
     assert row["sigma_s_median_err"] is None and row["psnr_new_light_db"] is None
     assert row["bad_share"] == pytest.approx(np.mean(cap > 0.5))
     assert row["bad_flagged"] == pytest.approx(np.sum(cap > 0.6) / np.sum(cap > 0.5))
@@ -383,10 +385,21 @@ def test_suite_writes_validated_tables_and_keeps_going_after_a_failure(tmp_path)
     for t in tables:
         assert all(line.count(" | ") == t[0].count(" | ") for line in t[2:])
         assert t[1].count("---") == len(t[0].split(" | "))
-    # --keep reuses finished cases (baseline, white_rough) and reruns the one without a row.json.
+    # --keep reuses finished cases (baseline, white_rough) and reruns the one without a row.json; a kept run's
+    # figures are read again from its folder (a column added since it ran gets filled), its times kept.
     calls.clear()
-    stability.run_suite(cases, tmp_path, REPO / "Snakefile", keep=True, runner=fake_runner)
+    metrics_path = tmp_path / "runs" / "baseline" / "results" / "baseline" / "metrics.json"
+    metrics = json.loads(metrics_path.read_text())
+    del metrics["eta_per_material"]
+    metrics_path.write_text(json.dumps(metrics))
+    baseline = tmp_path / "runs" / "baseline"
+    (baseline / "row.json").write_text(json.dumps(stability.case_row(cases[0], baseline, 7.0)))
+    metrics["eta_per_material"] = {"mean_error_pct": 0.25, "max_error_pct": 0.5}
+    metrics_path.write_text(json.dumps(metrics))
+    kept = stability.run_suite(cases, tmp_path, REPO / "Snakefile", keep=True, runner=fake_runner)
     assert calls == ["dark"]
+    assert list(kept["eta_material_max_pct"])[0] == 0.5 and list(kept["wall_s"])[0] == 7.0
+    assert json.loads((baseline / "row.json").read_text())["eta_material_mean_pct"] == 0.25
     with pytest.raises(Exception, match="auc"):  # pandera names the column
         stability.validate_table([{**table.iloc[0].to_dict(), "auc": 1.5}])
 

@@ -67,10 +67,10 @@ def test_plan_has_the_base_first_then_one_factor_at_a_time():
     assert [v.scene for v in variants] == ["demo"] * per_scene + ["tiny"] * per_scene
     expected = sum(len(f.values_for("quick")) for f in sweep.FACTORS)
     assert per_scene == 1 + expected
-    # The quick preset narrows sphere_ior to its base and model selection off (SCENE_FACTORS); full does not.
-    ior = [v.name for v in sweep.plan_variants(["sphere_ior"], "quick")]
-    assert ior == ["sphere_ior__base", "sphere_ior__model_selection-off"]
-    assert len(sweep.plan_variants(["sphere_ior"], "full")) == 1 + sum(len(f.values_for("full")) for f in sweep.FACTORS)
+    # Both presets narrow sphere_ior to its base and model selection off (SCENE_FACTORS).
+    for preset in ("quick", "full"):
+        ior = [v.name for v in sweep.plan_variants(["sphere_ior"], preset)]
+        assert ior == ["sphere_ior__base", "sphere_ior__model_selection-off"]
     variants = sweep.plan_variants(["demo"], "quick")
     names = [v.name for v in variants]
     assert len(set(names)) == len(names)
@@ -78,8 +78,31 @@ def test_plan_has_the_base_first_then_one_factor_at_a_time():
     labels = {v.name: v.label for v in variants}
     assert labels["demo__sigma_ss-0.9"] == "σss 0.9" and labels["demo__augment-off"] == "aug off"
     assert labels["demo__iterations-3"] == "3 it" and labels["demo__model_selection-off"] == "selection off"
+    assert labels["demo__dtype-float64"] == "float64" and labels["demo__sigma_ss-1"] == "σss 1"
     full = {v.name: v.label for v in sweep.plan_variants(["demo"], "full")}
-    assert full["demo__dtype-float64"] == "float64" and full["demo__sigma_ss-1"] == "σss 1"
+    assert list(full) == ["demo__base", "demo__iterations-2", "demo__iterations-4", "demo__views-24",
+                          "demo__augment-off", "demo__sigma_ss-0.9", "demo__model_selection-off", "demo__lm_cap-10"]
+
+
+def test_the_full_preset_is_the_demos_own_settings():
+    """The full preset's base is what `make demo` runs (config demo and demo.overrides), but for the rendered
+    views: a sweep run takes the capture as a folder, so the demo's overrides would not apply by themselves."""
+    defaults = _defaults()
+    demo = sweep.merge(defaults, defaults["demo"]["overrides"])
+
+    def leaves(node, prefix=""):
+        for key, value in node.items():
+            if isinstance(value, dict):
+                yield from leaves(value, f"{prefix}{key}.")
+            else:
+                yield f"{prefix}{key}", value
+
+    full = dict(leaves(sweep.PRESETS["full"]))
+    assert {key: value for key, value in leaves(defaults["demo"]["overrides"])
+            if key != "evaluate.render_views"}.items() <= full.items()
+    for key, value in full.items():
+        if key != "evaluate.render_views":
+            assert sweep.get_key(demo, key) == value, key
 
 
 def test_plan_skips_the_base_value_and_checks_names():
@@ -94,12 +117,12 @@ def test_plan_skips_the_base_value_and_checks_names():
 
 
 def test_variant_config_sets_one_key_over_the_base_and_validates(tmp_path):
-    variant = next(v for v in sweep.plan_variants(["sphere_ior"], "full") if v.factor == "sigma_ss" and v.value == 0.9)
+    variant = next(v for v in sweep.plan_variants(["tiny"], "full") if v.factor == "sigma_ss" and v.value == 0.9)
     before = json.dumps(sweep.PRESETS)
     config = sweep.variant_overrides(variant, "quick", tmp_path / "cap", tmp_path / "cache")  # quick base
     assert json.dumps(sweep.PRESETS) == before  # the presets are not mutated
     assert config["fit"]["settings"] == {"min_views": 6, "sigma_ss_fixed": 0.9}
-    assert config["name"] == "sphere_ior__sigma_ss-0.9" and config["demo"]["scene"] == "sphere_ior"
+    assert config["name"] == "tiny__sigma_ss-0.9" and config["demo"]["scene"] == "tiny"
     assert Path(config["capture"]).is_absolute() and config["fit"]["compilation_cache"] == str(tmp_path / "cache")
     assert config["iterations"] == 2 and config["demo"]["views"] == 24
     # The merged config passes the workflow's schema.
@@ -107,9 +130,10 @@ def test_variant_config_sets_one_key_over_the_base_and_validates(tmp_path):
 
     merged = sweep.merge(_defaults(), config)
     validate(merged, str(REPO / "config" / "config.schema.yaml"))
-    views = next(v for v in sweep.plan_variants(["demo"], "quick") if v.factor == "views")
-    validate(sweep.merge(_defaults(), sweep.variant_overrides(views, "quick", tmp_path, tmp_path)),
-             str(REPO / "config" / "config.schema.yaml"))
+    for preset in ("quick", "full"):
+        views = next(v for v in sweep.plan_variants(["demo"], preset) if v.factor == "views")
+        validate(sweep.merge(_defaults(), sweep.variant_overrides(views, preset, tmp_path, tmp_path)),
+                 str(REPO / "config" / "config.schema.yaml"))
 
 
 def test_set_key_and_merge():
@@ -141,6 +165,7 @@ def test_spread_subset_is_even_distinct_and_starts_at_the_first_view():
 def _metrics(normal=10.0, eta=15.0, psnr=20.0, fit=30.0):
     return {"normal_error_deg": {"all": {"mean": normal + 1, "median": normal}},
             "eta_relative_error_pct": {"mean": eta + 2, "median": eta},
+            "eta_per_material": {"mean_error_pct": eta, "max_error_pct": 2 * eta},
             "rho_d_relative_rmse": {"relative_rmse": 0.2}, "sigma_s_abs_error": {"median": 0.1},
             "geometry": {"chamfer_mm": 0.9}, "psnr_held_out": {"mean_db": psnr}, "psnr_new_light": None,
             "vertices": {"model": 3000, "confident": 2500},

@@ -389,7 +389,8 @@ COLUMNS: dict[str, str] = {
     "case": "str", "group": "str", "breaks": "str", "status": "str", "error": "str",
     "wall_s": "float", "cpu_s": "float", "views": "float", "vertices": "float", "confident_share": "float",
     "normal_mean_deg": "float", "normal_median_deg": "float", "normal_p90_deg": "float",
-    "eta_median_pct": "float", "rho_d_rmse": "float", "sigma_s_median_err": "float",
+    "eta_median_pct": "float", "eta_material_mean_pct": "float", "eta_material_max_pct": "float",
+    "rho_d_rmse": "float", "sigma_s_median_err": "float",
     "chamfer_mm": "float", "hausdorff_mm": "float", "psnr_held_out_db": "float", "psnr_new_light_db": "float",
     "outputs_finite": "bool", "nonfinite": "str",
     "confidence_median": "float", "bad_share": "float", "flagged_share": "float", "bad_flagged": "float",
@@ -436,6 +437,8 @@ def case_row(case: Case, workdir: str | Path, wall_s: float, error: str | None =
             normal_median_deg=_get(m, "normal_error_deg", "all", "median"),
             normal_p90_deg=_get(m, "normal_error_deg", "all", "p90"),
             eta_median_pct=_get(m, "eta_relative_error_pct", "median"),
+            eta_material_mean_pct=_get(m, "eta_per_material", "mean_error_pct"),
+            eta_material_max_pct=_get(m, "eta_per_material", "max_error_pct"),
             rho_d_rmse=_get(m, "rho_d_relative_rmse", "relative_rmse"),
             sigma_s_median_err=_get(m, "sigma_s_abs_error", "median"),
             chamfer_mm=_get(m, "geometry", "chamfer_mm"), hausdorff_mm=_get(m, "geometry", "hausdorff_mm"),
@@ -514,7 +517,9 @@ def markdown_table(table) -> str:
         merit.append([
             row["case"], row["breaks"], status, _fmt(row["views"], 0), _fmt(row["vertices"], 0),
             " / ".join(_fmt(row[k]) for k in ("normal_mean_deg", "normal_median_deg", "normal_p90_deg")),
-            _fmt(row["eta_median_pct"]), _fmt(row["rho_d_rmse"], 2), _fmt(row["sigma_s_median_err"], 2),
+            _fmt(row["eta_median_pct"]),
+            " / ".join(_fmt(row[k], 2) for k in ("eta_material_mean_pct", "eta_material_max_pct")),
+            _fmt(row["rho_d_rmse"], 2), _fmt(row["sigma_s_median_err"], 2),
             f"{_fmt(row['chamfer_mm'], 2)} / {_fmt(row['hausdorff_mm'], 1)}", _fmt(row["psnr_held_out_db"]),
             _fmt(row["psnr_new_light_db"]), f"{_fmt(row['wall_s'], 0)} / {_fmt(row['cpu_s'], 0)}"])
         finite = "yes" if row["outputs_finite"] else f"**no**: {row['nonfinite'][:120]}"
@@ -529,7 +534,8 @@ def markdown_table(table) -> str:
             _fmt(row["eta_auc"], 2), _fmt(row["eta_worst_auc"], 2)])
     lines = ["Figures of merit (metrics.json of each run):", ""]
     lines += _markdown(["case", "broken", "status", "views", "vertices", "normal mean / median / p90 (°)",
-                        "η median (%)", "ρ_d rel. RMSE", "σ_s err. (median)", "Chamfer / Hausdorff (mm)",
+                        "η per vertex, median (%)", "η per material, mean / worst (%)", "ρ_d rel. RMSE",
+                        "σ_s err. (median)", "Chamfer / Hausdorff (mm)",
                         "held-out PSNR (dB)", "new-light PSNR (dB)", "wall / CPU (s)"], merit)
     caption = (f"Outputs and confidence (bad: normal error > {BAD_NORMAL_DEG:g}°, η error > {BAD_ETA_PCT:g} %; "
                f"flagged: confidence < {LOW_CONFIDENCE:g}):")
@@ -588,6 +594,10 @@ def _children_cpu_s() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
+def _write_row(workdir: Path, row: Mapping) -> None:
+    _write_atomic(workdir / "row.json", lambda tmp: tmp.write_text(json.dumps(row, indent=1, allow_nan=False)))
+
+
 def run_case(case: Case, workdir: str | Path, snakefile: str | Path, cores: int = 2, iterations: int = 2,
              jax_cache: str | Path | None = None, timeout_s: float = 3600.0) -> dict:
     """Run one case from scratch in ``workdir`` (deleted first) and return its table row.
@@ -634,7 +644,7 @@ def run_case(case: Case, workdir: str | Path, snakefile: str | Path, cores: int 
         error = str(exc) if isinstance(exc, StabilityError) else f"timed out after {timeout_s:.0f} s"
     wall_s, cpu_s = time.perf_counter() - started, _children_cpu_s() - cpu_started
     row = case_row(case, workdir, wall_s, error, cpu_s)
-    _write_atomic(workdir / "row.json", lambda tmp: tmp.write_text(json.dumps(row, indent=1, allow_nan=False)))
+    _write_row(workdir, row)
     return row
 
 
@@ -652,8 +662,9 @@ def write_tables(rows: Sequence[Mapping], out: str | Path) -> Path:
 def run_suite(cases: Sequence[Case], out: str | Path, snakefile: str | Path, cores: int = 2, iterations: int = 2,
               keep: bool = False, runner: Callable[..., dict] = run_case):
     """Run ``cases`` one after the other under ``out/runs/<case>`` (sharing ``out/jax_cache``) and write the
-    tables (:func:`write_tables`). ``keep``: reuse ``runs/<case>/row.json`` of a case that already ran.
-    Returns the validated table."""
+    tables (:func:`write_tables`). ``keep``: reuse the run of a case that already ran (``runs/<case>/row.json``):
+    its figures are read again from its run folder (columns added since it ran get filled), its times and
+    error kept. Returns the validated table."""
     out = Path(out)
     rows = []
     began = time.perf_counter()
@@ -661,7 +672,10 @@ def run_suite(cases: Sequence[Case], out: str | Path, snakefile: str | Path, cor
         workdir = out / "runs" / case.name
         previous = workdir / "row.json"
         if keep and previous.is_file():
-            rows.append(json.loads(previous.read_text()))
+            kept = json.loads(previous.read_text())
+            row = case_row(case, workdir, kept["wall_s"], kept.get("error") or None, kept.get("cpu_s"))
+            _write_row(workdir, row)
+            rows.append(row)
             log.info("[%d/%d] %s: kept the earlier run (%s)", index, len(cases), case.name, previous)
             continue
         log.info("[%d/%d] %s: %s", index, len(cases), case.name, case.breaks)

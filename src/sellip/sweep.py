@@ -89,22 +89,24 @@ class Factor:
 
 
 FACTORS: tuple[Factor, ...] = (
-    Factor("iterations", "iterations", {"quick": (1, 3), "full": (1, 2, 4, 6, 8)}, "{} it"),
-    Factor("views", "observe.max_views", {"quick": (12,), "full": (12, 24)}, "{} views"),
+    Factor("iterations", "iterations", {"quick": (1, 3), "full": (2, 4)}, "{} it"),
+    Factor("views", "observe.max_views", {"quick": (12,), "full": (24,)}, "{} views"),
     Factor("augment", "augment.enabled", (False,), "aug {}"),
-    Factor("sigma_ss", "fit.settings.sigma_ss_fixed", (0.9, 1.0), "σss {}"),
+    Factor("sigma_ss", "fit.settings.sigma_ss_fixed", {"quick": (0.9, 1.0), "full": (0.9,)}, "σss {}"),
     Factor("model_selection", "model_selection.enabled", (False,), "selection {}"),
-    Factor("lm_cap", "fit.settings.max_iterations", {"quick": (10,), "full": (5, 10, 60)}, "LM {}"),
-    Factor("dtype", "fit.dtype", ("float64",), "{}"),
+    Factor("lm_cap", "fit.settings.max_iterations", (10,), "LM {}"),
+    Factor("dtype", "fit.dtype", {"quick": ("float64",)}, "{}"),
 )
-"""The factors, in sweep order. Adding one is one line here. Every factor of issue #9 in both presets; the
-full one tries more values (iterations 1-8 of 10, 12 and 24 of 36 views, LM caps 5, 10 and 60 over 30), the
-quick one a value or two around its smaller base (iterations 1 and 3 of 2, 12 of 24 views, LM cap 10)."""
+"""The factors, in sweep order. Adding one is one line here. The quick preset tries every factor of issue #9
+around its small base (iterations 1 and 3 of 2, 12 of 24 views, σ_ss fixed at 0.9 and 1, LM cap 10 of 30,
+float64); the full one, at the demo's size, the values that the quick sweep found to matter or that change
+the fit's cost (iterations 2 and 4 of 6, 24 of 36 views, augmentation and model selection off, σ_ss 0.9,
+LM cap 10), so that it runs in about an hour on 2 cores."""
 
-SCENE_FACTORS: dict[str, dict[str, tuple[str, ...]]] = {"quick": {"sphere_ior": ("model_selection",)}}
-"""Per preset and scene, the only factors swept there (a scene not named: every factor). In the quick preset
-sphere_ior runs its base (the refractive-index table) and model selection off (a scene without single
-scattering); the timings of the quick sweep are in docs/benchmarks.md."""
+SCENE_FACTORS: dict[str, dict[str, tuple[str, ...]]] = {"quick": {"sphere_ior": ("model_selection",)},
+                                                        "full": {"sphere_ior": ("model_selection",)}}
+"""Per preset and scene, the only factors swept there (a scene not named: every factor). sphere_ior runs its
+base (the refractive-index table) and model selection off (a scene without single scattering)."""
 
 
 _QUICK = {
@@ -119,12 +121,12 @@ _QUICK = {
 }
 
 _FULL = {
-    "iterations": 10,
+    "iterations": 6,
     "demo": {"views": 36, "width": 612, "height": 512, "seed": 0},
     "init": {"max_vertices": 6000},
-    "observe": {"vertex_chunk": 1024},
+    "observe": {"max_slope": 0.4},
     "fit": {"shards": 2},
-    "augment": {"settings": {"virtual_count": 45, "virtual_step_deg": 2.0}},
+    "augment": {"min_coherence": 0.5, "settings": {"virtual_count": 45, "virtual_step_deg": 2.0}},
     "evaluate": {"held_out_views": ["v004", "v013", "v022", "v031"], "render_views": ["v000"], "supersample": 1},
 }
 
@@ -132,9 +134,10 @@ PRESETS: dict[str, dict] = {"quick": _QUICK, "full": _FULL}
 """Base configuration of each preset (over config/config.yaml; the same for every scene).
 
 quick: 24 views at 320x256 (2 held out), ~1.5k vertices, 2 iterations, 6 usable views
-per vertex suffice, cluster lobes from at most 4096 samples. full: the built-in demo's own settings (36
-views at 612x512, 4 held out, 6k vertices, 10 iterations). Both: 45 virtual samples 2 deg apart
-(the demo's), one rendered view, observation chunks that split the vertices over both fit shards."""
+per vertex suffice, cluster lobes from at most 4096 samples, 45 virtual samples 2 deg apart, observation chunks
+that split the vertices over both fit shards. full: the built-in demo's own settings (config/config.yaml
+``demo``: 36 views at 612x512, 4 held out, 6k vertices, and its ``overrides``: 6 iterations, the slope test,
+the coherence test, 45 virtual samples), with one rendered view instead of four."""
 
 
 # --------------------------------------------------------------------------- config helpers
@@ -297,6 +300,8 @@ FIGURES = {
     "normal_mean_deg": (("normal_error_deg", "all", "mean"), "normal error, mean (deg)", False),
     "eta_median_pct": (("eta_relative_error_pct", "median"), "η error, median (%)", False),
     "eta_mean_pct": (("eta_relative_error_pct", "mean"), "η error, mean (%)", False),
+    "eta_material_mean_pct": (("eta_per_material", "mean_error_pct"), "η per material, mean error (%)", False),
+    "eta_material_max_pct": (("eta_per_material", "max_error_pct"), "η per material, worst error (%)", False),
     "rho_d_rmse": (("rho_d_relative_rmse", "relative_rmse"), "ρd relative RMSE", False),
     "sigma_s_median": (("sigma_s_abs_error", "median"), "σs abs. error, median", False),
     "chamfer_mm": (("geometry", "chamfer_mm"), "Chamfer (mm)", False),
@@ -422,8 +427,8 @@ def sweep_table(rows: list[dict]):
 # --------------------------------------------------------------------------- the chart
 
 
-CHART_FIGURES = ("normal_median_deg", "eta_median_pct", "psnr_held_out_db")
-"""The accuracy axes of the chart, one column each."""
+CHART_FIGURES = ("normal_median_deg", "eta_material_mean_pct", "psnr_held_out_db")
+"""The accuracy axes of the chart, one column each (η: per material, the paper's Table 1 figure)."""
 
 
 def sweep_figure(table, figures: tuple[str, ...] = CHART_FIGURES):
@@ -628,6 +633,7 @@ def sigma_ss_table(table):
                          "cpu_s": row["cpu_s"], "cpu_saving_pct": 100 * (1 - row["cpu_s"] / free["cpu_s"]),
                          "total_s": row["total_s"], "psnr_held_out_db": row["psnr_held_out_db"],
                          "normal_median_deg": row["normal_median_deg"], "eta_median_pct": row["eta_median_pct"],
+                         "eta_material_mean_pct": row["eta_material_mean_pct"],
                          "paper_psnr_db": PAPER_SIGMA_SS_PSNR_DB.get(value, np.nan)})
     return pd.DataFrame(rows)
 
@@ -653,6 +659,7 @@ def model_selection_table(table, vertex_models: dict[str, dict[int, int]]):
                          "fit_saving_pct": 100 * (1 - row["fit_s"] / off["fit_s"]),
                          "psnr_held_out_db": row["psnr_held_out_db"], "psnr_new_light_db": row["psnr_new_light_db"],
                          "normal_median_deg": row["normal_median_deg"], "eta_median_pct": row["eta_median_pct"],
+                         "eta_material_mean_pct": row["eta_material_mean_pct"],
                          "rho_d_rmse": row["rho_d_rmse"]})
     return pd.DataFrame(rows)
 
