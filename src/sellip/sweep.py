@@ -101,7 +101,7 @@ FACTORS: tuple[Factor, ...] = (
 around its small base (iterations 1 and 3 of 2, 12 of 24 views, σ_ss fixed at 0.9 and 1, LM cap 10 of 30,
 float64); the full one, at the demo's size, the values that the quick sweep found to matter or that change
 the fit's cost (iterations 2 and 4 of 6, 24 of 36 views, augmentation and model selection off, σ_ss 0.9,
-LM cap 10), so that it runs in about an hour on 2 cores."""
+LM cap 10): 10 variants, about 50 minutes on 2 cores (docs/benchmarks.md)."""
 
 SCENE_FACTORS: dict[str, dict[str, tuple[str, ...]]] = {"quick": {"sphere_ior": ("model_selection",)},
                                                         "full": {"sphere_ior": ("model_selection",)}}
