@@ -345,6 +345,54 @@ def test_a_materials_eta_is_the_median_of_its_confident_vertices():
     np.testing.assert_allclose(cluster_medians(eta, labels, use, [1.0, 1.0, 1.55]), [1.42, 1.61, 1.55])
 
 
+def test_a_material_cut_along_its_eta_is_one_cluster_and_two_materials_stay_two():
+    """augment._eta_cut: k-means cuts one material (one albedo, eta 1.48 +- 0.06) at its median eta when it has a
+    centre too many: the halves' mean albedos are 0 pooled sd apart and their features have one mode along the line
+    between the centres, so they are one material. Two materials of one albedo whose eta differ by 0.3 (two modes),
+    or of the same eta but another albedo (5+ sd apart), stay two."""
+    rng = np.random.default_rng(3)
+    n = 3000
+    brightness = np.exp(rng.normal(0, 0.1, (n, 1)))
+
+    def features(albedo, eta):
+        return augment.cluster_features(eta, np.asarray(albedo) * brightness * rng.uniform(0.99, 1.01, (n, 3)))
+
+    one = features([0.22, 0.14, 0.075], rng.normal(1.48, 0.06, n))
+    halves = np.array([one[one[:, 3] < np.median(one[:, 3])].mean(0), one[one[:, 3] >= np.median(one[:, 3])].mean(0)])
+    cut = augment._eta_cut(one, np.ones(n, bool), halves, np.random.default_rng(0))
+    assert cut is not None and sorted(cut[:2]) == [0, 1] and cut[2] < 0.5
+    for other in (features([0.22, 0.14, 0.075], rng.normal(1.78, 0.06, n)),   # same albedo, eta 0.3 higher
+                  features([0.42, 0.28, 0.06], rng.normal(1.48, 0.06, n))):   # another albedo, same eta
+        both = np.vstack([one, other])
+        centres = np.array([one.mean(0), other.mean(0)])
+        assert augment._eta_cut(both, np.ones(2 * n, bool), centres, np.random.default_rng(0)) is None
+
+
+def test_a_region_is_kept_when_its_cluster_also_takes_scattered_vertices_of_a_similar_albedo():
+    """A region (two caps, 0.7 % of the sphere, group coherence 0.81) whose centre, as a cluster, also takes 60
+    scattered vertices of a more saturated albedo (their own group is not a region) is a cluster of coherence 0.46:
+    the coherence test must not merge it away again (it did: the demo's eyes with 24 views, docs/augment.md)."""
+    from sellip.scenes import icosphere
+
+    vertices, _ = icosphere(5)
+    rng = np.random.default_rng(1)
+    n = len(vertices)
+    caps = (vertices[:, 2] > 0.993) | (vertices[:, 0] > 0.993)
+    scattered = np.zeros(n, bool)
+    scattered[rng.choice(np.flatnonzero(~caps), 60, replace=False)] = True
+    eta = np.where(caps, rng.normal(1.62, 0.04, n), rng.normal(1.48, 0.04, n))
+    albedo = np.where(caps[:, None], [0.42, 0.28, 0.06], np.where(scattered[:, None], [0.62, 0.40, 0.045],
+                                                                   [0.22, 0.14, 0.075]))
+    rho_d = albedo * np.exp(rng.normal(0, 0.1, (n, 1))) * rng.uniform(0.99, 1.01, (n, 3))
+    found = augment.cluster_materials(eta, rho_d, np.zeros(n, np.int32), np.ones(n), AugmentSettings(min_coherence=0.5),
+                                      vertices=vertices)
+    assert len(found.regions) == 1 and found.regions[0]["coherence"] > 0.8 and not found.merges
+    assert len(found.centres) == 2
+    region = found.labels == found.labels[np.argmax(caps)]
+    np.testing.assert_array_equal(region, caps | scattered)
+    assert augment.spatial_coherence(found.labels, vertices)[found.labels[np.argmax(caps)]] < 0.5
+
+
 def test_a_small_region_of_another_albedo_becomes_its_own_material_and_scattered_outliers_do_not():
     """Regions (augment._region_centres, with min_coherence): on a sphere of one textured material (log brightness
     sd 0.1, eta 1.48 +- 0.04), two caps of 0.5 % of the surface (the demo's eyes) of another albedo and eta 1.62
