@@ -226,7 +226,8 @@ def test_a_cluster_cut_from_one_materials_noise_is_merged_and_a_real_region_kept
     np.testing.assert_array_equal(merged.labels == merged.labels[np.argmax(cap)], cap)  # the region kept whole
     medians = augment.cluster_medians(eta, merged.labels, np.ones(n, bool), [1.5, 1.5])
     assert abs(medians[merged.labels[np.argmin(cap)]] / 1.48 - 1) < 0.03  # the split's own median: 1.36
-    assert np.array_equal(augment.cluster_materials(eta, rho_d, *ones, vertices=vertices).labels, plain.labels)
+    off = augment.cluster_materials(eta, rho_d, *ones, AugmentSettings(min_coherence=0.0), vertices=vertices)
+    assert np.array_equal(off.labels, plain.labels)  # 0 turns the test off
 
 
 def test_clusters_and_lobes_are_deterministic_for_a_seed(scene):
@@ -267,8 +268,9 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
     _write_stores(tmp_path, scene)
     clusters = tmp_path / "clusters"
     common = ["--params", str(tmp_path / "fit.zarr"), "--observations", str(tmp_path / "observations.zarr")]
+    # The scene's materials alternate vertex by vertex (not regions of a surface): the coherence test is off.
     assert cli.main(["cluster-lobes", *common, "--output", str(clusters), "--seed", "0", "--max-samples", "1000",
-                     "--min-cluster-vertices", "10"]) == 0
+                     "--min-cluster-vertices", "10", "--min-coherence", "0"]) == 0
     assert sorted(p.name for p in clusters.iterdir()) == ["clusters.json", "labels.npy", "lobes.csv", "lobes.png",
                                                         "models.npy"]
     assert not list(tmp_path.glob("*.tmp"))

@@ -55,9 +55,10 @@ class AugmentSettings:
     min_cluster_vertices: int = 50  # smaller clusters are merged into their nearest neighbour
     # A material occupies a region: a cluster whose vertices' nearest neighbours on the surface lie in it less
     # often than this (on average) is a split of a material's noise, not a material, and is merged; a region of
-    # another albedo inside a cluster at least this coherent becomes a cluster (:func:`_region_centres`) (0: neither;
-    # the demo uses 0.5, docs/augment.md).
-    min_coherence: float = 0.0
+    # another albedo inside a cluster at least this coherent becomes a cluster (:func:`_region_centres`); and two
+    # clusters that are one material cut along its eta are merged (:func:`_eta_cut`) (0: none of the three;
+    # docs/augment.md).
+    min_coherence: float = 0.5
     coherence_neighbours: int = 6  # the nearest vertices (3-D) that stand for a vertex's 1-ring
     min_confidence: float = 0.1  # vertices clustered and pooled: status fitted and confidence >= this
     cluster_points: int = 20000  # at most this many vertices (seeded subsample) choose K and the centres

@@ -160,10 +160,8 @@ def base_config(workdir: str | Path, views: int = BASE_VIEWS, iterations: int = 
                  "noise_scale": 1.0},
         "init": {"hull_resolution": 64, "max_vertices": 2500},
         # Fit shards are whole observation chunks: 256-vertex chunks split ~2.5k vertices evenly over both. The
-        # demo's slope and coherence tests (demo.overrides) are for its 612x512 capture: off here, as for any
-        # capture by default.
+        # demo's slope test (demo.overrides) is for its 612x512 capture: off here, as for any capture by default.
         "observe": {"vertex_chunk": 256, "max_slope": 0.0},
-        "augment": {"min_coherence": 0.0},
         "fit": {"shards": 2, "compilation_cache": str(jax_cache or Path(workdir) / "jax_cache"),
                 "settings": {"min_views": 4}},
         "evaluate": {"held_out_views": held_out_views(views), "render_views": ["v000"], "supersample": 1},

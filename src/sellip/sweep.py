@@ -126,7 +126,7 @@ _FULL = {
     "init": {"max_vertices": 6000},
     "observe": {"max_slope": 0.4},
     "fit": {"shards": 2},
-    "augment": {"min_coherence": 0.5, "settings": {"virtual_count": 45, "virtual_step_deg": 2.0}},
+    "augment": {"settings": {"virtual_count": 45, "virtual_step_deg": 2.0}},
     "evaluate": {"held_out_views": ["v004", "v013", "v022", "v031"], "render_views": ["v000"], "supersample": 1},
 }
 
