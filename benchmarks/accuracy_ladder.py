@@ -92,11 +92,12 @@ def main(argv=None) -> int:
     cache = str(work / "jax_cache")
     rows = {}
     for rung in args.rungs:
-        # A workflow rung with other iterations or its own vertex count is a run of its own (render and sensor
-        # fit the true mesh once).
+        # A workflow rung with other iterations, its own vertex count or a slope test is a run of its own (render
+        # and sensor fit the true mesh once).
         suffix = ""
         if rung in ("mesh", "hull"):
-            suffix = f"_{args.iterations}it" + (f"_{args.max_vertices}v" if args.max_vertices else "")
+            suffix = (f"_{args.iterations}it" + (f"_{args.max_vertices}v" if args.max_vertices else "")
+                      + (f"_slope{args.max_slope:g}" if args.max_slope else ""))
         out = work / f"{rung}{suffix}.json"
         if not out.is_file():
             if rung == "render":

@@ -125,6 +125,26 @@ def test_tiny_capture_reconstructs_close_to_the_ground_truth(tiny_run):
     assert series[1]["chamfer_to_previous_mm"] > 0 and (results / "final" / "geometry_convergence.png").is_file()
 
 
+
+def test_the_clustering_replay_reproduces_the_runs_clusters(tiny_run, capsys):
+    """benchmarks/replay_clustering.py (the replays of docs/augment.md) re-runs the workflow's clustering: on the
+    run's own settings it gives the run's labels; with the coherence test off, the clustering without it."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("replay_clustering", REPO / "benchmarks" / "replay_clustering.py")
+    replay = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(replay)
+    run = tiny_run / "results" / "tiny"
+    clustering, settings, _ = replay.replay(run, 0)
+    assert settings["min_coherence"] == 0.5  # the default
+    np.testing.assert_array_equal(clustering.labels, np.load(run / "iter" / "0" / "clusters" / "labels.npy"))
+    truth = tiny_run / "captures" / "tiny" / "ground_truth" / "model.ply"
+    assert replay.main([str(run), "--iteration", "0", "--truth", str(truth), "--set", "min_coherence=0"]) == 0
+    out = capsys.readouterr().out
+    assert "'min_coherence': 0" in out and "eta per material (cluster medians)" in out
+    with pytest.raises(ValueError, match="not AugmentSettings fields"):
+        replay.replay(run, 0, {"min_coherenc": 0.5})
+
 def _kill_when(command, env, ready: Path, timeout: float = 900) -> None:
     """Start ``command``; SIGKILL its whole process group as soon as ``ready`` exists."""
     process = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,

@@ -1,0 +1,112 @@
+"""Re-run the material clustering of a finished run on its stored fit, with other settings, against the truth.
+
+    python benchmarks/replay_clustering.py RUN --iteration N --truth CAPTURE/ground_truth/model.ply \
+        [--set min_coherence=0.5 ...]
+
+RUN is a workflow's results folder (``results/<name>``). The replay reads ``iter/N/fit.zarr`` (the first pass's
+fit that the clustering saw) and ``iter/N/clusters/clusters.json`` (its settings and seed), overrides settings with
+``--set`` (AugmentSettings fields), and runs :func:`sellip.augment.cluster_materials` as the workflow does. It
+prints K, the merges and regions, each cluster's size, spatial coherence, median eta and its vertices' true
+materials, and eta per material (the figure of metrics.json, :func:`sellip.evaluate.eta_per_material`) when every
+vertex takes its cluster's median: what the material eta of that pass would be with these settings, without the
+refit and the per-vertex deviations. The replays of docs/augment.md and docs/accuracy.md are this script.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+
+def _value(text: str):
+    try:
+        return int(text)
+    except ValueError:
+        return float(text)
+
+
+def replay(run: Path, iteration: int, overrides: dict | None = None):
+    """The clustering of ``run``'s pass ``iteration`` re-run on its stored fit with the run's settings and seed
+    (clusters.json) and ``overrides`` (AugmentSettings fields) over them. Returns (clustering, settings, store)."""
+    from sellip import augment
+    from sellip.params import read_params
+
+    folder = run / "iter" / str(iteration)
+    info = json.loads((folder / "clusters" / "clusters.json").read_text())
+    fields = {f.name for f in dataclasses.fields(augment.AugmentSettings)}
+    unknown = set(overrides or {}) - fields
+    if unknown:
+        raise ValueError(f"not AugmentSettings fields: {sorted(unknown)}; expected some of {sorted(fields)}")
+    settings = {**{k: v for k, v in info["settings"].items() if k in fields}, **(overrides or {})}
+    store = read_params(folder / "fit.zarr")
+    clustering = augment.cluster_materials(store["eta"], store["rho_d"], store["status"], store["confidence"],
+                                           augment.AugmentSettings(**settings), info.get("seed", 0),
+                                           vertices=store["vertices"])
+    return clustering, settings, store
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", type=Path, help="the run's results folder (results/<name>)")
+    parser.add_argument("--iteration", type=int, required=True, help="the pass whose fit is clustered (iter/N)")
+    parser.add_argument("--truth", type=Path, required=True, help="the capture's ground_truth/model.ply")
+    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                        help="AugmentSettings fields over the run's own (e.g. min_coherence=0.5)")
+    args = parser.parse_args(argv)
+    warnings.filterwarnings("ignore", message=".*not recognized as a component of a Zarr hierarchy")  # Snakemake's
+
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    from sellip import augment
+    from sellip.evaluate import eta_per_material
+    from sellip.io import read_param_mesh
+
+    overrides = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        if not key or not value:
+            parser.error(f"--set {item!r}: expected FIELD=VALUE")
+        overrides[key] = _value(value)
+    truth = read_param_mesh(args.truth)
+    if truth.material is None:
+        parser.error(f"{args.truth}: the ground truth has no material labels")
+    start = time.perf_counter()
+    try:
+        clustering, settings, store = replay(args.run, args.iteration, overrides)
+    except ValueError as error:
+        parser.error(str(error))
+    seconds = time.perf_counter() - start
+
+    nearest = cKDTree(np.asarray(truth.vertices)).query(np.asarray(store["vertices"]))[1]
+    material = np.asarray(truth.material)[nearest]
+    eta_true = np.asarray(truth.params.eta, np.float64)[nearest]
+    labels, used, eta = clustering.labels, clustering.used, np.asarray(store["eta"], np.float64)
+    medians = augment.cluster_medians(eta, labels, used, np.full(len(clustering.centres), np.nan))
+    coherence = augment.spatial_coherence(labels, store["vertices"])
+
+    print(f"{args.run.name}, pass {args.iteration}: K {len(clustering.centres)} (BIC took "
+          f"{min(clustering.bic, key=clustering.bic.get)}), {len(clustering.regions)} regions, "
+          f"{len(clustering.merges)} merges; {seconds:.1f} s; settings {settings}")
+    for merge in clustering.merges:
+        print(f"  merged: {merge['reason']}")
+    for k in range(len(clustering.centres)):
+        members = labels == k
+        kinds, counts = np.unique(material[members & used], return_counts=True)
+        composition = ", ".join(f"{int(m)}: {int(c)}" for m, c in zip(kinds, counts) if c >= 20)
+        print(f"  cluster {k}: {int(members.sum())} vertices, coherence {coherence[k]:.2f}, eta {medians[k]:.4f}; "
+              f"true materials {{{composition}}}")
+    figures = eta_per_material(medians[labels][used], eta_true[used], material[used])
+    errors = " ".join(f"{row['error_pct']:.2f}" for row in figures["materials"].values())
+    print(f"eta per material (cluster medians): {errors} %; mean {figures['mean_error_pct']:.2f} %, "
+          f"worst {figures['max_error_pct']:.2f} %")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
