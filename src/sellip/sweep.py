@@ -137,7 +137,7 @@ quick: 24 views at 320x256 (2 held out), ~1.5k vertices, 2 iterations, 6 usable 
 per vertex suffice, cluster lobes from at most 4096 samples, 45 virtual samples 2 deg apart, observation chunks
 that split the vertices over both fit shards. full: the built-in demo's own settings (config/config.yaml
 ``demo``: 36 views at 612x512, 4 held out, 6k vertices, and its ``overrides``: 6 iterations, the slope test,
-the coherence test, 45 virtual samples), with one rendered view instead of four."""
+45 virtual samples), with one rendered view instead of four."""
 
 
 # --------------------------------------------------------------------------- config helpers
