@@ -1,0 +1,100 @@
+"""Fit one true material's cluster lobe again, with each model, on its vertices and on halves of them.
+
+    python benchmarks/replay_lobes.py RUN --iteration N --truth CAPTURE/ground_truth/model.ply --material K \
+        [--models 1 3] [--configfile config/config.yaml OVERRIDE.yaml]
+
+RUN is a workflow's results folder (``results/<name>``) whose pass N kept its observations: run the workflow
+with ``snakemake --notemp`` (``iter/N/observations.zarr`` is temporary otherwise), e.g. up to the target
+``results/<name>/iter/0/clusters``. The replay takes the confident vertices of pass N's fit (the ones the
+clustering uses) whose nearest true vertex is of material K, and fits :func:`sellip.augment.fit_cluster_lobe`
+with the run's fit and augment settings (clusters.json, config) on: all of them, a random half, and the halves
+below and above the median true albedo brightness (a checker texture's dark and light bands). One row per subset
+and model: eta, sigma_s, sigma_ss, rho_s, rho_ss, samples, loss. docs/augment.md ("On by default") quotes it: on
+stability ``baseline``'s first pass the rough material's light band alone swaps the lobes under model 3.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import warnings
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", type=Path, help="the run's results folder (results/<name>), run with --notemp")
+    parser.add_argument("--iteration", type=int, required=True, help="the pass (iter/N)")
+    parser.add_argument("--truth", type=Path, required=True, help="the capture's ground_truth/model.ply")
+    parser.add_argument("--material", type=int, required=True, help="the true material label")
+    parser.add_argument("--models", type=int, nargs="+", default=[1, 3], help="models to fit (sellip.models)")
+    parser.add_argument("--configfile", type=Path, nargs="+", default=[ROOT / "config" / "config.yaml"],
+                        help="the run's config files, in order (fit.settings of pass N; default: config/config.yaml)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    warnings.filterwarnings("ignore", message=".*not recognized as a component of a Zarr hierarchy")  # Snakemake's
+
+    import numpy as np
+    import yaml
+    from scipy.spatial import cKDTree
+
+    from sellip import augment, models
+    from sellip.fit import FitSettings
+    from sellip.io import read_param_mesh
+    from sellip.observe import open_observations
+    from sellip.params import read_params
+    from sellip.stages.cluster_lobes import _load_rows
+
+    folder = args.run / "iter" / str(args.iteration)
+    observations = folder / "observations.zarr"
+    if not observations.exists():
+        parser.error(f"{observations} is missing: run the workflow with snakemake --notemp to keep it")
+    info = json.loads((folder / "clusters" / "clusters.json").read_text())
+    fields = {f.name for f in dataclasses.fields(augment.AugmentSettings)}
+    settings = augment.AugmentSettings(**{k: v for k, v in info["settings"].items() if k in fields})
+    fit_fields = {f.name for f in dataclasses.fields(FitSettings)}
+    chosen = {}
+    for path in args.configfile:  # fit.settings as the workflow passes them to cluster-lobes (a list: per pass)
+        values = ((yaml.safe_load(path.read_text()) or {}).get("fit") or {}).get("settings") or {}
+        chosen.update({k: v[min(args.iteration, len(v) - 1)] if isinstance(v, list) else v for k, v in values.items()})
+    fit_settings = FitSettings(**{k: v for k, v in chosen.items() if k in fit_fields})
+    store = read_params(folder / "fit.zarr")
+    group = open_observations(observations)
+    truth = read_param_mesh(args.truth)
+    if truth.material is None:
+        parser.error(f"{args.truth}: the ground truth has no material labels")
+    nearest = cKDTree(np.asarray(truth.vertices)).query(np.asarray(store["vertices"]))[1]
+    material = np.asarray(truth.material)[nearest]
+    brightness = np.asarray(truth.params.rho_d, np.float64)[nearest].sum(1)
+    used = (np.asarray(store["status"]) == 0) & (np.asarray(store["confidence"]) >= settings.min_confidence)
+    rows = np.flatnonzero(used & (material == args.material))
+    if rows.size < 10:
+        parser.error(f"material {args.material}: {rows.size} confident vertices (labels: {np.unique(material)})")
+    rng = np.random.default_rng(args.seed)
+    median = np.median(brightness[rows])
+    subsets = {"all": rows, "random half": np.sort(rng.permutation(rows)[: rows.size // 2]),
+               "darker half": rows[brightness[rows] < median], "lighter half": rows[brightness[rows] >= median]}
+    print(f"{args.run.name}, pass {args.iteration}, material {args.material}: {rows.size} confident vertices")
+    print("| subset | vertices | model | eta | sigma_s | sigma_ss | rho_s | rho_ss (RGB) | samples | loss |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for name, subset in subsets.items():
+        if subset.size == 0:
+            continue
+        obs = _load_rows(group, subset)
+        eta0 = float(np.median(np.asarray(store["eta"])[subset]))
+        for model in args.models:
+            lobe = augment.fit_cluster_lobe(obs, np.asarray(store["normals"])[subset], np.asarray(store["rho_d"])[subset],
+                                            eta0, models.settings_for_model(fit_settings, model), settings,
+                                            seed=args.seed)
+            print(f"| {name} | {subset.size} | {model} | {lobe.eta:.3f} | {lobe.sigma_s:.3f} | {lobe.sigma_ss:.3f} | "
+                  f"{lobe.rho_s:.0f} | {', '.join(f'{abs(x):.0f}' for x in lobe.rho_ss)} | {lobe.samples} | {lobe.loss:.4f} |",
+                  flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
