@@ -8,8 +8,9 @@ with ``snakemake --notemp`` (``iter/N/observations.zarr`` is temporary otherwise
 ``results/<name>/iter/0/clusters``. The replay takes the confident vertices of pass N's fit (the ones the
 clustering uses) whose nearest true vertex is of material K, and fits :func:`sellip.augment.fit_cluster_lobe`
 with the run's fit and augment settings (clusters.json, config) on: all of them, a random half, and the halves
-below and above the median true albedo brightness (a checker texture's dark and light bands). One row per subset
-and model: eta, sigma_s, sigma_ss, rho_s, rho_ss, samples, loss. docs/augment.md ("On by default") quotes it: on
+below and above the median true albedo brightness (a checker texture's dark and light bands). Per subset the
+fitted rho_d against the truth's (the fit holds it), then one row per subset and model: eta, sigma_s, sigma_ss,
+rho_s, rho_ss, samples, loss. docs/augment.md ("On by default") quotes it: on
 stability ``baseline``'s first pass the rough material's light band alone swaps the lobes under model 3.
 """
 
@@ -69,7 +70,8 @@ def main(argv=None) -> int:
         parser.error(f"{args.truth}: the ground truth has no material labels")
     nearest = cKDTree(np.asarray(truth.vertices)).query(np.asarray(store["vertices"]))[1]
     material = np.asarray(truth.material)[nearest]
-    brightness = np.asarray(truth.params.rho_d, np.float64)[nearest].sum(1)
+    rho_d_true = np.asarray(truth.params.rho_d, np.float64)[nearest]
+    brightness = rho_d_true.sum(1)
     used = (np.asarray(store["status"]) == 0) & (np.asarray(store["confidence"]) >= settings.min_confidence)
     rows = np.flatnonzero(used & (material == args.material))
     if rows.size < 10:
@@ -79,6 +81,10 @@ def main(argv=None) -> int:
     subsets = {"all": rows, "random half": np.sort(rng.permutation(rows)[: rows.size // 2]),
                "darker half": rows[brightness[rows] < median], "lighter half": rows[brightness[rows] >= median]}
     print(f"{args.run.name}, pass {args.iteration}, material {args.material}: {rows.size} confident vertices")
+    # The albedo the cluster fit holds, against the truth's (the ratio is the capture's exposure scale where right).
+    for name, subset in subsets.items():
+        ratio = np.median(np.asarray(store["rho_d"])[subset] / rho_d_true[subset], 0)
+        print(f"{name}: fitted rho_d / true rho_d, median per channel: {', '.join(f'{x:.0f}' for x in ratio)}")
     print("| subset | vertices | model | eta | sigma_s | sigma_ss | rho_s | rho_ss (RGB) | samples | loss |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for name, subset in subsets.items():
