@@ -336,6 +336,32 @@ def test_material_value_is_piecewise_constant_and_keeps_real_deviations():
     assert all_own.all()
 
 
+def test_a_deviation_needs_neighbours_that_deviate_the_same_way():
+    """With neighbours (final.deviation_support): an isolated vertex far from its material, measured 'well' (a fit
+    pinned at a bound, a depolarized sample), takes the material's value; a spot of ten keeps its own, up to its
+    edge; neighbours deviating the other way do not support a vertex."""
+    rng = np.random.default_rng(2)
+    vertices = np.column_stack([np.arange(400) * 1e-3, np.zeros(400), np.zeros(400)])  # a row, 1 mm apart
+    near = augment.nearest_vertices(vertices, 6)
+    labels = np.repeat([0, 1], 200)
+    eta_std = np.full(400, 0.04)
+    eta = np.where(labels == 0, 1.45, 1.62) + eta_std * rng.normal(size=400)
+    spot = np.arange(20, 30)
+    eta[spot], eta_std[spot] = 1.9, 0.01
+    eta[100], eta_std[100] = 1.055, 0.005  # one vertex pinned near eta's lower bound, its std collapsed
+    eta[[300, 302]], eta[301], eta_std[300:303] = 1.30, 2.0, 0.01  # its neighbours deviate the other way
+    alone = augment.material_or_own(eta, eta_std, labels, [1.45, 1.62], 3.0)[1].astype(bool)
+    assert alone[100] and alone[301] and alone[spot].all()
+    out, source = augment.material_or_own(eta, eta_std, labels, [1.45, 1.62], 3.0, neighbours=near, min_support=3)
+    own = source.astype(bool)
+    assert own[spot].all() and not own[100] and not own[301]
+    assert own.sum() == len(spot)
+    assert out[100] == 1.45 and out[301] == 1.62
+    np.testing.assert_array_equal(out[spot], 1.9)
+    np.testing.assert_array_equal(augment.material_or_own(eta, eta_std, labels, [1.45, 1.62], 3.0, neighbours=near,
+                                                          min_support=0)[1], alone)
+
+
 def test_a_materials_eta_is_the_median_of_its_confident_vertices():
     """cluster_medians: the median over each cluster's used vertices (an unconfident outlier does not count), the
     fallback (the cluster lobe fit's value) for a cluster without a used vertex."""

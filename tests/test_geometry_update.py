@@ -187,15 +187,25 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
     np.testing.assert_allclose(model_vertex["sigma_s"], 0.3, rtol=1e-6)
     np.testing.assert_allclose(model_vertex["rho_s"], 0.5, rtol=1e-6)
     np.testing.assert_allclose(store["sigma_s_vertex"], mesh.params.sigma_s, rtol=1e-6)
-    # With a well-known sigma_s that differs from the cluster's, a vertex keeps its own lobe (sigma_s and rho_s).
+    # With a well-known sigma_s that differs from the cluster's, a vertex keeps its own lobe (sigma_s and rho_s) ...
     own = np.arange(m) < 5
     write_params(tmp_path / "last.zarr", {**final, "sigma_s_std": np.where(own, 0.005, 0.2)})
     finalize.run_stage(tmp_path / "last.zarr", tmp_path / "mesh.ply", tmp_path / "final" / "model.ply",
-                       tmp_path / "final" / "params.zarr", tmp_path / "clusters", model=3)
+                       tmp_path / "final" / "params.zarr", tmp_path / "clusters", model=3, deviation_support=0)
     store = read_params(tmp_path / "final" / "params.zarr")
     np.testing.assert_array_equal(store["lobe_source"], own)
     np.testing.assert_allclose(store["sigma_s"], np.where(own, mesh.params.sigma_s, 0.3), rtol=1e-6)
     np.testing.assert_allclose(store["rho_s"], np.where(own, mesh.params.rho_s, 0.5), rtol=1e-6)
+    # ... by default only in a spot (final.deviation_support): a cap of 30 vertices keeps its own, at least its
+    # inner third, and nothing outside it does; one vertex alone does not.
+    order = np.argsort(np.linalg.norm(mesh.vertices - mesh.vertices[0], axis=1))
+    cap, alone = order[:30], order[-1]
+    deviates = np.isin(np.arange(m), cap) | (np.arange(m) == alone)
+    write_params(tmp_path / "last.zarr", {**final, "sigma_s_std": np.where(deviates, 0.005, 0.2)})
+    finalize.run_stage(tmp_path / "last.zarr", tmp_path / "mesh.ply", tmp_path / "final" / "model.ply",
+                       tmp_path / "final" / "params.zarr", tmp_path / "clusters", model=3)
+    source = read_params(tmp_path / "final" / "params.zarr")["lobe_source"].astype(bool)
+    assert source[order[:10]].all() and not source[alone] and source.sum() <= 30 and not source[order[30:]].any()
     # open3d reads the model with its normals.
     import open3d as o3d
 

@@ -16,6 +16,7 @@ rule finalize_model:
         clusters=lambda wildcards, input: f"--clusters {input.clusters}" if input.clusters else "",
         eta_deviation_sigmas=config["final"]["eta_deviation_sigmas"],
         lobe_deviation_sigmas=config["final"]["lobe_deviation_sigmas"],
+        deviation_support=config["final"]["deviation_support"],
     conda:
         "../../envs/fit.yaml"
     log:
@@ -26,7 +27,8 @@ rule finalize_model:
         SELLIP + " finalize --params {input.params} --mesh {input.mesh} --output-model {output.model}"
         " --output-params {output.params} {params.clusters}"
         " --eta-deviation-sigmas {params.eta_deviation_sigmas}"
-        " --lobe-deviation-sigmas {params.lobe_deviation_sigmas} > {log} 2>&1"
+        " --lobe-deviation-sigmas {params.lobe_deviation_sigmas}"
+        " --deviation-support {params.deviation_support} > {log} 2>&1"
 
 
 rule render_outputs:

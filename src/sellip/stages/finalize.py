@@ -26,15 +26,16 @@ log = logging.getLogger(__name__)
 
 def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_params: Path,
               clusters: Path | None = None, model: int = 3, eta_deviation_sigmas: float = 3.0,
-              lobe_deviation_sigmas: float = 3.0) -> dict:
+              lobe_deviation_sigmas: float = 3.0, deviation_support: int = 3) -> dict:
     """Write the final model PLY and parameter store; returns a summary dict. The per-vertex model is
     the store's ``model``; ``model`` is the code of every vertex of a store that has none. With
     ``clusters``, eta is its material cluster's (the median of the cluster's confident vertices' own eta,
     :func:`sellip.augment.cluster_medians`; the cluster lobe fit's where it has none) unless a vertex's own differs
     by more than ``eta_deviation_sigmas`` of its std, and so is the specular lobe (the cluster lobe fit's sigma_s
     with its rho_s) unless the vertex's sigma_s differs by more than ``lobe_deviation_sigmas`` of its std (at
-    least 0.01, the rule's floor) (:func:`sellip.augment.material_or_own`; <= 0: every vertex's own)."""
-    from sellip.augment import cluster_medians, material_or_own
+    least 0.01, the rule's floor), and either way only where at least ``deviation_support`` of its 6 nearest vertices
+    deviate the same way (:func:`sellip.augment.material_or_own`; <= 0: every vertex's own)."""
+    from sellip.augment import AugmentSettings, cluster_medians, material_or_own, nearest_vertices
     from sellip.io import write_param_mesh
     from sellip.observe import read_mesh
     from sellip.params import (
@@ -73,17 +74,20 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
         eta_std = np.asarray(store.get("eta_std", np.full(n, np.inf)), np.float64)
         confident = np.asarray(store.get("confidence", np.zeros(n)), np.float64) > 0
         material_eta = cluster_medians(eta, cluster, confident, [lobe.eta for lobe in lobes])
-        eta, eta_source = material_or_own(eta, eta_std, cluster, material_eta, eta_deviation_sigmas)
-        log.info("eta per material: %d of %d vertices keep their own eta (more than %g std from their cluster's %s; "
-                 "the cluster lobe fits' %s)", int(eta_source.sum()), n, eta_deviation_sigmas,
-                 np.round(material_eta, 3).tolist(), np.round([lobe.eta for lobe in lobes], 3).tolist())
+        near = nearest_vertices(vertices, AugmentSettings().coherence_neighbours)
+        eta, eta_source = material_or_own(eta, eta_std, cluster, material_eta, eta_deviation_sigmas,
+                                          neighbours=near, min_support=deviation_support)
+        log.info("eta per material: %d of %d vertices keep their own eta (more than %g std from their cluster's %s, "
+                 "with %d of their 6 neighbours; the cluster lobe fits' %s)", int(eta_source.sum()), n,
+                 eta_deviation_sigmas, np.round(material_eta, 3).tolist(), deviation_support,
+                 np.round([lobe.eta for lobe in lobes], 3).tolist())
         sigma_s_std = np.asarray(store.get("sigma_s_std", np.full(n, np.inf)), np.float64)
         sigma_s, lobe_source = material_or_own(sigma_s, sigma_s_std, cluster, [lobe.sigma_s for lobe in lobes],
-                                               lobe_deviation_sigmas)
+                                               lobe_deviation_sigmas, neighbours=near, min_support=deviation_support)
         rho_s = np.where(lobe_source == 1, rho_s, np.asarray([lobe.rho_s for lobe in lobes])[cluster])
         log.info("specular lobe per material: %d of %d vertices keep their own (sigma_s more than %g std from their "
-                 "cluster's %s)", int(lobe_source.sum()), n, lobe_deviation_sigmas,
-                 np.round([lobe.sigma_s for lobe in lobes], 3).tolist())
+                 "cluster's %s, with %d of their 6 neighbours)", int(lobe_source.sum()), n, lobe_deviation_sigmas,
+                 np.round([lobe.sigma_s for lobe in lobes], 3).tolist(), deviation_support)
     if "model" in store:
         models = np.asarray(store["model"], np.uint8)
         if not np.isin(models, sorted(MODEL_NAMES)).all():
@@ -132,6 +136,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lobe-deviation-sigmas", type=float, default=3.0,
                         help="a vertex keeps its own specular lobe (sigma_s and rho_s, not its material cluster's) "
                              "when its sigma_s differs by more than this many of its std (<= 0: every vertex its own)")
+    parser.add_argument("--deviation-support", type=int, default=3,
+                        help="... and only when at least this many of its 6 nearest vertices deviate the same way "
+                             "(a spot, not one vertex; 0: any vertex)")
     parser.add_argument("--model", type=int, default=3,
                         help="model code of every vertex when the store has no model array (sellip.params.MODEL_NAMES)")
 
@@ -142,7 +149,7 @@ def main(args: argparse.Namespace) -> int:
 
     try:
         run_stage(args.params, args.mesh, args.output_model, args.output_params, args.clusters, args.model,
-                  args.eta_deviation_sigmas, args.lobe_deviation_sigmas)
+                  args.eta_deviation_sigmas, args.lobe_deviation_sigmas, args.deviation_support)
     except (ParamsError, ObserveError, ValueError) as error:
         log.error("%s", error)
         return 1
