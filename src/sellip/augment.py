@@ -770,7 +770,7 @@ def material_or_own(value, value_std, labels, cluster_value, deviation_sigmas: f
     off on noise. ``neighbours`` (N, k) int: each vertex's nearest vertices (:func:`nearest_vertices`). Isolated
     deviations are the per-vertex fits' outliers: on the tiny stability sphere 63 of 2,384 vertices passed 3 std
     alone, every one 18-30 % off (a fit pinned at eta's lower bound by a depolarized sample, or a highlight between
-    the views), and together cost 1.5 dB of held-out PSNR (docs/augment.md). ``deviation_sigmas`` <= 0 keeps every
+    the views), and together cost 1.5 dB of held-out PSNR (docs/accuracy.md, "A deviation is a spot"). ``deviation_sigmas`` <= 0 keeps every
     vertex's own value. Returns (value (N,), source (N,) uint8 with :data:`VALUE_SOURCES` codes). The map is then
     piecewise constant where the object is, and keeps a real boundary or a deviating spot where the data demand it.
     """
