@@ -35,19 +35,15 @@ def replay(run: Path, iteration: int, overrides: dict | None = None):
     (clusters.json) and ``overrides`` (AugmentSettings fields) over them. Returns (clustering, settings, store)."""
     from sellip import augment
     from sellip.params import read_params
+    from sellip.stages.cluster_lobes import clustering_settings
 
     folder = run / "iter" / str(iteration)
     info = json.loads((folder / "clusters" / "clusters.json").read_text())
-    fields = {f.name for f in dataclasses.fields(augment.AugmentSettings)}
-    unknown = set(overrides or {}) - fields
-    if unknown:
-        raise ValueError(f"not AugmentSettings fields: {sorted(unknown)}; expected some of {sorted(fields)}")
-    settings = {**{k: v for k, v in info["settings"].items() if k in fields}, **(overrides or {})}
+    settings = clustering_settings(info, overrides)
     store = read_params(folder / "fit.zarr")
     clustering = augment.cluster_materials(store["eta"], store["rho_d"], store["status"], store["confidence"],
-                                           augment.AugmentSettings(**settings), info.get("seed", 0),
-                                           vertices=store["vertices"])
-    return clustering, settings, store
+                                           settings, info.get("seed", 0), vertices=store["vertices"])
+    return clustering, dataclasses.asdict(settings), store
 
 
 def main(argv=None) -> int:

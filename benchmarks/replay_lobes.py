@@ -48,15 +48,14 @@ def main(argv=None) -> int:
     from sellip.io import read_param_mesh
     from sellip.observe import open_observations
     from sellip.params import read_params
-    from sellip.stages.cluster_lobes import _load_rows
+    from sellip.stages.cluster_lobes import clustering_settings, load_rows
 
     folder = args.run / "iter" / str(args.iteration)
     observations = folder / "observations.zarr"
     if not observations.exists():
         parser.error(f"{observations} is missing: run the workflow with snakemake --notemp to keep it")
     info = json.loads((folder / "clusters" / "clusters.json").read_text())
-    fields = {f.name for f in dataclasses.fields(augment.AugmentSettings)}
-    settings = augment.AugmentSettings(**{k: v for k, v in info["settings"].items() if k in fields})
+    settings = clustering_settings(info)
     fit_fields = {f.name for f in dataclasses.fields(FitSettings)}
     chosen = {}
     for path in args.configfile:  # fit.settings as the workflow passes them to cluster-lobes (a list: per pass)
@@ -90,7 +89,7 @@ def main(argv=None) -> int:
     for name, subset in subsets.items():
         if subset.size == 0:
             continue
-        obs = _load_rows(group, subset)
+        obs = load_rows(group, subset)
         eta0 = float(np.median(np.asarray(store["eta"])[subset]))
         for model in args.models:
             lobe = augment.fit_cluster_lobe(obs, np.asarray(store["normals"])[subset], np.asarray(store["rho_d"])[subset],

@@ -125,7 +125,20 @@ def read_models(directory: Path, count: int | None = None) -> np.ndarray:
     return models.astype(np.uint8)
 
 
-def _load_rows(group, rows: np.ndarray):
+def clustering_settings(clusters_json: dict, overrides: dict | None = None):
+    """The :class:`sellip.augment.AugmentSettings` a ``clusters.json`` (its parsed dict) was made with, ``overrides``
+    (field: value) over them: how a replay re-runs a pass's clustering or lobe fit as the workflow ran it."""
+    from sellip.augment import AugmentSettings
+
+    fields = {f.name for f in dataclasses.fields(AugmentSettings)}
+    unknown = set(overrides or {}) - fields
+    if unknown:
+        raise ValueError(f"not AugmentSettings fields: {sorted(unknown)}; expected some of {sorted(fields)}")
+    return AugmentSettings(**{**{k: v for k, v in clusters_json["settings"].items() if k in fields},
+                              **(overrides or {})})
+
+
+def load_rows(group, rows: np.ndarray):
     """Observations (:class:`sellip.fit.Observations`) of the store rows ``rows`` (sorted), reading only their chunks."""
     from sellip.fit import Observations
     from sellip.observe import PER_VIEW_ARRAYS, VIEW_AXES
@@ -231,7 +244,7 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
         limit = max(64, settings.max_samples // 8)
         rows = np.sort(rng.choice(members, limit, replace=False)) if members.size > limit else members
         mark("read")
-        obs = _load_rows(group, rows)
+        obs = load_rows(group, rows)
         mark("select")
         eta0 = float(np.median(store["eta"][members]))
         began = time.perf_counter()
