@@ -23,13 +23,6 @@ import warnings
 from pathlib import Path
 
 
-def _value(text: str):
-    try:
-        return int(text)
-    except ValueError:
-        return float(text)
-
-
 def replay(run: Path, iteration: int, overrides: dict | None = None):
     """The clustering of ``run``'s pass ``iteration`` re-run on its stored fit with the run's settings and seed
     (clusters.json) and ``overrides`` (AugmentSettings fields) over them. Returns (clustering, settings, store)."""
@@ -62,13 +55,12 @@ def main(argv=None) -> int:
     from sellip import augment
     from sellip.evaluate import eta_per_material
     from sellip.io import read_param_mesh
+    from sellip.stages.fit import overrides_from_pairs
 
-    overrides = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        if not key or not value:
-            parser.error(f"--set {item!r}: expected FIELD=VALUE")
-        overrides[key] = _value(value)
+    try:
+        overrides = overrides_from_pairs(args.set, augment.AugmentSettings)
+    except ValueError as error:
+        parser.error(str(error))
     truth = read_param_mesh(args.truth)
     if truth.material is None:
         parser.error(f"{args.truth}: the ground truth has no material labels")

@@ -1,13 +1,13 @@
 """Fit one true material's cluster lobe again, with each model, on its vertices and on halves of them.
 
     python benchmarks/replay_lobes.py RUN --iteration N --truth CAPTURE/ground_truth/model.ply --material K \
-        [--models 1 3] [--configfile config/config.yaml OVERRIDE.yaml]
+        [--models 1 3]
 
 RUN is a workflow's results folder (``results/<name>``) whose pass N kept its observations: run the workflow
 with ``snakemake --notemp`` (``iter/N/observations.zarr`` is temporary otherwise), e.g. up to the target
 ``results/<name>/iter/0/clusters``. The replay takes the confident vertices of pass N's fit (the ones the
 clustering uses) whose nearest true vertex is of material K, and fits :func:`sellip.augment.fit_cluster_lobe`
-with the run's fit and augment settings (clusters.json, config) on: all of them, a random half, and the halves
+with the settings the pass used (``clusters.json``: ``settings`` and ``fit_settings``) on: all of them, a random half, and the halves
 below and above the median true albedo brightness (a checker texture's dark and light bands). Per subset the
 fitted rho_d against the truth's (the fit holds it), then one row per subset and model: eta, sigma_s, sigma_ss,
 rho_s, rho_ss, samples, loss. docs/augment.md ("On by default") quotes it: on
@@ -17,13 +17,10 @@ stability ``baseline``'s first pass the rough material's light band alone swaps 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import warnings
 from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def main(argv=None) -> int:
@@ -33,14 +30,11 @@ def main(argv=None) -> int:
     parser.add_argument("--truth", type=Path, required=True, help="the capture's ground_truth/model.ply")
     parser.add_argument("--material", type=int, required=True, help="the true material label")
     parser.add_argument("--models", type=int, nargs="+", default=[1, 3], help="models to fit (sellip.models)")
-    parser.add_argument("--configfile", type=Path, nargs="+", default=[ROOT / "config" / "config.yaml"],
-                        help="the run's config files, in order (fit.settings of pass N; default: config/config.yaml)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     warnings.filterwarnings("ignore", message=".*not recognized as a component of a Zarr hierarchy")  # Snakemake's
 
     import numpy as np
-    import yaml
     from scipy.spatial import cKDTree
 
     from sellip import augment, models
@@ -56,12 +50,10 @@ def main(argv=None) -> int:
         parser.error(f"{observations} is missing: run the workflow with snakemake --notemp to keep it")
     info = json.loads((folder / "clusters" / "clusters.json").read_text())
     settings = clustering_settings(info)
-    fit_fields = {f.name for f in dataclasses.fields(FitSettings)}
-    chosen = {}
-    for path in args.configfile:  # fit.settings as the workflow passes them to cluster-lobes (a list: per pass)
-        values = ((yaml.safe_load(path.read_text()) or {}).get("fit") or {}).get("settings") or {}
-        chosen.update({k: v[min(args.iteration, len(v) - 1)] if isinstance(v, list) else v for k, v in values.items()})
-    fit_settings = FitSettings(**{k: v for k, v in chosen.items() if k in fit_fields})
+    if "fit_settings" not in info:
+        parser.error(f"{folder / 'clusters' / 'clusters.json'} has no fit_settings (written before 2026-11-26): run "
+                     f"its cluster_lobes job again (snakemake --forcerun cluster_lobes --notemp ...)")
+    fit_settings = FitSettings(**info["fit_settings"])
     store = read_params(folder / "fit.zarr")
     group = open_observations(observations)
     truth = read_param_mesh(args.truth)

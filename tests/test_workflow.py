@@ -125,7 +125,6 @@ def test_tiny_capture_reconstructs_close_to_the_ground_truth(tiny_run):
     assert series[1]["chamfer_to_previous_mm"] > 0 and (results / "final" / "geometry_convergence.png").is_file()
 
 
-
 def test_the_clustering_replay_reproduces_the_runs_clusters(tiny_run, capsys):
     """benchmarks/replay_clustering.py (the replays of docs/augment.md) re-runs the workflow's clustering: on the
     run's own settings it gives the run's labels; with the coherence test off, the clustering without it."""
@@ -144,6 +143,12 @@ def test_the_clustering_replay_reproduces_the_runs_clusters(tiny_run, capsys):
     assert "'min_coherence': 0" in out and "eta per material (cluster medians)" in out
     with pytest.raises(ValueError, match="not AugmentSettings fields"):
         replay.replay(run, 0, {"min_coherenc": 0.5})
+    # clusters.json also records the lobe fit's settings, which benchmarks/replay_lobes.py fits with.
+    from sellip.fit import FitSettings
+
+    info = json.loads((run / "iter" / "0" / "clusters" / "clusters.json").read_text())
+    assert FitSettings(**info["fit_settings"]).min_views == 6  # the run's fit.settings (tiny_run)
+
 
 def _kill_when(command, env, ready: Path, timeout: float = 900) -> None:
     """Start ``command``; SIGKILL its whole process group as soon as ``ready`` exists."""

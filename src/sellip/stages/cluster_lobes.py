@@ -17,7 +17,7 @@ Writes the directory ``--output`` (built under a temporary name, then renamed) w
   sigma_ss, rho_s, rho_ss_r, rho_ss_g, rho_ss_b, samples, loss, model;
 - ``lobes.png``: each cluster's lobe against its samples as a function of theta_h (paper Fig. 7b);
 - ``clusters.json``: K, the BIC per K, the merges, the regions added (:func:`sellip.augment.cluster_materials`),
-  the settings and the seed, and under ``model_selection`` per cluster the chosen model, the held-out loss of
+  the settings (``settings``: the clustering's; ``fit_settings``: the lobe fit's) and the seed, and under ``model_selection`` per cluster the chosen model, the held-out loss of
   every candidate and why.
 
 Model selection (DESIGN §7, :mod:`sellip.models`, on unless ``--no-model-selection``): per cluster,
@@ -127,7 +127,8 @@ def read_models(directory: Path, count: int | None = None) -> np.ndarray:
 
 def clustering_settings(clusters_json: dict, overrides: dict | None = None):
     """The :class:`sellip.augment.AugmentSettings` a ``clusters.json`` (its parsed dict) was made with, ``overrides``
-    (field: value) over them: how a replay re-runs a pass's clustering or lobe fit as the workflow ran it."""
+    (field: value) over them: how a replay re-runs a pass's clustering or lobe fit as the workflow ran it (the
+    :class:`sellip.fit.FitSettings` of the lobe fit are its ``fit_settings``)."""
     from sellip.augment import AugmentSettings
 
     fields = {f.name for f in dataclasses.fields(AugmentSettings)}
@@ -303,7 +304,7 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
                "k_bic": int(min(clustering.bic, key=clustering.bic.get)), "merges": clustering.merges,
                "regions": clustering.regions,
                "clustered_vertices": int(clustering.used.sum()), "vertices": n, "seed": seed,
-               "settings": dataclasses.asdict(settings),
+               "settings": dataclasses.asdict(settings), "fit_settings": dataclasses.asdict(fit_settings),
                "model_selection": {"enabled": selection.enabled, "settings": dataclasses.asdict(selection),
                                    "allowed": allowed, "inherited": inherited is not None,
                                    "models": [int(m) for m in models], "vertices_per_model": counts,

@@ -74,20 +74,21 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
         eta_std = np.asarray(store.get("eta_std", np.full(n, np.inf)), np.float64)
         confident = np.asarray(store.get("confidence", np.zeros(n)), np.float64) > 0
         material_eta = cluster_medians(eta, cluster, confident, [lobe.eta for lobe in lobes])
-        near = nearest_vertices(vertices, AugmentSettings().coherence_neighbours)
+        neighbours = AugmentSettings().coherence_neighbours  # the vertices that stand for a 1-ring, as in clustering
+        near = nearest_vertices(vertices, neighbours)
         eta, eta_source = material_or_own(eta, eta_std, cluster, material_eta, eta_deviation_sigmas,
                                           neighbours=near, min_support=deviation_support)
         log.info("eta per material: %d of %d vertices keep their own eta (more than %g std from their cluster's %s, "
-                 "with %d of their 6 neighbours; the cluster lobe fits' %s)", int(eta_source.sum()), n,
-                 eta_deviation_sigmas, np.round(material_eta, 3).tolist(), deviation_support,
+                 "with %d of their %d neighbours; the cluster lobe fits' %s)", int(eta_source.sum()), n,
+                 eta_deviation_sigmas, np.round(material_eta, 3).tolist(), deviation_support, neighbours,
                  np.round([lobe.eta for lobe in lobes], 3).tolist())
         sigma_s_std = np.asarray(store.get("sigma_s_std", np.full(n, np.inf)), np.float64)
         sigma_s, lobe_source = material_or_own(sigma_s, sigma_s_std, cluster, [lobe.sigma_s for lobe in lobes],
                                                lobe_deviation_sigmas, neighbours=near, min_support=deviation_support)
         rho_s = np.where(lobe_source == 1, rho_s, np.asarray([lobe.rho_s for lobe in lobes])[cluster])
         log.info("specular lobe per material: %d of %d vertices keep their own (sigma_s more than %g std from their "
-                 "cluster's %s, with %d of their 6 neighbours)", int(lobe_source.sum()), n, lobe_deviation_sigmas,
-                 np.round([lobe.sigma_s for lobe in lobes], 3).tolist(), deviation_support)
+                 "cluster's %s, with %d of their %d neighbours)", int(lobe_source.sum()), n, lobe_deviation_sigmas,
+                 np.round([lobe.sigma_s for lobe in lobes], 3).tolist(), deviation_support, neighbours)
     if "model" in store:
         models = np.asarray(store["model"], np.uint8)
         if not np.isin(models, sorted(MODEL_NAMES)).all():

@@ -62,10 +62,16 @@ def shard_rows(num_vertices: int, chunk: int, index: int, total: int) -> tuple[i
 
 
 def settings_from_pairs(pairs: list[str]):
-    """FitSettings with ``key=value`` overrides (types from the dataclass; 'null'/'none' -> None)."""
+    """FitSettings with ``key=value`` overrides (:func:`overrides_from_pairs`)."""
     from sellip.fit import FitSettings
 
-    fields = {f.name: f for f in dataclasses.fields(FitSettings)}
+    return FitSettings(**overrides_from_pairs(pairs, FitSettings))
+
+
+def overrides_from_pairs(pairs: list[str], settings_class) -> dict:
+    """{field: value} of ``key=value`` pairs for the dataclass ``settings_class`` (types from its fields;
+    'null'/'none' -> None). Raises ValueError naming the pair for an unknown key or a value of the wrong type."""
+    fields = {f.name: f for f in dataclasses.fields(settings_class)}
     values = {}
     for pair in pairs:
         key, sep, text = pair.partition("=")
@@ -86,7 +92,7 @@ def settings_from_pairs(pairs: list[str]):
             except ValueError:
                 raise ValueError(f"--set {key} expects a{'n integer' if kind is int else ' number'}, "
                                  f"got {text!r}") from None
-    return FitSettings(**values)
+    return values
 
 
 def enable_compilation_cache(directory: str | Path | None) -> None:
