@@ -396,6 +396,40 @@ def test_a_material_cut_along_its_eta_is_one_cluster_and_two_materials_stay_two(
         assert augment._eta_cut(both, np.ones(2 * n, bool), centres, np.random.default_rng(0)) is None
 
 
+def test_a_material_of_two_albedo_modes_cut_along_its_eta_is_one_cluster():
+    """augment._same_eta_by_albedo: a speckled material (two albedo modes, log brightness +-0.13 with sd 0.1; eta
+    1.40 +- 0.06 whatever the albedo) that k-means cuts on albedo and eta together (each cluster one mode's
+    high- or low-eta side: median etas 1.42 and 1.38) is one material; split by albedo alone its halves have one eta,
+    and _eta_cut merges the pair. The same two albedo modes at eta 1.40 and 1.45 (two materials), or one albedo
+    at eta 1.40 and 1.70, stay two; so do two albedos of one eta more than CUT_MODES_ALBEDO_SD apart (two materials
+    that share an eta, as sphere_ior's 1.463 and 1.462 wedges)."""
+    rng = np.random.default_rng(4)
+    n = 4000
+    mode = np.where(np.arange(n) < n // 2, 1.0, -1.0)
+
+    def cut_in_two(eta, step=0.13):
+        albedo = np.array([0.3, 0.25, 0.2]) * np.exp(step * mode + rng.normal(0, 0.1, n))[:, None]
+        features = augment.cluster_features(eta, albedo * rng.uniform(0.99, 1.01, (n, 3)))
+        z = (features - features.mean(0)) / features.std(0)
+        first = z[:, 2] + z[:, 3] > 0  # a cut across both albedo and eta, as k-means makes one
+        return features, features[first], features[~first]
+
+    features, a, b = cut_in_two(rng.normal(1.40, 0.06, n))
+    assert np.median(a[:, 3]) - np.median(b[:, 3]) > 0.03 / augment.ETA_SCALE  # the cut's etas differ
+    assert augment._same_eta_by_albedo(a, b, np.random.default_rng(0))
+    centres = np.array([a.mean(0), b.mean(0)])
+    assert augment._eta_cut(features, np.ones(n, bool), centres, np.random.default_rng(0)) is not None
+    features, a, b = cut_in_two(rng.normal(1.40, 0.06, n), step=0.3)  # two materials, one eta: 6 sd apart
+    centres = np.array([features[mode > 0].mean(0), features[mode < 0].mean(0)])
+    assert augment._same_eta_by_albedo(features[mode > 0], features[mode < 0], np.random.default_rng(0))
+    assert augment._eta_cut(features, np.ones(n, bool), centres, np.random.default_rng(0)) is None
+    _, a, b = cut_in_two(np.where(mode > 0, 1.45, 1.40) + rng.normal(0, 0.06, n))  # two materials: two etas
+    assert not augment._same_eta_by_albedo(a, b, np.random.default_rng(0))
+    one_albedo = augment.cluster_features(np.where(mode > 0, 1.7, 1.4), np.tile([0.3, 0.25, 0.2], (n, 1))
+                                          * np.exp(rng.normal(0, 0.1, (n, 1))))
+    assert not augment._same_eta_by_albedo(one_albedo[mode > 0], one_albedo[mode < 0], np.random.default_rng(0))
+
+
 def test_a_region_is_kept_when_its_cluster_also_takes_scattered_vertices_of_a_similar_albedo():
     """A region (two caps, 0.7 % of the sphere, group coherence 0.81) whose centre, as a cluster, also takes 60
     scattered vertices of a more saturated albedo (their own group is not a region) is a cluster of coherence 0.46:

@@ -71,7 +71,9 @@ def test_noise_degrades_gracefully():
 def test_views_from_several_azimuths_resolve_the_pi_ambiguity():
     """Views spread around an axis 30 deg from the normal. Started from the normal mirrored
     about that axis (60 deg away: the same zenith, and the same polarization angle modulo pi, in
-    every view), the fit returns to the true normal: shading across several azimuths decides."""
+    every view), the fit returns to the true normal: shading across several azimuths decides. Over seeds 3-8 (float64),
+    115 of 144 vertices (80 %) return within 1 deg with the diffuse eta held (FitSettings.hold_diffuse_eta), 122 (85 %)
+    without; 16-23 of 24 per seed either way. The rest stop in a minimum with eta at a bound."""
     rng = np.random.default_rng(3)
     n = 24
     normals = unit(rng.normal(size=(n, 3)) * [0.2, 0.2, 1] + [0, 0, 1])
@@ -84,7 +86,39 @@ def test_views_from_several_azimuths_resolve_the_pi_ambiguity():
     np.testing.assert_allclose(np.degrees(np.arccos(np.sum(mirrored * normals, -1))), 60, atol=1e-6)
     result = fit_vertices(obs, mirrored, default_prior(n, np.float64))
     angle, _, _ = _errors(result, params, normals)
-    assert np.median(angle) < 0.5 and np.mean(angle < 1.0) >= 0.9, np.sort(angle)
+    assert np.median(angle) < 0.5 and np.mean(angle < 1.0) >= 0.75, np.sort(angle)
+
+
+def test_eta_is_not_bent_by_a_diffuse_falloff_that_texture_below_the_pixel_makes():
+    """A vertex brighter than the texture around it looks darker at grazing views, whose pixel footprint (1 / cos
+    theta_o larger) takes in its darker surroundings, and one darker looks brighter: the diffuse part of every view
+    scaled by 1 - m (1 - cos theta_o), m = +-0.3. Fitted from the diffuse falloff, eta bends with it (the
+    transmissions' Fresnel loss grows at grazing with eta): +4.9 % on the bright vertices, -10.5 % on the dark.
+    With the diffuse eta held (FitSettings.hold_diffuse_eta, the default), eta comes from the polarization and the
+    specular lobe: 0.2 % (tiny_speckle at 320x256, first pass: the albedo-eta correlation 0.29 -> -0.05)."""
+    n = 48
+    rng = np.random.default_rng(11)
+    normals = unit(rng.normal(size=(n, 3)) * [0.3, 0.3, 1] + [0, 0, 1])
+    lobes = dict(eta=jnp.asarray(rng.uniform(1.3, 1.8, n)), rho_s=0.5, sigma_s=jnp.asarray(rng.uniform(0.1, 0.4, n)),
+                 sigma_ss=jnp.asarray(rng.uniform(0.5, 0.9, n)))
+    rho_d = jnp.asarray(rng.uniform(0.2, 0.8, (n, 3)))
+    views = dict(n_views=40, flash_offset_m=FLASH_3_5_DEG, distance=DISTANCE)
+    full = vertex_observations(np.random.default_rng(5), make_params((n,), rho_d=rho_d, **lobes), normals, **views)
+    reflection = vertex_observations(np.random.default_rng(5), make_params((n,), rho_d=jnp.zeros((n, 3)), **lobes),
+                                     normals, **views)  # the same views without the diffuse lobe
+    cos_o = np.sum(np.asarray(full.to_camera) * normals[:, None], -1)
+    brighter = np.arange(n) % 2 == 0
+    scale = (1 - np.where(brighter, 0.3, -0.3)[:, None] * (1 - cos_o))[..., None]
+    obs = full._replace(**{name: np.asarray(getattr(reflection, name)) + scale * (
+        np.asarray(getattr(full, name)) - np.asarray(getattr(reflection, name))) for name in ("diffuse", "diffuse_pol",
+                                                                                               "specular")})
+    bias = {}
+    for hold in (False, True):
+        result = fit_vertices(obs, normals, default_prior(n, np.float64), FitSettings(hold_diffuse_eta=hold))
+        error = 100 * (result.params.eta / np.asarray(lobes["eta"]) - 1)
+        bias[hold] = (np.median(error[brighter]), np.median(error[~brighter]))
+    assert bias[False][0] > 3 and bias[False][1] < -6, bias  # the falloff bends eta (the test can fail)
+    assert max(abs(b) for b in bias[True]) < 1.0, bias
 
 
 def test_outlier_views_do_not_move_the_fit():
@@ -137,11 +171,13 @@ def test_sharded_and_unsharded_runs_agree():
 
 
 def test_levenberg_marquardt_agrees_with_scipy_least_squares():
-    """Same residuals, same start: scipy's trust-region solver reaches the same minimum."""
+    """Same residuals, same start: scipy's trust-region solver reaches the same minimum. One fixed objective: the
+    diffuse eta is not held (hold_diffuse_eta moves the objective between LM stages)."""
     params, normals, obs, start = _scene(6, seed=8, noise=0.01)
-    settings = FitSettings()
+    settings = FitSettings(hold_diffuse_eta=False)
     result = fit_vertices(obs, start, default_prior(6, np.float64), settings)
     keep, records, frames, z0 = fit._select_and_prepare(obs, jnp.asarray(start), default_prior(6, np.float64), settings)
+    records = records._replace(eta_diffuse=None)
     z0 = fit._best_start(z0, records, frames, settings)
     residual = jax.jit(lambda z, v, f: fit._residuals(z, v, f, settings))
     jacobian = jax.jit(jax.jacfwd(lambda z, v, f: fit._residuals(z, v, f, settings)))

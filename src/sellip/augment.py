@@ -45,6 +45,8 @@ REGION_MIN_SAMPLES = 5  # ... with at least this many in a group's core
 REGION_FIT_POINTS = 500  # the robust Gaussian is fitted to at most this many of a cluster's vertices (seeded): 0.03 s
 CUT_ALBEDO_SD = 3.0  # two clusters whose mean albedos are closer than this many pooled sd may be one material ...
 CUT_MODE_POINTS = 4000  # ... cut along its eta: their features along the line between the centres have one mode
+CUT_ETA_SE = 3.0  # ... or, within CUT_MODES_ALBEDO_SD, two albedo modes whose etas split by albedo are this many SE apart
+CUT_MODES_ALBEDO_SD = 5.0  # the albedo modes of one textured material: 2.4-3.9 sd apart; two real materials 5.45 and more
 
 
 @dataclass(frozen=True)
@@ -277,14 +279,37 @@ def _one_mode(x: np.ndarray, rng) -> bool:
     return int(np.sum((density[1:-1] > density[:-2]) & (density[1:-1] > density[2:]))) <= 1
 
 
+def _same_eta_by_albedo(A: np.ndarray, B: np.ndarray, rng) -> bool:
+    """Whether the features (n, 4) of two clusters are two albedo modes of one eta: their albedos (chromaticity,
+    brightness) projected on the line between the two mean albedos have two modes, and their members split again by
+    albedo alone (the nearer of the two mean albedos) have median etas within CUT_ETA_SE standard errors (each
+    1.2533 x its robust sd / sqrt(n)). Two materials of one albedo are one albedo mode, whatever their etas.
+    k-means on (albedo, eta) takes a material's high-eta vertices for one albedo mode and its low-eta ones for the
+    other: tiny_speckle's rough material, two albedo modes 2.4 pooled sd apart, as two clusters at eta 1.384 and
+    1.442 (true 1.40); split by albedo alone they are 1.397 and 1.411 (docs/accuracy.md)."""
+    x = np.concatenate([A, B])
+    line = B[:, :3].mean(0) - A[:, :3].mean(0)
+    if _one_mode(x[:, :3] @ (line / np.linalg.norm(line)), rng):
+        return False
+    to_a = np.sum((x[:, :3] - A[:, :3].mean(0)) ** 2, 1) <= np.sum((x[:, :3] - B[:, :3].mean(0)) ** 2, 1)
+    groups = [x[to_a, 3], x[~to_a, 3]]
+    if min(len(g) for g in groups) < 5:
+        return False
+    medians = [np.median(g) for g in groups]
+    se = [1.2533 * 1.4826 * np.median(np.abs(g - m)) / np.sqrt(len(g)) for g, m in zip(groups, medians)]
+    return abs(medians[0] - medians[1]) <= CUT_ETA_SE * np.hypot(*se)
+
+
 def _eta_cut(features, used, centres, rng) -> tuple[int, int, float] | None:
     """(keep, drop, separation) for the pair of clusters that is most likely one material cut along its eta noise,
     None when no pair is. A pair is when its mean albedos (chromaticity, brightness) are within CUT_ALBEDO_SD pooled
     standard deviations and its clustered vertices' features, projected on the line between the two centres, have
-    one mode. k-means cuts a material so when BIC takes more clusters than materials: sphere_ior's eta 1.462 wedge
-    at 98k vertices, two halves at eta 1.507 and 1.422, 1.97 sd apart in albedo, coherence 0.69 and 0.73, which the
-    coherence test passes; two real materials are 5.4 sd apart and more on sphere_ior, the demo and the stability
-    spheres (docs/accuracy.md). The larger cluster keeps its index."""
+    one mode; or when they are within CUT_MODES_ALBEDO_SD and are two albedo modes of one eta
+    (:func:`_same_eta_by_albedo`: a textured material, two modes on that line too). k-means cuts a material so when
+    BIC takes more clusters than materials: sphere_ior's eta 1.462 wedge at 98k vertices, two halves at eta 1.507 and
+    1.422, 1.97 sd apart in albedo, coherence 0.69 and 0.73, which the coherence test passes; the albedo modes of
+    the stability spheres' materials 2.4-3.9 sd apart; two real materials are 5.4 sd apart and more on sphere_ior,
+    the demo and the stability spheres (docs/accuracy.md). The larger cluster keeps its index."""
     labels = np.argmin(_squared_distances(features[used], centres), 1)
     x = features[used]
     members = [x[labels == k] for k in range(len(centres))]
@@ -297,10 +322,11 @@ def _eta_cut(features, used, centres, rng) -> tuple[int, int, float] | None:
             pooled = (np.cov(A[:, :3].T) * (len(A) - 1) + np.cov(B[:, :3].T) * (len(B) - 1)) / (len(A) + len(B) - 2)
             gap = A[:, :3].mean(0) - B[:, :3].mean(0)
             separation = float(np.sqrt(gap @ np.linalg.lstsq(pooled, gap, rcond=None)[0]))
-            if separation >= CUT_ALBEDO_SD or (best is not None and separation >= best[2]):
+            if separation >= CUT_MODES_ALBEDO_SD or (best is not None and separation >= best[2]):
                 continue
             line = B.mean(0) - A.mean(0)
-            if _one_mode(np.concatenate([A, B]) @ (line / np.linalg.norm(line)), rng):
+            if (separation < CUT_ALBEDO_SD and _one_mode(np.concatenate([A, B]) @ (line / np.linalg.norm(line)), rng)) \
+                    or _same_eta_by_albedo(A, B, rng):
                 best = (a, b, separation) if len(A) >= len(B) else (b, a, separation)
     return best
 
@@ -386,8 +412,9 @@ def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings 
         keep, drop, separation = cut
         labels = np.argmin(_squared_distances(features, centres), 1)
         merges.append({"cluster": drop, "vertices": int(np.sum(used & (labels == drop))), "into": keep,
-                       "reason": f"one material cut along its eta: mean albedos {separation:.2f} pooled sd apart "
-                                 f"(< {CUT_ALBEDO_SD:g}), one mode between the centres"})
+                       "reason": f"one material cut along its eta: mean albedos {separation:.2f} pooled sd apart, "
+                                 f"one mode between the centres (< {CUT_ALBEDO_SD:g} sd) or two albedo modes of "
+                                 f"one eta (< {CUT_MODES_ALBEDO_SD:g} sd)"})
         log.info("cluster %d merged into cluster %d: %s", drop, keep, merges[-1]["reason"])
         centres[keep] = features[used & ((labels == keep) | (labels == drop))].mean(0)
         centres = np.delete(centres, drop, axis=0)

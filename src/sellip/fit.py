@@ -93,6 +93,10 @@ class FitSettings:
     lambda_g: float = 0.1  # weight of the virtual specular samples against the real views (paper Eq. 24)
     virtual_count: int = 180  # M virtual samples per vertex, at theta_h = 0, step, ..., (M - 1) step
     virtual_step_deg: float = 0.5  # their theta_h spacing (degrees)
+    # The diffuse intensity's Fresnel transmissions use a held eta (the warm start's, then each LM stage's result),
+    # so that eta is fitted from the polarization and the specular lobe, not from the diffuse shading's falloff,
+    # which texture below the pixel and geometry errors bend (docs/fit.md). False: the fitted eta everywhere.
+    hold_diffuse_eta: bool = True
 
     def __post_init__(self):
         if self.lobes not in LOBE_SETS:
@@ -198,6 +202,14 @@ class _Frame(NamedTuple):
     normal0: jnp.ndarray  # (3,)
     t1: jnp.ndarray
     t2: jnp.ndarray
+
+
+def _eta_of(z) -> np.ndarray:
+    """The eta (N,) of host z (N, 5) (:func:`_decode`'s)."""
+    from scipy.special import expit
+
+    z = np.asarray(z)
+    return (ETA_BOUNDS[0] + (ETA_BOUNDS[1] - ETA_BOUNDS[0]) * expit(z[:, 2])).astype(z.dtype)
 
 
 def _decode(z, frame: _Frame, sigma_ss_fixed):
@@ -351,6 +363,7 @@ class _Vertex(NamedTuple):
     frames: ViewFrames | None = None  # (K,) the normal-independent frames (:func:`_prepare`), or computed on use
     lobe_mask: jnp.ndarray | None = None  # (2,) 1/0: the vertex's model has the specular, single-scattering lobe
     sigma_ss_fixed: jnp.ndarray | None = None  # () the model's fixed sigma_ss, NaN where it is free
+    eta_diffuse: jnp.ndarray | None = None  # () eta of the diffuse intensity's transmissions (held), or the fitted eta
 
 
 def _fixed_sigma_ss(v: _Vertex, settings: FitSettings):
@@ -394,9 +407,13 @@ def _view_terms(normal, eta, v: _Vertex, theta_h_offset=None, surface=None, refl
     lit = geom.lit & (geom.cos_i > 1e-4) & (geom.cos_o > 1e-4)
     gamma = polar.safe_sqrt(d_ia**2 + d_is**2)
     safe_gamma = jnp.where(gamma > 0, gamma, 1)
+    dop = gamma / jnp.where(lit, d_id, 1)  # the diffuse DoP at the fitted eta
+    if v.eta_diffuse is not None:  # the diffuse intensity at the held eta (its transmissions do not pull on eta)
+        d_id = observations_from_analyzers(stokes_to_analyzers(shading * diffuse_stokes(surface, v.eta_diffuse)),
+                                           axis=-1)[0]
     terms = {
         "d_id": d_id, "d_ia": d_ia, "d_is": d_is, "r_id": r_id, "r_ia": r_ia, "r_is": r_is,
-        "dop": gamma / jnp.where(lit, d_id, 1),
+        "dop": dop,
         "dir_a": jnp.where(gamma > 0, d_ia / safe_gamma, 0),  # unit direction of the diffuse (I_alpha, I_beta)
         "dir_b": jnp.where(gamma > 0, d_is / safe_gamma, 1),
         "lit": lit, "geom": geom,
@@ -729,6 +746,11 @@ def _lm_rounds(state: _LMState, records: _Vertex, frames: _Frame, settings: FitS
     return jax.lax.while_loop(cond, body, (state, jnp.asarray(0)))[0]
 
 
+HOLD_ROUNDS = 2
+"""With ``hold_diffuse_eta``: LM rounds after the second stage for the vertices whose eta moved by more than
+HOLD_ETA_TOLERANCE from the one their diffuse transmissions held (each round holds the last result)."""
+HOLD_ETA_TOLERANCE = 0.002
+
 ROUGHNESS_GRID = ((0.05, 0.6), (0.1, 0.6), (0.2, 0.6), (0.3, 0.6), (0.45, 0.6),
                   (0.05, 0.9), (0.1, 0.9), (0.2, 0.9), (0.3, 0.9), (0.45, 0.9))
 """(sigma_s, sigma_ss) starting points tried besides the warm start: GGX lobes make the loss
@@ -960,7 +982,8 @@ def _prepare(obs: Observations, keep, prior: PBRDFParams, virtual: VirtualSample
     return _Vertex(obs.diffuse / s, obs.diffuse_pol / s, obs.specular / s, obs.to_light, obs.to_camera,
                    obs.light_distance, obs.camera_up, obs.light_axis, weight.astype(obs.diffuse.dtype), color,
                    scale, spec_prior, prepared,
-                   frames=view_frames(obs.to_light, obs.to_camera, obs.light_axis, obs.camera_up))
+                   frames=view_frames(obs.to_light, obs.to_camera, obs.light_axis, obs.camera_up),
+                   eta_diffuse=jnp.clip(prior.eta, *ETA_BOUNDS).astype(obs.diffuse.dtype))
 
 
 def _robust_weights(z, v: _Vertex, frame: _Frame, settings: FitSettings):
@@ -1078,7 +1101,9 @@ def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSett
     from ``valid`` on are padding (copies of a real row): LM skips them, and the vertices with too few
     usable views."""
     keep, records, frames, z0 = _to_host(_select_and_prepare(obs, normal0, prior, settings, virtual))
-    records = records._replace(lobe_mask=lobe_mask, sigma_ss_fixed=fixed)
+    records = records._replace(lobe_mask=lobe_mask, sigma_ss_fixed=fixed,
+                               eta_diffuse=records.eta_diffuse if settings.hold_diffuse_eta else None)
+    hold = lambda z: records._replace(eta_diffuse=_eta_of(z)) if settings.hold_diffuse_eta else records  # noqa: E731
     n = z0.shape[0]
     enough = np.asarray(keep).sum(1) >= settings.min_views
     rows = np.flatnonzero(enough & (np.arange(n) < (n if valid is None else valid)))
@@ -1092,9 +1117,18 @@ def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSett
     # Stage 1: normal and eta with the roughnesses held; stage 2: everything.
     z, _, it_normal, _ = _run_lm(z, records, frames, settings, active, settings.normal_stage_iterations,
                                  hold_lobes=True)
+    records = hold(z)  # the diffuse transmissions at the eta of the stage before (hold_diffuse_eta)
     z = best_start(z)  # lobes again, now that the normal is close
     z, loss, it_all, hess = _run_lm(z, records, frames, settings, active, settings.max_iterations)
     iterations = it_normal + it_all
+    for _ in range(HOLD_ROUNDS if settings.hold_diffuse_eta else 0):  # again where eta moved from the held one
+        moved = active & (np.abs(_eta_of(z) - records.eta_diffuse) > HOLD_ETA_TOLERANCE)
+        records = hold(z)
+        if not moved.any():
+            break
+        z_new, loss_new, it_new, hess_new = _run_lm(z, records, frames, settings, moved, settings.max_iterations)
+        z, loss = np.where(moved[:, None], z_new, z), np.where(moved, loss_new, loss)
+        hess, iterations = np.where(moved[:, None, None], hess_new, hess), iterations + it_new
     # Robust pass: drop outlier views and continue only the vertices that had any.
     weight, changed = _map_batches(partial(_robust_weights_batch, settings=settings), rows, records, frames, batch, z,
                                    out=(np.array(records.weight), np.zeros(n, bool)))
@@ -1106,6 +1140,7 @@ def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSett
         loss = np.where(changed, loss_new, loss)
         hess = np.where(changed[:, None, None], hess_new, hess)
         iterations = iterations + it_robust
+        records = hold(z)
     fitted = _fitted_columns(records, _free_parameters(dataclasses.replace(settings, fit_normal=True)))
     out = _map_batches(partial(_finalize_batch, settings=settings), rows, records, frames, batch, z, loss, hess,
                        fitted)
