@@ -396,6 +396,29 @@ def test_a_material_cut_along_its_eta_is_one_cluster_and_two_materials_stay_two(
         assert augment._eta_cut(both, np.ones(2 * n, bool), centres, np.random.default_rng(0)) is None
 
 
+def test_vertices_pinned_at_an_eta_bound_are_not_clustered():
+    """fit.eta_at_bound: an eta within 1 % of the range of 1.05 or 3.0 is pinned, not estimated (a DoP that is
+    noise: stability dark_noisy). Such vertices, confident or not, do not shape the clusters: two materials (eta 1.4
+    and 1.6, two albedos) with a third of each pinned at 1.05 give two clusters at 1.4 and 1.6, not a third at 1.05;
+    every vertex is still labelled."""
+    from sellip.fit import eta_at_bound
+
+    np.testing.assert_array_equal(eta_at_bound([1.05, 1.06, 1.07, 1.5, 2.985, 2.975]),
+                                  [True, True, False, False, True, False])
+    rng = np.random.default_rng(5)
+    n = 1200
+    second = np.arange(n) >= n // 2
+    eta = np.where(second, 1.6, 1.4) + rng.normal(0, 0.03, n)
+    eta[rng.random(n) < 1 / 3] = 1.0501
+    rho_d = np.where(second[:, None], [0.4, 0.3, 0.2], [0.2, 0.3, 0.4]) * rng.uniform(0.95, 1.05, (n, 3))
+    clustering = augment.cluster_materials(eta, rho_d, np.zeros(n, np.int8), np.full(n, 0.9),
+                                           augment.AugmentSettings(min_coherence=0.0), seed=0)
+    assert len(clustering.centres) == 2 and clustering.labels.shape == (n,)
+    assert not clustering.used[eta_at_bound(eta)].any()
+    medians = augment.cluster_medians(eta, clustering.labels, clustering.used, [np.nan, np.nan])
+    np.testing.assert_allclose(sorted(medians), [1.4, 1.6], atol=0.01)
+
+
 def test_a_material_of_two_albedo_modes_cut_along_its_eta_is_one_cluster():
     """augment._same_eta_by_albedo: a speckled material (two albedo modes, log brightness +-0.13 with sd 0.1; eta
     1.40 +- 0.06 whatever the albedo) that k-means cuts on albedo and eta together (each cluster one mode's

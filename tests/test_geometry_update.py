@@ -206,6 +206,15 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
                        tmp_path / "final" / "params.zarr", tmp_path / "clusters", model=3)
     source = read_params(tmp_path / "final" / "params.zarr")["lobe_source"].astype(bool)
     assert source[order[:10]].all() and not source[alone] and source.sum() <= 30 and not source[order[30:]].any()
+    # A cap pinned at eta's lower bound, with the tiny std the sigmoid's slope gives there, is no estimate of eta
+    # (fit.eta_at_bound): it takes its material's (as a spot it would pass the rule) and stays out of that eta.
+    pinned = np.where(np.isin(np.arange(m), cap), 1.05, final["eta"])
+    write_params(tmp_path / "last.zarr", {**final, "eta": pinned, "eta_std": np.full(m, 0.001)})
+    finalize.run_stage(tmp_path / "last.zarr", tmp_path / "mesh.ply", tmp_path / "final" / "model.ply",
+                       tmp_path / "final" / "params.zarr", tmp_path / "clusters", model=3)
+    store = read_params(tmp_path / "final" / "params.zarr")
+    assert not store["eta_source"].any()
+    np.testing.assert_allclose(store["eta"], np.where(mesh.vertices[:, 0] > 0, 1.6, 1.4), rtol=1e-6)
     # open3d reads the model with its normals.
     import open3d as o3d
 

@@ -351,10 +351,11 @@ def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings 
     rng = np.random.default_rng(seed)
     features = cluster_features(eta, rho_d)
     used = (np.asarray(status) == fit.STATUS_FITTED) & (np.asarray(confidence) >= settings.min_confidence)
+    used &= ~fit.eta_at_bound(eta)  # no eta to cluster on: dark_noisy's vertices at 1.05 were a cluster of their own
     used &= np.all(np.isfinite(features), 1)
     if not used.any():
         raise ValueError("no vertex is fitted with confidence >= "
-                         f"{settings.min_confidence}: nothing to cluster")
+                         f"{settings.min_confidence} and an eta inside its range: nothing to cluster")
     pool = np.flatnonzero(used)
     if pool.size > settings.cluster_points:
         pool = np.sort(rng.choice(pool, settings.cluster_points, replace=False))

@@ -204,6 +204,19 @@ class _Frame(NamedTuple):
     t2: jnp.ndarray
 
 
+ETA_BOUND_MARGIN = 0.01
+"""Of the eta range: a fitted eta this close to either bound is pinned there, not estimated (:func:`eta_at_bound`)."""
+
+
+def eta_at_bound(eta) -> np.ndarray:
+    """(N,) bool: the fitted eta (N,) sits within ETA_BOUND_MARGIN of the range of a bound of ETA_BOUNDS. The data
+    pushed it out of the range (a diffuse DoP that is noise: stability ``dark_noisy``, half its vertices at 1.05),
+    and its delta-method std collapses with the sigmoid's slope there: it is no estimate of eta."""
+    eta = np.asarray(eta, np.float64)
+    margin = ETA_BOUND_MARGIN * (ETA_BOUNDS[1] - ETA_BOUNDS[0])
+    return (eta < ETA_BOUNDS[0] + margin) | (eta > ETA_BOUNDS[1] - margin)
+
+
 def _eta_of(z) -> np.ndarray:
     """The eta (N,) of host z (N, 5) (:func:`_decode`'s)."""
     from scipy.special import expit

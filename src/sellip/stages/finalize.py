@@ -36,6 +36,7 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
     least 0.01, the rule's floor), and either way only where at least ``deviation_support`` of its 6 nearest vertices
     deviate the same way (:func:`sellip.augment.material_or_own`; <= 0: every vertex's own)."""
     from sellip.augment import AugmentSettings, cluster_medians, material_or_own, nearest_vertices
+    from sellip.fit import eta_at_bound
     from sellip.io import write_param_mesh
     from sellip.observe import read_mesh
     from sellip.params import (
@@ -71,9 +72,10 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
         cluster = labels.astype(np.int32)
         if cluster.shape != (n,):
             raise ParamsError(f"{Path(clusters) / 'labels.npy'}: {cluster.shape[0]} labels for {n} vertices")
-        eta_std = np.asarray(store.get("eta_std", np.full(n, np.inf)), np.float64)
+        pinned = eta_at_bound(eta)  # no estimate: neither in its material's eta nor kept as its own
+        eta_std = np.where(pinned, np.inf, np.asarray(store.get("eta_std", np.full(n, np.inf)), np.float64))
         confident = np.asarray(store.get("confidence", np.zeros(n)), np.float64) > 0
-        material_eta = cluster_medians(eta, cluster, confident, [lobe.eta for lobe in lobes])
+        material_eta = cluster_medians(eta, cluster, confident & ~pinned, [lobe.eta for lobe in lobes])
         neighbours = AugmentSettings().coherence_neighbours  # the vertices that stand for a 1-ring, as in clustering
         near = nearest_vertices(vertices, neighbours)
         eta, eta_source = material_or_own(eta, eta_std, cluster, material_eta, eta_deviation_sigmas,
