@@ -46,7 +46,7 @@ REGION_FIT_POINTS = 500  # the robust Gaussian is fitted to at most this many of
 CUT_ALBEDO_SD = 3.0  # two clusters whose mean albedos are closer than this many pooled sd may be one material ...
 CUT_MODE_POINTS = 4000  # ... cut along its eta: their features along the line between the centres have one mode
 CUT_ETA_SE = 3.0  # ... or, within CUT_MODES_ALBEDO_SD, two albedo modes whose etas split by albedo are this many SE apart
-CUT_MODES_ALBEDO_SD = 5.0  # the albedo modes of one textured material: 2.4-3.9 sd apart; two real materials 5.45 and more
+CUT_MODES_ALBEDO_SD = 5.0  # the albedo modes of one textured material: 2.4-4.1 sd apart; two real materials 5.45 and more
 
 
 @dataclass(frozen=True)
@@ -308,7 +308,7 @@ def _eta_cut(features, used, centres, rng) -> tuple[int, int, float] | None:
     (:func:`_same_eta_by_albedo`: a textured material, two modes on that line too). k-means cuts a material so when
     BIC takes more clusters than materials: sphere_ior's eta 1.462 wedge at 98k vertices, two halves at eta 1.507 and
     1.422, 1.97 sd apart in albedo, coherence 0.69 and 0.73, which the coherence test passes; the albedo modes of
-    the stability spheres' materials 2.4-3.9 sd apart; two real materials are 5.4 sd apart and more on sphere_ior,
+    the stability spheres' materials 2.4-4.1 sd apart; two real materials are 5.4 sd apart and more on sphere_ior,
     the demo and the stability spheres (docs/accuracy.md). The larger cluster keeps its index."""
     labels = np.argmin(_squared_distances(features[used], centres), 1)
     x = features[used]

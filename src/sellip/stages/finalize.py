@@ -34,7 +34,8 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
     by more than ``eta_deviation_sigmas`` of its std, and so is the specular lobe (the cluster lobe fit's sigma_s
     with its rho_s) unless the vertex's sigma_s differs by more than ``lobe_deviation_sigmas`` of its std (at
     least 0.01, the rule's floor), and either way only where at least ``deviation_support`` of its 6 nearest vertices
-    deviate the same way (:func:`sellip.augment.material_or_own`; <= 0: every vertex's own)."""
+    deviate the same way (:func:`sellip.augment.material_or_own`; <= 0: every vertex's own). An eta pinned at a bound
+    (:func:`sellip.fit.eta_at_bound`) is no estimate: the vertex takes its material's, and is not in its median."""
     from sellip.augment import AugmentSettings, cluster_medians, material_or_own, nearest_vertices
     from sellip.fit import eta_at_bound
     from sellip.io import write_param_mesh
