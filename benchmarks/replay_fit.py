@@ -4,9 +4,10 @@
         [--set hold_diffuse_eta=false ...] [--out fit.npz]
 
 RUN is a workflow's results folder (``results/<name>``) whose pass N kept its observations: run the workflow with
-``snakemake --notemp`` up to ``results/<name>/iter/N/observations.zarr`` (temporary otherwise). The replay runs the
-fit stage (:func:`sellip.stages.fit.run_stage`, one shard, the default prior: pass 0's start) with config.yaml's
-``fit.settings`` (a list: its entry for pass N) and ``--set`` over them, then prints, over the fitted vertices with confidence > 0.1: the
+``snakemake --notemp`` up to ``results/<name>/iter/N/clusters`` (``observations.zarr`` is temporary otherwise). The
+replay runs the fit stage (:func:`sellip.stages.fit.run_stage`, one shard, the default prior: pass 0's start) with
+the pass's fit settings as its ``clusters/clusters.json`` records them (the workflow's ``fit.settings`` for the
+pass, :func:`sellip.stages.cluster_lobes.recorded_fit_settings`) and ``--set`` over them, then prints, over the fitted vertices with confidence > 0.1: the
 normal error (median, p90) against the nearest true vertex's normal, and per true material the median eta error,
 its median on the darker and brighter halves of the material (by the true albedo of the 12 true vertices nearest
 each vertex), the median absolute eta error and the correlation of eta with that albedo. docs/fit.md ("Why the
@@ -32,24 +33,29 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="keep the fit here (.npz)")
     args = parser.parse_args(argv)
     warnings.filterwarnings("ignore", message="Object at .snakemake_timestamp")
+    import dataclasses
+    import json
+
     import numpy as np
-    import yaml
     import zarr
     from scipy.spatial import cKDTree
 
     from sellip.io import read_param_mesh
-    from sellip.stages.fit import run_stage, settings_from_pairs
+    from sellip.stages.cluster_lobes import recorded_fit_settings
+    from sellip.stages.fit import overrides_from_pairs, run_stage
 
     observations = args.run / "iter" / str(args.iteration) / "observations.zarr"
     if not observations.exists():
         sys.exit(f"{observations} does not exist: run the workflow with --notemp up to it")
-    config = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "config.yaml").read_text())
-    at_pass = lambda value: value[min(args.iteration, len(value) - 1)] if isinstance(value, list) else value  # noqa: E731
-    defaults = [f"{key}={'null' if at_pass(value) is None else at_pass(value)}"
-                for key, value in config["fit"]["settings"].items()]
+    clusters_json = args.run / "iter" / str(args.iteration) / "clusters" / "clusters.json"
+    try:
+        recorded = recorded_fit_settings(json.loads(clusters_json.read_text()), clusters_json)
+        settings = dataclasses.replace(recorded, **overrides_from_pairs(args.pairs, type(recorded)))
+    except (OSError, ValueError) as error:
+        parser.error(str(error))
     with tempfile.TemporaryDirectory() as folder:
         out = args.out or Path(folder) / "fit.npz"
-        run_stage(observations, (0, 1), out, settings=settings_from_pairs(defaults + args.pairs))
+        run_stage(observations, (0, 1), out, settings=settings)
         fit = dict(np.load(out))
     vertices = np.asarray(zarr.open(str(observations), mode="r")["vertices"])
     truth = read_param_mesh(args.truth)
@@ -60,8 +66,7 @@ def main(argv=None) -> int:
     material, eta_true = truth.material[nearest], np.asarray(truth.params.eta)[nearest]
     used = (fit["confidence"] > 0.1) & (fit["status"] == 0)
     angle = np.degrees(np.arccos(np.clip(np.sum(fit["normal"] * truth.normals[nearest], -1), -1, 1)))[used]
-    settings = " ".join(args.pairs) or "defaults"
-    print(f"{args.run.name} pass {args.iteration} ({settings}): {used.sum()} of {len(used)} vertices with confidence "
+    print(f"{args.run.name} pass {args.iteration} ({' '.join(args.pairs) or 'as run'}): {used.sum()} of {len(used)} vertices with confidence "
           f"> 0.1; normal median {np.median(angle):.2f} deg, p90 {np.percentile(angle, 90):.2f}")
     error = 100 * (fit["eta"] / eta_true - 1)
     for k in np.unique(material):

@@ -38,11 +38,10 @@ def main(argv=None) -> int:
     from scipy.spatial import cKDTree
 
     from sellip import augment, models
-    from sellip.fit import FitSettings
     from sellip.io import read_param_mesh
     from sellip.observe import open_observations
     from sellip.params import read_params
-    from sellip.stages.cluster_lobes import clustering_settings, load_rows
+    from sellip.stages.cluster_lobes import clustering_settings, load_rows, recorded_fit_settings
 
     folder = args.run / "iter" / str(args.iteration)
     observations = folder / "observations.zarr"
@@ -50,10 +49,10 @@ def main(argv=None) -> int:
         parser.error(f"{observations} is missing: run the workflow with snakemake --notemp to keep it")
     info = json.loads((folder / "clusters" / "clusters.json").read_text())
     settings = clustering_settings(info)
-    if "fit_settings" not in info:
-        parser.error(f"{folder / 'clusters' / 'clusters.json'} has no fit_settings (written before 2026-11-26): run "
-                     f"its cluster_lobes job again (snakemake --forcerun cluster_lobes --notemp ...)")
-    fit_settings = FitSettings(**info["fit_settings"])
+    try:
+        fit_settings = recorded_fit_settings(info, folder / "clusters" / "clusters.json")
+    except ValueError as error:
+        parser.error(str(error))
     store = read_params(folder / "fit.zarr")
     group = open_observations(observations)
     truth = read_param_mesh(args.truth)

@@ -177,7 +177,6 @@ def test_levenberg_marquardt_agrees_with_scipy_least_squares():
     settings = FitSettings(hold_diffuse_eta=False)
     result = fit_vertices(obs, start, default_prior(6, np.float64), settings)
     keep, records, frames, z0 = fit._select_and_prepare(obs, jnp.asarray(start), default_prior(6, np.float64), settings)
-    records = records._replace(eta_diffuse=None)
     z0 = fit._best_start(z0, records, frames, settings)
     residual = jax.jit(lambda z, v, f: fit._residuals(z, v, f, settings))
     jacobian = jax.jit(jax.jacfwd(lambda z, v, f: fit._residuals(z, v, f, settings)))

@@ -217,12 +217,9 @@ def eta_at_bound(eta) -> np.ndarray:
     return (eta < ETA_BOUNDS[0] + margin) | (eta > ETA_BOUNDS[1] - margin)
 
 
-def _eta_of(z) -> np.ndarray:
-    """The eta (N,) of host z (N, 5) (:func:`_decode`'s)."""
-    from scipy.special import expit
-
-    z = np.asarray(z)
-    return (ETA_BOUNDS[0] + (ETA_BOUNDS[1] - ETA_BOUNDS[0]) * expit(z[:, 2])).astype(z.dtype)
+def _eta_from(z_eta):
+    """eta from its unconstrained coordinate z[..., 2] (the scaled sigmoid of :func:`_decode`)."""
+    return ETA_BOUNDS[0] + (ETA_BOUNDS[1] - ETA_BOUNDS[0]) * jax.nn.sigmoid(z_eta)
 
 
 def _decode(z, frame: _Frame, sigma_ss_fixed):
@@ -233,7 +230,7 @@ def _decode(z, frame: _Frame, sigma_ss_fixed):
     sigma_ss_fixed: None (free), a number, or a traced scalar (a vertex's model: NaN = free).
     """
     normal = polar.safe_normalize(frame.normal0 + z[0] * frame.t1 + z[1] * frame.t2, fallback=frame.normal0)
-    eta = ETA_BOUNDS[0] + (ETA_BOUNDS[1] - ETA_BOUNDS[0]) * jax.nn.sigmoid(z[2])
+    eta = _eta_from(z[2])
     sigma_s = SIGMA_BOUNDS[0] + (SIGMA_BOUNDS[1] - LOBE_GAP - SIGMA_BOUNDS[0]) * jax.nn.sigmoid(z[3])
     if isinstance(sigma_ss_fixed, (int, float)):
         return normal, eta, sigma_s, jnp.asarray(sigma_ss_fixed, z.dtype)
@@ -776,7 +773,7 @@ def _best_start(z0, records: _Vertex, frames: _Frame, settings: FitSettings):
 
     The starts differ in roughness only: the view terms are evaluated once per vertex."""
     grid = jnp.asarray(ROUGHNESS_GRID, z0.dtype)
-    eta = ETA_BOUNDS[0] + (ETA_BOUNDS[1] - ETA_BOUNDS[0]) * jax.nn.sigmoid(z0[:, 2])
+    eta = _eta_from(z0[:, 2])
     grid_starts = jax.vmap(lambda e: _encode(jnp.full(len(ROUGHNESS_GRID), e), grid[:, 0], grid[:, 1], z0.dtype))(eta)
     starts = jnp.concatenate([z0[:, None], grid_starts.at[:, :, :2].set(z0[:, None, :2])], axis=1)
 
@@ -1084,6 +1081,8 @@ def _select_and_prepare(obs: Observations, normal0, prior: PBRDFParams, settings
         virtual = VirtualSamples(*[jnp.asarray(x, dtype) for x in virtual])
     records, frames, z0 = _prepare_batch(Observations(*[jnp.asarray(x) for x in obs]), jnp.asarray(obs.usable),
                                          normal0, prior, virtual, lambda_g=float(settings.lambda_g))
+    if not settings.hold_diffuse_eta:  # the diffuse transmissions at the fitted eta
+        records = records._replace(eta_diffuse=None)
     return obs.usable, records, frames, z0
 
 
@@ -1114,9 +1113,10 @@ def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSett
     from ``valid`` on are padding (copies of a real row): LM skips them, and the vertices with too few
     usable views."""
     keep, records, frames, z0 = _to_host(_select_and_prepare(obs, normal0, prior, settings, virtual))
-    records = records._replace(lobe_mask=lobe_mask, sigma_ss_fixed=fixed,
-                               eta_diffuse=records.eta_diffuse if settings.hold_diffuse_eta else None)
-    hold = lambda z: records._replace(eta_diffuse=_eta_of(z)) if settings.hold_diffuse_eta else records  # noqa: E731
+    records = records._replace(lobe_mask=lobe_mask, sigma_ss_fixed=fixed)
+
+    def hold(records, z):  # the diffuse transmissions at the eta of z (FitSettings.hold_diffuse_eta)
+        return records if records.eta_diffuse is None else records._replace(eta_diffuse=np.asarray(_eta_from(z[:, 2])))
     n = z0.shape[0]
     enough = np.asarray(keep).sum(1) >= settings.min_views
     rows = np.flatnonzero(enough & (np.arange(n) < (n if valid is None else valid)))
@@ -1130,13 +1130,13 @@ def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSett
     # Stage 1: normal and eta with the roughnesses held; stage 2: everything.
     z, _, it_normal, _ = _run_lm(z, records, frames, settings, active, settings.normal_stage_iterations,
                                  hold_lobes=True)
-    records = hold(z)  # the diffuse transmissions at the eta of the stage before (hold_diffuse_eta)
+    records = hold(records, z)
     z = best_start(z)  # lobes again, now that the normal is close
     z, loss, it_all, hess = _run_lm(z, records, frames, settings, active, settings.max_iterations)
     iterations = it_normal + it_all
-    for _ in range(HOLD_ROUNDS if settings.hold_diffuse_eta else 0):  # again where eta moved from the held one
-        moved = active & (np.abs(_eta_of(z) - records.eta_diffuse) > HOLD_ETA_TOLERANCE)
-        records = hold(z)
+    for _ in range(HOLD_ROUNDS if records.eta_diffuse is not None else 0):  # again where eta moved from the held one
+        moved = active & (np.abs(np.asarray(_eta_from(z[:, 2])) - records.eta_diffuse) > HOLD_ETA_TOLERANCE)
+        records = hold(records, z)
         if not moved.any():
             break
         z_new, loss_new, it_new, hess_new = _run_lm(z, records, frames, settings, moved, settings.max_iterations)
@@ -1153,7 +1153,7 @@ def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSett
         loss = np.where(changed, loss_new, loss)
         hess = np.where(changed[:, None, None], hess_new, hess)
         iterations = iterations + it_robust
-        records = hold(z)
+        records = hold(records, z)
     fitted = _fitted_columns(records, _free_parameters(dataclasses.replace(settings, fit_normal=True)))
     out = _map_batches(partial(_finalize_batch, settings=settings), rows, records, frames, batch, z, loss, hess,
                        fitted)

@@ -125,6 +125,18 @@ def read_models(directory: Path, count: int | None = None) -> np.ndarray:
     return models.astype(np.uint8)
 
 
+def recorded_fit_settings(clusters_json: dict, path: Path | str = "clusters.json"):
+    """The :class:`sellip.fit.FitSettings` of a pass's lobe fits, as its ``clusters.json`` (parsed, read from ``path``)
+    records them: the workflow's ``fit.settings`` for that pass. Raises ValueError for a file written before they were
+    recorded (2026-11-26), naming the job to run again."""
+    from sellip.fit import FitSettings
+
+    if "fit_settings" not in clusters_json:
+        raise ValueError(f"{path} has no fit_settings (written before 2026-11-26): run its cluster_lobes job again "
+                         f"(snakemake --forcerun cluster_lobes --notemp ...)")
+    return FitSettings(**clusters_json["fit_settings"])
+
+
 def clustering_settings(clusters_json: dict, overrides: dict | None = None):
     """The :class:`sellip.augment.AugmentSettings` a ``clusters.json`` (its parsed dict) was made with, ``overrides``
     (field: value) over them: how a replay re-runs a pass's clustering or lobe fit as the workflow ran it (the
