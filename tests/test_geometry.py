@@ -186,6 +186,25 @@ def test_silhouette_masks_keep_real_holes_and_fill_dark_texture():
     assert (mask != truth).mean() < 0.01
 
 
+def test_a_dim_object_in_a_noisy_view_is_cut_above_the_background_noise():
+    """A dark disc (6-18 above the background) with a small highlight (80) over a background of 1.8 +- 1.5, the
+    stability case ``dark_noisy``'s numbers: 3 % of the highlight lies below the background, which the level alone
+    called object (IoU 0.09). The noise floor finds the background and its sd and cuts above it."""
+    yy, xx = np.mgrid[:HEIGHT, :WIDTH]
+    radius = np.hypot(xx - 160, yy - 128)
+    truth = radius < 60
+    image = np.where(truth, 6 + 12 * np.sqrt(np.clip(1 - (radius / 60) ** 2, 0, None)), 0.0)
+    image[np.hypot(xx - 150, yy - 120) < 10] = 80.0
+    for seed in range(3):
+        noisy = image + 1.8 + np.random.default_rng(seed).normal(0, 1.5, image.shape)
+        luminance, level = geometry.silhouette_level(noisy[..., None])
+        background, noise = geometry.background_noise(luminance, np.ones(luminance.shape, bool))
+        assert background == pytest.approx(1.8, abs=0.4) and noise == pytest.approx(1.5, rel=0.15)
+        assert level > 1.8 + 4 * 1.5 and level > 0.03 * np.percentile(noisy[noisy > 0], 99)
+        mask = geometry.silhouette_masks(noisy[None, ..., None])[0]
+        assert (mask & truth).sum() / (mask | truth).sum() > 0.95
+
+
 def test_boundary_distance_measures_a_sub_pixel_shift_of_a_dim_limb():
     """Two lit disks, radii 0.1-0.7 px apart, whose brightness falls smoothly to the limb (a Lambertian sphere under
     a co-located flash, box filtered over each pixel) with background noise: at 400 points up to a pixel from the
