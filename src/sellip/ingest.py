@@ -42,9 +42,11 @@ Invalid samples
 
 HDR (:func:`merge_hdr`)
     Each frame estimates the relative radiance ``linear / (flash_level *
-    exposure_s)``; frames are averaged with weights ``gain * hdr_weight(linear)``
-    that favour mid-range values, are zero for invalid samples and small (not
-    zero) for dark ones, so a pixel dark in every frame still gets a value.
+    exposure_s)``; frames are averaged with weights ``gain * hdr_weight(box)``
+    (``box`` the frame averaged over 5x5 pixels, so that no weight follows its
+    sample's own noise) that favour mid-range values, are zero for invalid
+    samples and small (not zero) for dark ones, so a pixel dark in every frame
+    still gets a value.
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy import ndimage
 
 from sellip.conventions import ANALYZER_ANGLES_DEG
 from sellip.mosaic import MosaicError, MosaicLayout
@@ -66,6 +69,12 @@ DEFAULT_SATURATION = 0.98
 
 HDR_WEIGHT_FLOOR = 1e-3
 """Smallest weight of a valid sample in the HDR merge (dark samples keep a little weight)."""
+
+HDR_WEIGHT_WINDOW = 5
+"""Side (pixels) of the box that a frame is averaged over before its merge weights are taken from it: a weight
+from the sample's own value grows with its own noise (h rises from black) and biased dark pixels upward by about
+0.4 noise sd (the background of the stability suite's captures at 0.17 against a dim limb's 5); a 5x5 box leaves
+a hundredth of it (docs/ingest.md)."""
 
 GUIDE_FLOOR = 1e-3
 """Colour-ratio demosaicing needs the guide colour (G) above this (linear, 1 = full scale) where the ratio is
@@ -510,11 +519,12 @@ def hdr_weight(linear: np.ndarray) -> np.ndarray:
 def merge_hdr(frames: Iterable[np.ndarray], gains: Iterable[float]) -> tuple[np.ndarray, np.ndarray]:
     """Merge frames of one view into relative radiance.
 
-    frames: F arrays (..., 4, C) float32 linear values, NaN where invalid (an
-    (F, ..., 4, C) array works too); gains: F values flash_level * exposure_s.
-    Frame f estimates ``frame / gain_f``; its weight is ``gain_f * hdr_weight(frame)``.
-    Returns ``(merged, valid)``: merged (..., 4, C) float32 (0 where no frame
-    is valid), valid (...) bool, True where every analyzer and channel has a valid frame.
+    frames: F arrays (..., H, W, 4, C) float32 linear values, NaN where invalid (an (F, ..., 4, C) array
+    works too); gains: F values flash_level * exposure_s. Frame f estimates ``frame / gain_f``; its weight is
+    ``gain_f * hdr_weight(box)`` where the sample is valid, ``box`` the frame averaged over
+    :data:`HDR_WEIGHT_WINDOW` pixels per side (invalid samples as 0), so that no sample's weight follows its
+    own noise. Returns ``(merged, valid)``: merged (..., 4, C) float32 (0 where no frame is valid), valid (...)
+    bool, True where every analyzer and channel has a valid frame.
     """
     num = den = None
     for frame, gain in zip(frames, gains, strict=True):
@@ -522,8 +532,11 @@ def merge_hdr(frames: Iterable[np.ndarray], gains: Iterable[float]) -> tuple[np.
             raise IngestError(f"gain (flash_level * exposure_s) must be > 0, got {gain}")
         if num is not None and frame.shape != num.shape:
             raise IngestError(f"frames of one view must have equal shapes, got {num.shape} and {frame.shape}")
-        h = hdr_weight(frame)
-        term = np.nan_to_num(np.multiply(frame, h, dtype=np.float32), copy=False, nan=0.0)  # h = 0 where NaN
+        value = np.nan_to_num(frame, nan=0.0)
+        box = ndimage.uniform_filter(value, size=(HDR_WEIGHT_WINDOW,) * (frame.ndim - 2) + (1, 1), mode="nearest")
+        h = hdr_weight(box)
+        h[np.isnan(frame)] = 0
+        term = np.multiply(value, h, dtype=np.float32)
         h *= np.float32(gain)
         if num is None:
             num, den = term, h
