@@ -238,7 +238,7 @@ def silhouette_level(image: np.ndarray, valid: np.ndarray | None = None, thresho
     non-zero ``valid`` pixels (0 for an image with none), and at least :data:`BACKGROUND_NOISE_SIGMAS` noise sd
     above the background (:func:`background_noise`): a dark object in a noisy view (the stability case
     ``dark_noisy``) is no brighter at 3 % of its highlight than half its background, whose pixels the level alone
-    called object (a mask of 15 % IoU with the truth, 93 % with the noise floor)."""
+    called object (masks of 0.15 IoU with the true silhouettes; 0.94 with the floor, docs/geometry.md)."""
     image = np.asarray(image)
     luminance = image.mean(axis=-1) if image.ndim == 3 else image
     luminance = np.nan_to_num(luminance.astype(np.float32), nan=0.0)
