@@ -348,8 +348,8 @@ def test_the_true_model_predicts_the_photographs_silhouettes(tiny_capture):
         explained = constraints.direction @ np.array([0.0, 0.0, shift_m]) / constraints.pixel
         print(shift_m, "offset px mean", offset_px.mean(), "explained mean", explained.mean(),
               "fit", np.mean((offset_px - explained) ** 2) ** 0.5)
-        assert abs(np.mean(offset_px - explained)) < 0.05  # -0.016 px measured here, and 0.007 px with the shift
-        assert np.sqrt(np.mean((offset_px - explained) ** 2)) < (0.1 if shift_m == 0 else 0.25)  # 0.056, 0.157
+        assert abs(np.mean(offset_px - explained)) < 0.05  # -0.008 px measured here, and -0.002 px with the shift
+        assert np.sqrt(np.mean((offset_px - explained) ** 2)) < (0.1 if shift_m == 0 else 0.25)  # 0.048, 0.148
         if shift_m:
             assert np.sqrt(np.mean(explained ** 2)) > 0.4 and np.corrcoef(offset_px, explained)[0, 1] > 0.7
 

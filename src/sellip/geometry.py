@@ -234,11 +234,18 @@ def background_noise(luminance: np.ndarray, usable: np.ndarray) -> tuple[float, 
 def silhouette_level(image: np.ndarray, valid: np.ndarray | None = None, threshold: float = 0.03,
                      percentile: float = 99.0) -> tuple[np.ndarray, float]:
     """The luminance (H, W) float32 (mean over channels of an (H, W) or (H, W, C) image, NaN as 0) and the level
-    above which :func:`silhouette_masks` calls a pixel object: ``threshold`` times the ``percentile`` of its
-    non-zero ``valid`` pixels (0 for an image with none), and at least :data:`BACKGROUND_NOISE_SIGMAS` noise sd
-    above the background (:func:`background_noise`): a dark object in a noisy view (the stability case
-    ``dark_noisy``) is no brighter at 3 % of its highlight than half its background, whose pixels the level alone
-    called object (masks of 0.15 IoU with the true silhouettes; 0.94 with the floor, docs/geometry.md)."""
+    above which :func:`silhouette_masks` calls a pixel object: ``threshold`` times the ``percentile`` of the
+    ``valid`` pixels above the background's noise floor (:func:`background_noise`, :data:`BACKGROUND_NOISE_SIGMAS`
+    sd above it; of the positive ones where none is above), and at least that floor; 0 for an image with no
+    positive pixel.
+
+    The floor: a dark object in a noisy view (the stability case ``dark_noisy``) is no brighter at 3 % of its
+    highlight than its background, whose pixels the level alone called object (masks of 0.15 IoU with the true
+    silhouettes; 0.94 with the floor, docs/geometry.md). The percentile over the pixels above it: over the
+    positive pixels it counted the half of the background that noise makes positive, so the level of a photograph
+    moved with its noise (the unbiased HDR merge counts fewer) and differed from that of a noise-free render of
+    the same scene (the geometry update's prediction), whose background is exact: the photographs' silhouettes of
+    the true model lay 0.05 px inside its render's, 0.008 px now (docs/geometry_update.md)."""
     image = np.asarray(image)
     luminance = image.mean(axis=-1) if image.ndim == 3 else image
     luminance = np.nan_to_num(luminance.astype(np.float32), nan=0.0)
@@ -247,8 +254,10 @@ def silhouette_level(image: np.ndarray, valid: np.ndarray | None = None, thresho
     if not usable.any():
         return luminance, 0.0
     background, noise = background_noise(luminance, considered)
-    return luminance, max(float(threshold * np.percentile(luminance[usable], percentile)),
-                          background + BACKGROUND_NOISE_SIGMAS * noise)
+    floor = background + BACKGROUND_NOISE_SIGMAS * noise
+    above = considered & (luminance > max(floor, 0.0))
+    return luminance, max(float(threshold * np.percentile(luminance[above if above.any() else usable], percentile)),
+                          floor)
 
 
 def silhouette_masks(images: np.ndarray, valid: np.ndarray | None = None, threshold: float = 0.03,
