@@ -268,7 +268,7 @@ def silhouette_masks(images: np.ndarray, valid: np.ndarray | None = None, thresh
     images: (V, H, W) or (V, H, W, C) linear intensities (e.g. I_d); valid: optional (V, H, W) bool
     (invalid pixels, e.g. saturated highlights, count as object when a neighbour is object).
     A pixel is object when its mean over channels exceeds ``threshold`` times the view's robust
-    maximum (the ``percentile`` of its non-zero valid pixels) and the background's noise floor
+    maximum (the ``percentile`` of its valid pixels above the background's noise floor) and that floor
     (:func:`silhouette_level`). Cleanup per view: opening with a
     disk of ``open_px`` (noise specks), closing with ``close_px`` (cracks), background holes
     smaller than ``max_hole_fraction`` of the object area filled (dark texture inside the object;
