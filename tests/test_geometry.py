@@ -189,7 +189,7 @@ def test_silhouette_masks_keep_real_holes_and_fill_dark_texture():
 def test_a_dim_object_in_a_noisy_view_is_cut_above_the_background_noise():
     """A dark disc (6-18 above the background) with a small highlight (80) over a background of 1.8 +- 1.5, the
     stability case ``dark_noisy``'s numbers: 3 % of the highlight lies below the background, which the level alone
-    called object (IoU 0.09). The noise floor finds the background and its sd and cuts above it."""
+    called object (IoU 0.14). The noise floor finds the background and its sd and cuts above it."""
     yy, xx = np.mgrid[:HEIGHT, :WIDTH]
     radius = np.hypot(xx - 160, yy - 128)
     truth = radius < 60

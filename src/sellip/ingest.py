@@ -72,9 +72,9 @@ HDR_WEIGHT_FLOOR = 1e-3
 
 HDR_WEIGHT_WINDOW = 5
 """Side (pixels) of the box that a frame is averaged over before its merge weights are taken from it: a weight
-from the sample's own value grows with its own noise (h rises from black) and biased dark pixels upward by about
-0.4 noise sd (the background of the stability suite's captures at 0.17 against a dim limb's 5); a 5x5 box leaves
-a hundredth of it (docs/ingest.md)."""
+from the sample's own value grows with its own noise (h rises from black) and biased dark pixels upward by 0.3-0.6
+noise sd (the background of the stability suite's captures at +0.17 against a dim limb's 5); a 5x5 box leaves a
+hundredth of it (docs/ingest.md)."""
 
 GUIDE_FLOOR = 1e-3
 """Colour-ratio demosaicing needs the guide colour (G) above this (linear, 1 = full scale) where the ratio is
