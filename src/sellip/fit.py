@@ -1117,6 +1117,7 @@ def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSett
 
     def hold(records, z):  # the diffuse transmissions at the eta of z (FitSettings.hold_diffuse_eta)
         return records if records.eta_diffuse is None else records._replace(eta_diffuse=np.asarray(_eta_from(z[:, 2])))
+
     n = z0.shape[0]
     enough = np.asarray(keep).sum(1) >= settings.min_views
     rows = np.flatnonzero(enough & (np.arange(n) < (n if valid is None else valid)))
@@ -1135,8 +1136,9 @@ def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSett
     z, loss, it_all, hess = _run_lm(z, records, frames, settings, active, settings.max_iterations)
     iterations = it_normal + it_all
     for _ in range(HOLD_ROUNDS if records.eta_diffuse is not None else 0):  # again where eta moved from the held one
-        moved = active & (np.abs(np.asarray(_eta_from(z[:, 2])) - records.eta_diffuse) > HOLD_ETA_TOLERANCE)
+        held = records.eta_diffuse
         records = hold(records, z)
+        moved = active & (np.abs(records.eta_diffuse - held) > HOLD_ETA_TOLERANCE)
         if not moved.any():
             break
         z_new, loss_new, it_new, hess_new = _run_lm(z, records, frames, settings, moved, settings.max_iterations)
@@ -1153,7 +1155,7 @@ def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSett
         loss = np.where(changed, loss_new, loss)
         hess = np.where(changed[:, None, None], hess_new, hess)
         iterations = iterations + it_robust
-        records = hold(records, z)
+    records = hold(records, z)  # the loss and std below at the final eta, also after the last hold round's refit
     fitted = _fitted_columns(records, _free_parameters(dataclasses.replace(settings, fit_normal=True)))
     out = _map_batches(partial(_finalize_batch, settings=settings), rows, records, frames, batch, z, loss, hess,
                        fitted)
