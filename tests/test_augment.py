@@ -511,3 +511,30 @@ def test_a_small_region_of_another_albedo_becomes_its_own_material_and_scattered
         medians = augment.cluster_medians(eta, found.labels, np.ones(n, bool), [1.5, 1.5])
         assert abs(medians[found.labels[np.argmax(caps)]] / 1.62 - 1) < 0.01
         assert abs(np.median(eta) / 1.62 - 1) > 0.07  # what the one cluster gave them
+
+
+def test_stage_degrades_when_no_vertex_is_confident_or_has_a_usable_sample(tmp_path, scene):
+    """Every vertex with too few views and no usable sample: one cluster, no lobe (model 0, 0 samples), the reason
+    in clusters.json's ``degenerate``, and the refit reads it: the run goes on (it used to raise)."""
+    import json
+
+    import zarr
+
+    from sellip.params import read_params, write_params
+    from sellip.stages.cluster_lobes import read_lobes, read_models
+
+    _write_stores(tmp_path, scene)
+    store = read_params(tmp_path / "fit.zarr")
+    store.pop("attrs")
+    store["status"] = np.full_like(store["status"], 1)  # too few views
+    store["confidence"] = np.zeros_like(store["confidence"])
+    write_params(tmp_path / "bad.zarr", store, chunk=64)
+    zarr.open_group(str(tmp_path / "observations.zarr"), mode="r+")["usable"][...] = False
+    clusters = tmp_path / "clusters"
+    assert cli.main(["cluster-lobes", "--params", str(tmp_path / "bad.zarr"), "--observations",
+                     str(tmp_path / "observations.zarr"), "--output", str(clusters), "--max-samples", "1000"]) == 0
+    labels, lobes = read_lobes(clusters)
+    assert len(lobes) == 1 and lobes[0].samples == 0 and lobes[0].rho_s == 0 and np.all(labels == 0)
+    assert np.all(read_models(clusters, 120) == 0)
+    summary = json.loads((clusters / "clusters.json").read_text())
+    assert summary["k"] == 1 and len(summary["degenerate"]) == 3  # nothing clustered, no confident, no sample

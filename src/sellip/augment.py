@@ -74,7 +74,8 @@ class AugmentSettings:
 class Clustering(NamedTuple):
     """labels (N,) int32 in 0..K-1 for every vertex; centres (K, 4) feature units; bic {K: value};
     merges: one dict per merged cluster (vertices, into, reason); used (N,) bool, the vertices clustered;
-    regions: one dict per cluster added for a region of another albedo inside a cluster (:func:`_region_centres`)."""
+    regions: one dict per cluster added for a region of another albedo inside a cluster (:func:`_region_centres`);
+    notes: what was degenerate (a rule that could not apply to these data, and what was done instead)."""
 
     labels: np.ndarray
     centres: np.ndarray
@@ -82,6 +83,7 @@ class Clustering(NamedTuple):
     merges: list
     used: np.ndarray
     regions: tuple = ()
+    notes: tuple = ()
 
 
 class ClusterLobe(NamedTuple):
@@ -210,9 +212,9 @@ def _coherence(labels, near) -> np.ndarray:
         return sums / members
 
 
-def _region_centres(features, used, centres, near, settings: AugmentSettings, rng) -> tuple[np.ndarray, list]:
-    """Centres (K + R, d) with a centre added for each small material that k-means left inside a cluster, and one
-    record per added centre.
+def _region_centres(features, used, centres, near, settings: AugmentSettings, rng) -> tuple[np.ndarray, list, list]:
+    """Centres (K + R, d) with a centre added for each small material that k-means left inside a cluster, one
+    record per added centre, and the notes of clusters whose albedos had no spread (:func:`_robust_mahalanobis`).
 
     BIC does not spend a cluster on a material of 1 % of the surface (the demo's eyes and beak, 67 of 5.7k
     vertices, inside the plumage's cluster), and its median eta then is the plumage's. Per cluster: the albedo
@@ -226,11 +228,10 @@ def _region_centres(features, used, centres, near, settings: AugmentSettings, rn
     """
     from scipy.stats import chi2
     from sklearn.cluster import DBSCAN
-    from sklearn.covariance import MinCovDet
 
     labels = np.argmin(_squared_distances(features, centres), 1)
     threshold = chi2.ppf(1 - REGION_OUTLIER_P, 3)
-    regions = []
+    regions, notes = [], []
     for cluster in range(len(centres)):
         members = np.flatnonzero(used & (labels == cluster))
         if members.size < settings.min_cluster_vertices:
@@ -238,8 +239,9 @@ def _region_centres(features, used, centres, near, settings: AugmentSettings, rn
         albedo = features[members, :3]
         sample = albedo if len(albedo) <= REGION_FIT_POINTS else albedo[rng.choice(len(albedo), REGION_FIT_POINTS,
                                                                                     replace=False)]
-        gaussian = MinCovDet(random_state=int(rng.integers(2**31))).fit(sample)
-        outliers = members[gaussian.mahalanobis(albedo) > threshold]
+        distances, note = _robust_mahalanobis(sample, albedo, rng, cluster)
+        notes += [note] if note else []
+        outliers = members[distances > threshold]
         if outliers.size < REGION_MIN_SAMPLES:
             continue
         groups = DBSCAN(eps=REGION_EPS, min_samples=REGION_MIN_SAMPLES).fit_predict(features[outliers, :3])
@@ -263,7 +265,57 @@ def _region_centres(features, used, centres, near, settings: AugmentSettings, rn
                      cluster, region.sum(), coherence)
             centres = trial
             regions.append(record)
-    return centres, regions
+    return centres, regions, notes
+
+
+DEGENERATE_VARIANCE = 1e-12  # a robust covariance eigenvalue below this (feature units^2) is no spread at all
+
+
+def _robust_mahalanobis(sample: np.ndarray, x: np.ndarray, rng, cluster: int = -1) -> tuple[np.ndarray, str | None]:
+    """Squared Mahalanobis distances (n,) of ``x`` (n, d) from the robust Gaussian (scikit-learn ``MinCovDet``) of
+    ``sample`` (m, d), and a note when that Gaussian was degenerate (None otherwise).
+
+    Where more than half of the sample shares one value in some direction (a texture of flat colours, dark vertices
+    whose albedo sits at the feature floor: many identical rows), the minimum-covariance-determinant estimate is
+    singular and ``MinCovDet`` raises. The robust Gaussian is then degenerate, not absent: its location is the
+    sample's median and its spread in each direction without spread is ``VARIANCE_FLOOR`` (spreads below half a
+    feature unit are not structure, as in :func:`bic`), so what differs from the shared value by more than about a
+    unit is still an outlier. Logged; a non-degenerate sample gives ``MinCovDet``'s own distances.
+    """
+    from sklearn.covariance import MinCovDet
+
+    import warnings
+
+    try:
+        with warnings.catch_warnings():  # "not full rank": handled below
+            warnings.simplefilter("ignore", UserWarning)
+            gaussian = MinCovDet(random_state=int(rng.integers(2**31))).fit(sample)
+        location, covariance = gaussian.location_, gaussian.covariance_
+    except ValueError:  # the support's covariance is 0: every direction is degenerate
+        gaussian, location, covariance = None, np.median(sample, 0), np.zeros((sample.shape[1],) * 2)
+    values, vectors = np.linalg.eigh(covariance)
+    degenerate = ~(values > DEGENERATE_VARIANCE)
+    if gaussian is not None and not degenerate.any():
+        return gaussian.mahalanobis(x), None
+    note = (f"cluster {cluster}: its albedos have no spread in {int(degenerate.sum())} of {len(values)} directions "
+            f"(flat colours or dark vertices): the region search took a spread of {np.sqrt(VARIANCE_FLOOR):g} "
+            "feature units there")
+    log.info("%s", note)
+    values = np.where(degenerate, VARIANCE_FLOOR, values)
+    projected = (np.asarray(x, np.float64) - location) @ vectors
+    return np.sum(projected**2 / values, 1), note
+
+
+def _separation(gap: np.ndarray, pooled: np.ndarray) -> float:
+    """Mahalanobis length of ``gap`` (d,) under the covariance ``pooled`` (d, d); a direction without spread (two
+    flat colours) counts with ``VARIANCE_FLOOR``, as in :func:`_robust_mahalanobis`, so that a gap along it is
+    large, not ignored."""
+    values, vectors = np.linalg.eigh(pooled)
+    degenerate = ~(values > DEGENERATE_VARIANCE)
+    if not degenerate.any():
+        return float(np.sqrt(gap @ np.linalg.lstsq(pooled, gap, rcond=None)[0]))
+    projected = gap @ vectors
+    return float(np.sqrt(np.sum(projected**2 / np.where(degenerate, VARIANCE_FLOOR, values))))
 
 
 def _one_mode(x: np.ndarray, rng) -> bool:
@@ -273,6 +325,8 @@ def _one_mode(x: np.ndarray, rng) -> bool:
 
     if len(x) > CUT_MODE_POINTS:
         x = rng.choice(x, CUT_MODE_POINTS, replace=False)
+    if not np.ptp(x) > 0:  # one value (or NaN): one mode, and no mixture to fit
+        return True
     mixture = GaussianMixture(2, random_state=int(rng.integers(2**31))).fit(x[:, None])
     grid = np.linspace(*np.percentile(x, [0.5, 99.5]), 400)[:, None]
     density = mixture.score_samples(grid)
@@ -289,6 +343,8 @@ def _same_eta_by_albedo(A: np.ndarray, B: np.ndarray, rng) -> bool:
     1.442 (true 1.40); split by albedo alone they are 1.397 and 1.411 (docs/accuracy.md)."""
     x = np.concatenate([A, B])
     line = B[:, :3].mean(0) - A[:, :3].mean(0)
+    if not np.linalg.norm(line) > 0:  # one mean albedo: one albedo mode
+        return False
     if _one_mode(x[:, :3] @ (line / np.linalg.norm(line)), rng):
         return False
     to_a = np.sum((x[:, :3] - A[:, :3].mean(0)) ** 2, 1) <= np.sum((x[:, :3] - B[:, :3].mean(0)) ** 2, 1)
@@ -321,11 +377,12 @@ def _eta_cut(features, used, centres, rng) -> tuple[int, int, float] | None:
                 continue
             pooled = (np.cov(A[:, :3].T) * (len(A) - 1) + np.cov(B[:, :3].T) * (len(B) - 1)) / (len(A) + len(B) - 2)
             gap = A[:, :3].mean(0) - B[:, :3].mean(0)
-            separation = float(np.sqrt(gap @ np.linalg.lstsq(pooled, gap, rcond=None)[0]))
+            separation = _separation(gap, pooled)
             if separation >= CUT_MODES_ALBEDO_SD or (best is not None and separation >= best[2]):
                 continue
             line = B.mean(0) - A.mean(0)
-            if (separation < CUT_ALBEDO_SD and _one_mode(np.concatenate([A, B]) @ (line / np.linalg.norm(line)), rng)) \
+            line = line / np.linalg.norm(line) if np.linalg.norm(line) > 0 else line  # one centre: one mode
+            if (separation < CUT_ALBEDO_SD and _one_mode(np.concatenate([A, B]) @ line, rng)) \
                     or _same_eta_by_albedo(A, B, rng):
                 best = (a, b, separation) if len(A) >= len(B) else (b, a, separation)
     return best
@@ -353,9 +410,14 @@ def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings 
     used = (np.asarray(status) == fit.STATUS_FITTED) & (np.asarray(confidence) >= settings.min_confidence)
     used &= ~fit.eta_at_bound(eta)  # no eta to cluster on: dark_noisy's vertices at 1.05 were a cluster of their own
     used &= np.all(np.isfinite(features), 1)
-    if not used.any():
-        raise ValueError("no vertex is fitted with confidence >= "
-                         f"{settings.min_confidence} and an eta inside its range: nothing to cluster")
+    if not used.any():  # nothing to cluster on: one cluster, said so (the stage fits its lobe on every vertex)
+        note = (f"no vertex is fitted with confidence >= {settings.min_confidence} and an eta inside its range "
+                f"({len(features)} vertices): one cluster of them all")
+        log.warning("%s", note)
+        finite = np.all(np.isfinite(features), 1)
+        centre = np.median(features[finite], 0) if finite.any() else np.zeros(features.shape[1])
+        return Clustering(labels=np.zeros(len(features), np.int32), centres=centre[None], bic={}, merges=[],
+                          used=used, notes=(note,))
     pool = np.flatnonzero(used)
     if pool.size > settings.cluster_points:
         pool = np.sort(rng.choice(pool, settings.cluster_points, replace=False))
@@ -379,9 +441,9 @@ def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings 
         centres = centres[others]
     near = nearest_vertices(vertices, settings.coherence_neighbours) if vertices is not None and settings.min_coherence > 0 \
         else None
-    regions = []
+    regions, notes = [], []
     if near is not None:
-        centres, regions = _region_centres(features, used, centres, near, settings, rng)
+        centres, regions, notes = _region_centres(features, used, centres, near, settings, rng)
     # A region passed the coherence test as a group. As a cluster its centre also takes vertices of a similar albedo
     # elsewhere and its coherence can fall (the demo's eyes with 24 views: the group 0.65, its cluster 0.43): the
     # test below skips regions.
@@ -423,7 +485,8 @@ def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings 
     order = np.argsort(-counts, kind="stable")
     centres = centres[order]
     labels = np.argmin(_squared_distances(features, centres), 1).astype(np.int32)
-    return Clustering(labels=labels, centres=centres, bic=values, merges=merges, used=used, regions=tuple(regions))
+    return Clustering(labels=labels, centres=centres, bic=values, merges=merges, used=used, regions=tuple(regions),
+                      notes=tuple(notes))
 
 
 # --- per-cluster lobe ----------------------------------------------------------------------------
@@ -686,6 +749,13 @@ def _fit_pool(pool: _Pool, eta0: float, fit_settings: FitSettings, settings: Aug
                        loss=float(loss),
                        theta_h_deg=(theta_h + np.degrees(np.asarray(delta)))[ok],
                        value=(measured / np.where(shading > 1e-6, shading, 1) * scale)[ok])
+
+
+def no_lobe(eta: float) -> ClusterLobe:
+    """The lobe of a cluster without a usable sample: no specular and no single scattering (albedos 0), ``eta``,
+    the roughness starts of the fit; ``samples`` 0. Its model is diffuse only (code 0)."""
+    return ClusterLobe(eta=float(eta), sigma_s=float(fit.ROUGHNESS_GRID[0][0]), sigma_ss=float(fit.ROUGHNESS_GRID[0][1]),
+                       rho_s=0.0, rho_ss=np.zeros(3), samples=0, loss=0.0, theta_h_deg=np.zeros(0), value=np.zeros(0))
 
 
 def lobe_sample_losses(lobe: ClusterLobe, pool: _Pool, fit_settings: FitSettings,

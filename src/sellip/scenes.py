@@ -3,7 +3,8 @@
 Public API::
 
     SCENES: tuple of scene names ("demo", "demo_fine", "demo_feathers", "sphere_ior", "tiny", "tiny_dark",
-            "tiny_white", "tiny_mirror", "tiny_bumpy", "tiny_relief", "tiny_speckle")
+            "tiny_white", "tiny_mirror", "tiny_bumpy", "tiny_relief", "tiny_speckle", "uniform_dark",
+            "uniform_bright", "cow")
     build_scene(name) -> Scene                       # mesh with per-vertex pBRDF parameters, fixed per name
     handheld_orbit(views, width, height, rng, ...) -> list[Camera]
     device_intrinsics(width, height) -> (3, 3) K    # the 25 mm lens on the IMX250 scaled to width
@@ -39,6 +40,10 @@ Scenes:
   surface detail for the stability suite.
 - ``tiny_speckle``: the ``tiny`` materials with demo_fine's albedo speckle in 1 mm cells (40962 vertices):
   texture finer than the model and the pixels, for the stability suite.
+- ``uniform_dark``, ``uniform_bright``: the tiny sphere in one material with no texture (rho_d 0.04 glossy;
+  rho_d 0.7): degenerate statistics (every albedo one value) for the stability suite.
+- ``cow``: a cow-like figure (body, head, four legs, concavities) in one material painted with flat black
+  and white patches with sharp edges: many identical albedo rows, for the stability suite.
 """
 
 from __future__ import annotations
@@ -52,7 +57,7 @@ from sellip.pbrdf import PBRDFParams
 from sellip.render import Camera, ParamMesh
 
 SCENES = ("demo", "demo_fine", "demo_feathers", "sphere_ior", "tiny", "tiny_dark", "tiny_white", "tiny_mirror",
-          "tiny_bumpy", "tiny_relief", "tiny_speckle")
+          "tiny_bumpy", "tiny_relief", "tiny_speckle", "uniform_dark", "uniform_bright", "cow")
 
 DEVICE_WIDTH_PX = 2448
 DEVICE_FX_PX = 7246.0
@@ -398,10 +403,58 @@ def _tiny_mirror() -> Scene:
     return _two_material_sphere("tiny_mirror", materials, (0.6, 1.0))
 
 
+def _uniform_sphere(name: str, material: Material) -> Scene:
+    """The tiny 4 cm sphere (2562 vertices) in one material with no texture at all: every vertex has the same
+    parameters, so the fitted albedos of a material are one value up to noise (degenerate statistics)."""
+    d, faces = icosphere(4)
+    region = np.zeros(len(d), np.int64)
+    albedo = np.tile(np.asarray(material.rho_d, np.float64), (len(d), 1))
+    mesh = ParamMesh(vertices=0.04 * d, faces=faces, normals=d.copy(),
+                     params=_params_from_regions((material,), region, albedo), material=region)
+    return Scene(name, mesh, (material,), flash_power=TINY_FLASH_POWER)
+
+
+def _uniform_dark() -> Scene:
+    """The tiny sphere, one uniformly coloured very dark glossy material (rho_d 0.04: the paper's failure case)."""
+    return _uniform_sphere("uniform_dark", Material("uniform_dark", eta=1.5, rho_d=(0.04, 0.04, 0.04), rho_s=1.0,
+                                                    sigma_s=0.15))
+
+
+def _uniform_bright() -> Scene:
+    """The tiny sphere, one uniformly coloured bright material (rho_d 0.7, sigma_s 0.25)."""
+    return _uniform_sphere("uniform_bright", Material("uniform_bright", eta=1.5, rho_d=(0.72, 0.7, 0.66), rho_s=0.8,
+                                                      sigma_s=0.25))
+
+
+COW_PATCH_ALBEDO = ((0.03, 0.03, 0.03), (0.8, 0.78, 0.74))
+"""The cow's two flat patch colours (black, white): the rows of its fitted albedo features repeat."""
+
+
+def _cow() -> Scene:
+    """A cow-like figure about 10 cm long, one material (eta 1.5, sigma_s 0.2) painted with large flat black and
+    white patches with sharp edges (Worley cells, each black or white): an elongated body, a head, four legs
+    (radial bumps on an ellipsoid, 10242 vertices), with concavities between the legs and at the neck that a visual
+    hull does not carve. Star-shaped about the origin, so the radial mesh never folds."""
+    d, faces = icosphere(5)
+    body = 1 / np.sqrt((d[:, 0] / 0.05) ** 2 + (d[:, 1] / 0.026) ** 2 + (d[:, 2] / 0.03) ** 2)
+    legs = sum(bump(d, _direction(azimuth, -62), 0.13) for azimuth in (35, 145, -35, -145))
+    radius = body + 0.028 * legs + 0.02 * bump(d, _direction(0, 18), 0.2)
+    vertices = radius[:, None] * d
+    _, _, cell = cellular(d, 28, np.random.default_rng(5))
+    black = np.random.default_rng(6).random(28) < 0.4
+    albedo = np.asarray(COW_PATCH_ALBEDO, np.float64)[np.where(black[cell], 0, 1)]
+    material = Material("cow", eta=1.5, rho_d=COW_PATCH_ALBEDO[1], rho_s=0.8, sigma_s=0.2)
+    region = np.zeros(len(d), np.int64)
+    mesh = ParamMesh(vertices=vertices, faces=faces, normals=vertex_normals(vertices, faces),
+                     params=_params_from_regions((material,), region, albedo), material=region)
+    return Scene("cow", mesh, (material,), flash_power=TINY_FLASH_POWER)
+
+
 _BUILDERS = {"demo": _demo, "demo_fine": _demo_fine, "demo_feathers": _demo_feathers, "sphere_ior": _sphere_ior,
              "tiny": _tiny,
              "tiny_dark": _tiny_dark, "tiny_white": _tiny_white, "tiny_mirror": _tiny_mirror, "tiny_bumpy": _tiny_bumpy,
-             "tiny_relief": _tiny_relief, "tiny_speckle": _tiny_speckle}
+             "tiny_relief": _tiny_relief, "tiny_speckle": _tiny_speckle, "uniform_dark": _uniform_dark,
+             "uniform_bright": _uniform_bright, "cow": _cow}
 
 
 def build_scene(name: str) -> Scene:

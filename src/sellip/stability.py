@@ -135,6 +135,18 @@ CASES: tuple[Case, ...] = (
          "(scene tiny_relief; a pixel is about 1 mm)", config={"demo": {"scene": "tiny_relief"}}),
     Case("init_perturbed", "geometry", "initial mesh perturbed along its normals (1 mm RMS, seeded)",
          perturb_m=0.001),
+    Case("uniform_dark", "degenerate", "one uniformly coloured very dark glossy material, rho_d 0.04 (scene "
+         "uniform_dark): every albedo one value", config={"demo": {"scene": "uniform_dark"}}),
+    Case("uniform_dark_sfm", "degenerate", "uniform_dark without poses (SfM)",
+         config={"demo": {"scene": "uniform_dark"}, "sfm": {"mode": "sfm"}}),
+    Case("uniform_bright", "degenerate", "one uniformly coloured bright material, rho_d 0.7 (scene uniform_bright)",
+         config={"demo": {"scene": "uniform_bright"}}),
+    Case("uniform_bright_sfm", "degenerate", "uniform_bright without poses (SfM)",
+         config={"demo": {"scene": "uniform_bright"}, "sfm": {"mode": "sfm"}}),
+    Case("cow", "degenerate", "a cow-like figure with legs and concavities, flat black and white patches with sharp "
+         "edges, one material (scene cow)", config={"demo": {"scene": "cow"}}),
+    Case("cow_sfm", "degenerate", "the cow without poses (SfM)",
+         config={"demo": {"scene": "cow"}, "sfm": {"mode": "sfm"}}),
 )
 CASE_NAMES = tuple(case.name for case in CASES)
 

@@ -17,6 +17,8 @@ Writes the directory ``--output`` (built under a temporary name, then renamed) w
   sigma_ss, rho_s, rho_ss_r, rho_ss_g, rho_ss_b, samples, loss, model;
 - ``lobes.png``: each cluster's lobe against its samples as a function of theta_h (paper Fig. 7b);
 - ``clusters.json``: K, the BIC per K, the merges, the regions added (:func:`sellip.augment.cluster_materials`),
+  ``degenerate``: what could not be computed on these data and what was done instead (a cluster without a
+  confident vertex or a usable sample, albedos without spread; the run goes on, lower in confidence),
   the settings (``settings``: the clustering's; ``fit_settings``: the lobe fit's) and the seed, and under ``model_selection`` per cluster the chosen model, the held-out loss of
   every candidate and why.
 
@@ -68,7 +70,7 @@ def lobes_schema():
             "sigma_ss": pa.Column(float, [pa.Check.gt(0), pa.Check.le(1.0)], coerce=True),
             "rho_s": pa.Column(float, nonnegative, coerce=True),
             **{f"rho_ss_{c}": pa.Column(float, nonnegative, coerce=True) for c in "rgb"},
-            "samples": pa.Column(int, pa.Check.gt(0), coerce=True),
+            "samples": pa.Column(int, pa.Check.ge(0), coerce=True),  # 0: a cluster without a usable sample
             "loss": pa.Column(float, nonnegative, coerce=True),
             "model": pa.Column(int, pa.Check.isin(sorted(MODEL_NAMES)), coerce=True),
         },
@@ -212,7 +214,7 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
     enable_compilation_cache(compilation_cache)
     import pandas as pd
 
-    from sellip.augment import AugmentSettings, cluster_materials, fit_cluster_lobe
+    from sellip.augment import AugmentSettings, cluster_materials, fit_cluster_lobe, no_lobe
     from sellip.fit import FitSettings
     from sellip.models import SelectionSettings, allowed_models, model_of, select_model, settings_for_model
     from sellip.observe import ObserveError, open_observations
@@ -249,10 +251,14 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
             log.warning("%s has no models to inherit: selecting", params)
     rng = np.random.default_rng(seed)
     lobes, rows_out, colors, models, choices = [], [], [], [], []
+    notes = list(clustering.notes)
     for cluster in range(k):
         members = np.flatnonzero((clustering.labels == cluster) & clustering.used)
-        if members.size == 0:
-            raise ValueError(f"cluster {cluster} has no confidently fitted vertex")
+        if members.size == 0:  # its lobe comes from what its vertices have: lower confidence, said so
+            members = np.flatnonzero(clustering.labels == cluster)
+            notes.append(f"cluster {cluster} has no confidently fitted vertex: its lobe is fitted on all its "
+                         f"{members.size} vertices")
+            log.warning("%s", notes[-1])
         # Enough vertices for max_samples samples at >= 8 usable views each, a seeded subset.
         limit = max(64, settings.max_samples // 8)
         rows = np.sort(rng.choice(members, limit, replace=False)) if members.size > limit else members
@@ -260,8 +266,17 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
         obs = load_rows(group, rows)
         mark("select")
         eta0 = float(np.median(store["eta"][members]))
-        began = time.perf_counter()
-        if inherited is not None:
+        if not np.isfinite(eta0):
+            eta0 = 1.5  # DESIGN §5's start
+        began, lobe = time.perf_counter(), None
+        if not np.asarray(obs.usable).any():
+            model, lobe = 0, no_lobe(eta0)
+            reason = "no usable (vertex, view) sample: no lobe (model 0)"
+            notes.append(f"cluster {cluster}: {reason}")
+            log.warning("%s", notes[-1])
+            choices.append({"cluster": cluster, "model": model, "name": MODEL_NAMES[model], "reason": reason,
+                            "candidates": {}, "seconds": 0.0})
+        elif inherited is not None:
             counts_here = np.bincount(inherited[clustering.labels == cluster], minlength=len(MODEL_NAMES))
             # The most common model, or the most complex allowed one below it.
             model = max((m for m in allowed if m <= int(np.argmax(counts_here))), default=allowed[0])
@@ -284,9 +299,10 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
         else:
             model = model_of(fit_settings)
         mark("fit")
-        lobe = fit_cluster_lobe(obs, store["normals"][rows], store["rho_d"][rows], eta0,
-                                settings_for_model(fit_settings, model, selection.sigma_ss_fixed), settings,
-                                seed=seed + cluster)
+        if lobe is None:
+            lobe = fit_cluster_lobe(obs, store["normals"][rows], store["rho_d"][rows], eta0,
+                                    settings_for_model(fit_settings, model, selection.sigma_ss_fixed), settings,
+                                    seed=seed + cluster)
         log.info("cluster %d: %d vertices (%d confident), %d samples, model %d: eta %.3f sigma_s %.3f sigma_ss %.3f "
                  "rho_s %.4g rho_ss %s", cluster, int(np.sum(clustering.labels == cluster)), members.size,
                  lobe.samples, model, lobe.eta, lobe.sigma_s, lobe.sigma_ss, lobe.rho_s, np.round(lobe.rho_ss, 4))
@@ -313,8 +329,8 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
     table.to_csv(tmp / "lobes.csv", index=False)
     plot_lobes(tmp / "lobes.png", lobes, lambda i: colors[i], models)
     summary = {"k": k, "bic": {str(key): value for key, value in clustering.bic.items()},
-               "k_bic": int(min(clustering.bic, key=clustering.bic.get)), "merges": clustering.merges,
-               "regions": clustering.regions,
+               "k_bic": int(min(clustering.bic, key=clustering.bic.get)) if clustering.bic else k,
+               "merges": clustering.merges, "regions": clustering.regions, "degenerate": notes,
                "clustered_vertices": int(clustering.used.sum()), "vertices": n, "seed": seed,
                "settings": dataclasses.asdict(settings), "fit_settings": dataclasses.asdict(fit_settings),
                "model_selection": {"enabled": selection.enabled, "settings": dataclasses.asdict(selection),
