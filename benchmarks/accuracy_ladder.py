@@ -6,13 +6,13 @@
 
 Rungs (each resumable: a rung whose result file exists is not run again):
 
-- ``render``: the true mesh observed in noise-free images rendered at the HDR grid (sellip.ladder);
+- ``render``: the true mesh observed in noise-free images rendered at the HDR grid (sellip.bench.ladder);
 - ``sensor``: the true mesh observed in the capture's HDR images (sensor noise, mosaic, ingest);
 - ``mesh``: the whole workflow (``snakemake``) with ``init.mode: mesh`` from the true mesh;
 - ``hull``: the whole workflow from the visual hull (the default).
 
 The workflow rungs hold four views out of the fit (spread evenly over the capture) for the held-out PSNR.
-``--ceiling-vertices N ...`` also scores the held-out PSNR's ceilings (sellip.ladder.psnr_ceiling): the ground
+``--ceiling-vertices N ...`` also scores the held-out PSNR's ceilings (sellip.bench.ladder.psnr_ceiling): the ground
 truth itself, and the ground truth resampled on meshes of N vertices (what a per-vertex model of N vertices can
 score at best), in ``ceiling.json``.
 
@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def workflow_rung(capture: Path, name: str, results: Path, iterations: int, cores: int, overrides: dict) -> dict:
     """Run the workflow on ``capture`` (config.yaml, then ``overrides``; log in ``results/<name>.log``) and
     return the figures of its metrics.json."""
-    from sellip.sweep import SnakemakeRunner
+    from sellip.bench.sweep import SnakemakeRunner
 
     metrics = results / name / "metrics.json"
     if not metrics.is_file():
@@ -71,10 +71,10 @@ def main(argv=None) -> int:
                         help="also score the truth resampled on meshes of these vertex counts at the held-out views")
     args = parser.parse_args(argv)
 
-    from sellip.io import GROUND_TRUTH_MESH
-    from sellip.ladder import fit_true_mesh, psnr_ceiling, render_hdr
-    from sellip.observe import ObserveSettings
-    from sellip.stability import held_out_views
+    from sellip.bench.ladder import fit_true_mesh, psnr_ceiling, render_hdr
+    from sellip.bench.stability import held_out_views
+    from sellip.capture.files import GROUND_TRUTH_MESH
+    from sellip.fit.observe import ObserveSettings
     from sellip.stages.linearize import linearize_capture
     from sellip.stages.merge_hdr import merge_capture
     from sellip.stages.synth import synthesize_capture

@@ -8,7 +8,7 @@ around it (about half see the front: ~K/2 usable views), observations from the F
 model at the rig's 3.5 deg flash offset with relative Gaussian noise on every analyzer
 intensity; starting normals 5 deg off, eta = 1.5.
 
-- sellip: :func:`sellip.fit.fit_vertices` on all N vertices, split over ``--workers`` processes
+- sellip: :func:`sellip.fit.vertex_fit.fit_vertices` on all N vertices, split over ``--workers`` processes
   of one core each, as the workflow's vertex shards run (``fit.shards`` jobs of ``fit.threads``
   1 under ``snakemake --cores 2``). Each worker fits its vertices twice: the first run compiles
   every kernel at the shapes the data need (a pipeline with the persistent compilation cache
@@ -16,7 +16,7 @@ intensity; starting normals 5 deg off, eta = 1.5.
   timed; the wall time is the slowest worker's.
 - baseline: the authors' approach minus MATLAB: each vertex of a subset fitted on its own by the
   SAME procedure (roughness-grid start, stage 1 on the normal and eta, grid start again, stage 2
-  on everything, robust pass: :func:`sellip.fit._fit_chunk`) with ``scipy.optimize.least_squares``
+  on everything, robust pass: :func:`sellip.fit.vertex_fit._fit_chunk`) with ``scipy.optimize.least_squares``
   on the SAME residuals (the jitted sellip residual, float64, finite-difference Jacobians as
   fmincon's), from the same start and the same selected views, on one core; view selection
   included in its time.
@@ -55,7 +55,8 @@ def _worker(folder: str, start: int, stop: int, core: int, barrier, results) -> 
     _single_core(core)
     import numpy as np
 
-    from sellip.fit import FitSettings, Observations, default_prior, fit_vertices
+    from sellip.fit.records import FitSettings, Observations
+    from sellip.fit.vertex_fit import default_prior, fit_vertices
 
     folder = Path(folder)
     obs = Observations(*[np.load(folder / f"{name}.npy", mmap_mode="r")[start:stop] for name in OBS_FIELDS])
@@ -105,10 +106,14 @@ def main() -> int:
     import numpy as np
     from scipy import optimize
 
-    from sellip import fit
-    from sellip.fit import FitSettings, default_prior
-    from sellip.pbrdf import PBRDFParams
-    from sellip.simulate import vertex_observations
+    from sellip.fit import parameterization, solver
+    from sellip.fit import records as fit_records
+    from sellip.fit import residuals as fit_residuals
+    from sellip.fit import vertex_fit as fit_vertex_fit
+    from sellip.fit.records import FitSettings
+    from sellip.fit.simulate import vertex_observations
+    from sellip.fit.vertex_fit import default_prior
+    from sellip.model.pbrdf import PBRDFParams
 
     dtype = np.dtype(args.dtype)
     rng = np.random.default_rng(args.seed)
@@ -165,7 +170,7 @@ def main() -> int:
           f"first run, compiling: {first:.1f} s")
     print(f"           {accuracy(result_normal, result_params, slice(None))}")
 
-    # Baseline: the same procedure (sellip.fit._fit_chunk), one vertex at a time, with scipy least_squares on the
+    # Baseline: the same procedure (sellip.fit.vertex_fit._fit_chunk), one vertex at a time, with scipy least_squares on the
     # same residuals (same views, same start, float64, finite-difference Jacobians as fmincon's) on one core.
     os.sched_setaffinity(0, {cores[0]}) if hasattr(os, "sched_setaffinity") else None
     settings = dataclasses.replace(FitSettings(), lobes="full", sigma_ss_fixed=None)
@@ -173,10 +178,10 @@ def main() -> int:
     as64 = lambda x: np.asarray(x, np.float64) if np.asarray(x).dtype.kind == "f" else np.asarray(x)  # noqa: E731
     sub = type(obs)(*[jnp.asarray(as64(x[:m])) for x in obs])
     sub_prior = type(prior)(*[jnp.asarray(np.asarray(x[:m], np.float64)) for x in prior])
-    residual = jax.jit(lambda z, v, f: fit._residuals(z, v, f, settings))
-    weights = jax.jit(lambda z, v, f: fit._robust_weights(z, v, f, settings))
+    residual = jax.jit(lambda z, v, f: fit_residuals._residuals(z, v, f, settings))
+    weights = jax.jit(lambda z, v, f: fit_vertex_fit._robust_weights(z, v, f, settings))
     take = lambda tree, i: jax.tree_util.tree_map(lambda x: x[i], tree)  # noqa: E731
-    grid = np.asarray(fit.ROUGHNESS_GRID)
+    grid = np.asarray(solver.ROUGHNESS_GRID)
 
     def baseline_fit(v, f, z):
         """One vertex: grid start, stage 1 (normal, eta), grid start, stage 2 (all), robust pass."""
@@ -185,8 +190,8 @@ def main() -> int:
             return float(r @ r)
 
         def best_start(x):
-            eta = fit.ETA_BOUNDS[0] + (fit.ETA_BOUNDS[1] - fit.ETA_BOUNDS[0]) / (1 + np.exp(-x[2]))
-            starts = np.array(fit._encode(jnp.full(len(grid), eta), jnp.asarray(grid[:, 0]), jnp.asarray(grid[:, 1]),
+            eta = fit_records.ETA_BOUNDS[0] + (fit_records.ETA_BOUNDS[1] - fit_records.ETA_BOUNDS[0]) / (1 + np.exp(-x[2]))
+            starts = np.array(parameterization._encode(jnp.full(len(grid), eta), jnp.asarray(grid[:, 0]), jnp.asarray(grid[:, 1]),
                                             jnp.float64))
             starts[:, :2] = x[:2]
             candidates = [x, *starts]
@@ -212,24 +217,24 @@ def main() -> int:
             z = solve(z, [0, 1, 2, 3, 4])
         return z, v
 
-    keep, records, frames, z0 = fit._select_and_prepare(sub, start[:m].astype(np.float64), sub_prior, settings)
+    keep, records, frames, z0 = fit_vertex_fit._select_and_prepare(sub, start[:m].astype(np.float64), sub_prior, settings)
     v0, f0 = take(records, 0), take(frames, 0)
     residual(z0[0], v0, f0).block_until_ready()  # compile once, outside the timing
     weights(z0[0], v0, f0)
     began, began_cpu = time.perf_counter(), time.process_time()
-    keep, records, frames, z0 = fit._select_and_prepare(sub, start[:m].astype(np.float64), sub_prior, settings)
+    keep, records, frames, z0 = fit_vertex_fit._select_and_prepare(sub, start[:m].astype(np.float64), sub_prior, settings)
     solutions = []
     for i in range(m):
         solutions.append(baseline_fit(take(records, i), take(frames, i), np.asarray(z0[i], np.float64)))
     base, base_cpu = time.perf_counter() - began, time.process_time() - began_cpu
     base_rate, base_cpu_rate = m / base, m / base_cpu
-    decoded = [fit._decode(jnp.asarray(z), take(frames, i), None) for i, (z, _) in enumerate(solutions)]
+    decoded = [parameterization._decode(jnp.asarray(z), take(frames, i), None) for i, (z, _) in enumerate(solutions)]
     base_normal = np.stack([np.asarray(d[0]) for d in decoded])
     base_eta = np.array([float(d[1]) for d in decoded])
     rho_d = []
     for i, (z, v) in enumerate(solutions):
-        terms = fit._model_terms(*fit._decode(jnp.asarray(z), take(frames, i), None), v)
-        rho_d.append(np.asarray(fit._linear_solution(terms, v, settings)[0]) * float(v.scale))
+        terms = fit_residuals._model_terms(*parameterization._decode(jnp.asarray(z), take(frames, i), None), v)
+        rho_d.append(np.asarray(fit_residuals._linear_solution(terms, v, settings)[0]) * float(v.scale))
     base_params = truth._replace(eta=base_eta, rho_d=np.stack(rho_d))
     print(f"baseline : {base:8.1f} s for {m} vertices = {base_rate:8.1f} vertex-fits/s "
           f"(the same procedure, one vertex at a time, scipy least_squares; one core; "

@@ -3,10 +3,10 @@
     python benchmarks/bench_geometry.py [--views 100] [--width 1224] [--height 1024] [--cores 2]
     python benchmarks/bench_geometry.py --capture captures/demo --hdr results/demo/hdr.zarr [--cores 2]
 
-Rendered mode (default): renders I_d = 2 I90 of a scene (:mod:`sellip.scenes`, default ``demo``)
+Rendered mode (default): renders I_d = 2 I90 of a scene (:mod:`sellip.capture.scenes`, default ``demo``)
 from a handheld orbit directly at the demosaiced size (the sensor and ingest are not part of the
-measurement; rendering is not timed), then times :func:`sellip.sfm.run_sfm` (with the stage's
-silhouettes and magnification) and :func:`sellip.geometry.initial_mesh` fused with the SfM points.
+measurement; rendering is not timed), then times :func:`sellip.geometry.sfm.run_sfm` (with the stage's
+silhouettes and magnification) and :func:`sellip.geometry.hull.initial_mesh` fused with the SfM points.
 Capture mode: times the stages as the workflow runs them (``sellip sfm --mode verify`` and
 ``sellip init-mesh``) on an ingested capture with poses.csv and ground_truth/.
 
@@ -28,9 +28,11 @@ import numpy as np
 
 
 def rendered(args) -> dict:
-    from sellip import geometry, sfm
-    from sellip.render import Renderer, flash_light
-    from sellip.scenes import build_scene, handheld_orbit
+    from sellip.capture.scenes import build_scene, handheld_orbit
+    from sellip.geometry import hull as geometry_hull
+    from sellip.geometry import meshes, sfm
+    from sellip.geometry import silhouettes as geometry_silhouettes
+    from sellip.model.render import Renderer, flash_light
     from sellip.stages.sfm import compare_to_known
 
     scene = build_scene(args.scene)
@@ -48,7 +50,7 @@ def rendered(args) -> dict:
     distance_m = float(np.mean(scene.distance_m))
 
     started = time.perf_counter()
-    masks = geometry.silhouette_masks(diffuse)
+    masks = geometry_silhouettes.silhouette_masks(diffuse)
     upscale = sfm.feature_upscale(masks, args.feature_object_px, args.max_upscale)
     features = [sfm.feature_image(d, m, upscale) for d, m in zip(diffuse, masks)]
     view_ids = [f"v{k:03d}" for k in range(args.views)]
@@ -72,11 +74,11 @@ def rendered(args) -> dict:
     index = -np.ones(args.views, np.int64)
     index[ok] = np.arange(ok.sum())
     views = [index[t] for t in result.tracks]
-    mesh = geometry.initial_mesh(masks[ok], intrinsics, result.rotations[ok], result.translations[ok],
-                                 geometry.InitMeshOptions(max_vertices=args.max_vertices, threads=args.cores),
+    mesh = geometry_hull.initial_mesh(masks[ok], intrinsics, result.rotations[ok], result.translations[ok],
+                                 geometry_hull.InitMeshOptions(max_vertices=args.max_vertices, threads=args.cores),
                                  result.points, views, result.errors / upscale)
     init_s = time.perf_counter() - started
-    distances = geometry.mesh_distances(mesh.vertices, mesh.faces, scene.mesh.vertices, scene.mesh.faces)
+    distances = meshes.mesh_distances(mesh.vertices, mesh.faces, scene.mesh.vertices, scene.mesh.faces)
     size = float(np.linalg.norm(np.ptp(scene.mesh.vertices, axis=0)))
     print(f"init_mesh: {init_s:.1f} s ({mesh.stats['timings']}), {len(mesh.vertices)} vertices, Chamfer "
           f"{1e3 * distances.chamfer:.2f} mm ({100 * distances.chamfer / size:.2f}% of {1e3 * size:.0f} mm), "
@@ -89,8 +91,10 @@ def rendered(args) -> dict:
 
 
 def capture(args) -> dict:
-    from sellip import geometry
-    from sellip.io import GROUND_TRUTH_MESH, read_ply
+    from sellip.capture.files import GROUND_TRUTH_MESH
+    from sellip.geometry import hull as geometry_hull
+    from sellip.geometry import meshes
+    from sellip.model.ply import read_ply
     from sellip.stages import init_mesh as init_stage
     from sellip.stages import sfm as sfm_stage
     from sellip.stages.sfm import read_cameras
@@ -105,14 +109,14 @@ def capture(args) -> dict:
           f"verify {json.dumps(report.get('verify'))}", flush=True)
     started = time.perf_counter()
     mesh_report = init_stage.run_stage(args.hdr, out / "cameras.csv", out / "sfm", out / "init.ply",
-                                       options=geometry.InitMeshOptions(max_vertices=args.max_vertices,
+                                       options=geometry_hull.InitMeshOptions(max_vertices=args.max_vertices,
                                                                         threads=args.cores))
     init_s = time.perf_counter() - started
     vertex, faces = read_ply(out / "init.ply")
     truth, truth_faces = read_ply(Path(args.capture) / GROUND_TRUTH_MESH)
     points = np.stack([vertex[k] for k in "xyz"], axis=1).astype(np.float64)
     truth_points = np.stack([truth[k] for k in "xyz"], axis=1).astype(np.float64)
-    distances = geometry.mesh_distances(points, faces, truth_points, truth_faces)
+    distances = meshes.mesh_distances(points, faces, truth_points, truth_faces)
     size = float(np.linalg.norm(np.ptp(truth_points, axis=0)))
     print(f"init_mesh: {init_s:.1f} s, {mesh_report['vertices']} vertices, Chamfer {1e3 * distances.chamfer:.2f} mm "
           f"({100 * distances.chamfer / size:.2f}% of {1e3 * size:.0f} mm)", flush=True)

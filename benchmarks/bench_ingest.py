@@ -6,7 +6,7 @@ Writes a synthetic capture of ``views`` x 3 flash levels as DNG files (a
 smooth polarized scene with a highlight that saturates at flash 1/4, sensor
 noise), then times, on ``--cores`` CPU cores (process affinity):
 
-kernels   :func:`sellip.ingest.process_frame` + :func:`sellip.ingest.merge_hdr` in memory, one thread
+kernels   :func:`sellip.capture.ingest.process_frame` + :func:`sellip.capture.ingest.merge_hdr` in memory, one thread
 stages    ``sellip linearize`` + ``sellip merge-hdr`` as the workflow runs them (DNG decoding, zarr
           I/O, ``--threads`` threads), frames per second of wall time over both stages
 
@@ -25,9 +25,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from sellip import ingest
-from sellip.io import read_capture, read_raw_frame, write_capture
-from sellip.sensor import SensorModel, camera_rgb_from_srgb, mosaic_sample
+from sellip.capture import ingest
+from sellip.capture.reader import read_capture, read_raw_frame
+from sellip.capture.sensor import SensorModel, camera_rgb_from_srgb, mosaic_sample
+from sellip.capture.writer import write_capture
 from sellip.stages.linearize import linearize_capture
 from sellip.stages.merge_hdr import merge_capture
 

@@ -5,7 +5,7 @@
 
 Writes the stage's inputs in their documented formats: a mesh (a sphere with a ring around it,
 so that there are occlusions and flash shadows; ``--vertices`` in total, with vertex normals),
-cameras.csv from a handheld orbit (:func:`sellip.scenes.handheld_orbit`), an hdr.zarr of
+cameras.csv from a handheld orbit (:func:`sellip.capture.scenes.handheld_orbit`), an hdr.zarr of
 ``--views`` smooth HDR images of ``--width`` x ``--height`` (Blosc lz4 like ``sellip merge-hdr``;
 a small invalid patch per view) and a minimal capture folder. Then runs ``sellip observe`` in a
 child process and prints its wall time, peak resident memory (the child's ru_maxrss) and the
@@ -47,10 +47,11 @@ def ring_and_sphere(vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def write_inputs(folder: Path, vertices: int, views: int, width: int, height: int) -> dict:
     import zarr
 
-    from sellip.ingest import output_intrinsics
-    from sellip.io import CaptureWriter, write_ply
-    from sellip.scenes import handheld_orbit
-    from sellip.sensor import SensorModel
+    from sellip.capture.ingest import output_intrinsics
+    from sellip.capture.scenes import handheld_orbit
+    from sellip.capture.sensor import SensorModel
+    from sellip.capture.writer import CaptureWriter
+    from sellip.model.ply import write_ply
     from sellip.stages.merge_hdr import HDR_CODEC
     from sellip.stages.sfm import write_cameras
 

@@ -5,9 +5,9 @@
 
 RUN is a workflow's results folder (``results/<name>``). The replay reads ``iter/N/fit.zarr`` (the first pass's
 fit that the clustering saw) and ``iter/N/clusters/clusters.json`` (its settings and seed), overrides settings with
-``--set`` (AugmentSettings fields), and runs :func:`sellip.augment.cluster_materials` as the workflow does. It
+``--set`` (AugmentSettings fields), and runs :func:`sellip.fit.clusters.cluster_materials` as the workflow does. It
 prints K, the merges and regions, each cluster's size, spatial coherence, median eta and its vertices' true
-materials, and eta per material (the figure of metrics.json, :func:`sellip.evaluate.eta_per_material`) when every
+materials, and eta per material (the figure of metrics.json, :func:`sellip.report.evaluate.eta_per_material`) when every
 vertex takes its cluster's median: what the material eta of that pass would be with these settings, without the
 refit and the per-vertex deviations. The replays of docs/augment.md and docs/accuracy.md are this script.
 """
@@ -26,15 +26,15 @@ from pathlib import Path
 def replay(run: Path, iteration: int, overrides: dict | None = None):
     """The clustering of ``run``'s pass ``iteration`` re-run on its stored fit with the run's settings and seed
     (clusters.json) and ``overrides`` (AugmentSettings fields) over them. Returns (clustering, settings, store)."""
-    from sellip import augment
-    from sellip.params import read_params
+    from sellip.fit import clusters as fit_clusters
+    from sellip.model.params import read_params
     from sellip.stages.cluster_lobes import clustering_settings
 
     folder = run / "iter" / str(iteration)
     info = json.loads((folder / "clusters" / "clusters.json").read_text())
     settings = clustering_settings(info, overrides)
     store = read_params(folder / "fit.zarr")
-    clustering = augment.cluster_materials(store["eta"], store["rho_d"], store["status"], store["confidence"],
+    clustering = fit_clusters.cluster_materials(store["eta"], store["rho_d"], store["status"], store["confidence"],
                                            settings, info.get("seed", 0), vertices=store["vertices"])
     return clustering, dataclasses.asdict(settings), store
 
@@ -52,13 +52,14 @@ def main(argv=None) -> int:
     import numpy as np
     from scipy.spatial import cKDTree
 
-    from sellip import augment
-    from sellip.evaluate import eta_per_material
-    from sellip.io import read_param_mesh
+    from sellip.fit import clusters as fit_clusters
+    from sellip.fit import lobes
+    from sellip.model.ply import read_param_mesh
+    from sellip.report.evaluate import eta_per_material
     from sellip.stages.fit import overrides_from_pairs
 
     try:
-        overrides = overrides_from_pairs(args.set, augment.AugmentSettings)
+        overrides = overrides_from_pairs(args.set, fit_clusters.AugmentSettings)
     except ValueError as error:
         parser.error(str(error))
     truth = read_param_mesh(args.truth)
@@ -75,8 +76,8 @@ def main(argv=None) -> int:
     material = np.asarray(truth.material)[nearest]
     eta_true = np.asarray(truth.params.eta, np.float64)[nearest]
     labels, used, eta = clustering.labels, clustering.used, np.asarray(store["eta"], np.float64)
-    medians = augment.cluster_medians(eta, labels, used, np.full(len(clustering.centres), np.nan))
-    coherence = augment.spatial_coherence(labels, store["vertices"])
+    medians = lobes.cluster_medians(eta, labels, used, np.full(len(clustering.centres), np.nan))
+    coherence = fit_clusters.spatial_coherence(labels, store["vertices"])
 
     print(f"{args.run.name}, pass {args.iteration}: K {len(clustering.centres)} (BIC took "
           f"{min(clustering.bic, key=clustering.bic.get)}), {len(clustering.regions)} regions, "

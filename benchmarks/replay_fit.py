@@ -40,7 +40,7 @@ def main(argv=None) -> int:
     import zarr
     from scipy.spatial import cKDTree
 
-    from sellip.io import read_param_mesh
+    from sellip.model.ply import read_param_mesh
     from sellip.stages.cluster_lobes import recorded_fit_settings
     from sellip.stages.fit import overrides_from_pairs, run_stage
 

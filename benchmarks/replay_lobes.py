@@ -6,7 +6,7 @@
 RUN is a workflow's results folder (``results/<name>``) whose pass N kept its observations: run the workflow
 with ``snakemake --notemp`` (``iter/N/observations.zarr`` is temporary otherwise), e.g. up to the target
 ``results/<name>/iter/0/clusters``. The replay takes the confident vertices of pass N's fit (the ones the
-clustering uses) whose nearest true vertex is of material K, and fits :func:`sellip.augment.fit_cluster_lobe`
+clustering uses) whose nearest true vertex is of material K, and fits :func:`sellip.fit.lobes.fit_cluster_lobe`
 with the settings the pass used (``clusters.json``: ``settings`` and ``fit_settings``) on: all of them, a random half, and the halves
 below and above the median true albedo brightness (a checker texture's dark and light bands). Per subset the
 fitted rho_d against the truth's (the fit holds it), then one row per subset and model: eta, sigma_s, sigma_ss,
@@ -29,7 +29,7 @@ def main(argv=None) -> int:
     parser.add_argument("--iteration", type=int, required=True, help="the pass (iter/N)")
     parser.add_argument("--truth", type=Path, required=True, help="the capture's ground_truth/model.ply")
     parser.add_argument("--material", type=int, required=True, help="the true material label")
-    parser.add_argument("--models", type=int, nargs="+", default=[1, 3], help="models to fit (sellip.models)")
+    parser.add_argument("--models", type=int, nargs="+", default=[1, 3], help="models to fit (sellip.fit.selection)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     warnings.filterwarnings("ignore", message=".*not recognized as a component of a Zarr hierarchy")  # Snakemake's
@@ -37,10 +37,11 @@ def main(argv=None) -> int:
     import numpy as np
     from scipy.spatial import cKDTree
 
-    from sellip import augment, models
-    from sellip.io import read_param_mesh
-    from sellip.observe import open_observations
-    from sellip.params import read_params
+    from sellip.fit import lobes as fit_lobes
+    from sellip.fit import selection as fit_selection
+    from sellip.fit.observe import open_observations
+    from sellip.model.params import read_params
+    from sellip.model.ply import read_param_mesh
     from sellip.stages.cluster_lobes import clustering_settings, load_rows, recorded_fit_settings
 
     folder = args.run / "iter" / str(args.iteration)
@@ -83,8 +84,8 @@ def main(argv=None) -> int:
         obs = load_rows(group, subset)
         eta0 = float(np.median(np.asarray(store["eta"])[subset]))
         for model in args.models:
-            lobe = augment.fit_cluster_lobe(obs, np.asarray(store["normals"])[subset], np.asarray(store["rho_d"])[subset],
-                                            eta0, models.settings_for_model(fit_settings, model), settings,
+            lobe = fit_lobes.fit_cluster_lobe(obs, np.asarray(store["normals"])[subset], np.asarray(store["rho_d"])[subset],
+                                            eta0, fit_selection.settings_for_model(fit_settings, model), settings,
                                             seed=args.seed)
             print(f"| {name} | {subset.size} | {model} | {lobe.eta:.3f} | {lobe.sigma_s:.3f} | {lobe.sigma_ss:.3f} | "
                   f"{lobe.rho_s:.0f} | {', '.join(f'{abs(x):.0f}' for x in lobe.rho_ss)} | {lobe.samples} | {lobe.loss:.4f} |",

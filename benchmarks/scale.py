@@ -10,9 +10,9 @@ Each size is a synthetic capture (``sellip synth``) and one ``snakemake`` run of
 capture's synthesis is timed apart (a user's capture is photographed, not rendered).
 
 Prints, and writes to ``scale.md`` and ``scale.json`` in the workdir: per size the measured wall time and per rule
-its one-off and per-iteration job time and peak memory (``sellip.scale.rule_costs``), and each size's wall time
+its one-off and per-iteration job time and peak memory (``sellip.bench.scale.rule_costs``), and each size's wall time
 as a ratio to the first size's (the baseline, measured in the same benchmark); the cost model fitted to all
-sizes (``sellip.scale.fit_cost_model``) and, as a check, each size's wall time as the model predicts it from its
+sizes (``sellip.bench.scale.fit_cost_model``) and, as a check, each size's wall time as the model predicts it from its
 own costs and from the other sizes' (leave one out); then predictions at ``--predict-iterations`` for every
 measured size, and for the paper's capture (200 views of 2448x2048, 500k vertices) on 2 cores and on a 32-core node
 (32 fit shards, the SLURM profile: docs/hpc.md). Measured rows say "measured"; predictions say "predicted".
@@ -44,9 +44,9 @@ def parse_size(text: str) -> dict:
 
 def run_size(scene: str, size: dict, work: Path, cores: int) -> dict:
     """Synthesize (once) and run one size; return its record (also ``work/<tag>/run.json``)."""
-    from sellip.stability import held_out_views
+    from sellip.bench.stability import held_out_views
+    from sellip.bench.sweep import SnakemakeRunner
     from sellip.stages.synth import synthesize_capture
-    from sellip.sweep import SnakemakeRunner
 
     tag = f"{scene}_{size['views']}v_{size['width']}x{size['height']}_{size['max_vertices']}n_{size['iterations']}it"
     folder = work / tag
@@ -88,7 +88,7 @@ def main(argv=None) -> int:
     parser.add_argument("--cores", type=int, default=2)
     parser.add_argument("--predict-iterations", type=int, default=10)
     args = parser.parse_args(argv)
-    from sellip import scale
+    from sellip.bench import scale
 
     work = args.workdir.resolve()
     records = [run_size(args.scene, size, work, args.cores) for size in args.sizes]

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import numpy as np
 import jax.numpy as jnp
+import numpy as np
 
-from sellip.pbrdf import PBRDFParams
+from sellip.model.pbrdf import PBRDFParams
 
 
 def unit(v):

@@ -1,4 +1,4 @@
-"""Specular augmentation (sellip.augment, the cluster-lobes stage, the augmented refit).
+"""Specular augmentation (sellip.fit, the cluster-lobes stage, the augmented refit).
 
 One synthetic scene shared by all tests: 120 surface points of 3 known materials seen by 40
 cameras that share their poses (a small object, cameras within 25 deg of +z). Three quarters
@@ -14,12 +14,17 @@ import numpy as np
 import pytest
 from helpers import unit
 
-from sellip import augment, cli, conventions
-from sellip.augment import AugmentSettings
-from sellip.conventions import observations_from_analyzers, stokes_to_analyzers
-from sellip.fit import FitSettings, Observations, default_prior, fit_vertices
-from sellip.fresnel import fresnel
-from sellip.pbrdf import PBRDFParams, full_stokes, lobe_stokes
+from sellip import cli
+from sellip.fit import clusters as fit_clusters
+from sellip.fit import lobes as fit_lobes
+from sellip.fit.clusters import AugmentSettings
+from sellip.fit.parameterization import virtual_reflectance
+from sellip.fit.records import FitSettings, Observations
+from sellip.fit.vertex_fit import default_prior, fit_vertices
+from sellip.model import conventions
+from sellip.model.conventions import observations_from_analyzers, stokes_to_analyzers
+from sellip.model.fresnel import fresnel
+from sellip.model.pbrdf import PBRDFParams, full_stokes, lobe_stokes
 
 MATERIALS = (  # eta, rho_d, rho_s, sigma_s, rho_ss, sigma_ss
     (1.4, (0.6, 0.25, 0.15), 0.8, 0.08, (0.15, 0.06, 0.04), 0.5),
@@ -90,18 +95,18 @@ def scene():
     n = len(s["normals"])
     # Without augmentation: zero-weight virtual samples (the same compiled fit; identical to virtual=None,
     # see test_fit.py::test_zero_weight_virtual_samples_change_nothing).
-    none = augment.virtual_samples(np.full(n, -1), None, HELD, np.float64)
+    none = fit_lobes.virtual_samples(np.full(n, -1), None, HELD, np.float64)
     s["plain"] = fit_vertices(s["obs"], s["normals"], default_prior(n, np.float64), HELD, virtual=none)
     plain = s["plain"].params
-    s["clusters"] = augment.cluster_materials(plain.eta, plain.rho_d, s["plain"].status, s["plain"].confidence,
+    s["clusters"] = fit_clusters.cluster_materials(plain.eta, plain.rho_d, s["plain"].status, s["plain"].confidence,
                                               AUGMENT, seed=0)
     s["lobes"] = []
     for k in range(len(s["clusters"].centres)):
         m = s["clusters"].labels == k
-        s["lobes"].append(augment.fit_cluster_lobe(Observations(*[np.asarray(x)[m] for x in s["obs"]]), s["normals"][m],
+        s["lobes"].append(fit_lobes.fit_cluster_lobe(Observations(*[np.asarray(x)[m] for x in s["obs"]]), s["normals"][m],
                                                    plain.rho_d[m], float(np.median(plain.eta[m])), HELD, AUGMENT,
                                                    seed=k))
-    s["virtual"] = augment.virtual_samples(s["clusters"].labels, s["lobes"], HELD, np.float64)
+    s["virtual"] = fit_lobes.virtual_samples(s["clusters"].labels, s["lobes"], HELD, np.float64)
     s["augmented"] = fit_vertices(s["obs"], s["normals"], default_prior(n, np.float64), HELD, virtual=s["virtual"])
     return s
 
@@ -122,7 +127,7 @@ def test_virtual_reflectance_is_the_coaxial_reflection_of_the_full_model():
                          sigma_ss=jnp.full(5, 0.6))
     stokes = full_stokes(normal, direction, direction, jnp.full(5, 0.8), right, up, params)
     _, _, i_s = observations_from_analyzers(conventions.stokes_to_analyzers(stokes, axis=-2))
-    ours = augment.fit.virtual_reflectance(theta[None], jnp.array([1.6]), jnp.array([0.7]), jnp.array([0.2]),
+    ours = virtual_reflectance(theta[None], jnp.array([1.6]), jnp.array([0.7]), jnp.array([0.2]),
                                            jnp.array([[0.1, 0.2, 0.3]]), jnp.array([0.6]))[0]
     shading = jnp.cos(theta) / 0.8**2
     np.testing.assert_allclose(i_s, shading[:, None] * ours, rtol=1e-10)
@@ -189,10 +194,10 @@ def test_one_material_gives_one_cluster_and_small_clusters_are_merged():
     eta = rng.normal(1.5, 0.01, 300)
     rho_d = np.array([0.5, 0.4, 0.3]) * rng.uniform(0.97, 1.03, (300, 3))
     ones = np.zeros(300, np.int32), np.ones(300)
-    assert len(augment.cluster_materials(eta, rho_d, *ones).centres) == 1
+    assert len(fit_clusters.cluster_materials(eta, rho_d, *ones).centres) == 1
     # 290 vertices of one material and 10 of another: the small cluster is merged into the big one.
     eta[:10], rho_d[:10] = 1.9, [0.1, 0.1, 0.6]
-    merged = augment.cluster_materials(eta, rho_d, *ones, AugmentSettings(min_cluster_vertices=20))
+    merged = fit_clusters.cluster_materials(eta, rho_d, *ones, AugmentSettings(min_cluster_vertices=20))
     assert len(merged.centres) == 1 and merged.merges and merged.merges[0]["vertices"] == 10
     assert np.all(merged.labels == 0)
 
@@ -203,7 +208,7 @@ def test_a_cluster_cut_from_one_materials_noise_is_merged_and_a_real_region_kept
     over it (salt and pepper, as the demo's plumage split), k-means and BIC cut that fifth off as a third
     cluster with a median eta 6 % low; with the vertices given it is merged back (coherence about its share
     of the cap), and the real second material, a region, is kept."""
-    from sellip.scenes import icosphere
+    from sellip.capture.scenes import icosphere
 
     vertices, _ = icosphere(4)
     rng = np.random.default_rng(0)
@@ -214,30 +219,30 @@ def test_a_cluster_cut_from_one_materials_noise_is_merged_and_a_real_region_kept
     eta[low] = rng.normal(1.36, 0.02, low.sum())  # the noise's low tail, scattered
     rho_d = np.where(cap[:, None], [0.42, 0.28, 0.06], [0.22, 0.14, 0.075]) * rng.uniform(0.97, 1.03, (n, 3))
     ones = np.zeros(n, np.int32), np.ones(n)
-    plain = augment.cluster_materials(eta, rho_d, *ones)
+    plain = fit_clusters.cluster_materials(eta, rho_d, *ones)
     assert len(plain.centres) == 3  # the scattered low-eta vertices are a cluster of their own
-    coherence = augment.spatial_coherence(plain.labels, vertices)
+    coherence = fit_clusters.spatial_coherence(plain.labels, vertices)
     cut = int(np.argmin(coherence))
     assert np.mean((plain.labels == cut) == low) > 0.99  # the cut is the low-eta fifth (to a few tail vertices)
     assert coherence[cut] < 0.3 and np.delete(coherence, cut).min() > 0.7, coherence  # measured 0.20; 0.78, 0.96
     coherent = AugmentSettings(min_coherence=0.5)
-    merged = augment.cluster_materials(eta, rho_d, *ones, coherent, vertices=vertices)
+    merged = fit_clusters.cluster_materials(eta, rho_d, *ones, coherent, vertices=vertices)
     assert len(merged.centres) == 2 and merged.merges[0]["reason"].startswith("spatially incoherent")
     np.testing.assert_array_equal(merged.labels == merged.labels[np.argmax(cap)], cap)  # the region kept whole
-    medians = augment.cluster_medians(eta, merged.labels, np.ones(n, bool), [1.5, 1.5])
+    medians = fit_lobes.cluster_medians(eta, merged.labels, np.ones(n, bool), [1.5, 1.5])
     assert abs(medians[merged.labels[np.argmin(cap)]] / 1.48 - 1) < 0.03  # the split's own median: 1.36
-    off = augment.cluster_materials(eta, rho_d, *ones, AugmentSettings(min_coherence=0.0), vertices=vertices)
+    off = fit_clusters.cluster_materials(eta, rho_d, *ones, AugmentSettings(min_coherence=0.0), vertices=vertices)
     assert np.array_equal(off.labels, plain.labels)  # 0 turns the test off
 
 
 def test_clusters_and_lobes_are_deterministic_for_a_seed(scene):
     plain = scene["plain"]
-    again = augment.cluster_materials(plain.params.eta, plain.params.rho_d, plain.status, plain.confidence, AUGMENT,
+    again = fit_clusters.cluster_materials(plain.params.eta, plain.params.rho_d, plain.status, plain.confidence, AUGMENT,
                                       seed=0)
     np.testing.assert_array_equal(again.labels, scene["clusters"].labels)
     np.testing.assert_array_equal(again.centres, scene["clusters"].centres)
     m = scene["clusters"].labels == 0
-    lobe = augment.fit_cluster_lobe(Observations(*[np.asarray(x)[m] for x in scene["obs"]]), scene["normals"][m],
+    lobe = fit_lobes.fit_cluster_lobe(Observations(*[np.asarray(x)[m] for x in scene["obs"]]), scene["normals"][m],
                                     plain.params.rho_d[m], float(np.median(plain.params.eta[m])), HELD, AUGMENT, seed=0)
     for a, b in zip(lobe, scene["lobes"][0]):
         np.testing.assert_array_equal(a, b)
@@ -245,8 +250,8 @@ def test_clusters_and_lobes_are_deterministic_for_a_seed(scene):
 
 def _write_stores(folder, scene):
     """observations.zarr (float32) and fit.zarr (the fit without augmentation) of the scene."""
-    from sellip.observe import ObservationWriter, ObserveMesh, ObserveSettings
-    from sellip.params import write_params
+    from sellip.fit.observe import ObservationWriter, ObserveMesh, ObserveSettings
+    from sellip.model.params import write_params
 
     obs, n = scene["obs"], len(scene["normals"])
     views = np.shape(obs.usable)[1]
@@ -300,7 +305,7 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
     assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--lobes", str(clusters),
                      "--output", str(tmp_path / "bad.npz")]) == 1
     assert "lobes.csv" in caplog.text and "sigma_s" in caplog.text and not (tmp_path / "bad.npz").exists()
-    from sellip.params import read_params, write_params
+    from sellip.model.params import read_params, write_params
 
     store = read_params(tmp_path / "fit.zarr")
     store.pop("attrs")
@@ -323,7 +328,7 @@ def test_material_value_is_piecewise_constant_and_keeps_real_deviations():
     spot = np.arange(20, 30)  # a real deviation in material 0, measured well
     eta[spot], eta_std[spot] = 1.9, 0.01
     eta_std[5] = np.inf
-    out, source = augment.material_or_own(eta, eta_std, labels, [1.45, 1.62], deviation_sigmas=3.0)
+    out, source = fit_lobes.material_or_own(eta, eta_std, labels, [1.45, 1.62], deviation_sigmas=3.0)
     own = source.astype(bool)
     assert own[spot].all()
     np.testing.assert_array_equal(out[spot], eta[spot])
@@ -331,7 +336,7 @@ def test_material_value_is_piecewise_constant_and_keeps_real_deviations():
     assert not own[5]
     assert own.sum() <= len(spot) + 3  # 3 sigma: about 0.3 % of the others split off on noise
     assert np.median(np.abs(out - truth)[~own]) == 0 and np.median(np.abs(eta - truth)[~own]) > 0.02
-    kept, all_own = augment.material_or_own(eta, eta_std, labels, [1.45, 1.62], deviation_sigmas=0)
+    kept, all_own = fit_lobes.material_or_own(eta, eta_std, labels, [1.45, 1.62], deviation_sigmas=0)
     np.testing.assert_array_equal(kept, eta)
     assert all_own.all()
 
@@ -342,7 +347,7 @@ def test_a_deviation_needs_neighbours_that_deviate_the_same_way():
     edge; neighbours deviating the other way do not support a vertex."""
     rng = np.random.default_rng(2)
     vertices = np.column_stack([np.arange(400) * 1e-3, np.zeros(400), np.zeros(400)])  # a row, 1 mm apart
-    near = augment.nearest_vertices(vertices, 6)
+    near = fit_clusters.nearest_vertices(vertices, 6)
     labels = np.repeat([0, 1], 200)
     eta_std = np.full(400, 0.04)
     eta = np.where(labels == 0, 1.45, 1.62) + eta_std * rng.normal(size=400)
@@ -350,22 +355,22 @@ def test_a_deviation_needs_neighbours_that_deviate_the_same_way():
     eta[spot], eta_std[spot] = 1.9, 0.01
     eta[100], eta_std[100] = 1.055, 0.005  # one vertex pinned near eta's lower bound, its std collapsed
     eta[[300, 302]], eta[301], eta_std[300:303] = 1.30, 2.0, 0.01  # its neighbours deviate the other way
-    alone = augment.material_or_own(eta, eta_std, labels, [1.45, 1.62], 3.0)[1].astype(bool)
+    alone = fit_lobes.material_or_own(eta, eta_std, labels, [1.45, 1.62], 3.0)[1].astype(bool)
     assert alone[100] and alone[301] and alone[spot].all()
-    out, source = augment.material_or_own(eta, eta_std, labels, [1.45, 1.62], 3.0, neighbours=near, min_support=3)
+    out, source = fit_lobes.material_or_own(eta, eta_std, labels, [1.45, 1.62], 3.0, neighbours=near, min_support=3)
     own = source.astype(bool)
     assert own[spot].all() and not own[100] and not own[301]
     assert own.sum() == len(spot)
     assert out[100] == 1.45 and out[301] == 1.62
     np.testing.assert_array_equal(out[spot], 1.9)
-    np.testing.assert_array_equal(augment.material_or_own(eta, eta_std, labels, [1.45, 1.62], 3.0, neighbours=near,
+    np.testing.assert_array_equal(fit_lobes.material_or_own(eta, eta_std, labels, [1.45, 1.62], 3.0, neighbours=near,
                                                           min_support=0)[1], alone)
 
 
 def test_a_materials_eta_is_the_median_of_its_confident_vertices():
     """cluster_medians: the median over each cluster's used vertices (an unconfident outlier does not count), the
     fallback (the cluster lobe fit's value) for a cluster without a used vertex."""
-    from sellip.augment import cluster_medians
+    from sellip.fit.lobes import cluster_medians
 
     eta = np.array([1.40, 1.42, 1.44, 3.00, 1.60, 1.62, 1.10])
     labels = np.array([0, 0, 0, 0, 1, 1, 2])
@@ -374,7 +379,7 @@ def test_a_materials_eta_is_the_median_of_its_confident_vertices():
 
 
 def test_a_material_cut_along_its_eta_is_one_cluster_and_two_materials_stay_two():
-    """augment._eta_cut: k-means cuts one material (one albedo, eta 1.48 +- 0.06) at its median eta when it has a
+    """fit_clusters._eta_cut: k-means cuts one material (one albedo, eta 1.48 +- 0.06) at its median eta when it has a
     centre too many: the halves' mean albedos are 0 pooled sd apart and their features have one mode along the line
     between the centres, so they are one material. Two materials of one albedo whose eta differ by 0.3 (two modes),
     or of the same eta but another albedo (5+ sd apart), stay two."""
@@ -383,17 +388,17 @@ def test_a_material_cut_along_its_eta_is_one_cluster_and_two_materials_stay_two(
     brightness = np.exp(rng.normal(0, 0.1, (n, 1)))
 
     def features(albedo, eta):
-        return augment.cluster_features(eta, np.asarray(albedo) * brightness * rng.uniform(0.99, 1.01, (n, 3)))
+        return fit_clusters.cluster_features(eta, np.asarray(albedo) * brightness * rng.uniform(0.99, 1.01, (n, 3)))
 
     one = features([0.22, 0.14, 0.075], rng.normal(1.48, 0.06, n))
     halves = np.array([one[one[:, 3] < np.median(one[:, 3])].mean(0), one[one[:, 3] >= np.median(one[:, 3])].mean(0)])
-    cut = augment._eta_cut(one, np.ones(n, bool), halves, np.random.default_rng(0))
+    cut = fit_clusters._eta_cut(one, np.ones(n, bool), halves, np.random.default_rng(0))
     assert cut is not None and sorted(cut[:2]) == [0, 1] and cut[2] < 0.5
     for other in (features([0.22, 0.14, 0.075], rng.normal(1.78, 0.06, n)),   # same albedo, eta 0.3 higher
                   features([0.42, 0.28, 0.06], rng.normal(1.48, 0.06, n))):   # another albedo, same eta
         both = np.vstack([one, other])
         centres = np.array([one.mean(0), other.mean(0)])
-        assert augment._eta_cut(both, np.ones(2 * n, bool), centres, np.random.default_rng(0)) is None
+        assert fit_clusters._eta_cut(both, np.ones(2 * n, bool), centres, np.random.default_rng(0)) is None
 
 
 def test_vertices_pinned_at_an_eta_bound_are_not_clustered():
@@ -401,7 +406,7 @@ def test_vertices_pinned_at_an_eta_bound_are_not_clustered():
     noise: stability dark_noisy). Such vertices, confident or not, do not shape the clusters: two materials (eta 1.4
     and 1.6, two albedos) with a third of each pinned at 1.05 give two clusters at 1.4 and 1.6, not a third at 1.05;
     every vertex is still labelled."""
-    from sellip.fit import eta_at_bound
+    from sellip.fit.parameterization import eta_at_bound
 
     np.testing.assert_array_equal(eta_at_bound([1.05, 1.06, 1.07, 1.5, 2.985, 2.975]),
                                   [True, True, False, False, True, False])
@@ -411,16 +416,16 @@ def test_vertices_pinned_at_an_eta_bound_are_not_clustered():
     eta = np.where(second, 1.6, 1.4) + rng.normal(0, 0.03, n)
     eta[rng.random(n) < 1 / 3] = 1.0501
     rho_d = np.where(second[:, None], [0.4, 0.3, 0.2], [0.2, 0.3, 0.4]) * rng.uniform(0.95, 1.05, (n, 3))
-    clustering = augment.cluster_materials(eta, rho_d, np.zeros(n, np.int8), np.full(n, 0.9),
-                                           augment.AugmentSettings(min_coherence=0.0), seed=0)
+    clustering = fit_clusters.cluster_materials(eta, rho_d, np.zeros(n, np.int8), np.full(n, 0.9),
+                                           fit_clusters.AugmentSettings(min_coherence=0.0), seed=0)
     assert len(clustering.centres) == 2 and clustering.labels.shape == (n,)
     assert not clustering.used[eta_at_bound(eta)].any()
-    medians = augment.cluster_medians(eta, clustering.labels, clustering.used, [np.nan, np.nan])
+    medians = fit_lobes.cluster_medians(eta, clustering.labels, clustering.used, [np.nan, np.nan])
     np.testing.assert_allclose(sorted(medians), [1.4, 1.6], atol=0.01)
 
 
 def test_a_material_of_two_albedo_modes_cut_along_its_eta_is_one_cluster():
-    """augment._same_eta_by_albedo: a speckled material (two albedo modes, log brightness +-0.13 with sd 0.1; eta
+    """fit_clusters._same_eta_by_albedo: a speckled material (two albedo modes, log brightness +-0.13 with sd 0.1; eta
     1.40 +- 0.06 whatever the albedo) that k-means cuts on albedo and eta together (each cluster one mode's
     high- or low-eta side: median etas 1.42 and 1.38) is one material; split by albedo alone its halves have one eta,
     and _eta_cut merges the pair. The same two albedo modes at eta 1.40 and 1.45 (two materials), or one albedo
@@ -432,32 +437,32 @@ def test_a_material_of_two_albedo_modes_cut_along_its_eta_is_one_cluster():
 
     def cut_in_two(eta, step=0.13):
         albedo = np.array([0.3, 0.25, 0.2]) * np.exp(step * mode + rng.normal(0, 0.1, n))[:, None]
-        features = augment.cluster_features(eta, albedo * rng.uniform(0.99, 1.01, (n, 3)))
+        features = fit_clusters.cluster_features(eta, albedo * rng.uniform(0.99, 1.01, (n, 3)))
         z = (features - features.mean(0)) / features.std(0)
         first = z[:, 2] + z[:, 3] > 0  # a cut across both albedo and eta, as k-means makes one
         return features, features[first], features[~first]
 
     features, a, b = cut_in_two(rng.normal(1.40, 0.06, n))
-    assert np.median(a[:, 3]) - np.median(b[:, 3]) > 0.03 / augment.ETA_SCALE  # the cut's etas differ
-    assert augment._same_eta_by_albedo(a, b, np.random.default_rng(0))
+    assert np.median(a[:, 3]) - np.median(b[:, 3]) > 0.03 / fit_clusters.ETA_SCALE  # the cut's etas differ
+    assert fit_clusters._same_eta_by_albedo(a, b, np.random.default_rng(0))
     centres = np.array([a.mean(0), b.mean(0)])
-    assert augment._eta_cut(features, np.ones(n, bool), centres, np.random.default_rng(0)) is not None
+    assert fit_clusters._eta_cut(features, np.ones(n, bool), centres, np.random.default_rng(0)) is not None
     features, a, b = cut_in_two(rng.normal(1.40, 0.06, n), step=0.3)  # two materials, one eta: 6 sd apart
     centres = np.array([features[mode > 0].mean(0), features[mode < 0].mean(0)])
-    assert augment._same_eta_by_albedo(features[mode > 0], features[mode < 0], np.random.default_rng(0))
-    assert augment._eta_cut(features, np.ones(n, bool), centres, np.random.default_rng(0)) is None
+    assert fit_clusters._same_eta_by_albedo(features[mode > 0], features[mode < 0], np.random.default_rng(0))
+    assert fit_clusters._eta_cut(features, np.ones(n, bool), centres, np.random.default_rng(0)) is None
     _, a, b = cut_in_two(np.where(mode > 0, 1.45, 1.40) + rng.normal(0, 0.06, n))  # two materials: two etas
-    assert not augment._same_eta_by_albedo(a, b, np.random.default_rng(0))
-    one_albedo = augment.cluster_features(np.where(mode > 0, 1.7, 1.4), np.tile([0.3, 0.25, 0.2], (n, 1))
+    assert not fit_clusters._same_eta_by_albedo(a, b, np.random.default_rng(0))
+    one_albedo = fit_clusters.cluster_features(np.where(mode > 0, 1.7, 1.4), np.tile([0.3, 0.25, 0.2], (n, 1))
                                           * np.exp(rng.normal(0, 0.1, (n, 1))))
-    assert not augment._same_eta_by_albedo(one_albedo[mode > 0], one_albedo[mode < 0], np.random.default_rng(0))
+    assert not fit_clusters._same_eta_by_albedo(one_albedo[mode > 0], one_albedo[mode < 0], np.random.default_rng(0))
 
 
 def test_a_region_is_kept_when_its_cluster_also_takes_scattered_vertices_of_a_similar_albedo():
     """A region (two caps, 0.7 % of the sphere, group coherence 0.81) whose centre, as a cluster, also takes 60
     scattered vertices of a more saturated albedo (their own group is not a region) is a cluster of coherence 0.46:
     the coherence test must not merge it away again (it did: the demo's eyes with 24 views, docs/augment.md)."""
-    from sellip.scenes import icosphere
+    from sellip.capture.scenes import icosphere
 
     vertices, _ = icosphere(5)
     rng = np.random.default_rng(1)
@@ -469,22 +474,22 @@ def test_a_region_is_kept_when_its_cluster_also_takes_scattered_vertices_of_a_si
     albedo = np.where(caps[:, None], [0.42, 0.28, 0.06], np.where(scattered[:, None], [0.62, 0.40, 0.045],
                                                                    [0.22, 0.14, 0.075]))
     rho_d = albedo * np.exp(rng.normal(0, 0.1, (n, 1))) * rng.uniform(0.99, 1.01, (n, 3))
-    found = augment.cluster_materials(eta, rho_d, np.zeros(n, np.int32), np.ones(n), AugmentSettings(min_coherence=0.5),
+    found = fit_clusters.cluster_materials(eta, rho_d, np.zeros(n, np.int32), np.ones(n), AugmentSettings(min_coherence=0.5),
                                       vertices=vertices)
     assert len(found.regions) == 1 and found.regions[0]["coherence"] > 0.8 and not found.merges
     assert len(found.centres) == 2
     region = found.labels == found.labels[np.argmax(caps)]
     np.testing.assert_array_equal(region, caps | scattered)
-    assert augment.spatial_coherence(found.labels, vertices)[found.labels[np.argmax(caps)]] < 0.5
+    assert fit_clusters.spatial_coherence(found.labels, vertices)[found.labels[np.argmax(caps)]] < 0.5
 
 
 def test_a_small_region_of_another_albedo_becomes_its_own_material_and_scattered_outliers_do_not():
-    """Regions (augment._region_centres, with min_coherence): on a sphere of one textured material (log brightness
+    """Regions (fit_clusters._region_centres, with min_coherence): on a sphere of one textured material (log brightness
     sd 0.1, eta 1.48 +- 0.04), two caps of 0.5 % of the surface (the demo's eyes) of another albedo and eta 1.62
     are too small for BIC, which puts them in the one cluster (their median eta then the big material's); with
     the vertices given they are a cluster of their own, whose median eta is theirs. The same number of vertices
     of that albedo scattered over the sphere (no region) stay in the one cluster."""
-    from sellip.scenes import icosphere
+    from sellip.capture.scenes import icosphere
 
     vertices, _ = icosphere(5)
     rng = np.random.default_rng(1)
@@ -498,9 +503,9 @@ def test_a_small_region_of_another_albedo_becomes_its_own_material_and_scattered
         eta = np.where(other, rng.normal(1.62, 0.04, n), rng.normal(1.48, 0.04, n))
         rho_d = np.where(other[:, None], [0.42, 0.28, 0.06], [0.22, 0.14, 0.075]) * np.exp(rng.normal(0, 0.1, (n, 1)))
         rho_d *= rng.uniform(0.99, 1.01, (n, 3))
-        plain = augment.cluster_materials(eta, rho_d, *ones)
+        plain = fit_clusters.cluster_materials(eta, rho_d, *ones)
         assert len(plain.centres) == 1  # too small for BIC
-        found = augment.cluster_materials(eta, rho_d, *ones, coherent, vertices=vertices)
+        found = fit_clusters.cluster_materials(eta, rho_d, *ones, coherent, vertices=vertices)
         if not is_region:
             assert len(found.centres) == 1 and not found.regions
             continue
@@ -508,7 +513,7 @@ def test_a_small_region_of_another_albedo_becomes_its_own_material_and_scattered
         assert found.regions[0]["coherence"] > 0.8
         region = found.labels == found.labels[np.argmax(caps)]
         np.testing.assert_array_equal(region, caps)
-        medians = augment.cluster_medians(eta, found.labels, np.ones(n, bool), [1.5, 1.5])
+        medians = fit_lobes.cluster_medians(eta, found.labels, np.ones(n, bool), [1.5, 1.5])
         assert abs(medians[found.labels[np.argmax(caps)]] / 1.62 - 1) < 0.01
         assert abs(np.median(eta) / 1.62 - 1) > 0.07  # what the one cluster gave them
 
@@ -520,7 +525,7 @@ def test_stage_degrades_when_no_vertex_is_confident_or_has_a_usable_sample(tmp_p
 
     import zarr
 
-    from sellip.params import read_params, write_params
+    from sellip.model.params import read_params, write_params
     from sellip.stages.cluster_lobes import read_lobes, read_models
 
     _write_stores(tmp_path, scene)

@@ -1,4 +1,4 @@
-"""Degenerate statistics in the clustering and the region search (sellip.augment): each case degrades (one
+"""Degenerate statistics in the clustering and the region search (sellip.fit): each case degrades (one
 cluster, no region, a note) and never raises. The Mitsuba captures of a painted figure, a figure with flat black
 and white patches and a uniform dark object crashed here (scikit-learn's MinCovDet on identical feature rows)."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sellip import augment, fit
-from sellip.augment import AugmentSettings
+from sellip.fit import clusters, records
+from sellip.fit.clusters import AugmentSettings
 
 
 def _sphere(n: int, seed: int = 0) -> np.ndarray:
@@ -18,10 +18,10 @@ def _sphere(n: int, seed: int = 0) -> np.ndarray:
 
 def _cluster(eta, rho_d, status=None, confidence=None, vertices=None, **settings):
     n = len(eta)
-    status = np.full(n, fit.STATUS_FITTED, np.int8) if status is None else status
+    status = np.full(n, records.STATUS_FITTED, np.int8) if status is None else status
     confidence = np.ones(n) if confidence is None else confidence
     vertices = _sphere(n) if vertices is None else vertices
-    clustering = augment.cluster_materials(eta, rho_d, status, confidence, AugmentSettings(**settings), 0,
+    clustering = clusters.cluster_materials(eta, rho_d, status, confidence, AugmentSettings(**settings), 0,
                                            vertices=vertices)
     assert clustering.labels.shape == (n,) and clustering.labels.min() >= 0
     assert clustering.labels.max() < len(clustering.centres) and np.all(np.isfinite(clustering.centres))
@@ -77,7 +77,7 @@ def test_no_vertex_to_cluster_gives_one_cluster_and_a_note():
     """All vertices with too few views (or all unconfident, or every eta pinned at a bound)."""
     n = 500
     rho_d = np.random.default_rng(6).uniform(0.1, 0.5, (n, 3))
-    for status, confidence, eta in [(np.full(n, fit.STATUS_TOO_FEW_VIEWS, np.int8), np.zeros(n), np.full(n, 1.5)),
+    for status, confidence, eta in [(np.full(n, records.STATUS_TOO_FEW_VIEWS, np.int8), np.zeros(n), np.full(n, 1.5)),
                                     (np.zeros(n, np.int8), np.zeros(n), np.full(n, 1.5)),
                                     (np.zeros(n, np.int8), np.ones(n), np.full(n, 1.0))]:
         clustering = _cluster(eta, rho_d, status, confidence)
@@ -103,7 +103,7 @@ def test_random_flat_textures_never_raise(seed):
     colours = rng.choice([0.0, 0.03, 0.3, 0.8], size=(int(rng.integers(1, 5)), 3))
     patch = np.floor((vertices[:, 0] + 0.04) / 0.08 * rng.integers(1, 6)).astype(int) % len(colours)
     eta = rng.choice([1.3, 1.5, 1.5, 2.0], size=len(colours))[patch] + rng.normal(0, rng.choice([0, 0.01]), n)
-    status = np.where(rng.random(n) < rng.choice([0.0, 0.5, 1.0]), fit.STATUS_TOO_FEW_VIEWS, fit.STATUS_FITTED)
+    status = np.where(rng.random(n) < rng.choice([0.0, 0.5, 1.0]), records.STATUS_TOO_FEW_VIEWS, records.STATUS_FITTED)
     confidence = rng.choice([0.0, 1.0], n, p=[0.2, 0.8])
     _cluster(eta, colours[patch], status.astype(np.int8), confidence, vertices, min_cluster_vertices=20)
 
@@ -111,11 +111,11 @@ def test_random_flat_textures_never_raise(seed):
 def test_degenerate_statistics_helpers():
     rng = np.random.default_rng(0)
     flat = np.tile([1.0, 2.0, 3.0], (100, 1))
-    distances, note = augment._robust_mahalanobis(flat, np.array([[1.0, 2.0, 3.0], [1.0, 2.0, 4.0]]), rng)
-    assert distances[0] == 0 and distances[1] == pytest.approx(1 / augment.VARIANCE_FLOOR) and note
+    distances, note = clusters._robust_mahalanobis(flat, np.array([[1.0, 2.0, 3.0], [1.0, 2.0, 4.0]]), rng)
+    assert distances[0] == 0 and distances[1] == pytest.approx(1 / clusters.VARIANCE_FLOOR) and note
     spread = rng.normal(size=(300, 3))
-    distances, note = augment._robust_mahalanobis(spread, spread[:5], rng)
+    distances, note = clusters._robust_mahalanobis(spread, spread[:5], rng)
     assert note is None and np.all(np.isfinite(distances))
-    assert augment._separation(np.array([0.0, 0.0, 1.0]), np.zeros((3, 3))) == pytest.approx(2.0)
-    assert augment._one_mode(np.full(50, 3.0), rng)
-    assert not augment._same_eta_by_albedo(np.tile([1.0, 1, 1, 30], (20, 1)), np.tile([1.0, 1, 1, 31], (20, 1)), rng)
+    assert clusters._separation(np.array([0.0, 0.0, 1.0]), np.zeros((3, 3))) == pytest.approx(2.0)
+    assert clusters._one_mode(np.full(50, 3.0), rng)
+    assert not clusters._same_eta_by_albedo(np.tile([1.0, 1, 1, 30], (20, 1)), np.tile([1.0, 1, 1, 31], (20, 1)), rng)

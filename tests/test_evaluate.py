@@ -12,12 +12,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 from test_outputs import make_tiny_run
 
-from sellip import evaluate
-from sellip.geometry import Similarity
-from sellip.io import write_param_mesh
-from sellip.params import write_params
-from sellip.render import ParamMesh
-from sellip.scenes import build_scene
+from sellip.capture.scenes import build_scene
+from sellip.geometry.alignment import Similarity
+from sellip.model.params import write_params
+from sellip.model.ply import write_param_mesh
+from sellip.model.render import ParamMesh
+from sellip.report import evaluate
 from sellip.stages import evaluate as evaluate_stage
 from sellip.stages.sfm import read_cameras, write_cameras
 
@@ -180,7 +180,7 @@ def _fake_benchmarks(results, vertices=1200):
 
 
 def test_stage_timings_sum_per_rule_and_count_vertex_fits(tmp_path):
-    from sellip.timing import format_report
+    from sellip.report.timing import format_report
 
     bench = _fake_benchmarks(tmp_path, vertices=1200)
     logs = tmp_path / "logs" / "fit_pbrdf" / "0" / "fit"

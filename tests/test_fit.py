@@ -6,15 +6,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import make_params, unit
 from scipy import optimize
 
-from sellip import fit
-from sellip.fit import (STATUS_FITTED, STATUS_TOO_FEW_VIEWS, FitSettings, Observations, default_prior,
-                        fit_vertices, solve_spd)
-
-from sellip.simulate import vertex_observations
-
-from helpers import make_params, unit
+from sellip.fit import parameterization, vertex_fit
+from sellip.fit import residuals as fit_residuals
+from sellip.fit import solver as fit_solver
+from sellip.fit.records import STATUS_FITTED, STATUS_TOO_FEW_VIEWS, FitSettings, Observations
+from sellip.fit.residuals import solve_spd
+from sellip.fit.simulate import vertex_observations
+from sellip.fit.vertex_fit import default_prior, fit_vertices
 
 DISTANCE = 0.9
 FLASH_3_5_DEG = DISTANCE * np.tan(np.radians(3.5))
@@ -176,10 +177,10 @@ def test_levenberg_marquardt_agrees_with_scipy_least_squares():
     params, normals, obs, start = _scene(6, seed=8, noise=0.01)
     settings = FitSettings(hold_diffuse_eta=False)
     result = fit_vertices(obs, start, default_prior(6, np.float64), settings)
-    keep, records, frames, z0 = fit._select_and_prepare(obs, jnp.asarray(start), default_prior(6, np.float64), settings)
-    z0 = fit._best_start(z0, records, frames, settings)
-    residual = jax.jit(lambda z, v, f: fit._residuals(z, v, f, settings))
-    jacobian = jax.jit(jax.jacfwd(lambda z, v, f: fit._residuals(z, v, f, settings)))
+    keep, records, frames, z0 = vertex_fit._select_and_prepare(obs, jnp.asarray(start), default_prior(6, np.float64), settings)
+    z0 = fit_solver._best_start(z0, records, frames, settings)
+    residual = jax.jit(lambda z, v, f: fit_residuals._residuals(z, v, f, settings))
+    jacobian = jax.jit(jax.jacfwd(lambda z, v, f: fit_residuals._residuals(z, v, f, settings)))
     for i in range(6):
         v = jax.tree_util.tree_map(lambda x: x[i], records)
         f = jax.tree_util.tree_map(lambda x: x[i], frames)
@@ -188,7 +189,7 @@ def test_levenberg_marquardt_agrees_with_scipy_least_squares():
                                         xtol=1e-12, ftol=1e-12, gtol=1e-12)
         their_loss = 2 * theirs.cost
         assert result.loss[i] <= their_loss * 1.01 + 1e-10, (i, result.loss[i], their_loss)
-        their_normal = np.asarray(fit._decode(jnp.asarray(theirs.x), f, None)[0])
+        their_normal = np.asarray(parameterization._decode(jnp.asarray(theirs.x), f, None)[0])
         if result.loss[i] < their_loss * 1.01:  # same minimum: same normal
             assert np.degrees(np.arccos(np.clip(their_normal @ result.normal[i], -1, 1))) < 0.05
 
@@ -202,7 +203,7 @@ def test_specular_nnls_matches_scipy():
         weight = rng.uniform(0.1, 1, k)
         ridge = 1e-3
         prior = rng.uniform(0, 0.5, 4)
-        ours = np.asarray(fit._nnls_specular(jnp.asarray(a), jnp.asarray(b), jnp.asarray(y), jnp.asarray(weight),
+        ours = np.asarray(fit_residuals._nnls_specular(jnp.asarray(a), jnp.asarray(b), jnp.asarray(y), jnp.asarray(weight),
                                              jnp.asarray(prior), ridge))
         # The same problem as one stacked non-negative least squares, solved by scipy.
         sw = np.sqrt(weight)
@@ -233,19 +234,19 @@ def test_float32_fit_runs_and_is_accurate():
 
 def test_zero_weight_virtual_samples_change_nothing():
     """Virtual samples of weight 0 add zero rows: the same loss and linear solution as none (to round-off)."""
-    from sellip.fit import VirtualSamples
+    from sellip.fit.records import VirtualSamples
 
     _, _, obs, start = _scene(2, seed=12, noise=0.01)
     settings = FitSettings()
     virtual = VirtualSamples(theta_h=np.tile(np.radians(np.arange(180) * 0.5), (2, 1)),
                              reflectance=np.full((2, 180, 3), 0.3), weight=np.zeros((2, 180)))
-    _, plain, frames, z0 = fit._select_and_prepare(obs, jnp.asarray(start), default_prior(2, np.float64), settings)
-    _, zero, _, _ = fit._select_and_prepare(obs, jnp.asarray(start), default_prior(2, np.float64), settings, virtual)
+    _, plain, frames, z0 = vertex_fit._select_and_prepare(obs, jnp.asarray(start), default_prior(2, np.float64), settings)
+    _, zero, _, _ = vertex_fit._select_and_prepare(obs, jnp.asarray(start), default_prior(2, np.float64), settings, virtual)
     v, w, f = (jax.tree_util.tree_map(lambda x: x[0], r) for r in (plain, zero, frames))
-    r_plain, r_zero = fit._residuals(z0[0], v, f, settings), fit._residuals(z0[0], w, f, settings)
+    r_plain, r_zero = fit_residuals._residuals(z0[0], v, f, settings), fit_residuals._residuals(z0[0], w, f, settings)
     np.testing.assert_allclose(r_zero[:r_plain.size], r_plain, rtol=1e-12, atol=1e-15)  # sums reordered: round-off
     np.testing.assert_array_equal(r_zero[r_plain.size:], 0)
-    assert fit._free_parameters(FitSettings(fit_normal=False)) == (2, 3, 4)
+    assert fit_solver._free_parameters(FitSettings(fit_normal=False)) == (2, 3, 4)
 
 
 def test_measured_dop_is_unbiased_under_noise():
@@ -259,7 +260,7 @@ def test_measured_dop_is_unbiased_under_noise():
     i_d = jnp.ones(count)
     i_alpha = jnp.asarray(dop * np.sin(angle) + noise * rng.normal(size=count))
     i_beta = jnp.asarray(dop * np.cos(angle) + noise * rng.normal(size=count))
-    projected = float(jnp.mean(fit.measured_dop(terms, i_d, i_alpha, i_beta)))
+    projected = float(jnp.mean(fit_residuals.measured_dop(terms, i_d, i_alpha, i_beta)))
     magnitude = float(jnp.mean(jnp.sqrt(i_alpha**2 + i_beta**2)))
     assert projected == pytest.approx(dop, abs=3 * noise / np.sqrt(count))
     assert magnitude > dop * 1.1  # what the magnitude would have given

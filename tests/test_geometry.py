@@ -6,10 +6,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from sellip import geometry
-from sellip.conventions import camera_center
-from sellip.render import Camera, pixel_rays
-from sellip.scenes import handheld_orbit
+from sellip.capture.scenes import handheld_orbit
+from sellip.geometry import alignment as geometry_alignment
+from sellip.geometry import hull as geometry_hull
+from sellip.geometry import meshes
+from sellip.geometry import silhouettes as geometry_silhouettes
+from sellip.model.conventions import camera_center
+from sellip.model.render import Camera, pixel_rays
 
 WIDTH, HEIGHT = 320, 256
 
@@ -17,8 +20,8 @@ WIDTH, HEIGHT = 320, 256
 # --------------------------------------------------------------------------- helpers
 
 
-def random_similarity(rng) -> geometry.Similarity:
-    return geometry.Similarity(float(rng.uniform(0.3, 3.0)), Rotation.random(random_state=rng.integers(1 << 31))
+def random_similarity(rng) -> geometry_alignment.Similarity:
+    return geometry_alignment.Similarity(float(rng.uniform(0.3, 3.0)), Rotation.random(random_state=rng.integers(1 << 31))
                                .as_matrix(), rng.normal(size=3))
 
 
@@ -70,7 +73,7 @@ def revolve(profile: np.ndarray, segments: int = 96) -> tuple[np.ndarray, np.nda
 
 
 def sphere(radius=0.05):
-    from sellip.scenes import icosphere
+    from sellip.capture.scenes import icosphere
 
     vertices, faces = icosphere(4)
     return radius * vertices, faces
@@ -104,11 +107,11 @@ def test_umeyama_recovers_a_similarity():
     rng = np.random.default_rng(0)
     truth = random_similarity(rng)
     source = rng.normal(size=(50, 3))
-    found = geometry.umeyama(source, truth.apply(source))
+    found = geometry_alignment.umeyama(source, truth.apply(source))
     assert found.scale == pytest.approx(truth.scale, rel=1e-10)
     np.testing.assert_allclose(found.rotation, truth.rotation, atol=1e-10)
     np.testing.assert_allclose(found.translation, truth.translation, atol=1e-10)
-    rigid = geometry.umeyama(source, truth.apply(source), with_scale=False)
+    rigid = geometry_alignment.umeyama(source, truth.apply(source), with_scale=False)
     assert rigid.scale == 1.0 and np.linalg.det(rigid.rotation) == pytest.approx(1.0)
 
 
@@ -143,9 +146,9 @@ def test_align_cameras_and_pose_errors_report_known_perturbations():
         center = camera_center(ref_r[view], ref_t[view]) + np.array([shift_m[view], 0.0, 0.0])
         ref_r[view] = delta @ ref_r[view]
         ref_t[view] = -ref_r[view] @ center
-    align = geometry.align_cameras(moved_r, moved_t, ref_r, ref_t)
+    align = geometry_alignment.align_cameras(moved_r, moved_t, ref_r, ref_t)
     aligned_r, aligned_t = align.apply_to_poses(moved_r, moved_t)
-    rotation_deg, centre_m = geometry.pose_errors(aligned_r, aligned_t, ref_r, ref_t)
+    rotation_deg, centre_m = geometry_alignment.pose_errors(aligned_r, aligned_t, ref_r, ref_t)
     for view in angle_deg:
         assert rotation_deg[view] == pytest.approx(angle_deg[view], abs=1e-6)
         assert centre_m[view] == pytest.approx(shift_m[view], abs=1e-6)
@@ -159,7 +162,7 @@ def test_align_cameras_and_pose_errors_report_known_perturbations():
 def test_mesh_distances_of_concentric_spheres():
     inner, faces = sphere(0.05)
     outer = inner * (0.052 / 0.05)
-    d = geometry.mesh_distances(inner, faces, outer, faces, count=20000)
+    d = meshes.mesh_distances(inner, faces, outer, faces, count=20000)
     # The tessellation lies up to ~0.1 mm inside its sphere; the offset dominates.
     assert d.chamfer == pytest.approx(0.002, abs=1e-4)
     assert d.hausdorff == pytest.approx(0.002, abs=2e-4)
@@ -179,7 +182,7 @@ def test_silhouette_masks_keep_real_holes_and_fill_dark_texture():
     image[patch] = 0.001
     image += rng.normal(0, 0.003, image.shape).clip(0)
     image[10, 10] = 0.8  # a hot pixel
-    mask = geometry.silhouette_masks(np.repeat(image[None, ..., None], 3, axis=-1))[0]
+    mask = geometry_silhouettes.silhouette_masks(np.repeat(image[None, ..., None], 3, axis=-1))[0]
     assert mask[patch].all()
     assert not mask[radius < 25].any()
     assert not mask[10, 10]
@@ -197,11 +200,11 @@ def test_a_dim_object_in_a_noisy_view_is_cut_above_the_background_noise():
     image[np.hypot(xx - 150, yy - 120) < 10] = 80.0
     for seed in range(3):
         noisy = image + 1.8 + np.random.default_rng(seed).normal(0, 1.5, image.shape)
-        luminance, level = geometry.silhouette_level(noisy[..., None])
-        background, noise = geometry.background_noise(luminance, np.ones(luminance.shape, bool))
+        luminance, level = geometry_silhouettes.silhouette_level(noisy[..., None])
+        background, noise = geometry_silhouettes.background_noise(luminance, np.ones(luminance.shape, bool))
         assert background == pytest.approx(1.8, abs=0.4) and noise == pytest.approx(1.5, rel=0.15)
         assert level > 1.8 + 4 * 1.5 and level > 0.03 * np.percentile(noisy[noisy > 0], 99)
-        mask = geometry.silhouette_masks(noisy[None, ..., None])[0]
+        mask = geometry_silhouettes.silhouette_masks(noisy[None, ..., None])[0]
         assert (mask & truth).sum() / (mask | truth).sum() > 0.95
 
 
@@ -219,7 +222,7 @@ def test_boundary_distance_measures_a_sub_pixel_shift_of_a_dim_limb():
 
     def limb(r):
         image = np.sqrt(np.clip(1 - (distance / r) ** 2, 0, None)).reshape(HEIGHT, sub, WIDTH, sub).mean(axis=(1, 3))
-        return geometry.Silhouette.of((image + rng.normal(0, 1e-4, image.shape).clip(0))[..., None])
+        return geometry_silhouettes.Silhouette.of((image + rng.normal(0, 1e-4, image.shape).clip(0))[..., None])
 
     angle = rng.uniform(0, 2 * np.pi, 400)
     outward = np.stack([np.cos(angle), np.sin(angle)], axis=1)
@@ -227,8 +230,8 @@ def test_boundary_distance_measures_a_sub_pixel_shift_of_a_dim_limb():
     inner = limb(radius)
     for shift in (0.1, 0.3, 0.7):
         outer = limb(radius + shift)
-        found = geometry.boundary_distance(inner, points, outward) - geometry.boundary_distance(outer, points, outward)
-        by_mask = np.subtract(*(ndimage.map_coordinates(geometry.signed_distance(s.mask), points[:, ::-1].T, order=1)
+        found = geometry_silhouettes.boundary_distance(inner, points, outward) - geometry_silhouettes.boundary_distance(outer, points, outward)
+        by_mask = np.subtract(*(ndimage.map_coordinates(geometry_silhouettes.signed_distance(s.mask), points[:, ::-1].T, order=1)
                                 for s in (inner, outer)))
         assert abs(np.mean(found) - shift) < 0.02, (shift, np.mean(found))
         error, mask_error = (np.sqrt(np.mean((x - shift) ** 2)) for x in (found, by_mask))
@@ -241,8 +244,8 @@ def test_visual_hull_tolerates_a_bad_mask_and_reports_it():
     masks = render_masks(vertices, faces, cameras)
     masks[5, :, : WIDTH // 2] = False  # half the object missing in one view
     intrinsics, rotations, translations = camera_arrays(cameras)
-    carving = geometry.visual_hull(masks, intrinsics, rotations, translations, resolution=64)
-    points, normals = geometry.surface_points(carving.occupancy, carving.grid)
+    carving = geometry_hull.visual_hull(masks, intrinsics, rotations, translations, resolution=64)
+    points, normals = geometry_hull.surface_points(carving.occupancy, carving.grid)
     radius = np.linalg.norm(points, axis=1)
     assert np.abs(radius - 0.05).max() < 2.5 * carving.grid.voxel_size
     assert np.einsum("ij,ij->i", normals, points / radius[:, None]).min() > 0.8
@@ -256,9 +259,9 @@ def test_initial_mesh_from_silhouettes(shape):
     vertices, faces = {"sphere": sphere, "torus": torus}[shape]()
     cameras = orbit(24)
     masks = render_masks(vertices, faces, cameras)
-    options = geometry.InitMeshOptions(hull_resolution=64, max_vertices=5000)
-    mesh = geometry.initial_mesh(masks, *camera_arrays(cameras), options)
-    distances = geometry.mesh_distances(mesh.vertices, mesh.faces, vertices, faces, count=20000)
+    options = geometry_hull.InitMeshOptions(hull_resolution=64, max_vertices=5000)
+    mesh = geometry_hull.initial_mesh(masks, *camera_arrays(cameras), options)
+    distances = meshes.mesh_distances(mesh.vertices, mesh.faces, vertices, faces, count=20000)
     assert distances.chamfer < 0.03 * size_of(vertices)
     assert len(mesh.vertices) <= 1.1 * options.max_vertices
     assert mesh.stats["poisson_vertices"] > 0 and mesh.stats["target_vertices"] == options.max_vertices
@@ -277,21 +280,21 @@ def test_sparse_points_open_a_concavity_the_silhouettes_cannot():
     vertices, faces = bowl()
     cameras = orbit(36)
     masks = render_masks(vertices, faces, cameras)
-    options = geometry.InitMeshOptions(hull_resolution=96, max_vertices=10000)
+    options = geometry_hull.InitMeshOptions(hull_resolution=96, max_vertices=10000)
     camera_args = camera_arrays(cameras)
-    hull_only = geometry.initial_mesh(masks, *camera_args, options)
+    hull_only = geometry_hull.initial_mesh(masks, *camera_args, options)
 
     # Points on the inner surface (z above the floor, inside the inner radius), with the views that see them.
-    samples = geometry.surface_samples(vertices, faces, 40000, seed=4)
+    samples = meshes.surface_samples(vertices, faces, 40000, seed=4)
     inner = samples[np.linalg.norm(samples - [0.0, 0.0, 0.03], axis=1) < 0.0505][:3000]
     views = visible_views(inner, vertices, faces, cameras)
     keep = np.array([len(v) >= 3 for v in views])
-    fused = geometry.initial_mesh(masks, *camera_args, options, sparse_points=inner[keep],
+    fused = geometry_hull.initial_mesh(masks, *camera_args, options, sparse_points=inner[keep],
                                   sparse_views=[v for v, k in zip(views, keep) if k],
                                   sparse_errors=np.zeros(keep.sum()))
     assert fused.stats["hull_points_removed"] > 1000
-    before = geometry.mesh_distances(hull_only.vertices, hull_only.faces, vertices, faces, count=20000)
-    after = geometry.mesh_distances(fused.vertices, fused.faces, vertices, faces, count=20000)
+    before = meshes.mesh_distances(hull_only.vertices, hull_only.faces, vertices, faces, count=20000)
+    after = meshes.mesh_distances(fused.vertices, fused.faces, vertices, faces, count=20000)
     assert after.chamfer < 0.5 * before.chamfer
     assert after.chamfer < 0.03 * size_of(vertices)
 
@@ -318,7 +321,7 @@ def visible_views(points, vertices, faces, cameras) -> list[np.ndarray]:
 def test_remesh_hits_the_vertex_budget():
     vertices, faces = sphere(0.05)
     for target in (1500, 6000):
-        new_vertices, new_faces = geometry.remesh_to_count(vertices, faces, target)
+        new_vertices, new_faces = meshes.remesh_to_count(vertices, faces, target)
         assert abs(len(new_vertices) / target - 1) < 0.15
         assert np.abs(np.linalg.norm(new_vertices, axis=1) - 0.05).max() < 5e-4
-    assert geometry.depth_vertex_count(1000, 7, 9) == 16000
+    assert meshes.depth_vertex_count(1000, 7, 9) == 16000

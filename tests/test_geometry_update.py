@@ -1,5 +1,5 @@
 """The geometry update of each iteration: the mesh moved to agree with the fitted normals as far as their
-confidence allows (sellip.geometry.refine_from_normals, normal integration), the `sellip refine-geometry`
+confidence allows (sellip.geometry.update.refine_from_normals, normal integration), the `sellip refine-geometry`
 stage, and `sellip finalize`."""
 
 from __future__ import annotations
@@ -7,8 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sellip import geometry
-from sellip.scenes import build_scene, icosphere
+from sellip.capture.scenes import build_scene, icosphere
+from sellip.geometry import meshes
+from sellip.geometry import update as geometry_update
 
 RADIUS = 0.05
 
@@ -27,7 +28,7 @@ def radial_error(vertices):
 
 
 def normal_error_deg(vertices, faces):
-    normals = geometry.vertex_normals(vertices, faces)
+    normals = meshes.vertex_normals(vertices, faces)
     radial = vertices / np.linalg.norm(vertices, axis=1, keepdims=True)
     return np.degrees(np.arccos(np.clip(np.sum(normals * radial, axis=1), -1, 1)))
 
@@ -38,12 +39,12 @@ def test_true_normals_flatten_ripples_that_poisson_keeps():
     why the loop used to stand still (docs/geometry_update.md)."""
     rng = np.random.default_rng(0)
     vertices, normals, faces = rippled_sphere(rng)
-    refined = geometry.refine_from_normals(vertices, faces, normals, np.ones(len(vertices)))
+    refined = geometry_update.refine_from_normals(vertices, faces, normals, np.ones(len(vertices)))
     before = float(np.sqrt(np.mean(radial_error(vertices) ** 2)))
     after = float(np.sqrt(np.mean(radial_error(refined) ** 2)))
     assert after < 0.1 * before, (before, after)
     assert np.median(normal_error_deg(refined, faces)) < 0.5 < np.median(normal_error_deg(vertices, faces))
-    poisson, _ = geometry.poisson_surface(vertices, normals, depth=7, point_weight=0.0)
+    poisson, _ = meshes.poisson_surface(vertices, normals, depth=7, point_weight=0.0)
     assert float(np.sqrt(np.mean(radial_error(poisson) ** 2))) > 0.5 * before
 
 
@@ -55,11 +56,11 @@ def test_unconfident_normals_leave_the_surface_where_it_was():
     random = rng.normal(size=vertices.shape)
     random /= np.linalg.norm(random, axis=1, keepdims=True)
     for reference in (None, 1.1 * vertices):  # held where it is, not pulled to the reference, when unsure
-        refined = geometry.refine_from_normals(vertices, faces, random, np.zeros(len(vertices)), reference=reference)
+        refined = geometry_update.refine_from_normals(vertices, faces, random, np.zeros(len(vertices)), reference=reference)
         np.testing.assert_allclose(refined, vertices, rtol=0, atol=1e-12)
-    trusted = geometry.refine_from_normals(vertices, faces, random, np.ones(len(vertices)))
+    trusted = geometry_update.refine_from_normals(vertices, faces, random, np.ones(len(vertices)))
     assert np.max(np.abs(trusted - vertices)) > 1e-3
-    np.testing.assert_array_equal(geometry.refine_from_normals(vertices, faces, random, np.ones(len(vertices))),
+    np.testing.assert_array_equal(geometry_update.refine_from_normals(vertices, faces, random, np.ones(len(vertices))),
                                   trusted)
 
 
@@ -68,12 +69,12 @@ def test_the_reference_holds_what_normals_cannot_tell():
     (anchored to itself), or take the size of the reference mesh (the loop's initial mesh)."""
     unit, faces = icosphere(4)
     vertices = (RADIUS + 0.001) * unit
-    kept = geometry.refine_from_normals(vertices, faces, unit, np.ones(len(unit)))
+    kept = geometry_update.refine_from_normals(vertices, faces, unit, np.ones(len(unit)))
     np.testing.assert_allclose(np.linalg.norm(kept, axis=1), RADIUS + 0.001, atol=1e-6)
-    held = geometry.refine_from_normals(vertices, faces, unit, np.ones(len(unit)), reference=RADIUS * unit)
+    held = geometry_update.refine_from_normals(vertices, faces, unit, np.ones(len(unit)), reference=RADIUS * unit)
     np.testing.assert_allclose(np.linalg.norm(held, axis=1), RADIUS, atol=2e-5)
     with pytest.raises(ValueError, match="reference"):
-        geometry.refine_from_normals(vertices, faces, unit, np.ones(len(unit)), reference=vertices[:-1])
+        geometry_update.refine_from_normals(vertices, faces, unit, np.ones(len(unit)), reference=vertices[:-1])
 
 
 def test_failed_fits_leave_the_surface_where_it_was():
@@ -85,10 +86,10 @@ def test_failed_fits_leave_the_surface_where_it_was():
     fitted = normals.copy()
     offset = vertices[cap] - [0.03, 0.0, 0.0]
     fitted[cap] = offset / np.linalg.norm(offset, axis=1, keepdims=True)
-    np.testing.assert_allclose(geometry.blend_normals(fitted, normals, np.where(cap, 0.0, 1.0)), normals)
+    np.testing.assert_allclose(meshes.blend_normals(fitted, normals, np.where(cap, 0.0, 1.0)), normals)
     errors = {}
     for name, confidence in (("trusted", np.ones(len(vertices))), ("flagged", np.where(cap, 0.0, 1.0))):
-        refined = geometry.refine_from_normals(vertices, faces, fitted, confidence)
+        refined = geometry_update.refine_from_normals(vertices, faces, fitted, confidence)
         errors[name] = float(np.mean(normal_error_deg(refined, faces)[cap]))
     assert errors["flagged"] < 0.3 * errors["trusted"], errors
 
@@ -105,21 +106,21 @@ def test_bumps_converge_from_a_smooth_start():
     tree = cKDTree(truth.vertices)
     hausdorff, p90 = [], []
     for _ in range(4):
-        distance = geometry.mesh_distances(vertices, faces, truth.vertices, truth.faces, count=20000)
+        distance = meshes.mesh_distances(vertices, faces, truth.vertices, truth.faces, count=20000)
         hausdorff.append(1e3 * distance.hausdorff)
         nearest = tree.query(vertices)[1]
-        error = np.degrees(np.arccos(np.clip(np.sum(geometry.vertex_normals(vertices, faces)
+        error = np.degrees(np.arccos(np.clip(np.sum(meshes.vertex_normals(vertices, faces)
                                                     * truth.normals[nearest], axis=1), -1, 1)))
         p90.append(float(np.percentile(error, 90)))
-        vertices = geometry.refine_from_normals(vertices, faces, truth.normals[nearest], np.ones(len(vertices)))
+        vertices = geometry_update.refine_from_normals(vertices, faces, truth.normals[nearest], np.ones(len(vertices)))
     print("Hausdorff (mm)", np.round(hausdorff, 3), "normal p90 (deg)", np.round(p90, 2))
     assert hausdorff[0] > 3.5 and hausdorff[1] < 0.15 * hausdorff[0] and max(hausdorff[1:]) < 0.5, hausdorff
     assert max(p90[1:]) < 5.0 < p90[0], p90
 
 
 def test_refine_and_finalize_stages_write_readable_models(tmp_path):
-    from sellip.io import read_param_mesh, read_ply, write_ply
-    from sellip.params import MODEL_NAMES, ParamsError, read_params, write_params
+    from sellip.model.params import MODEL_NAMES, ParamsError, read_params, write_params
+    from sellip.model.ply import read_param_mesh, read_ply, write_ply
     from sellip.stages import finalize, refine_geometry
 
     rng = np.random.default_rng(2)
@@ -230,7 +231,7 @@ def coverage_mask(vertices, faces, camera):
     """(H, W) bool: pixel centres whose ray hits the mesh (open3d ray casting)."""
     import open3d as o3d
 
-    from sellip.render import pixel_rays
+    from sellip.model.render import pixel_rays
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
@@ -252,24 +253,24 @@ def test_silhouettes_move_the_mean_offset_that_normals_cannot_tell():
     """A sphere 0.5 mm low and 0.3 mm small, with its own (exact-shape) normals: normals alone leave it where
     it is (the anchor holds it); the silhouette constraints of 12 views (1 px = 0.5 mm) take it to the observed
     sphere within a tenth of a pixel in three updates, and the shape stays a sphere."""
-    from sellip.scenes import handheld_orbit
+    from sellip.capture.scenes import handheld_orbit
 
     cameras = handheld_orbit(12, 160, 128, np.random.default_rng(3), distance_m=(0.45, 0.45))
     unit, faces = icosphere(4)
     truth = RADIUS * unit
     observed = [coverage_mask(truth, faces, camera) for camera in cameras]
     vertices = (RADIUS - 0.0003) * unit + np.array([0.0, 0.0, -0.0005])
-    normals_only = geometry.refine_from_normals(vertices, faces, unit, np.ones(len(unit)), reference=vertices)
+    normals_only = geometry_update.refine_from_normals(vertices, faces, unit, np.ones(len(unit)), reference=vertices)
     np.testing.assert_allclose(normals_only, vertices, atol=2e-6)
     for _ in range(3):
-        normals = geometry.vertex_normals(vertices, faces)
-        constraints = geometry.SilhouetteConstraints.concatenate([
-            geometry.silhouette_constraints(vertices, normals, camera.intrinsics, camera.rotation, camera.translation,
+        normals = meshes.vertex_normals(vertices, faces)
+        constraints = geometry_update.SilhouetteConstraints.concatenate([
+            geometry_update.silhouette_constraints(vertices, normals, camera.intrinsics, camera.rotation, camera.translation,
                                             seen, coverage_mask(vertices, faces, camera))
             for camera, seen in zip(cameras, observed)])
         assert len(constraints) > 200
         # 12 views give a tenth of the constraints per vertex of a real capture: ten times the default weight.
-        vertices = geometry.refine_from_normals(vertices, faces, unit, np.ones(len(unit)), silhouettes=constraints,
+        vertices = geometry_update.refine_from_normals(vertices, faces, unit, np.ones(len(unit)), silhouettes=constraints,
                                                 silhouette_weight=0.1)
     centre, radius = fitted_sphere(vertices)
     assert np.linalg.norm(centre) < 0.1e-3, centre
@@ -282,7 +283,7 @@ def test_silhouettes_do_not_roughen_a_part_the_normals_do_not_see():
     five updates with the silhouettes, the stiff offsets there (smoothness_unconfident) keep it a sphere (radial std
     0.04 mm, normals within 1.5 degrees at p90) while the silhouettes move it; without them the contour vertices are
     pulled out of it one by one (std above 0.15 mm and growing)."""
-    from sellip.scenes import handheld_orbit
+    from sellip.capture.scenes import handheld_orbit
 
     cameras = handheld_orbit(12, 160, 128, np.random.default_rng(3), distance_m=(0.45, 0.45))
     unit, faces = icosphere(4)
@@ -292,12 +293,12 @@ def test_silhouettes_do_not_roughen_a_part_the_normals_do_not_see():
     for stiff in (0.0, 1.0):
         vertices = (RADIUS - 0.0003) * unit + np.array([0.0, 0.0, -0.0005])
         for _ in range(5):
-            normals = geometry.vertex_normals(vertices, faces)
-            constraints = geometry.SilhouetteConstraints.concatenate([
-                geometry.silhouette_constraints(vertices, normals, camera.intrinsics, camera.rotation,
+            normals = meshes.vertex_normals(vertices, faces)
+            constraints = geometry_update.SilhouetteConstraints.concatenate([
+                geometry_update.silhouette_constraints(vertices, normals, camera.intrinsics, camera.rotation,
                                                 camera.translation, seen, coverage_mask(vertices, faces, camera))
                 for camera, seen in zip(cameras, observed)])
-            vertices = geometry.refine_from_normals(vertices, faces, unit, np.where(unseen, 0.0, 1.0),
+            vertices = geometry_update.refine_from_normals(vertices, faces, unit, np.where(unseen, 0.0, 1.0),
                                                     silhouettes=constraints, silhouette_weight=0.1,
                                                     smoothness_unconfident=stiff)
         centre, radius = fitted_sphere(vertices)
@@ -314,7 +315,8 @@ def test_silhouettes_do_not_roughen_a_part_the_normals_do_not_see():
 @pytest.fixture(scope="module")
 def tiny_capture(tmp_path_factory):
     """The tiny sphere (4 cm radius), 8 views of 320x256 raw pixels, ingested, with its known poses and true model."""
-    from sellip.io import GROUND_TRUTH_MESH, read_param_mesh
+    from sellip.capture.files import GROUND_TRUTH_MESH
+    from sellip.model.ply import read_param_mesh
     from sellip.stages import sfm
     from sellip.stages.linearize import linearize_capture
     from sellip.stages.merge_hdr import merge_capture
@@ -339,7 +341,7 @@ def test_the_true_model_predicts_the_photographs_silhouettes(tiny_capture):
     truth = tiny_capture["truth"]
     for shift_m in (0.0, 0.0015):
         moved = type(truth)(truth.vertices - [0.0, 0.0, shift_m], truth.faces, truth.normals, truth.params)
-        constraints, per_view = measure_silhouettes(moved, geometry.vertex_normals(moved.vertices, moved.faces),
+        constraints, per_view = measure_silhouettes(moved, meshes.vertex_normals(moved.vertices, moved.faces),
                                                     truth.normals, truth.params, tiny_capture["cameras"],
                                                     tiny_capture["hdr"], tiny_capture["folder"])
         assert len(per_view) == 8 and len(constraints) > 500
@@ -356,12 +358,12 @@ def test_the_true_model_predicts_the_photographs_silhouettes(tiny_capture):
 
 def test_the_prediction_is_the_photograph_of_the_render(tiny_capture):
     """predicted_diffuse (a render of the 90-degree analyzer's raw pixels inside the model's box, one analyzer
-    developed) equals the whole chain: every raw pixel rendered, sampled by the mosaic (sellip.sensor), developed
+    developed) equals the whole chain: every raw pixel rendered, sampled by the mosaic (sellip.capture.sensor), developed
     by the ingest's code (all four analyzers), I_d = 2 I90."""
-    from sellip.ingest import develop, make_ingest_plan
-    from sellip.io import read_capture
-    from sellip.render import Renderer, flash_light
-    from sellip.sensor import sensor_mosaic
+    from sellip.capture.ingest import develop, make_ingest_plan
+    from sellip.capture.reader import read_capture
+    from sellip.capture.sensor import sensor_mosaic
+    from sellip.model.render import Renderer, flash_light
     from sellip.stages.refine_geometry import predicted_diffuse, raw_camera
     from sellip.stages.render_outputs import load_cameras
 
@@ -388,9 +390,9 @@ def test_the_stage_moves_a_displaced_model_onto_the_silhouettes(tiny_capture, tm
     summary says so."""
     import json
 
-    from sellip.io import write_ply
-    from sellip.observe import read_mesh
-    from sellip.params import write_params
+    from sellip.fit.observe import read_mesh
+    from sellip.model.params import write_params
+    from sellip.model.ply import write_ply
     from sellip.stages import refine_geometry
 
     truth = tiny_capture["truth"]

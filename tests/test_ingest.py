@@ -8,11 +8,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from sellip import ingest
-from sellip.conventions import ANALYZER_ANGLES_DEG, analyzers_to_stokes, stokes_to_analyzers
-from sellip.io import CaptureError, CaptureWriter, read_capture, read_raw_file, read_raw_frame, write_capture
-from sellip.mosaic import mosaic_layout
-from sellip.sensor import SensorModel, camera_rgb_from_srgb, simulate_raw
+from sellip.capture import ingest
+from sellip.capture.files import CaptureError
+from sellip.capture.mosaic import mosaic_layout
+from sellip.capture.reader import read_capture, read_raw_file, read_raw_frame
+from sellip.capture.sensor import SensorModel, camera_rgb_from_srgb, simulate_raw
+from sellip.capture.writer import CaptureWriter, write_capture
+from sellip.model.conventions import ANALYZER_ANGLES_DEG, analyzers_to_stokes, stokes_to_analyzers
 from sellip.stages.linearize import linearize_capture
 from sellip.stages.merge_hdr import merge_capture, read_hdr
 
@@ -234,7 +236,7 @@ def test_source_positions_follow_opencv_distortion():
 def test_undistorted_output_matches_output_intrinsics():
     """A scene affine in undistorted normalized coordinates, seen through a distorting lens, comes out
     affine in the output grid's normalized coordinates."""
-    from sellip.render import undistort_normalized
+    from sellip.model.render import undistort_normalized
 
     height, width = 96, 128
     camera = plain_camera(width, height, f=110.0, distortion=(-0.25, 0.05, 1e-3, 5e-4, 0.0))
@@ -457,7 +459,7 @@ def test_real_mono_frame_agrees_with_polanalyser():
 
 
 def test_previews_code_aolp_as_hue_and_keep_dolp_in_range():
-    from sellip.previews import dolp_aolp, preview_images
+    from sellip.report.previews import dolp_aolp, preview_images
 
     angles = np.radians([0.0, 60.0, 120.0])
     stokes = np.stack([np.ones(3), 0.5 * np.cos(2 * angles), 0.5 * np.sin(2 * angles)], axis=-1)
@@ -507,7 +509,7 @@ def test_cli_writes_stores_and_previews(tmp_path):
     import zarr
 
     from sellip.cli import main
-    from sellip.previews import PREVIEW_KINDS
+    from sellip.report.previews import PREVIEW_KINDS
 
     capture, _ = simulated_capture(tmp_path / "capture", views=1, raw_format="png",
                                    distortion=(-0.1, 0.02, 0.0, 0.0, 0.0))

@@ -15,8 +15,11 @@ import numpy as np
 import pytest
 import yaml
 
-from sellip import geometry
-from sellip.io import GROUND_TRUTH_MESH, read_ply
+from sellip.capture.files import GROUND_TRUTH_MESH
+from sellip.geometry import hull as geometry_hull
+from sellip.geometry import meshes
+from sellip.geometry import scan as geometry_scan
+from sellip.model.ply import read_ply
 from sellip.stages import init_mesh
 from sellip.stages.init_mesh import InitMeshError
 
@@ -52,7 +55,7 @@ def write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
 def run(capture, mesh_path, output: Path, max_vertices: int = 3000) -> dict:
     root = capture["root"]
     return init_mesh.run_stage(capture["hdr"], root / "cameras.csv", root / "sfm", output, mode="mesh",
-                               options=geometry.InitMeshOptions(max_vertices=max_vertices), mesh_path=mesh_path)
+                               options=geometry_hull.InitMeshOptions(max_vertices=max_vertices), mesh_path=mesh_path)
 
 
 def read_mesh(path: Path):
@@ -67,7 +70,7 @@ def test_the_true_mesh_becomes_the_initial_mesh(capture, tmp_path):
     dropped, turned outward). Both: close to the truth, normals outward, within the budget, the check reported."""
     import open3d as o3d
 
-    from sellip.scenes import icosphere
+    from sellip.capture.scenes import icosphere
 
     truth, truth_faces = capture["truth"]
     dense = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(truth),
@@ -84,7 +87,7 @@ def test_the_true_mesh_becomes_the_initial_mesh(capture, tmp_path):
         info = json.loads(output.with_suffix(".json").read_text())
         assert info == json.loads(json.dumps(report)) and info["mode"] == "mesh" and info["mesh_path"] == str(source)
         assert 0.5 * budget < len(vertices) == info["vertices"] <= 1.1 * budget
-        distances = geometry.mesh_distances(vertices, faces, truth, truth_faces, count=20000)
+        distances = meshes.mesh_distances(vertices, faces, truth, truth_faces, count=20000)
         assert distances.chamfer < 5e-5 and distances.hausdorff < 2e-4  # measured 0.016-0.018 mm and 0.07 mm
         assert np.all(np.einsum("ij,ij->i", normals, vertices) > 0)  # outward, from the sphere's centre
         check = info["check"]
@@ -145,15 +148,14 @@ def test_unreadable_missing_or_triangle_free_files_are_named(capture, tmp_path, 
 def box_views():
     """A 8 x 4 x 2 cm box (remeshed to ~2k vertices) and its silhouettes from a 12-view orbit."""
     import open3d as o3d
-
     from test_geometry import camera_arrays, orbit, render_masks
 
     box = o3d.geometry.TriangleMesh.create_box(0.08, 0.04, 0.02).translate((-0.04, -0.02, -0.01))
-    vertices, faces = geometry.remesh_to_count(np.asarray(box.vertices), np.asarray(box.triangles), 2000)
+    vertices, faces = meshes.remesh_to_count(np.asarray(box.vertices), np.asarray(box.triangles), 2000)
     cameras = orbit(12)
     masks = render_masks(vertices, faces, cameras)
     arrays = camera_arrays(cameras)
-    return vertices, masks, arrays, geometry.visual_hull(masks, *arrays, resolution=48)
+    return vertices, masks, arrays, geometry_hull.visual_hull(masks, *arrays, resolution=48)
 
 
 @pytest.mark.parametrize("change, expected", [
@@ -166,7 +168,7 @@ def box_views():
 ])
 def test_the_silhouette_check_says_what_is_off(box_views, change, expected):
     vertices, masks, arrays, carving = box_views
-    check = geometry.check_against_silhouettes(change(vertices), masks, *arrays, carving)
+    check = geometry_scan.check_against_silhouettes(change(vertices), masks, *arrays, carving)
     if expected is None:
         assert check.problems == [] and check.median_inside_fraction > 0.97 and 0.95 < check.scale_ratio < 1.05
         assert check.inside_fraction.shape == (12,) and np.isfinite(check.extent_ratio).all()

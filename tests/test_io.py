@@ -10,7 +10,9 @@ import pandas as pd
 import pytest
 import yaml
 
-from sellip import io
+from sellip.capture import files, writer
+from sellip.capture import reader as capture_reader
+from sellip.model import ply as model_ply
 
 WIDTH, HEIGHT = 32, 24
 
@@ -39,13 +41,13 @@ def _raws(frames, seed=0, high=4096):
 
 def _poses(views=("a", "b")):
     rows = [[v, 0.5, 0.5, -0.5, 0.5, 0.01 * k, -0.02, 0.9] for k, v in enumerate(views)]
-    return pd.DataFrame(rows, columns=io.POSE_COLUMNS)
+    return pd.DataFrame(rows, columns=files.POSE_COLUMNS)
 
 
 def _write(tmp_path, raw_format="dng", **kw):
     frames = _frames()
     raws = _raws(frames)
-    path = io.write_capture(tmp_path / "cap", _config(), frames, raws, _poses(), raw_format=raw_format, **kw)
+    path = writer.write_capture(tmp_path / "cap", _config(), frames, raws, _poses(), raw_format=raw_format, **kw)
     return path, frames, raws
 
 
@@ -56,13 +58,13 @@ def _listing(root: Path):
 @pytest.mark.parametrize("raw_format", ["dng", "tiff", "png"])
 def test_capture_round_trip(tmp_path, raw_format):
     path, frames, raws = _write(tmp_path, raw_format)
-    capture = io.read_capture(path, check_raw=True)
+    capture = capture_reader.read_capture(path, check_raw=True)
     assert capture.config["sensor"] == _config()["sensor"]
     assert capture.config["camera"]["distortion"] == [0.01, 0, 0, 0, 0]
     assert capture.view_ids == ["a", "b"] and len(capture.frames_of("b")) == 3
     np.testing.assert_allclose(capture.frames["flash_level"], frames["flash_level"])
     for fid, raw in raws.items():
-        np.testing.assert_array_equal(io.read_raw_frame(capture, fid), raw)
+        np.testing.assert_array_equal(capture_reader.read_raw_frame(capture, fid), raw)
     np.testing.assert_allclose(capture.poses[["qw", "qx", "qy", "qz"]].to_numpy(), _poses().iloc[:, 1:5].to_numpy())
     rotation, translation = capture.pose("b")
     np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
@@ -78,7 +80,7 @@ def test_dng_round_trips_bit_exact_through_rawpy(tmp_path):
     sensor = {"black_level": 64, "white_level": 65535}
     raw = np.random.default_rng(3).integers(0, 65536, (48, 64)).astype(np.uint16)
     raw[0, :4] = [0, 1, 65534, 65535]
-    io.write_raw_file(tmp_path / "frame.dng", raw, sensor)
+    writer.write_raw_file(tmp_path / "frame.dng", raw, sensor)
     with rawpy.imread(str(tmp_path / "frame.dng")) as image:
         np.testing.assert_array_equal(image.raw_image, raw)
         assert image.raw_image.dtype == np.uint16
@@ -87,15 +89,15 @@ def test_dng_round_trips_bit_exact_through_rawpy(tmp_path):
 def test_rewriting_a_capture_replaces_it_whole(tmp_path):
     path, _, _ = _write(tmp_path)
     frames = _frames(views=("z",))
-    io.write_capture(path, _config(), frames, _raws(frames, seed=9))
-    capture = io.read_capture(path)
+    writer.write_capture(path, _config(), frames, _raws(frames, seed=9))
+    capture = capture_reader.read_capture(path)
     assert capture.view_ids == ["z"] and capture.poses is None
     assert sorted(p.name for p in (path / "raw").iterdir()) == ["z_0.dng", "z_1.dng", "z_2.dng"]
 
 
 def test_param_mesh_ply_round_trip(tmp_path):
-    from sellip.pbrdf import PBRDFParams
-    from sellip.render import ParamMesh
+    from sellip.model.pbrdf import PBRDFParams
+    from sellip.model.render import ParamMesh
 
     rng = np.random.default_rng(0)
     v = 7
@@ -105,11 +107,11 @@ def test_param_mesh_ply_round_trip(tmp_path):
                                         rho_s=rng.uniform(size=v), sigma_s=rng.uniform(size=v),
                                         rho_ss=rng.uniform(size=(v, 3)), sigma_ss=rng.uniform(size=v)),
                      material=np.arange(v) % 3)
-    io.write_param_mesh(tmp_path / "m.ply", mesh)
-    vertex, faces = io.read_ply(tmp_path / "m.ply")
-    assert list(vertex)[:16] == list(io.MODEL_VERTEX_PROPERTIES)
-    assert all(vertex[name].dtype == np.float32 for name in io.MODEL_VERTEX_PROPERTIES)
-    back = io.read_param_mesh(tmp_path / "m.ply")
+    model_ply.write_param_mesh(tmp_path / "m.ply", mesh)
+    vertex, faces = model_ply.read_ply(tmp_path / "m.ply")
+    assert list(vertex)[:16] == list(model_ply.MODEL_VERTEX_PROPERTIES)
+    assert all(vertex[name].dtype == np.float32 for name in model_ply.MODEL_VERTEX_PROPERTIES)
+    back = model_ply.read_param_mesh(tmp_path / "m.ply")
     np.testing.assert_array_equal(back.faces, mesh.faces)
     np.testing.assert_allclose(back.params.rho_d, mesh.params.rho_d, rtol=1e-6)
     np.testing.assert_allclose(back.params.sigma_ss, mesh.params.sigma_ss, rtol=1e-6)
@@ -145,35 +147,35 @@ def _set_key(section, key, value):
 
 def _write_raw(name, data):
     def corrupt(path):
-        (path / "raw" / name).write_bytes(data) if isinstance(data, bytes) else io.write_raw_file(
+        (path / "raw" / name).write_bytes(data) if isinstance(data, bytes) else writer.write_raw_file(
             path / "raw" / name, data, {"black_level": 64, "white_level": 4095})
     return corrupt
 
 
 BAD_READS = {
-    "missing capture.yaml": (lambda p: (p / "capture.yaml").unlink(), io.MissingFileError, "capture.yaml"),
-    "missing frames.csv": (lambda p: (p / "frames.csv").unlink(), io.MissingFileError, "frames.csv"),
-    "missing raw file": (lambda p: (p / "raw" / "a_1.dng").unlink(), io.MissingFileError, "row 1 (line 3)"),
-    "missing key": (lambda p: _edit_yaml(p, _drop_key("camera", "fx")), io.ConfigError, "camera.fx"),
-    "unknown key": (lambda p: _edit_yaml(p, _set_key("light", "colour", 1)), io.ConfigError, "light.colour"),
+    "missing capture.yaml": (lambda p: (p / "capture.yaml").unlink(), files.MissingFileError, "capture.yaml"),
+    "missing frames.csv": (lambda p: (p / "frames.csv").unlink(), files.MissingFileError, "frames.csv"),
+    "missing raw file": (lambda p: (p / "raw" / "a_1.dng").unlink(), files.MissingFileError, "row 1 (line 3)"),
+    "missing key": (lambda p: _edit_yaml(p, _drop_key("camera", "fx")), files.ConfigError, "camera.fx"),
+    "unknown key": (lambda p: _edit_yaml(p, _set_key("light", "colour", 1)), files.ConfigError, "light.colour"),
     "white level above bit depth": (lambda p: _edit_yaml(p, _set_key("sensor", "white_level", 65520)),
-                                    io.ConfigError, "sensor.white_level"),
+                                    files.ConfigError, "sensor.white_level"),
     "unknown color layout": (lambda p: _edit_yaml(p, _set_key("sensor", "color_layout", "RGBW")),
-                             io.UnknownLayoutError, "sensor.color_layout"),
+                             files.UnknownLayoutError, "sensor.color_layout"),
     "unknown polarizer layout": (lambda p: _edit_yaml(p, _set_key("sensor", "polarizer_layout", [[0, 45], [90, 90]])),
-                                 io.UnknownLayoutError, "sensor.polarizer_layout"),
+                                 files.UnknownLayoutError, "sensor.polarizer_layout"),
     "duplicate frame_id": (lambda p: _edit_csv(p, "frames.csv", lambda t: t.assign(
-        frame_id=t["frame_id"].where(t.index != 4, "a_0"))), io.DuplicateFrameError, "'a_0'"),
+        frame_id=t["frame_id"].where(t.index != 4, "a_0"))), files.DuplicateFrameError, "'a_0'"),
     "flash level zero": (lambda p: _edit_csv(p, "frames.csv", lambda t: t.assign(
-        flash_level=t["flash_level"].where(t.index != 2, "0"))), io.FlashLevelError,
+        flash_level=t["flash_level"].where(t.index != 2, "0"))), files.FlashLevelError,
         "row 2 (line 4), column 'flash_level'"),
     "flash level above one": (lambda p: _edit_csv(p, "frames.csv", lambda t: t.assign(
-        flash_level=t["flash_level"].where(t.index != 5, "1.5"))), io.FlashLevelError, "(0, 1]"),
+        flash_level=t["flash_level"].where(t.index != 5, "1.5"))), files.FlashLevelError, "(0, 1]"),
     "missing column": (lambda p: _edit_csv(p, "frames.csv", lambda t: t.drop(columns="exposure_s")),
-                       io.FramesError, "exposure_s"),
+                       files.FramesError, "exposure_s"),
     "view without frames": (lambda p: _edit_csv(p, "poses.csv", lambda t: pd.concat(
-        [t, t.iloc[[0]].assign(view_id="ghost")])), io.ViewWithoutFramesError, "'ghost'"),
-    "bad quaternion": (lambda p: _edit_csv(p, "poses.csv", lambda t: t.assign(qw="2")), io.PosesError,
+        [t, t.iloc[[0]].assign(view_id="ghost")])), files.ViewWithoutFramesError, "'ghost'"),
+    "bad quaternion": (lambda p: _edit_csv(p, "poses.csv", lambda t: t.assign(qw="2")), files.PosesError,
                        "unit quaternion"),
 }
 
@@ -193,7 +195,7 @@ def test_bad_capture_raises_its_specific_error_and_writes_nothing(tmp_path, case
     corrupt(path)
     before = _listing(tmp_path)
     with pytest.raises(error) as info:
-        io.read_capture(path)
+        capture_reader.read_capture(path)
     assert where in str(info.value)
     assert info.value.file.endswith((".yaml", ".csv", ".dng"))  # names the file
     assert _listing(tmp_path) == before
@@ -204,20 +206,20 @@ def test_bad_raw_frame_raises_raw_frame_error(tmp_path, case):
     path, _, _ = _write(tmp_path)
     corrupt, message = BAD_RAWS[case]
     corrupt(path)
-    capture = io.read_capture(path)  # the tables are fine
-    with pytest.raises(io.RawFrameError) as info:
-        io.read_raw_frame(capture, "a_0")
+    capture = capture_reader.read_capture(path)  # the tables are fine
+    with pytest.raises(files.RawFrameError) as info:
+        capture_reader.read_raw_frame(capture, "a_0")
     assert message in str(info.value) and "a_0.dng" in str(info.value)
-    with pytest.raises(io.RawFrameError):
-        io.read_capture(path, check_raw=True)
+    with pytest.raises(files.RawFrameError):
+        capture_reader.read_capture(path, check_raw=True)
 
 
 def test_eight_bit_png_for_a_twelve_bit_sensor_is_rejected(tmp_path):
     import imageio.v3 as iio
 
     iio.imwrite(tmp_path / "f.png", np.zeros((HEIGHT, WIDTH), np.uint8))
-    with pytest.raises(io.RawFrameError, match="uint8"):
-        io.read_raw_file(tmp_path / "f.png", _config()["sensor"])
+    with pytest.raises(files.RawFrameError, match="uint8"):
+        capture_reader.read_raw_file(tmp_path / "f.png", _config()["sensor"])
 
 
 # --------------------------------------------------------------------------- bad inputs: writing
@@ -226,13 +228,13 @@ def test_eight_bit_png_for_a_twelve_bit_sensor_is_rejected(tmp_path):
 BAD_WRITES = {
     "flash level outside (0, 1]": (lambda f, r, c: (f.assign(flash_level=[0.25, 0.125, 2.0, 0.25, 0.125, 0.0625]),
                                                     r, c),
-                                   io.FlashLevelError),
+                                   files.FlashLevelError),
     "duplicate frame_id": (lambda f, r, c: (f.assign(frame_id=["x", "y", "z", "x", "v", "w"]),
-                                            {k: r["a_0"] for k in "xyzvw"}, c), io.DuplicateFrameError),
-    "raw of the wrong size": (lambda f, r, c: (f, {**r, "b_2": r["b_2"][:, :-4]}, c), io.RawFrameError),
-    "raw above the bit depth": (lambda f, r, c: (f, {**r, "b_1": r["b_1"] | np.uint16(0x8000)}, c), io.RawFrameError),
+                                            {k: r["a_0"] for k in "xyzvw"}, c), files.DuplicateFrameError),
+    "raw of the wrong size": (lambda f, r, c: (f, {**r, "b_2": r["b_2"][:, :-4]}, c), files.RawFrameError),
+    "raw above the bit depth": (lambda f, r, c: (f, {**r, "b_1": r["b_1"] | np.uint16(0x8000)}, c), files.RawFrameError),
     "unknown layout": (lambda f, r, c: (f, r, {**c, "sensor": {**c["sensor"], "color_layout": "RGB"}}),
-                       io.UnknownLayoutError),
+                       files.UnknownLayoutError),
 }
 
 
@@ -242,7 +244,7 @@ def test_a_failed_write_leaves_nothing(tmp_path, case):
     bad, error = BAD_WRITES[case]
     frames, raws, config = bad(frames, _raws(frames), _config())
     with pytest.raises(error):
-        io.write_capture(tmp_path / "cap", config, frames, raws, _poses())
+        writer.write_capture(tmp_path / "cap", config, frames, raws, _poses())
     assert list(tmp_path.iterdir()) == []
 
 
@@ -250,13 +252,13 @@ def test_a_failed_rewrite_keeps_the_old_capture(tmp_path):
     path, _, raws = _write(tmp_path)
     before = _listing(path)
     frames = _frames().assign(flash_level=1.5)
-    with pytest.raises(io.FlashLevelError):
-        io.write_capture(path, _config(), frames, raws)
+    with pytest.raises(files.FlashLevelError):
+        writer.write_capture(path, _config(), frames, raws)
     assert _listing(path) == before and sorted(os.listdir(tmp_path)) == ["cap"]
 
 
 def test_view_in_poses_without_frames_is_rejected_on_write(tmp_path):
     frames = _frames(views=("a",))
-    with pytest.raises(io.ViewWithoutFramesError):
-        io.write_capture(tmp_path / "cap", _config(), frames, _raws(frames), _poses(("a", "b")))
+    with pytest.raises(files.ViewWithoutFramesError):
+        writer.write_capture(tmp_path / "cap", _config(), frames, _raws(frames), _poses(("a", "b")))
     assert list(tmp_path.iterdir()) == []

@@ -1,4 +1,4 @@
-"""Exported kernels (sellip.kernels): same results as jax.jit, traced once, loaded by later processes."""
+"""Exported kernels (sellip.fit.kernels): same results as jax.jit, traced once, loaded by later processes."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sellip import kernels
+from sellip.fit import kernels
 
 
 class Pair(NamedTuple):

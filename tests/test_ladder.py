@@ -1,13 +1,13 @@
-"""The accuracy ladder's figures (sellip.ladder; the rungs themselves run in benchmarks/accuracy_ladder.py)."""
+"""The accuracy ladder's figures (sellip.bench.ladder; the rungs themselves run in benchmarks/accuracy_ladder.py)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from sellip.fit import STATUS_FITTED, STATUS_TOO_FEW_VIEWS
-from sellip.ladder import figures
-from sellip.scenes import build_scene
+from sellip.bench.ladder import figures
+from sellip.capture.scenes import build_scene
+from sellip.fit.records import STATUS_FITTED, STATUS_TOO_FEW_VIEWS
 
 
 def test_figures_of_a_fit_on_the_true_mesh():
@@ -31,7 +31,7 @@ def test_psnr_ceiling_falls_when_the_truth_has_fewer_vertices(tmp_path):
     """The truth at its own vertices scores what the sensor and ingest leave; resampled on a coarse mesh, its checker
     texture blurs and the ceiling falls (measured at 320x256: 29.0 dB for the truth, 26.8 dB at 2,000 vertices,
     21.1 dB at 300)."""
-    from sellip.ladder import psnr_ceiling, resampled_truth
+    from sellip.bench.ladder import psnr_ceiling, resampled_truth
     from sellip.stages.linearize import linearize_capture
     from sellip.stages.merge_hdr import merge_capture
     from sellip.stages.synth import synthesize_capture

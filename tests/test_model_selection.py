@@ -1,4 +1,4 @@
-"""Model selection (sellip.models, DESIGN §7): which lobes a cluster needs, and fitting vertices by model.
+"""Model selection (sellip.fit.selection, DESIGN §7): which lobes a cluster needs, and fitting vertices by model.
 
 One synthetic scene (the renderer and cameras of test_augment.py: the full model, 40 views within
 25 deg of +z, 0.5 % noise): three materials of 48 surface points each, a quarter of them facing the
@@ -14,10 +14,14 @@ import numpy as np
 import pytest
 from test_augment import material_scene
 
-from sellip import augment, cli, models
-from sellip import fit as fit_module
-from sellip.fit import FitSettings, Observations, default_prior, fit_vertices
-from sellip.pbrdf import PBRDFParams
+from sellip import cli
+from sellip.fit import clusters as fit_clusters
+from sellip.fit import lobes as fit_lobes
+from sellip.fit import records, solver
+from sellip.fit import selection as fit_selection
+from sellip.fit.records import FitSettings, Observations
+from sellip.fit.vertex_fit import default_prior, fit_vertices
+from sellip.model.pbrdf import PBRDFParams
 
 MATERIALS = {  # eta, rho_d, rho_s, sigma_s, rho_ss, sigma_ss
     "specular": (1.5, (0.45, 0.25, 0.12), 0.8, 0.15, (0.0, 0.0, 0.0), 0.5),
@@ -26,8 +30,8 @@ MATERIALS = {  # eta, rho_d, rho_s, sigma_s, rho_ss, sigma_ss
 }
 PER_MATERIAL = 48
 HELD = FitSettings(fit_normal=False)  # the refit's settings (normals held at the truth here)
-LOBES = augment.AugmentSettings(min_cluster_vertices=10, max_samples=1000)
-SELECTION = models.SelectionSettings(max_samples=1000)  # the lobe fits' shape: one compilation per model
+LOBES = fit_clusters.AugmentSettings(min_cluster_vertices=10, max_samples=1000)
+SELECTION = fit_selection.SelectionSettings(max_samples=1000)  # the lobe fits' shape: one compilation per model
 
 
 def _make_scene(seed=0, views=40, noise=0.005):
@@ -44,7 +48,7 @@ def _rows(obs, rows):
 
 def _select(scene, name, seed=0, selection=SELECTION):
     rows = np.flatnonzero(scene["material"] == scene["names"].index(name))
-    return models.select_model(_rows(scene["obs"], rows), scene["normals"][rows], scene["params"].rho_d[rows], 1.5,
+    return fit_selection.select_model(_rows(scene["obs"], rows), scene["normals"][rows], scene["params"].rho_d[rows], 1.5,
                                HELD, selection, LOBES, seed=seed)
 
 
@@ -57,9 +61,9 @@ def scene():
     the compiled forms each cluster kernel holds after them (counted from empty caches)."""
     s = _make_scene()
     for name in CLUSTER_KERNELS:
-        getattr(augment, name).jitted.clear_cache()
+        getattr(fit_lobes, name).jitted.clear_cache()
     s["selection"] = {name: _select(s, name) for name in MATERIALS}
-    s["compiled"] = {name: getattr(augment, name)._cache_size() for name in CLUSTER_KERNELS}
+    s["compiled"] = {name: getattr(fit_lobes, name)._cache_size() for name in CLUSTER_KERNELS}
     return s
 
 
@@ -74,24 +78,24 @@ def test_every_candidate_model_runs_one_compiled_program(scene):
 def test_model_codes_settings_and_caps():
     from sellip.stages.fit import settings_from_pairs
 
-    for code in models.MODELS:
-        assert models.model_of(models.settings_for_model(HELD, code)) == code
-    assert models.settings_for_model(HELD, 3) == HELD  # the default settings are model 3: same compiled fit
-    assert models.settings_for_model(HELD, 2, sigma_ss_fixed=0.7).sigma_ss_fixed == 0.7
+    for code in records.MODELS:
+        assert records.model_of(fit_selection.settings_for_model(HELD, code)) == code
+    assert fit_selection.settings_for_model(HELD, 3) == HELD  # the default settings are model 3: same compiled fit
+    assert fit_selection.settings_for_model(HELD, 2, sigma_ss_fixed=0.7).sigma_ss_fixed == 0.7
     fixed = FitSettings(sigma_ss_fixed=1.0)
-    assert models.settings_for_model(fixed, 2, sigma_ss_fixed=0.7).sigma_ss_fixed == 1.0  # the user's value wins
-    assert models.allowed_models(fixed) == [0, 1, 2]
-    assert models.allowed_models(FitSettings(lobes="specular"), (0, 1, 3)) == [0, 1]
-    np.testing.assert_array_equal(models.cap_models([0, 1, 2, 3], fixed), [0, 1, 2, 2])
+    assert fit_selection.settings_for_model(fixed, 2, sigma_ss_fixed=0.7).sigma_ss_fixed == 1.0  # the user's value wins
+    assert fit_selection.allowed_models(fixed) == [0, 1, 2]
+    assert fit_selection.allowed_models(FitSettings(lobes="specular"), (0, 1, 3)) == [0, 1]
+    np.testing.assert_array_equal(fit_selection.cap_models([0, 1, 2, 3], fixed), [0, 1, 2, 2])
     assert settings_from_pairs(["lobes=specular", "fit_normal=false"]) == FitSettings(lobes="specular", fit_normal=False)
     with pytest.raises(ValueError, match="lobes"):
         settings_from_pairs(["lobes=mirror"])
     with pytest.raises(ValueError, match="max_iterations expects an integer"):
         settings_from_pairs(["max_iterations=many"])
     with pytest.raises(ValueError, match="candidates"):
-        models.SelectionSettings(candidates=(1, 4))
+        fit_selection.SelectionSettings(candidates=(1, 4))
     with pytest.raises(ValueError, match="held_out_fraction"):
-        models.SelectionSettings(held_out_fraction=1.0)
+        fit_selection.SelectionSettings(held_out_fraction=1.0)
 
 
 def test_the_rule_takes_the_simplest_model_within_the_tolerance():
@@ -99,19 +103,19 @@ def test_the_rule_takes_the_simplest_model_within_the_tolerance():
     base = rng.uniform(1.0, 2.0, 20)  # per-vertex held-out losses of the best model
     noise = rng.normal(0, 0.01, 20)
     losses = {0: base * 3, 1: base * 1.005 + noise, 2: base * 1.002, 3: base}
-    chosen, best, table = models.choose(losses, tolerance=0.01, standard_errors=1.0)
+    chosen, best, table = fit_selection.choose(losses, tolerance=0.01, standard_errors=1.0)
     assert (chosen, best) == (1, 3)  # 0.5 % worse: within 1 %
     assert table[0]["excess"] == pytest.approx(2 * base.sum()) and table[3]["excess"] == 0
     # 3 % worse on every vertex alike: beyond 1 % plus one (tiny) standard error.
-    chosen, _, table = models.choose({1: base * 1.03, 3: base}, tolerance=0.01, standard_errors=1.0)
+    chosen, _, table = fit_selection.choose({1: base * 1.03, 3: base}, tolerance=0.01, standard_errors=1.0)
     assert chosen == 3 and table[1]["standard_error"] < 0.01 * table[3]["held_out_loss"]
     # 3 % worse on average but as noisy as that: within one standard error, so the simpler model.
     spread = rng.normal(0, 1, 20)
     spread = 0.3 * (spread - spread.mean()) / spread.std()
     flat = np.full(20, 1.5)
-    chosen, best, table = models.choose({1: flat * (1.03 + spread), 3: flat}, tolerance=0.01, standard_errors=1.0)
+    chosen, best, table = fit_selection.choose({1: flat * (1.03 + spread), 3: flat}, tolerance=0.01, standard_errors=1.0)
     assert best == 3 and chosen == 1 and table[1]["excess"] == pytest.approx(0.03 * table[3]["held_out_loss"])
-    assert models.choose({1: flat * (1.03 + spread), 3: flat}, tolerance=0.0, standard_errors=0.0)[0] == 3
+    assert fit_selection.choose({1: flat * (1.03 + spread), 3: flat}, tolerance=0.0, standard_errors=0.0)[0] == 3
 
 
 def test_selection_drops_the_lobes_a_cluster_does_not_need_and_keeps_those_it_needs(scene):
@@ -147,14 +151,14 @@ def test_fit_by_model_fits_every_vertex_with_its_model(scene):
     obs, normals, n = scene["obs"], scene["normals"], len(scene["normals"])
     vertex_models = _refit_models(scene)
     # Zero-weight virtual samples: the refit's compiled shapes (shared with the stage test below).
-    virtual = augment.virtual_samples(np.full(n, -1), None, HELD, np.float64)
+    virtual = fit_lobes.virtual_samples(np.full(n, -1), None, HELD, np.float64)
     prior = default_prior(n, np.float64)
-    grouped = models.fit_by_model(obs, normals, prior, vertex_models, HELD, virtual=virtual)
+    grouped = fit_selection.fit_by_model(obs, normals, prior, vertex_models, HELD, virtual=virtual)
     for code in (0, 1):
         m = vertex_models == code
         alone = fit_vertices(_rows(obs, m), normals[m], PBRDFParams(*[np.asarray(x)[m] for x in prior]),
-                             models.settings_for_model(HELD, code), virtual=None if code == 0 else
-                             augment.fit.VirtualSamples(*[np.asarray(x)[m] for x in virtual]))
+                             fit_selection.settings_for_model(HELD, code), virtual=None if code == 0 else
+                             records.VirtualSamples(*[np.asarray(x)[m] for x in virtual]))
         for name in ("eta", "rho_d", "rho_s", "sigma_s", "rho_ss"):
             # One fit for every model: the grouped batches mix models and view widths, so sums run in
             # another order (round-off, amplified a little by LM's accept/stop decisions).
@@ -162,14 +166,14 @@ def test_fit_by_model_fits_every_vertex_with_its_model(scene):
                                        atol=1e-9, err_msg=f"model {code}: {name}")
         np.testing.assert_array_equal(grouped.status[m], alone.status)
         if code == 1:  # every vertex of one model: the same as the plain fit with that model's settings
-            same = models.fit_by_model(_rows(obs, m), normals[m], PBRDFParams(*[np.asarray(x)[m] for x in prior]),
-                                       np.ones(m.sum(), int), HELD, virtual=augment.fit.VirtualSamples(
+            same = fit_selection.fit_by_model(_rows(obs, m), normals[m], PBRDFParams(*[np.asarray(x)[m] for x in prior]),
+                                       np.ones(m.sum(), int), HELD, virtual=records.VirtualSamples(
                                            *[np.asarray(x)[m] for x in virtual]))
             for a, b in zip(jax_leaves(same), jax_leaves(alone)):
                 np.testing.assert_array_equal(a, b)
-    compiled = fit_module._lm_rounds._cache_size()
-    mixed = models.fit_by_model(obs, normals, prior, np.arange(n) % 4, HELD, virtual=virtual)
-    assert fit_module._lm_rounds._cache_size() == compiled
+    compiled = solver._lm_rounds._cache_size()
+    mixed = fit_selection.fit_by_model(obs, normals, prior, np.arange(n) % 4, HELD, virtual=virtual)
+    assert solver._lm_rounds._cache_size() == compiled
     assert np.all(mixed.params.rho_s[np.arange(n) % 4 == 0] == 0) and np.all(mixed.params.rho_ss[np.arange(n) % 4 < 2] == 0)
     np.testing.assert_allclose(mixed.params.sigma_ss[np.arange(n) % 4 == 2], 0.9, rtol=1e-12)
     assert np.all(grouped.status == 0) and np.all(grouped.params.rho_ss == 0)
@@ -178,7 +182,7 @@ def test_fit_by_model_fits_every_vertex_with_its_model(scene):
     eta_error = np.abs(grouped.params.eta / scene["params"].eta - 1)
     assert np.median(eta_error[specular]) < 0.02 and np.median(eta_error[vertex_models == 0]) < 0.02
     with pytest.raises(ValueError, match="models for"):
-        models.fit_by_model(obs, normals, prior, np.ones(n - 1, int), HELD)
+        fit_selection.fit_by_model(obs, normals, prior, np.ones(n - 1, int), HELD)
 
 
 def jax_leaves(tree):
@@ -189,8 +193,8 @@ def jax_leaves(tree):
 
 def _write_stores(folder, scene):
     """observations.zarr (float32) and fit.zarr (the true parameters, every vertex fitted, confidence 1)."""
-    from sellip.observe import ObservationWriter, ObserveMesh, ObserveSettings
-    from sellip.params import write_params
+    from sellip.fit.observe import ObservationWriter, ObserveMesh, ObserveSettings
+    from sellip.model.params import write_params
 
     obs, n = scene["obs"], len(scene["normals"])
     mesh = ObserveMesh(scene["positions"], scene["normals"], np.zeros((0, 3), np.int64))
@@ -205,8 +209,8 @@ def _write_stores(folder, scene):
 
 
 def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, scene, caplog, monkeypatch):
-    from sellip.io import read_ply, write_ply
-    from sellip.params import read_params
+    from sellip.model.params import read_params
+    from sellip.model.ply import read_ply, write_ply
     from sellip.stages import finalize
 
     _write_stores(tmp_path, scene)
@@ -217,7 +221,7 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     # At most model 1 (--set lobes=specular): the scattering cluster may not keep its lobe.
     assert cli.main(["cluster-lobes", *stores, "--output", str(tmp_path / "clusters"), *small,
                      "--set", "lobes=specular"]) == 0
-    labels, vertex_models = np.load(tmp_path / "clusters" / "labels.npy"), np.load(tmp_path / "clusters" / "models.npy")
+    labels, vertex_models = np.load(tmp_path / "clusters" / "labels.npy"), np.load(tmp_path / "clusters" / "fit_selection.npy")
     info = json.loads((tmp_path / "clusters" / "clusters.json").read_text())["model_selection"]
     assert vertex_models.dtype == np.uint8 and info["allowed"] == [0, 1] and info["enabled"]
     np.testing.assert_array_equal(vertex_models, np.asarray(info["models"])[labels])
@@ -248,7 +252,7 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
                          "--set", "lobes=specular", *extra, "--inherit-models"]) == 0
         inherited = json.loads((tmp_path / "inherited" / "clusters.json").read_text())["model_selection"]
         assert inherited["inherited"] and all(c["inherited"] and not c["candidates"] for c in inherited["clusters"])
-        np.testing.assert_array_equal(np.load(tmp_path / "inherited" / "models.npy"), np.minimum(vertex_models, top))
+        np.testing.assert_array_equal(np.load(tmp_path / "inherited" / "fit_selection.npy"), np.minimum(vertex_models, top))
     # The final model carries the store's models (not a constant).
     n = len(vertex_models)
     write_ply(tmp_path / "mesh.ply", {**{k: scene["positions"][:, i] for i, k in enumerate("xyz")},
@@ -268,11 +272,11 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     def fake_fit(obs, normal0, prior, vertex_models, settings, sigma_ss_fixed, progress=None, virtual=None):
         given.append((np.array(vertex_models), settings, sigma_ss_fixed, virtual))
         k = len(normal0)
-        return models.FitResult(normal=normal0, params=prior, status=np.zeros(k, np.int32), confidence=np.ones(k),
+        return records.FitResult(normal=normal0, params=prior, status=np.zeros(k, np.int32), confidence=np.ones(k),
                                 loss=np.zeros(k), views_used=np.full(k, 8), iterations=np.ones(k, np.int32),
                                 normal_std_deg=np.ones(k), eta_std=np.ones(k), sigma_s_std=np.ones(k))
 
-    monkeypatch.setattr(models, "fit_by_model", fake_fit)
+    monkeypatch.setattr(fit_selection, "fit_by_model", fake_fit)
     for extra, expected in (([], vertex_models), (["--set", "lobes=diffuse"], np.zeros(n))):
         assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--prior",
                          str(tmp_path / "refit.zarr"), "--output", str(tmp_path / "next.npz"), "--fixed-sigma-ss",
@@ -286,12 +290,12 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     # Without model selection: every cluster gets the fit settings' model.
     assert cli.main(["cluster-lobes", *stores, "--output", str(tmp_path / "plain"), *small, "--set", "lobes=specular",
                      "--no-model-selection"]) == 0
-    assert np.all(np.load(tmp_path / "plain" / "models.npy") == 1)
+    assert np.all(np.load(tmp_path / "plain" / "fit_selection.npy") == 1)
     assert json.loads((tmp_path / "plain" / "clusters.json").read_text())["model_selection"]["clusters"] == []
 
-    # A bad models.npy is refused, naming the file; nothing is written.
-    np.save(tmp_path / "clusters" / "models.npy", np.full(n, 7, np.uint8))
+    # A bad fit_selection.npy is refused, naming the file; nothing is written.
+    np.save(tmp_path / "clusters" / "fit_selection.npy", np.full(n, 7, np.uint8))
     caplog.clear()
     assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--lobes", str(tmp_path / "clusters"),
                      "--output", str(tmp_path / "bad.npz")]) == 1
-    assert "models.npy" in caplog.text and not (tmp_path / "bad.npz").exists()
+    assert "fit_selection.npy" in caplog.text and not (tmp_path / "bad.npz").exists()

@@ -1,4 +1,4 @@
-"""Observation store: visibility, HDR samples and geometry per vertex and view (sellip.observe, sellip observe).
+"""Observation store: visibility, HDR samples and geometry per vertex and view (sellip.fit.observe, sellip observe).
 
 The scene: a 4 cm sphere with a small sphere in front of it (it hides part of the big one from the
 first camera and, with the flash 10 cm to the side, shadows another part), rendered with the real
@@ -13,14 +13,24 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sellip.conventions import observations_from_analyzers, stokes_to_analyzers
-from sellip.io import CaptureWriter, write_ply
-from sellip.observe import (ObserveError, ObserveMesh, ObserveSettings, Observer, bilinear_sample,
-                            load_observations, read_mesh, relative_slope, silhouette_distance)
-from sellip.pbrdf import PBRDFParams, full_stokes
-from sellip.render import Camera, ParamMesh, Renderer, flash_light
-from sellip.scenes import icosphere, look_at_rotation
-from sellip.sensor import SensorModel
+from sellip.capture.scenes import icosphere, look_at_rotation
+from sellip.capture.sensor import SensorModel
+from sellip.capture.writer import CaptureWriter
+from sellip.fit.observe import (
+    ObserveError,
+    ObserveMesh,
+    Observer,
+    ObserveSettings,
+    bilinear_sample,
+    load_observations,
+    read_mesh,
+    relative_slope,
+    silhouette_distance,
+)
+from sellip.model.conventions import observations_from_analyzers, stokes_to_analyzers
+from sellip.model.pbrdf import PBRDFParams, full_stokes
+from sellip.model.ply import write_ply
+from sellip.model.render import Camera, ParamMesh, Renderer, flash_light
 from sellip.stages.observe import hdr_camera, pair_views, run_stage
 from sellip.stages.sfm import read_cameras, write_cameras
 

@@ -10,10 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sellip import ingest, outputs
-from sellip.io import GROUND_TRUTH_MESH, read_capture, read_param_mesh
-from sellip.pbrdf import PBRDFParams, full_mueller
-from sellip.render import Camera, Light, ParamMesh, Renderer, flash_light
+from sellip.capture import ingest
+from sellip.capture.files import GROUND_TRUTH_MESH
+from sellip.capture.reader import read_capture
+from sellip.model.pbrdf import PBRDFParams, full_mueller
+from sellip.model.ply import read_param_mesh
+from sellip.model.render import Camera, Light, ParamMesh, Renderer, flash_light
+from sellip.report import outputs
 from sellip.stages.observe import hdr_camera
 from sellip.stages.synth import synthesize_capture
 
@@ -158,7 +161,7 @@ def test_unpolarized_light_on_a_diffuse_patch_gives_the_fresnel_dop_and_p_polari
 
 def test_novel_camera_is_between_two_captured_views_and_looks_at_the_target():
     rng = np.random.default_rng(0)
-    from sellip.scenes import handheld_orbit
+    from sellip.capture.scenes import handheld_orbit
 
     cameras = handheld_orbit(12, 64, 48, rng)
     novel = outputs.novel_camera(cameras, np.zeros(3), reference=3, elevate_deg=10.0)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sellip.params import ParamsError, fill_from_neighbours, read_params, transfer_nearest, write_params
+from sellip.model.params import ParamsError, fill_from_neighbours, read_params, transfer_nearest, write_params
 from sellip.stages.fit import parse_shard, settings_from_pairs, shard_rows
 
 
@@ -61,8 +61,8 @@ def test_params_round_trip_and_errors(tmp_path):
 def test_gather_keeps_the_starting_normal_of_unfitted_vertices(tmp_path):
     """Parameters of unfitted vertices come from their fitted neighbours, normals do not: the fit hands
     back each unfitted vertex's starting (mesh) normal, which gather-fit keeps."""
-    from sellip.fit import STATUS_FITTED, STATUS_TOO_FEW_VIEWS
-    from sellip.observe import ObservationWriter, ObserveMesh, ObserveSettings
+    from sellip.fit.observe import ObservationWriter, ObserveMesh, ObserveSettings
+    from sellip.fit.records import STATUS_FITTED, STATUS_TOO_FEW_VIEWS
     from sellip.stages import gather_fit
 
     rng = np.random.default_rng(1)

@@ -6,14 +6,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import camera_geometry, make_params
 from scipy import integrate
 
-from sellip import conventions, polar
-from sellip.fresnel import brewster_angle, diffuse_dop, fresnel, reflection_mueller, transmission_mueller
-from sellip.microfacet import ggx_d, smith_g
-from sellip.pbrdf import PBRDFParams, coaxial_observations, full_mueller, full_stokes, normal_azimuth_terms
-
-from helpers import camera_geometry, make_params
+from sellip.model import conventions, polar
+from sellip.model.fresnel import brewster_angle, diffuse_dop, fresnel, reflection_mueller, transmission_mueller
+from sellip.model.microfacet import ggx_d, smith_g
+from sellip.model.pbrdf import PBRDFParams, coaxial_observations, full_mueller, full_stokes, normal_azimuth_terms
 
 ETAS = [1.303, 1.463, 1.5, 1.663, 2.295]
 

@@ -5,10 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sellip.pbrdf import PBRDFParams
-from sellip.render import (Camera, Light, ParamMesh, Renderer, flash_light, pixel_rays, render_stokes,
-                           subpixel_offsets)
-from sellip.scenes import icosphere
+from sellip.capture.scenes import icosphere
+from sellip.model.pbrdf import PBRDFParams
+from sellip.model.render import (
+    Camera,
+    Light,
+    ParamMesh,
+    Renderer,
+    flash_light,
+    pixel_rays,
+    render_stokes,
+    subpixel_offsets,
+)
 
 WIDTH, HEIGHT, FOCAL = 160, 128, 1000.0
 RADIUS, DISTANCE = 0.05, 0.9

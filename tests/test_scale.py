@@ -1,9 +1,9 @@
-"""The scale benchmark's cost model (sellip.scale): benchmark files in, per-rule costs, a fitted model, predictions."""
+"""The scale benchmark's cost model (sellip.bench.scale): benchmark files in, per-rule costs, a fitted model, predictions."""
 
 import numpy as np
 import pytest
 
-from sellip import scale
+from sellip.bench import scale
 
 HEADER = "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sellip.sensor import DEFAULT_COLOR_MATRIX, SensorModel, camera_rgb_from_srgb, mosaic_sample, simulate_raw
+from sellip.capture.sensor import DEFAULT_COLOR_MATRIX, SensorModel, camera_rgb_from_srgb, mosaic_sample, simulate_raw
 
 
 def _labelled_analyzers(height, width):
@@ -69,7 +69,7 @@ def test_same_seed_same_raw_and_different_seed_different_raw():
 
 
 def test_capture_sensor_section_is_valid_capture_yaml():
-    from sellip.io import validate_config
+    from sellip.capture.capture_yaml import validate_config
 
     sensor = SensorModel(width=64, height=48)
     config = {"sensor": sensor.capture_sensor(), "camera": {"fx": 1.0, "fy": 1.0, "cx": 0.0, "cy": 0.0},

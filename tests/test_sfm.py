@@ -10,11 +10,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from sellip import geometry, sfm
-from sellip.conventions import camera_center
-from sellip.io import GROUND_TRUTH_MESH, read_capture, read_ply
-from sellip.render import Renderer, flash_light
-from sellip.scenes import build_scene, handheld_orbit
+from sellip.capture.files import GROUND_TRUTH_MESH
+from sellip.capture.reader import read_capture
+from sellip.capture.scenes import build_scene, handheld_orbit
+from sellip.geometry import hull as geometry_hull
+from sellip.geometry import meshes, sfm, silhouettes
+from sellip.model.conventions import camera_center
+from sellip.model.ply import read_ply
+from sellip.model.render import Renderer, flash_light
 from sellip.stages.sfm import compare_to_known, read_cameras
 
 VIEWS, WIDTH, HEIGHT = 36, 320, 256
@@ -29,7 +32,7 @@ def rendered():
     cameras = handheld_orbit(VIEWS, WIDTH, HEIGHT, np.random.default_rng(7))
     renderer = Renderer(scene.mesh)
     diffuse = np.stack([2 * renderer.render(c, flash_light(c)).analyzers[..., 2, :] for c in cameras])
-    return {"scene": scene, "cameras": cameras, "diffuse": diffuse, "masks": geometry.silhouette_masks(diffuse),
+    return {"scene": scene, "cameras": cameras, "diffuse": diffuse, "masks": silhouettes.silhouette_masks(diffuse),
             "rotations": np.array([c.rotation for c in cameras]),
             "translations": np.array([c.translation for c in cameras])}
 
@@ -105,13 +108,13 @@ def test_initial_mesh_from_sfm_poses_and_points(rendered, reconstruction):
     ok = result.registered
     index = np.cumsum(ok) - 1
     views = [index[t] for t in result.tracks]
-    mesh = geometry.initial_mesh(rendered["masks"][ok], rendered["cameras"][0].intrinsics, result.rotations[ok],
-                                 result.translations[ok], geometry.InitMeshOptions(hull_resolution=96,
+    mesh = geometry_hull.initial_mesh(rendered["masks"][ok], rendered["cameras"][0].intrinsics, result.rotations[ok],
+                                 result.translations[ok], geometry_hull.InitMeshOptions(hull_resolution=96,
                                                                                    max_vertices=10000),
                                  result.points, views, result.errors / upscale)
     assert mesh.stats["sparse_points_used"] > 500
     truth = rendered["scene"].mesh
-    distances = geometry.mesh_distances(mesh.vertices, mesh.faces, truth.vertices, truth.faces, count=20000)
+    distances = meshes.mesh_distances(mesh.vertices, mesh.faces, truth.vertices, truth.faces, count=20000)
     size = np.linalg.norm(np.ptp(truth.vertices, axis=0))
     assert distances.chamfer < 0.03 * size
 
@@ -200,7 +203,7 @@ def test_known_poses_and_initial_mesh_through_the_cli(tiny_capture, tmp_path):
     truth, truth_faces = read_ply(capture / GROUND_TRUTH_MESH)
     points = np.stack([vertex[k] for k in "xyz"], axis=1).astype(np.float64)
     truth_points = np.stack([truth[k] for k in "xyz"], axis=1).astype(np.float64)
-    distances = geometry.mesh_distances(points, faces, truth_points, truth_faces, count=20000)
+    distances = meshes.mesh_distances(points, faces, truth_points, truth_faces, count=20000)
     assert distances.chamfer < 0.03 * np.linalg.norm(np.ptp(truth_points, axis=0))
     assert not list(tmp_path.rglob(".*tmp*"))
 

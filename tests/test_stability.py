@@ -1,4 +1,4 @@
-"""The stability suite (sellip.stability, `sellip bench-stability`): its scenes, the synthetic noise option,
+"""The stability suite (sellip.bench.stability, `sellip bench-stability`): its scenes, the synthetic noise option,
 bad frames through ingest, the perturbation and miscalibration steps, the confidence-flagging figures, the
 finiteness check and the tables. The suite's Snakemake runs themselves take half an hour (docs/stability.md);
 here every piece is checked on its own, with a fake runner for the suite."""
@@ -15,10 +15,12 @@ import pandas as pd
 import pytest
 import yaml
 
-from sellip import io, stability
-from sellip.sweep import merge
-from sellip.scenes import build_scene, icosphere, vertex_normals
-from sellip.sensor import SensorModel, simulate_raw
+from sellip.bench import stability, stability_table
+from sellip.bench.sweep_plan import merge
+from sellip.capture import files, reader
+from sellip.capture.scenes import build_scene, icosphere, vertex_normals
+from sellip.capture.sensor import SensorModel, simulate_raw
+from sellip.model import ply as model_ply
 from sellip.stages import synth
 
 REPO = Path(__file__).resolve().parents[1]
@@ -48,7 +50,7 @@ def test_failure_case_scenes_have_the_materials_they_promise(name, rho_d, sigma_
 
 
 def test_bumpy_scene_has_bumps_and_dents_with_the_normals_of_its_surface():
-    from sellip.scenes import TINY_BUMPS
+    from sellip.capture.scenes import TINY_BUMPS
 
     scene = build_scene("tiny_bumpy")
     mesh = scene.mesh
@@ -77,7 +79,7 @@ def test_noise_scale_multiplies_the_noise_and_keeps_the_signal():
 def test_synth_records_the_noise_scale_and_the_workflow_passes_it(tmp_path):
     path = synth.synthesize_capture("tiny_dark", tmp_path / "capture", views=1, width=64, height=48, supersample=1,
                                     progress=False, noise_scale=3.0)
-    extra = io.read_capture(path).config["synthetic"]
+    extra = reader.read_capture(path).config["synthetic"]
     assert extra["noise_scale"] == 3.0 and extra["gain_e_per_dn"] == pytest.approx(2.58 / 9)
     assert extra["read_noise_e"] == pytest.approx(0.8)
     # The demo: section reaches `sellip synth` (dry run, commands printed).
@@ -120,11 +122,11 @@ def test_bad_frames_skip_merges_from_the_other_frames_and_drops_empty_views(smal
     assert touched == ["raw/v000_f0.dng", "raw/v002_f0.dng", "raw/v002_f1.dng", "raw/v001_f1.dng",
                        "raw/v002_f2.dng"]
     # The default stops at the first bad frame, naming its file and frames.csv row; nothing is written.
-    with pytest.raises(io.CaptureError, match=r"row 0 \(line 2\).*v000_f0\.dng"):
+    with pytest.raises(files.CaptureError, match=r"row 0 \(line 2\).*v000_f0\.dng"):
         linearize_capture(capture, tmp_path / "error" / "linear.zarr")
     only_corrupt = _copy(small_capture, tmp_path / "corrupt")
     stability.damage_frames(only_corrupt, corrupt=("v001_f1",), seed=1)
-    with pytest.raises(io.CaptureError, match=r"v001_f1\.dng.*row 4 \(line 6\).*bad_frames: skip"):
+    with pytest.raises(files.CaptureError, match=r"v001_f1\.dng.*row 4 \(line 6\).*bad_frames: skip"):
         linearize_capture(only_corrupt, tmp_path / "error" / "linear.zarr", threads=2)
     assert not (tmp_path / "error").exists() or not any((tmp_path / "error").iterdir())
     # skip: the frames are left out with a warning naming the file and row; v002 has no frame left.
@@ -152,14 +154,14 @@ def test_bad_frames_skip_merges_from_the_other_frames_and_drops_empty_views(smal
     cameras = tmp_path / "skip" / "cameras.csv"
     sfm.run_stage(tmp_path / "skip" / "hdr.zarr", capture, cameras, tmp_path / "skip" / "sfm", mode="known")
     assert list(pd.read_csv(cameras)["view_id"]) == ["v000", "v001"]
-    observe.run_stage(capture / io.GROUND_TRUTH_MESH, cameras, tmp_path / "skip" / "hdr.zarr", capture,
+    observe.run_stage(capture / files.GROUND_TRUTH_MESH, cameras, tmp_path / "skip" / "hdr.zarr", capture,
                       tmp_path / "skip" / "observations.zarr", exclude_views=("v002",))
     assert zarr.open_group(str(tmp_path / "skip" / "observations.zarr"), mode="r").attrs["view_ids"] == ["v000", "v001"]
     with pytest.raises(observe.ObserveError, match="v009"):  # a held-out view that never existed is an error
-        observe.run_stage(capture / io.GROUND_TRUTH_MESH, cameras, tmp_path / "skip" / "hdr.zarr", capture,
+        observe.run_stage(capture / files.GROUND_TRUTH_MESH, cameras, tmp_path / "skip" / "hdr.zarr", capture,
                           tmp_path / "skip" / "other.zarr", exclude_views=("v009",))
-    with pytest.raises(io.MissingFileError):
-        io.read_capture(capture)  # the default still insists on every file
+    with pytest.raises(files.MissingFileError):
+        reader.read_capture(capture)  # the default still insists on every file
 
 
 # --------------------------------------------------------------------------- breaking the capture and the mesh
@@ -185,9 +187,9 @@ def test_perturbed_mesh_file_keeps_faces_and_gets_the_new_surfaces_normals(tmp_p
     d, faces = icosphere(3)
     vertex = {k: v.astype(np.float32) for k, v in zip(("x", "y", "z", "nx", "ny", "nz"), np.hstack([d, d]).T)}
     path = tmp_path / "init.ply"
-    io.write_ply(path, vertex, faces)
+    model_ply.write_ply(path, vertex, faces)
     stability.perturb_mesh_file(path, 0.02, seed=3)
-    out, out_faces = io.read_ply(path)
+    out, out_faces = model_ply.read_ply(path)
     np.testing.assert_array_equal(out_faces, faces)
     xyz = np.stack([out[k] for k in "xyz"], axis=1)
     radius = np.linalg.norm(xyz, axis=1)
@@ -202,7 +204,7 @@ def test_miscalibrated_flash_changes_only_the_declared_position(small_capture, t
     before = yaml.safe_load((capture / "capture.yaml").read_text())
     true, declared = stability.miscalibrate_flash(capture, (0.01, 0.0, -0.005))
     assert true == [0.0, 0.05, 0.0] and declared == pytest.approx([0.01, 0.05, -0.005])
-    after = io.read_capture(capture).config
+    after = reader.read_capture(capture).config
     assert after["light"]["position_m"] == pytest.approx(declared)
     assert after["sensor"] == before["sensor"] and after["camera"] == before["camera"]
     assert after["synthetic"]["true_flash_position_m"] == true
@@ -219,41 +221,41 @@ def test_rank_auc_matches_counting_pairs():
     positive = rng.random(200) < 0.3
     pos, neg = score[positive], score[~positive]
     pairs = (pos[:, None] > neg[None, :]).mean() + 0.5 * (pos[:, None] == neg[None, :]).mean()
-    assert stability.rank_auc(score, positive) == pytest.approx(pairs)
-    assert stability.rank_auc(score, np.zeros(200, bool)) is None
+    assert stability_table.rank_auc(score, positive) == pytest.approx(pairs)
+    assert stability_table.rank_auc(score, np.zeros(200, bool)) is None
 
 
 def test_confidence_flagging_counts_recall_precision_and_ranking():
     error = np.array([1.0, 2.0, 3.0, 20.0, 30.0, 40.0])
     confidence = np.array([0.9, 0.8, 0.3, 0.1, 0.0, 0.7])  # one good vertex flagged, one bad one missed
-    out = stability.confidence_flagging(error, confidence, bad_above=10)
+    out = stability_table.confidence_flagging(error, confidence, bad_above=10)
     assert out["bad_share"] == 0.5 and out["flagged_share"] == 0.5
     assert out["bad_flagged"] == pytest.approx(2 / 3) and out["flagged_bad"] == pytest.approx(2 / 3)
     assert out["auc"] == pytest.approx(8 / 9)  # a bad vertex below a good one in 8 of the 9 pairs
-    perfect = stability.confidence_flagging(error, 1 - error / 30, bad_above=10)
+    perfect = stability_table.confidence_flagging(error, 1 - error / 30, bad_above=10)
     assert perfect["auc"] == 1.0 and perfect["bad_flagged"] == 1.0
-    blind = stability.confidence_flagging(error, np.full(6, 0.8), bad_above=10)
+    blind = stability_table.confidence_flagging(error, np.full(6, 0.8), bad_above=10)
     assert blind["auc"] == 0.5 and blind["bad_flagged"] == 0.0 and blind["flagged_bad"] is None
     # The worst tenth is the 40 deg vertex: its 0.7 is below two of the five others' confidences.
     assert out["worst_auc"] == pytest.approx(2 / 5) and blind["worst_auc"] == 0.5
-    nan = stability.confidence_flagging(error, np.array([0.9, 0.8, 0.7, np.nan, 0.6, 0.9]), bad_above=10)
+    nan = stability_table.confidence_flagging(error, np.array([0.9, 0.8, 0.7, np.nan, 0.6, 0.9]), bad_above=10)
     assert nan["bad_flagged"] == pytest.approx(1 / 3)  # NaN confidence counts as flagged
     with pytest.raises(ValueError, match="one length"):
-        stability.confidence_flagging(error, confidence[:-1], bad_above=10)
+        stability_table.confidence_flagging(error, confidence[:-1], bad_above=10)
 
 
 def _fake_run(workdir: Path, case: stability.Case, nan: bool = False) -> None:
     """A finished run of ``case`` in ``workdir``: ground truth, a model whose normals are 30 deg off on a cap
     (and flagged there with confidence 0.1 except for a band), params.zarr, a renders npz and metrics.json."""
-    from sellip.io import write_param_mesh
-    from sellip.params import write_params
-    from sellip.render import ParamMesh
+    from sellip.model.params import write_params
+    from sellip.model.ply import write_param_mesh
+    from sellip.model.render import ParamMesh
 
     truth = build_scene("tiny").mesh
     results = workdir / "results" / case.name
     for folder in (workdir / "captures" / "tiny" / "ground_truth", results / "final" / "renders"):
         folder.mkdir(parents=True, exist_ok=True)
-    write_param_mesh(workdir / "captures" / "tiny" / io.GROUND_TRUTH_MESH, truth)
+    write_param_mesh(workdir / "captures" / "tiny" / files.GROUND_TRUTH_MESH, truth)
     z = truth.vertices[:, 2] / 0.04
     cap = z > 0.5
     tilt = np.radians(30)
@@ -283,7 +285,7 @@ def _fake_run(workdir: Path, case: stability.Case, nan: bool = False) -> None:
 def test_case_row_reads_the_figures_the_flagging_and_finiteness(tmp_path):
     case = stability.CASES[0]
     _fake_run(tmp_path, case)
-    row = stability.case_row(case, tmp_path, wall_s=12.0)
+    row = stability_table.case_row(case, tmp_path, wall_s=12.0)
     cap = build_scene("tiny").mesh.vertices[:, 2] / 0.04
     assert row["status"] == "ok" and row["outputs_finite"] and row["nonfinite"] == ""
     assert row["normal_median_deg"] == 1.0 and row["confident_share"] == pytest.approx(2000 / 2562)
@@ -297,7 +299,7 @@ def test_case_row_reads_the_figures_the_flagging_and_finiteness(tmp_path):
     broken = stability.Case("broken", "capture", "x")
     _fake_run(tmp_path / "nan", broken, nan=True)
     (tmp_path / "nan" / "results" / "broken" / "metrics.json").write_text('{"psnr": NaN}')
-    row = stability.case_row(broken, tmp_path / "nan", wall_s=1.0, error="Error in rule fit_pbrdf: boom")
+    row = stability_table.case_row(broken, tmp_path / "nan", wall_s=1.0, error="Error in rule fit_pbrdf: boom")
     assert row["status"] == "failed" and not row["outputs_finite"]
     assert row["nonfinite"] == "model.ply:eta 1; params.zarr:eta 1; metrics.json 1"
 
@@ -305,7 +307,7 @@ def test_case_row_reads_the_figures_the_flagging_and_finiteness(tmp_path):
 def test_infinite_uncertainty_is_by_design_only_where_it_is_unknown(tmp_path):
     """+inf std: not fitted (status != 0) or singular covariance (confidence 0). Anywhere else, and NaN
     anywhere, it is a defect."""
-    from sellip.params import write_params
+    from sellip.model.params import write_params
 
     def bad(status, confidence, eta_std):
         folder = tmp_path / f"run{len(list(tmp_path.iterdir()))}"
@@ -315,7 +317,7 @@ def test_infinite_uncertainty_is_by_design_only_where_it_is_unknown(tmp_path):
             "rho_ss": np.zeros((3, 3)), "sigma_ss": np.full(3, 0.6), "status": np.asarray(status, np.int8),
             "confidence": np.asarray(confidence, np.float32), "eta_std": np.asarray(eta_std, np.float32),
             "normal_std_deg": np.ones(3, np.float32)})
-        return stability.nonfinite_outputs(folder).get("params.zarr:eta_std", 0)
+        return stability_table.nonfinite_outputs(folder).get("params.zarr:eta_std", 0)
 
     assert bad([0, 1, 0], [0.5, 0.0, 0.0], [0.1, np.inf, np.inf]) == 0
     assert bad([0, 1, 0], [0.5, 0.0, 0.2], [np.inf, np.inf, 0.1]) == 1
@@ -323,7 +325,7 @@ def test_infinite_uncertainty_is_by_design_only_where_it_is_unknown(tmp_path):
 
 
 def test_finiteness_check_reports_missing_outputs(tmp_path):
-    assert stability.nonfinite_outputs(tmp_path) == {"model.ply": -1, "params.zarr": -1, "renders": -1,
+    assert stability_table.nonfinite_outputs(tmp_path) == {"model.ply": -1, "params.zarr": -1, "renders": -1,
                                                      "metrics.json": -1}
 
 
@@ -365,9 +367,9 @@ def test_suite_writes_validated_tables_and_keeps_going_after_a_failure(tmp_path)
         calls.append(case.name)
         workdir.mkdir(parents=True, exist_ok=True)
         if case.name == "dark":
-            return stability.case_row(case, workdir, 3.0, error="Error in rule fit_pbrdf: exploded")
+            return stability_table.case_row(case, workdir, 3.0, error="Error in rule fit_pbrdf: exploded")
         _fake_run(workdir, case)
-        row = stability.case_row(case, workdir, 5.0)
+        row = stability_table.case_row(case, workdir, 5.0)
         (workdir / "row.json").write_text(json.dumps(row))
         return row
 
@@ -376,7 +378,7 @@ def test_suite_writes_validated_tables_and_keeps_going_after_a_failure(tmp_path)
     assert list(table["case"]) == ["baseline", "dark", "white_rough"]
     assert list(table["status"]) == ["ok", "failed", "ok"]
     csv = pd.read_csv(tmp_path / "stability.csv")
-    assert list(csv.columns) == list(stability.COLUMNS) and len(csv) == 3
+    assert list(csv.columns) == list(stability_table.COLUMNS) and len(csv) == 3
     markdown = (tmp_path / "stability.md").read_text()
     assert "**failed**: Error in rule fit_pbrdf: exploded" in markdown
     tables = [[line for line in block.splitlines() if line.startswith("|")] for block in markdown.split("\n\n")]
@@ -393,7 +395,7 @@ def test_suite_writes_validated_tables_and_keeps_going_after_a_failure(tmp_path)
     del metrics["eta_per_material"]
     metrics_path.write_text(json.dumps(metrics))
     baseline = tmp_path / "runs" / "baseline"
-    (baseline / "row.json").write_text(json.dumps(stability.case_row(cases[0], baseline, 7.0)))
+    (baseline / "row.json").write_text(json.dumps(stability_table.case_row(cases[0], baseline, 7.0)))
     metrics["eta_per_material"] = {"mean_error_pct": 0.25, "max_error_pct": 0.5}
     metrics_path.write_text(json.dumps(metrics))
     kept = stability.run_suite(cases, tmp_path, REPO / "Snakefile", keep=True, runner=fake_runner)
@@ -401,7 +403,7 @@ def test_suite_writes_validated_tables_and_keeps_going_after_a_failure(tmp_path)
     assert list(kept["eta_material_max_pct"])[0] == 0.5 and list(kept["wall_s"])[0] == 7.0
     assert json.loads((baseline / "row.json").read_text())["eta_material_mean_pct"] == 0.25
     with pytest.raises(Exception, match="auc"):  # pandera names the column
-        stability.validate_table([{**table.iloc[0].to_dict(), "auc": 1.5}])
+        stability_table.validate_table([{**table.iloc[0].to_dict(), "auc": 1.5}])
 
 
 def test_cli_lists_the_cases():

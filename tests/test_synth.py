@@ -8,10 +8,11 @@ import sys
 import numpy as np
 import pytest
 
-from sellip import io
-from sellip.render import Camera, Renderer, flash_light
-from sellip.scenes import SPHERE_IOR_ETAS, build_scene, device_intrinsics, handheld_orbit, look_at_rotation
-from sellip.sensor import SensorModel, simulate_raw
+from sellip.capture import files, reader
+from sellip.capture.scenes import SPHERE_IOR_ETAS, build_scene, device_intrinsics, handheld_orbit, look_at_rotation
+from sellip.capture.sensor import SensorModel, simulate_raw
+from sellip.model import ply
+from sellip.model.render import Camera, Renderer, flash_light
 from sellip.stages import synth
 
 TINY = dict(views=3, width=64, height=48, supersample=1, progress=False)
@@ -30,17 +31,17 @@ def test_cli_writes_a_valid_capture_with_ground_truth(tmp_path):
     out = tmp_path / "captures" / "tiny"
     subprocess.run([sys.executable, "-m", "sellip.cli", "synth", "--scene", "tiny", "--out", str(out), "--views", "3",
                     "--width", "64", "--height", "48", "--seed", "1", "--no-progress"], check=True)
-    capture = io.read_capture(out, check_raw=True)
+    capture = reader.read_capture(out, check_raw=True)
     assert len(capture.frames) == 9 and capture.view_ids == ["v000", "v001", "v002"]
     assert sorted(capture.frames["flash_level"].unique()) == [0.0625, 0.125, 0.25]
     assert capture.config["synthetic"]["scene"] == "tiny"
     assert capture.config["light"]["position_m"] == [0.0, 0.05, 0.0]
     assert list(capture.poses["view_id"]) == capture.view_ids
-    raw = io.read_raw_frame(capture, "v000_f0")
+    raw = reader.read_raw_frame(capture, "v000_f0")
     assert raw.dtype == np.uint16 and raw.max() > 200 + 64  # the object is visible
-    vertex, faces = io.read_ply(out / io.GROUND_TRUTH_MESH)
-    assert all(vertex[name].dtype == np.float32 for name in io.MODEL_VERTEX_PROPERTIES)
-    mesh = io.read_param_mesh(out / io.GROUND_TRUTH_MESH)
+    vertex, faces = ply.read_ply(out / files.GROUND_TRUTH_MESH)
+    assert all(vertex[name].dtype == np.float32 for name in ply.MODEL_VERTEX_PROPERTIES)
+    mesh = ply.read_param_mesh(out / files.GROUND_TRUTH_MESH)
     # The object projects where the poses say: the ground-truth centre lands inside the image.
     k = capture.intrinsics()
     rotation, translation = capture.pose("v001")
@@ -112,12 +113,12 @@ def test_demo_fine_keeps_the_texture_at_the_pixel():
 
 
 def test_the_config_schema_offers_every_scene():
-    """demo.scene in config.schema.yaml lists exactly sellip.scenes.SCENES (a scene missing there fails validation)."""
+    """demo.scene in config.schema.yaml lists exactly sellip.capture.scenes.SCENES (a scene missing there fails validation)."""
     from pathlib import Path
 
     import yaml
 
-    from sellip.scenes import SCENES
+    from sellip.capture.scenes import SCENES
 
     schema = yaml.safe_load((Path(__file__).parents[1] / "config" / "config.schema.yaml").read_text())
     assert schema["properties"]["demo"]["properties"]["scene"]["enum"] == list(SCENES)
@@ -166,6 +167,6 @@ def test_png_frames_and_lens_distortion(tmp_path):
     distortion = [-0.1, 0.02, 0.0, 0.0, 0.0]
     path = synth.synthesize_capture("tiny", tmp_path / "cap", seed=0, raw_format="png", distortion=distortion,
                                     **{**TINY, "views": 1})
-    capture = io.read_capture(path, check_raw=True)
+    capture = reader.read_capture(path, check_raw=True)
     assert capture.config["camera"]["distortion"] == distortion
     assert capture.frames["file"].str.endswith(".png").all()

@@ -97,8 +97,8 @@ def test_the_demo_overrides_apply_where_the_user_set_nothing(tmp_path):
 
 
 def test_tiny_capture_reconstructs_close_to_the_ground_truth(tiny_run):
-    from sellip.io import read_param_mesh, read_ply
-    from sellip.params import read_params
+    from sellip.model.params import read_params
+    from sellip.model.ply import read_param_mesh, read_ply
 
     results = tiny_run / "results" / "tiny"
     metrics = json.loads((results / "metrics.json").read_text())
@@ -144,7 +144,7 @@ def test_the_clustering_replay_reproduces_the_runs_clusters(tiny_run, capsys):
     with pytest.raises(ValueError, match="not AugmentSettings fields"):
         replay.replay(run, 0, {"min_coherenc": 0.5})
     # clusters.json also records the lobe fit's settings, which benchmarks/replay_lobes.py fits with.
-    from sellip.fit import FitSettings
+    from sellip.fit.records import FitSettings
 
     info = json.loads((run / "iter" / "0" / "clusters" / "clusters.json").read_text())
     assert FitSettings(**info["fit_settings"]).min_views == 6  # the run's fit.settings (tiny_run)
@@ -172,7 +172,7 @@ def test_killed_run_resumes_without_redoing_finished_jobs(tiny_run, tmp_path_fac
     """A copy of the finished run with its last iteration and outputs removed (Snakemake's metadata kept), so
     the killed run redoes one iteration, not the whole pipeline: SIGKILL once the last iteration's fit is
     gathered, then resume. The copy sits beside the first run so that both configs name the same XLA cache."""
-    from sellip.params import read_params
+    from sellip.model.params import read_params
 
     workdir = tmp_path_factory.mktemp("resumed")
     shutil.copytree(tiny_run, workdir, symlinks=True, dirs_exist_ok=True)

@@ -3,7 +3,7 @@
 # augmentation is on, `refit` (virtual specular samples from the iteration's cluster lobes).
 # cluster_lobes also chooses each cluster's model (config `model_selection`, DESIGN §7); the refit
 # and the next iteration's passes fit every vertex with its model.
-# The numerics live in sellip.fit and sellip.augment; each rule calls one `sellip` command.
+# The numerics live in sellip.fit and sellip.fit; each rule calls one `sellip` command.
 
 
 def settings_args(settings):

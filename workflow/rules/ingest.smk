@@ -1,5 +1,5 @@
 # Ingest (DESIGN §2): raw frames -> linear analyzer images -> one HDR image per view, plus previews.
-# The numerics live in sellip.ingest; each rule calls one `sellip` command (sellip.stages.*).
+# The numerics live in sellip.capture.ingest; each rule calls one `sellip` command (sellip.stages.*).
 
 
 rule linearize_frames:

@@ -3,11 +3,11 @@
     sellip bench-stability --out results/bench/stability [--cases baseline dark ...] [--cores 2]
                            [--iterations 2] [--keep] [--snakefile Snakefile]
 
-Each case (:data:`sellip.stability.CASES`) is a real Snakemake run of the workflow on a small synthetic
+Each case (:data:`sellip.bench.stability.CASES`) is a real Snakemake run of the workflow on a small synthetic
 capture with one failure mode built in, under ``OUT/runs/<case>/`` (its own captures/ and results/, its
 Snakemake output in ``snakemake.log``); the cases share the XLA cache ``OUT/jax_cache``. A case that fails
 is a row with status "failed" and the reason; the suite goes on. Written at the end (atomically):
-``OUT/stability.csv`` (columns :data:`sellip.stability.COLUMNS`, checked with pandera) and
+``OUT/stability.csv`` (columns :data:`sellip.bench.stability_table.COLUMNS`, checked with pandera) and
 ``OUT/stability.md`` (the table of docs/benchmarks.md). Exit status 0 when the tables were written, also
 when cases failed (that is a finding); 1 when the suite could not run.
 """
@@ -18,7 +18,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from sellip import stability
+from sellip.bench import stability
 
 log = logging.getLogger(__name__)
 
@@ -26,7 +26,7 @@ log = logging.getLogger(__name__)
 def default_snakefile() -> Path:
     """The Snakefile in the current directory, else the one of the checkout sellip is installed from."""
     here = Path.cwd() / "Snakefile"
-    return here if here.is_file() else Path(stability.__file__).resolve().parents[2] / "Snakefile"
+    return here if here.is_file() else Path(stability.__file__).resolve().parents[3] / "Snakefile"
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

@@ -3,11 +3,11 @@
     sellip bench-sweep --scenes demo sphere_ior --preset quick --out results/bench/sweep
                        [--cores 2] [--only FACTOR ...] [--repeat 2] [--force] [--report-only]
 
-Runs the workflow once per variant (:mod:`sellip.sweep`: the preset's base per scene, then one factor
+Runs the workflow once per variant (:mod:`sellip.bench.sweep`: the preset's base per scene, then one factor
 changed at a time) in OUT/work/PRESET (a Snakemake working directory: captures/, results/NAME/,
 jax_cache/, logs/, configs/), then writes into OUT:
 
-- ``sweep.csv``: one row per variant (:data:`sellip.sweep.SWEEP_COLUMNS`, pandera-checked): times and figures;
+- ``sweep.csv``: one row per variant (:data:`sellip.bench.sweep_tables.SWEEP_COLUMNS`, pandera-checked): times and figures;
 - ``sweep.png``: accuracy (normal median error, eta median error, held-out PSNR) against total time per scene,
   each variant labelled, the Pareto front marked;
 - ``ior.csv``: fitted eta per material of the paper's Table 1, for every sphere_ior variant (column ``name``);
@@ -29,17 +29,19 @@ from pathlib import Path
 
 import numpy as np
 
-from sellip import sweep
+from sellip.bench import sweep, sweep_plan
+from sellip.bench import sweep_tables as bench_sweep_tables
 
 log = logging.getLogger(__name__)
 
 
 def ior_of_results(results: Path, capture: Path):
-    """sweep.ior_table of one finished run: results/NAME/final/{model.ply,params.zarr} against the capture's
+    """bench_sweep_tables.ior_table of one finished run: results/NAME/final/{model.ply,params.zarr} against the capture's
     ground truth, in the ground truth's world (metrics.json ``alignment``)."""
-    from sellip.evaluate import transform_mesh
-    from sellip.geometry import Similarity
-    from sellip.io import GROUND_TRUTH_MESH, read_param_mesh
+    from sellip.capture.files import GROUND_TRUTH_MESH
+    from sellip.geometry.alignment import Similarity
+    from sellip.model.ply import read_param_mesh
+    from sellip.report.evaluate import transform_mesh
     from sellip.stages.evaluate import confident_vertices
 
     model_path, params_path = results / "final" / "model.ply", results / "final" / "params.zarr"
@@ -50,7 +52,7 @@ def ior_of_results(results: Path, capture: Path):
     if alignment.get("method") == "sim3":
         model = transform_mesh(model, Similarity(float(alignment["scale"]), np.asarray(alignment["rotation"]),
                                                  np.asarray(alignment["translation"])))
-    return sweep.ior_table(model, truth, confident)
+    return bench_sweep_tables.ior_table(model, truth, confident)
 
 
 SWEEP_MD = {"label": ("variant", ""), "cpu_s": ("CPU s", ".0f"), "fit_cpu_s": ("fit CPU s", ".0f"),
@@ -88,7 +90,7 @@ MODEL_MD = {"scene": ("scene", ""), "selection": ("model selection", ""), "model
 
 def vertex_models(results: Path) -> dict[int, int]:
     """{model code: vertices} of a finished run's final/params.zarr."""
-    from sellip.params import read_params
+    from sellip.model.params import read_params
 
     codes, counts = np.unique(np.asarray(read_params(results / "final" / "params.zarr")["model"]), return_counts=True)
     return {int(m): int(c) for m, c in zip(codes, counts)}
@@ -97,31 +99,31 @@ def vertex_models(results: Path) -> dict[int, int]:
 def tables_markdown(table, ior, preset: str, models: dict | None = None) -> str:
     """tables.md: the sweep per scene, the IOR table, augmentation on/off, sigma_ss fixed/free, model
     selection on/off (``models``: {variant name: {model code: vertices}})."""
-    table = table.assign(front=sweep.front_marks(table))
+    table = table.assign(front=bench_sweep_tables.front_marks(table))
     parts = [f"# Speed-accuracy sweep ({preset} preset)\n",
              "CPU s: CPU time of all jobs (core-seconds, the chart's axis); wall s: the shared upstream run plus "
              "the variant's own run. front: on the Pareto front of 1 normal error, 2 η per material, 3 held-out PSNR "
              "against CPU time.\n"]
     for scene in dict.fromkeys(table["scene"]):
-        parts += [f"\n## {scene}\n\n", sweep.markdown_table(table[table["scene"] == scene], SWEEP_MD)]
+        parts += [f"\n## {scene}\n\n", bench_sweep_tables.markdown_table(table[table["scene"] == scene], SWEEP_MD)]
     if ior is not None and not ior.empty:
         mean = {"material": "average", "error_pct": ior["error_pct"].mean(),
-                "vertex_error_pct": ior["vertex_error_pct"].mean(), "paper_error_pct": sweep.PAPER_TABLE1_AVERAGE_PCT}
+                "vertex_error_pct": ior["vertex_error_pct"].mean(), "paper_error_pct": bench_sweep_tables.PAPER_TABLE1_AVERAGE_PCT}
         import pandas as pd
 
         shown = pd.concat([ior, pd.DataFrame([mean])], ignore_index=True)
-        parts += ["\n## Refractive index (sphere_ior, base)\n\n", sweep.markdown_table(shown, IOR_MD)]
-    aug = sweep.augmentation_table(table)
+        parts += ["\n## Refractive index (sphere_ior, base)\n\n", bench_sweep_tables.markdown_table(shown, IOR_MD)]
+    aug = bench_sweep_tables.augmentation_table(table)
     if not aug.empty:
-        parts += ["\n## Augmentation on/off\n\n", sweep.markdown_table(aug, AUG_MD)]
-    sigma = sweep.sigma_ss_table(table)
+        parts += ["\n## Augmentation on/off\n\n", bench_sweep_tables.markdown_table(aug, AUG_MD)]
+    sigma = bench_sweep_tables.sigma_ss_table(table)
     if not sigma.empty:
-        parts += [f"\n## σss free vs fixed (paper: fixing saves up to ~{sweep.PAPER_SIGMA_SS_SAVING_PCT:.0f} %)\n\n",
-                  sweep.markdown_table(sigma, SIGMA_MD)]
-    selection = sweep.model_selection_table(table, models or {})
+        parts += [f"\n## σss free vs fixed (paper: fixing saves up to ~{bench_sweep_tables.PAPER_SIGMA_SS_SAVING_PCT:.0f} %)\n\n",
+                  bench_sweep_tables.markdown_table(sigma, SIGMA_MD)]
+    selection = bench_sweep_tables.model_selection_table(table, models or {})
     if not selection.empty:
         parts += ["\n## Model selection on/off (codes: 0 diffuse, 1 + specular, 2 + single scattering with σss "
-                  "fixed, 3 + single scattering)\n\n", sweep.markdown_table(selection, MODEL_MD)]
+                  "fixed, 3 + single scattering)\n\n", bench_sweep_tables.markdown_table(selection, MODEL_MD)]
     return "".join(parts)
 
 
@@ -134,8 +136,8 @@ def write_outputs(variants, records, preset: str, out: Path, workdir: Path) -> d
     for variant, record in zip(variants, records):
         folder = paths.results / variant.name
         metrics = json.loads((folder / "metrics.json").read_text())
-        rows.append(sweep.sweep_row(variant, metrics, record, preset, sweep.job_cpu_seconds(folder / "benchmarks")))
-    table = sweep.sweep_table(rows)
+        rows.append(bench_sweep_tables.sweep_row(variant, metrics, record, preset, bench_sweep_tables.job_cpu_seconds(folder / "benchmarks")))
+    table = bench_sweep_tables.sweep_table(rows)
     iors = []
     for variant in variants:
         if variant.scene == "sphere_ior":
@@ -145,24 +147,24 @@ def write_outputs(variants, records, preset: str, out: Path, workdir: Path) -> d
     base_ior = None if ior_all is None else ior_all[ior_all["name"] == "sphere_ior__base"].drop(columns="name")
     models = {v.name: vertex_models(paths.results / v.name) for v in variants
               if v.factor in ("base", "model_selection")}
-    written = {"csv": sweep.write_csv_atomic(table, out / "sweep.csv"),
-               "png": sweep.save_figure_atomic(sweep.sweep_figure(table), out / "sweep.png"),
-               "md": sweep.write_text_atomic(tables_markdown(table, base_ior, preset, models), out / "tables.md")}
+    written = {"csv": bench_sweep_tables.write_csv_atomic(table, out / "sweep.csv"),
+               "png": bench_sweep_tables.save_figure_atomic(bench_sweep_tables.sweep_figure(table), out / "sweep.png"),
+               "md": bench_sweep_tables.write_text_atomic(tables_markdown(table, base_ior, preset, models), out / "tables.md")}
     if ior_all is not None:
-        written["ior"] = sweep.write_csv_atomic(ior_all, out / "ior.csv")
+        written["ior"] = bench_sweep_tables.write_csv_atomic(ior_all, out / "ior.csv")
     return written
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenes", nargs="+", default=["demo", "sphere_ior"],
-                        help="built-in scenes to sweep (sellip.scenes.SCENES; default: demo sphere_ior)")
-    parser.add_argument("--preset", choices=sorted(sweep.PRESETS), default="quick",
+                        help="built-in scenes to sweep (sellip.capture.scenes.SCENES; default: demo sphere_ior)")
+    parser.add_argument("--preset", choices=sorted(sweep_plan.PRESETS), default="quick",
                         help="base configuration and factor values (default: quick)")
     parser.add_argument("--out", type=Path, default=Path("results/bench/sweep"),
                         help="output folder; the runs go to OUT/work/PRESET (default: results/bench/sweep)")
     parser.add_argument("--cores", type=int, default=2, help="snakemake --cores of every run (default: 2)")
     parser.add_argument("--only", nargs="+", default=None, metavar="FACTOR",
-                        help=f"sweep only these factors (the base always runs): {[f.name for f in sweep.FACTORS]}")
+                        help=f"sweep only these factors (the base always runs): {[f.name for f in sweep_plan.FACTORS]}")
     parser.add_argument("--repeat", type=int, default=2,
                         help="at most this many runs per variant, the last timed: a run that spent over 10 %% of "
                              "its CPU time compiling XLA kernels runs again (default 2; 1 times compilation too)")
@@ -172,7 +174,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sellip.scenes import SCENES
+    from sellip.capture.scenes import SCENES
 
     unknown = [s for s in args.scenes if s not in SCENES]
     if unknown:
@@ -185,18 +187,18 @@ def main(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     try:
         if args.report_only:
-            variants = sweep.plan_variants(args.scenes, args.preset, args.only)
+            variants = sweep_plan.plan_variants(args.scenes, args.preset, args.only)
             records = []
             for variant in variants:
                 path = workdir / "results" / variant.name / sweep.RECORD
                 if not path.is_file():
-                    raise sweep.SweepError(f"{path} missing: {variant.name} has not run (drop --report-only)")
+                    raise sweep_plan.SweepError(f"{path} missing: {variant.name} has not run (drop --report-only)")
                 records.append(json.loads(path.read_text()))
         else:
             variants, records = sweep.run_sweep(args.scenes, args.preset, workdir, cores=args.cores,
                                                 only=args.only, repeat=args.repeat, force=args.force)
         written = write_outputs(variants, records, args.preset, args.out, workdir)
-    except (sweep.SweepError, ValueError) as exc:
+    except (sweep_plan.SweepError, ValueError) as exc:
         log.error("%s", exc)
         return 1
     log.info("wrote %s in %.0f s", ", ".join(str(p) for p in written.values()), time.perf_counter() - started)

@@ -12,17 +12,17 @@
 Writes the directory ``--output`` (built under a temporary name, then renamed) with
 
 - ``labels.npy``: (N,) int32, the cluster of every vertex of the params store;
-- ``models.npy``: (N,) uint8, the model of every vertex (its cluster's; :data:`sellip.params.MODEL_NAMES`);
+- ``models.npy``: (N,) uint8, the model of every vertex (its cluster's; :data:`sellip.model.params.MODEL_NAMES`);
 - ``lobes.csv``: one row per cluster (:func:`lobes_schema`): cluster, vertices, eta, sigma_s,
   sigma_ss, rho_s, rho_ss_r, rho_ss_g, rho_ss_b, samples, loss, model;
 - ``lobes.png``: each cluster's lobe against its samples as a function of theta_h (paper Fig. 7b);
-- ``clusters.json``: K, the BIC per K, the merges, the regions added (:func:`sellip.augment.cluster_materials`),
+- ``clusters.json``: K, the BIC per K, the merges, the regions added (:func:`sellip.fit.clusters.cluster_materials`),
   ``degenerate``: what could not be computed on these data and what was done instead (a cluster without a
   confident vertex or a usable sample, albedos without spread; the run goes on, lower in confidence),
   the settings (``settings``: the clustering's; ``fit_settings``: the lobe fit's) and the seed, and under ``model_selection`` per cluster the chosen model, the held-out loss of
   every candidate and why.
 
-Model selection (DESIGN §7, :mod:`sellip.models`, on unless ``--no-model-selection``): per cluster,
+Model selection (DESIGN §7, :mod:`sellip.fit.selection`, on unless ``--no-model-selection``): per cluster,
 the simplest model whose held-out loss is within the tolerance of the best; the cluster's lobe is
 then fitted with that model. Without it every cluster gets the model of the fit settings (3, or 2
 with ``--set sigma_ss_fixed=...``). The fit settings (``--set``) are also the most complex model allowed.
@@ -30,9 +30,9 @@ With ``--inherit-models`` (iterations between selections, config ``model_selecti
 is fitted: each cluster takes the model most of its vertices have in ``--params`` (their ``model``, from
 the previous iteration), capped by what the settings allow; a store without models selects as usual.
 
-The numerics are :mod:`sellip.augment` and :mod:`sellip.models`; ``sellip fit --lobes DIR`` turns
+The numerics are :mod:`sellip.fit` and :mod:`sellip.fit.selection`; ``sellip fit --lobes DIR`` turns
 the result into virtual samples and fits every vertex with its model. ``--set`` overrides
-:class:`sellip.fit.FitSettings` (view selection, lambda_psi, lambda_s, lobes, sigma_ss_fixed).
+:class:`sellip.fit.records.FitSettings` (view selection, lambda_psi, lambda_s, lobes, sigma_ss_fixed).
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ def lobes_schema():
     """pandera schema of lobes.csv."""
     import pandera.pandas as pa
 
-    from sellip.params import MODEL_NAMES
+    from sellip.model.params import MODEL_NAMES
 
     finite = pa.Check(np.isfinite, element_wise=True)
     nonnegative = [pa.Check.ge(0), finite]
@@ -79,12 +79,12 @@ def lobes_schema():
 
 
 def read_lobes(directory: Path):
-    """The cluster labels (N,) and lobes (list of :class:`sellip.augment.ClusterLobe`, cluster order) of a
+    """The cluster labels (N,) and lobes (list of :class:`sellip.fit.lobes.ClusterLobe`, cluster order) of a
     ``cluster-lobes`` output directory. ValueError naming the file when it is missing or invalid."""
     import pandas as pd
     import pandera.pandas as pa
 
-    from sellip.augment import ClusterLobe
+    from sellip.fit.lobes import ClusterLobe
 
     directory = Path(directory)
     labels_path, lobes_path = directory / "labels.npy", directory / "lobes.csv"
@@ -112,9 +112,9 @@ def read_lobes(directory: Path):
 
 def read_models(directory: Path, count: int | None = None) -> np.ndarray:
     """The model of every vertex (N,) uint8 (``models.npy``) of a ``cluster-lobes`` output directory.
-    ValueError naming the file when it is missing, not (N,) codes of :data:`sellip.params.MODEL_NAMES`,
+    ValueError naming the file when it is missing, not (N,) codes of :data:`sellip.model.params.MODEL_NAMES`,
     or (with ``count``) not ``count`` long."""
-    from sellip.params import MODEL_NAMES
+    from sellip.model.params import MODEL_NAMES
 
     path = Path(directory) / "models.npy"
     if not path.is_file():
@@ -128,10 +128,10 @@ def read_models(directory: Path, count: int | None = None) -> np.ndarray:
 
 
 def recorded_fit_settings(clusters_json: dict, path: Path | str = "clusters.json"):
-    """The :class:`sellip.fit.FitSettings` of a pass's lobe fits, as its ``clusters.json`` (parsed, read from ``path``)
+    """The :class:`sellip.fit.records.FitSettings` of a pass's lobe fits, as its ``clusters.json`` (parsed, read from ``path``)
     records them: the workflow's ``fit.settings`` for that pass. Raises ValueError for a file written before they were
     recorded (2026-11-26), naming the job to run again."""
-    from sellip.fit import FitSettings
+    from sellip.fit.records import FitSettings
 
     if "fit_settings" not in clusters_json:
         raise ValueError(f"{path} has no fit_settings (written before 2026-11-26): run its cluster_lobes job again "
@@ -140,10 +140,10 @@ def recorded_fit_settings(clusters_json: dict, path: Path | str = "clusters.json
 
 
 def clustering_settings(clusters_json: dict, overrides: dict | None = None):
-    """The :class:`sellip.augment.AugmentSettings` a ``clusters.json`` (its parsed dict) was made with, ``overrides``
+    """The :class:`sellip.fit.clusters.AugmentSettings` a ``clusters.json`` (its parsed dict) was made with, ``overrides``
     (field: value) over them: how a replay re-runs a pass's clustering or lobe fit as the workflow ran it (the
-    :class:`sellip.fit.FitSettings` of the lobe fit are its ``fit_settings``)."""
-    from sellip.augment import AugmentSettings
+    :class:`sellip.fit.records.FitSettings` of the lobe fit are its ``fit_settings``)."""
+    from sellip.fit.clusters import AugmentSettings
 
     fields = {f.name for f in dataclasses.fields(AugmentSettings)}
     unknown = set(overrides or {}) - fields
@@ -154,9 +154,9 @@ def clustering_settings(clusters_json: dict, overrides: dict | None = None):
 
 
 def load_rows(group, rows: np.ndarray):
-    """Observations (:class:`sellip.fit.Observations`) of the store rows ``rows`` (sorted), reading only their chunks."""
-    from sellip.fit import Observations
-    from sellip.observe import PER_VIEW_ARRAYS, VIEW_AXES
+    """Observations (:class:`sellip.fit.records.Observations`) of the store rows ``rows`` (sorted), reading only their chunks."""
+    from sellip.fit.observe import PER_VIEW_ARRAYS, VIEW_AXES
+    from sellip.fit.records import Observations
 
     data = {name: np.asarray(group[name].oindex[rows]) for name in PER_VIEW_ARRAYS}
     for name in VIEW_AXES:
@@ -172,7 +172,7 @@ def plot_lobes(path: Path, lobes, color_of, models=None) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sellip.augment import lobe_curve
+    from sellip.fit.lobes import lobe_curve
 
     columns = min(len(lobes), 4)
     rows = -(-len(lobes) // columns)
@@ -201,9 +201,9 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
               fit_settings=None, compilation_cache: str | None = None, selection=None,
               inherit_models: bool = False) -> dict:
     """Cluster the vertices of ``params``, choose each cluster's model (``selection``:
-    :class:`sellip.models.SelectionSettings`, default on), fit the cluster lobes on ``observations``,
+    :class:`sellip.fit.selection.SelectionSettings`, default on), fit the cluster lobes on ``observations``,
     write ``output``."""
-    from sellip.timing import mark
+    from sellip.report.timing import mark
 
     mark("imports")
     import jax
@@ -214,11 +214,12 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
     enable_compilation_cache(compilation_cache)
     import pandas as pd
 
-    from sellip.augment import AugmentSettings, cluster_materials, fit_cluster_lobe, no_lobe
-    from sellip.fit import FitSettings
-    from sellip.models import SelectionSettings, allowed_models, model_of, select_model, settings_for_model
-    from sellip.observe import ObserveError, open_observations
-    from sellip.params import MODEL_NAMES, read_params, same_vertices
+    from sellip.fit.clusters import AugmentSettings, cluster_materials
+    from sellip.fit.lobes import fit_cluster_lobe, no_lobe
+    from sellip.fit.observe import ObserveError, open_observations
+    from sellip.fit.records import FitSettings, model_of
+    from sellip.fit.selection import SelectionSettings, allowed_models, select_model, settings_for_model
+    from sellip.model.params import MODEL_NAMES, read_params, same_vertices
 
     settings = settings or AugmentSettings()
     fit_settings = fit_settings or FitSettings()
@@ -344,8 +345,8 @@ def run_stage(params: Path, observations: Path, output: Path, seed: int = 0, set
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    from sellip.augment import AugmentSettings
-    from sellip.models import SelectionSettings
+    from sellip.fit.clusters import AugmentSettings
+    from sellip.fit.selection import SelectionSettings
 
     defaults = AugmentSettings()
     selection = SelectionSettings()
@@ -367,7 +368,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--inherit-models", action="store_true",
                         help="no candidate fits: each cluster takes its vertices' most common model in --params")
     parser.add_argument("--candidates", type=int, nargs="+", default=list(selection.candidates),
-                        help="model codes tried (sellip.params.MODEL_NAMES)")
+                        help="model codes tried (sellip.model.params.MODEL_NAMES)")
     parser.add_argument("--held-out-fraction", type=float, default=selection.held_out_fraction)
     parser.add_argument("--selection-tolerance", type=float, default=selection.tolerance,
                         help="relative held-out loss a simpler model may lose")
@@ -380,10 +381,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sellip.augment import AugmentSettings
-    from sellip.models import SelectionSettings
-    from sellip.observe import ObserveError
-    from sellip.params import ParamsError
+    from sellip.fit.clusters import AugmentSettings
+    from sellip.fit.observe import ObserveError
+    from sellip.fit.selection import SelectionSettings
+    from sellip.model.params import ParamsError
     from sellip.stages.fit import settings_from_pairs
 
     try:

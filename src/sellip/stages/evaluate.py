@@ -11,13 +11,13 @@ and the stage timings; the ground-truth figures are null and ``reasons`` says wh
 Frames: the model and cameras.csv share a world. When the cameras came from SfM (``--sim3-from-sfm``, or
 ``report.json`` of the sfm stage next to cameras.csv, ``<cameras dir>/sfm/report.json``, says mode "sfm"),
 the model is moved into the ground truth's world by the Sim(3) that maps the cameras.csv camera centres onto
-the capture's poses.csv ones (:func:`sellip.evaluate.camera_alignment`); otherwise (modes known, verify:
+the capture's poses.csv ones (:func:`sellip.report.evaluate.camera_alignment`); otherwise (modes known, verify:
 cameras.csv holds poses.csv) no alignment is applied.
 
 Confident vertices: status 0 (fitted) and confidence > 0 in params.zarr; without --params, confidence > 0
 in model.ply; without either, every vertex (said in ``reasons``).
 
-The keys of metrics.json and the exact definitions: :mod:`sellip.evaluate` and docs/outputs.md.
+The keys of metrics.json and the exact definitions: :mod:`sellip.report.evaluate` and docs/outputs.md.
 The file is written under a temporary name and renamed.
 """
 
@@ -32,12 +32,14 @@ from pathlib import Path
 
 import numpy as np
 
-from sellip import evaluate
-from sellip.io import GROUND_TRUTH_MESH, CaptureError, read_capture, read_param_mesh
-from sellip.observe import ObserveError
-from sellip.outputs import NEW_LIGHT_OFFSET_M, convergence_figure, moved_flash, save_figure, timings_figure
-from sellip.params import ParamsError, read_params
-from sellip.render import Camera, Renderer, flash_light
+from sellip.capture.files import GROUND_TRUTH_MESH, CaptureError
+from sellip.capture.reader import read_capture
+from sellip.fit.observe import ObserveError
+from sellip.model.params import ParamsError, read_params
+from sellip.model.ply import PlyError, read_param_mesh
+from sellip.model.render import Camera, Renderer, flash_light
+from sellip.report import evaluate
+from sellip.report.outputs import NEW_LIGHT_OFFSET_M, convergence_figure, moved_flash, save_figure, timings_figure
 from sellip.stages.render_outputs import OutputsError, load_cameras, model_confidence
 
 log = logging.getLogger(__name__)
@@ -77,9 +79,9 @@ def _moved_camera(camera: Camera, similarity) -> Camera:
 
 
 def geometry_convergence(mesh_paths: list, fit_paths: list, truth, similarity) -> list[dict]:
-    """:func:`sellip.evaluate.geometry_series` of the loop's mesh files and first-pass fit stores."""
-    from sellip.observe import read_mesh
-    from sellip.render import ParamMesh
+    """:func:`sellip.report.evaluate.geometry_series` of the loop's mesh files and first-pass fit stores."""
+    from sellip.fit.observe import read_mesh
+    from sellip.model.render import ParamMesh
 
     meshes, fitted = [], []
     for index, path in enumerate(mesh_paths):
@@ -108,8 +110,8 @@ def _mean_db(per_view: dict) -> float | None:
 
 
 def view_psnr(renderer, camera: Camera, light, hdr, view_id: str, supersample: int = 2) -> dict:
-    """:func:`sellip.evaluate.psnr` of ``renderer``'s image at ``camera`` under ``light`` against the HDR store's view
-    ``view_id``, inside :func:`sellip.evaluate.render_mask`: how a model (or the ground truth) scores at a captured
+    """:func:`sellip.report.evaluate.psnr` of ``renderer``'s image at ``camera`` under ``light`` against the HDR store's view
+    ``view_id``, inside :func:`sellip.report.evaluate.render_mask`: how a model (or the ground truth) scores at a captured
     view."""
     result = renderer.render(camera, light, supersample=supersample)
     analyzers, valid = hdr.view(view_id)
@@ -302,7 +304,7 @@ def main(args: argparse.Namespace) -> int:
                   sfm_report=args.sfm_report, supersample=args.supersample, geometry_samples=args.geometry_samples,
                   timings_plot=args.timings_plot, iteration_meshes=args.iteration_meshes,
                   iteration_fits=args.iteration_fits, convergence_plot=args.convergence_plot)
-    except (OutputsError, CaptureError, ObserveError, ParamsError) as exc:
+    except (OutputsError, CaptureError, PlyError, ObserveError, ParamsError) as exc:
         log.error("%s", exc)
         return 1
     return 0

@@ -7,7 +7,7 @@
 ``--params`` is the last pass of the loop: the pBRDF refitted with the normals of the final
 geometry (paper §4.4); its rows are the vertices of ``--mesh``, whose triangles the model keeps.
 Written (each atomically): ``model.ply`` with the vertex properties of DESIGN §4 (float32) plus
-``confidence`` (float32) and ``model`` (uint8, :data:`sellip.params.MODEL_NAMES`), and
+``confidence`` (float32) and ``model`` (uint8, :data:`sellip.model.params.MODEL_NAMES`), and
 ``params.zarr`` with the same arrays (plus status, loss, views_used, iterations, cluster).
 ``model`` is the store's own (the model each vertex was fitted with, DESIGN §7); ``--model``
 only fills it for a store without one.
@@ -30,17 +30,17 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
     """Write the final model PLY and parameter store; returns a summary dict. The per-vertex model is
     the store's ``model``; ``model`` is the code of every vertex of a store that has none. With
     ``clusters``, eta is its material cluster's (the median of the cluster's confident vertices' own eta,
-    :func:`sellip.augment.cluster_medians`; the cluster lobe fit's where it has none) unless a vertex's own differs
+    :func:`sellip.fit.lobes.cluster_medians`; the cluster lobe fit's where it has none) unless a vertex's own differs
     by more than ``eta_deviation_sigmas`` of its std, and so is the specular lobe (the cluster lobe fit's sigma_s
     with its rho_s) unless the vertex's sigma_s differs by more than ``lobe_deviation_sigmas`` of its std (at
     least 0.01, the rule's floor), and either way only where at least ``deviation_support`` of its 6 nearest vertices
-    deviate the same way (:func:`sellip.augment.material_or_own`; <= 0: every vertex's own). An eta pinned at a bound
-    (:func:`sellip.fit.eta_at_bound`) is no estimate: the vertex takes its material's, and is not in its median."""
-    from sellip.augment import AugmentSettings, cluster_medians, material_or_own, nearest_vertices
-    from sellip.fit import eta_at_bound
-    from sellip.io import write_param_mesh
-    from sellip.observe import read_mesh
-    from sellip.params import (
+    deviate the same way (:func:`sellip.fit.lobes.material_or_own`; <= 0: every vertex's own). An eta pinned at a bound
+    (:func:`sellip.fit.parameterization.eta_at_bound`) is no estimate: the vertex takes its material's, and is not in its median."""
+    from sellip.fit.clusters import AugmentSettings, nearest_vertices
+    from sellip.fit.lobes import cluster_medians, material_or_own
+    from sellip.fit.observe import read_mesh
+    from sellip.fit.parameterization import eta_at_bound
+    from sellip.model.params import (
         MODEL_NAMES,
         PARAM_FIELDS,
         ParamsError,
@@ -49,7 +49,8 @@ def run_stage(params_path: Path, mesh_path: Path, output_model: Path, output_par
         same_vertices,
         write_params,
     )
-    from sellip.render import ParamMesh
+    from sellip.model.ply import write_param_mesh
+    from sellip.model.render import ParamMesh
     from sellip.stages.cluster_lobes import read_lobes
 
     if model not in MODEL_NAMES:
@@ -144,12 +145,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="... and only when at least this many of its 6 nearest vertices deviate the same way "
                              "(a spot, not one vertex; 0: any vertex)")
     parser.add_argument("--model", type=int, default=3,
-                        help="model code of every vertex when the store has no model array (sellip.params.MODEL_NAMES)")
+                        help="model code of every vertex when the store has no model array (sellip.model.params.MODEL_NAMES)")
 
 
 def main(args: argparse.Namespace) -> int:
-    from sellip.observe import ObserveError
-    from sellip.params import ParamsError
+    from sellip.fit.observe import ObserveError
+    from sellip.model.params import ParamsError
 
     try:
         run_stage(args.params, args.mesh, args.output_model, args.output_params, args.clusters, args.model,

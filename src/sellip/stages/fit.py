@@ -10,8 +10,8 @@ The shard's vertex range is derived at run time from the store's vertex count an
 (shard i of n takes an equal share of whole vertex chunks, so it reads only its own chunks).
 With ``--prior`` (a parameter store: the previous iteration's) every parameter is warm-started from
 the nearest previous vertex (DESIGN §7); without it the fit starts from eta = 1.5 and the
-defaults of :func:`sellip.fit.default_prior`. The starting normals are the mesh normals.
-``--set`` overrides a field of :class:`sellip.fit.FitSettings`.
+defaults of :func:`sellip.fit.vertex_fit.default_prior`. The starting normals are the mesh normals.
+``--set`` overrides a field of :class:`sellip.fit.records.FitSettings`.
 
 With ``--lobes`` (the output of ``sellip cluster-lobes``: labels.npy, models.npy, lobes.csv) this
 is the augmented refit (docs/augment.md): every vertex gets the virtual specular samples of its
@@ -21,7 +21,7 @@ the fit starts from its normals as well as its parameters (and holds them with
 lobes and refit settings: its prior is then on another mesh, so it starts from the (final) mesh's
 normals, and it runs the refit's compiled program (one compilation fewer, docs/speed.md).
 
-Models (DESIGN §7, :mod:`sellip.models`): every vertex is fitted with its own model, from
+Models (DESIGN §7, :mod:`sellip.fit.selection`): every vertex is fitted with its own model, from
 ``--lobes``'s models.npy, else from the prior store's ``model`` (nearest vertex, as its
 parameters), else the model of the settings (3, or 2 with ``sigma_ss_fixed``); never more
 complex than the settings allow. Vertices are grouped by model, one fit per group. Model 2's
@@ -63,7 +63,7 @@ def shard_rows(num_vertices: int, chunk: int, index: int, total: int) -> tuple[i
 
 def settings_from_pairs(pairs: list[str]):
     """FitSettings with ``key=value`` overrides (:func:`overrides_from_pairs`)."""
-    from sellip.fit import FitSettings
+    from sellip.fit.records import FitSettings
 
     return FitSettings(**overrides_from_pairs(pairs, FitSettings))
 
@@ -97,12 +97,12 @@ def overrides_from_pairs(pairs: list[str], settings_class) -> dict:
 
 def enable_compilation_cache(directory: str | Path | None) -> None:
     """Reuse XLA compilations across processes (every shard job compiles the same kernels), and the
-    exported kernels under ``directory/exported`` (:mod:`sellip.kernels`: no tracing in later jobs)."""
+    exported kernels under ``directory/exported`` (:mod:`sellip.fit.kernels`: no tracing in later jobs)."""
     if not directory:
         return
     import jax
 
-    from sellip import kernels
+    from sellip.fit import kernels
 
     Path(directory).mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(Path(directory).resolve()))
@@ -116,7 +116,7 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
     """Fit one shard and write ``output`` (.npz, atomically); with ``lobes`` the augmented refit.
     Every vertex is fitted with its model (module docstring); ``fixed_sigma_ss`` is model 2's
     sigma_ss when ``settings.sigma_ss_fixed`` is None. Returns a summary dict."""
-    from sellip.timing import mark
+    from sellip.report.timing import mark
 
     mark("imports")
     import jax
@@ -124,16 +124,11 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
     if dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     enable_compilation_cache(compilation_cache)
-    from sellip.fit import STATUS_NAMES, FitSettings, default_prior
-    from sellip.models import cap_models, fit_by_model, model_of
-    from sellip.observe import load_observations, open_observations
-    from sellip.params import (
-        PARAM_FIELDS,
-        params_from,
-        read_params,
-        same_vertices,
-        transfer_nearest,
-    )
+    from sellip.fit.observe import load_observations, open_observations
+    from sellip.fit.records import STATUS_NAMES, FitSettings, model_of
+    from sellip.fit.selection import cap_models, fit_by_model
+    from sellip.fit.vertex_fit import default_prior
+    from sellip.model.params import PARAM_FIELDS, params_from, read_params, same_vertices, transfer_nearest
 
     mark("read")
     settings = settings or FitSettings()
@@ -151,7 +146,7 @@ def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: P
     virtual = None
     models, source = np.full(n, model_of(settings), np.uint8), "the fit settings"
     if lobes is not None:
-        from sellip.augment import virtual_samples
+        from sellip.fit.lobes import virtual_samples
         from sellip.stages.cluster_lobes import read_lobes, read_models
 
         labels, cluster_lobes = read_lobes(lobes)
@@ -221,14 +216,14 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
     parser.add_argument("--lobes", type=Path, default=None,
                         help="cluster-lobes output directory: the augmented refit (virtual specular samples)")
-    from sellip.models import SelectionSettings
+    from sellip.fit.selection import SelectionSettings
 
     parser.add_argument("--fixed-sigma-ss", type=float, default=SelectionSettings().sigma_ss_fixed,
                         help="sigma_ss of the vertices of model 2 when --set sigma_ss_fixed is not given")
 
 
 def main(args: argparse.Namespace) -> int:
-    from sellip.observe import ObserveError
+    from sellip.fit.observe import ObserveError
 
     try:
         settings = settings_from_pairs(args.overrides)

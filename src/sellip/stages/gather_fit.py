@@ -9,7 +9,7 @@ The shards must cover the store's vertices exactly once. Vertices that could not
 (DESIGN §7); they keep their starting normal (the mesh's: a neighbour's normal belongs to another
 part of the surface; interpolating them left the demo's unlit underside 17 deg median off its own
 mesh) and their ``model`` (their cluster's, not fitted). The store
-layout is :mod:`sellip.params`; ``model`` (the model each vertex was fitted with) is written when
+layout is :mod:`sellip.model.params`; ``model`` (the model each vertex was fitted with) is written when
 every shard has it.
 """
 
@@ -25,9 +25,9 @@ log = logging.getLogger(__name__)
 
 
 def run_stage(observations: Path, shards: list[Path], output: Path) -> dict:
-    from sellip.fit import STATUS_FITTED, STATUS_NAMES
-    from sellip.observe import open_observations
-    from sellip.params import PARAM_FIELDS, ParamsError, fill_from_neighbours, write_params
+    from sellip.fit.observe import open_observations
+    from sellip.fit.records import STATUS_FITTED, STATUS_NAMES
+    from sellip.model.params import PARAM_FIELDS, ParamsError, fill_from_neighbours, write_params
 
     group = open_observations(observations)
     total = int(group.attrs["num_vertices"])
@@ -73,8 +73,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sellip.observe import ObserveError
-    from sellip.params import ParamsError
+    from sellip.fit.observe import ObserveError
+    from sellip.model.params import ParamsError
 
     try:
         run_stage(args.observations, args.shards, args.output)

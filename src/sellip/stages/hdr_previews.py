@@ -2,8 +2,8 @@
 
     sellip hdr-previews --hdr results/NAME/hdr.zarr --output results/NAME/previews
 
-Writes ``<view>_<kind>.png`` for kind in :data:`sellip.previews.PREVIEW_KINDS`
-(s0, dolp, aolp, diffuse, specular; see :mod:`sellip.previews`) into a folder
+Writes ``<view>_<kind>.png`` for kind in :data:`sellip.report.previews.PREVIEW_KINDS`
+(s0, dolp, aolp, diffuse, specular; see :mod:`sellip.report.previews`) into a folder
 that appears only when complete.
 """
 
@@ -13,7 +13,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from sellip.previews import preview_images
+from sellip.report.previews import preview_images
 from sellip.stages.linearize import atomic_directory, progress_logger
 from sellip.stages.merge_hdr import read_hdr
 

@@ -4,13 +4,13 @@
                      --output results/NAME/mesh/init.ply [--mode hull|mvs|mesh] [--mesh-path scan.ply]
                      [--max-vertices 30000] [options]
 
-``hull`` (default, CPU): silhouettes of the flash-lit object (:func:`sellip.geometry.silhouette_masks`),
+``hull`` (default, CPU): silhouettes of the flash-lit object (:func:`sellip.geometry.silhouettes.silhouette_masks`),
 a visual hull robust to a few bad masks, fused with the SfM points when ``sfm/sparse`` exists, screened
 Poisson at depth 7, cleaned, remeshed to the density of depth 9 (at most ``--max-vertices``), see
-:func:`sellip.geometry.initial_mesh`. ``mvs`` (needs pycolmap built with CUDA and an SfM model): COLMAP
+:func:`sellip.geometry.hull.initial_mesh`. ``mvs`` (needs pycolmap built with CUDA and an SfM model): COLMAP
 PatchMatch stereo and fusion give the oriented points instead of the hull surface. ``mesh``: the mesh in
 ``--mesh-path`` (a scan in the cameras.csv world, metres; PLY or OBJ) is resampled to ``--max-vertices`` and
-checked against the silhouettes (:func:`sellip.geometry.user_initial_mesh`); a mesh that does not fit them stops
+checked against the silhouettes (:func:`sellip.geometry.scan.user_initial_mesh`); a mesh that does not fit them stops
 the stage with an error naming the file and what is off (units, place, frame).
 
 Written (atomically): the mesh PLY (x y z nx ny nz float32, triangles) in the cameras.csv world, and
@@ -31,8 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-from sellip import geometry, sfm
-from sellip.io import read_ply, write_ply
+from sellip.geometry import hull as geometry_hull
+from sellip.geometry import scan as geometry_scan
+from sellip.geometry import sfm
+from sellip.model.ply import read_ply, write_ply
 from sellip.stages.sfm import add_image_arguments, diffuse_view, intrinsics_matrix, read_cameras, view_masks
 
 log = logging.getLogger(__name__)
@@ -138,7 +140,7 @@ def mvs_points(hdr, sfm_dir: Path, view_ids: list[str], masks: np.ndarray, threa
 
 
 def run_stage(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: str | Path, output: str | Path,
-              mode: str = "hull", options: geometry.InitMeshOptions = geometry.InitMeshOptions(),
+              mode: str = "hull", options: geometry_hull.InitMeshOptions = geometry_hull.InitMeshOptions(),
               mask_options: dict | None = None, disagreement_warn: float = 0.05,
               mesh_path: str | Path | None = None) -> dict:
     """Run the stage (see the module docstring); returns the report written beside the mesh.
@@ -166,7 +168,7 @@ def run_stage(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: str | Pat
     intrinsics = intrinsics_matrix(hdr.intrinsics)
     if mode == "mesh":
         vertices, faces, normals = user_mesh
-        mesh = geometry.user_initial_mesh(vertices, faces, masks, intrinsics, rotations, translations, options,
+        mesh = geometry_scan.user_initial_mesh(vertices, faces, masks, intrinsics, rotations, translations, options,
                                           normals=normals)
         if mesh.check.problems:
             raise InitMeshError(f"{mesh_path}: the mesh (init.mesh_path) does not fit the silhouettes of the "
@@ -177,7 +179,7 @@ def run_stage(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: str | Pat
         sfm_dir = Path(sfm_dir)
         sparse = sparse_observations(sfm_dir, view_ids)
         extra = mvs_points(hdr, sfm_dir, view_ids, masks, options.threads) if mode == "mvs" else None
-        mesh = geometry.initial_mesh(masks, intrinsics, rotations, translations, options,
+        mesh = geometry_hull.initial_mesh(masks, intrinsics, rotations, translations, options,
                                      *(sparse if sparse is not None else (None, None, None)), extra_points=extra)
         disagreement, against, extra_report = mesh.carving.disagreement, "the visual hull", {}
         advice = f"; min_inside_fraction {options.min_inside_fraction:.2f} tolerates a few bad masks"
@@ -207,7 +209,7 @@ def run_stage(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: str | Pat
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    defaults = geometry.InitMeshOptions()
+    defaults = geometry_hull.InitMeshOptions()
     add_image_arguments(parser)
     parser.add_argument("--cameras", required=True, type=Path, help="cameras.csv (sellip sfm)")
     parser.add_argument("--sfm", required=True, type=Path, help="the sfm folder (sparse model, report)")
@@ -223,7 +225,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    options = geometry.InitMeshOptions(hull_resolution=args.hull_resolution,
+    options = geometry_hull.InitMeshOptions(hull_resolution=args.hull_resolution,
                                        min_inside_fraction=args.min_inside_fraction,
                                        poisson_depth=args.poisson_depth, target_depth=args.target_depth,
                                        max_vertices=args.max_vertices, threads=args.threads)

@@ -3,7 +3,7 @@
     sellip linearize --capture CAPTURE --output results/NAME/ingest/linear.zarr [--threads 2]
                      [--bad-frames error|skip]
 
-Per frame (:func:`sellip.ingest.process_frame`): black level, white level,
+Per frame (:func:`sellip.capture.ingest.process_frame`): black level, white level,
 saturated/dead pixels, demosaic, colour matrix, undistortion, on the output
 grid of one pixel per polarizer cell. Written store (read by ``sellip merge-hdr``):
 
@@ -12,7 +12,7 @@ grid of one pixel per polarizer cell. Written store (read by ``sellip merge-hdr`
     chunk, NaN where invalid; C = 3 (linear sRGB) or 1 (mono).
 attrs
     ``frame_id``, ``view_id``, ``flash_level``, ``exposure_s`` (lists, frames.csv
-    order), ``intrinsics`` (output grid, :func:`sellip.ingest.output_intrinsics`),
+    order), ``intrinsics`` (output grid, :func:`sellip.capture.ingest.output_intrinsics`),
     ``analyzer_angles_deg``, ``channels``, ``raw_shape``, ``capture``, ``saturation``,
     ``black_level_from``, ``bad_frames`` and ``skipped`` (per frame: null, or why it was left out).
 
@@ -41,9 +41,10 @@ from pathlib import Path
 
 import numpy as np
 
-from sellip import ingest
-from sellip.conventions import ANALYZER_ANGLES_DEG
-from sellip.io import FRAMES_CSV, RAWPY_SUFFIXES, CaptureError, MissingFileError, read_capture, read_raw_frame
+from sellip.capture import ingest
+from sellip.capture.files import FRAMES_CSV, RAWPY_SUFFIXES, CaptureError, MissingFileError
+from sellip.capture.reader import read_capture, read_raw_frame
+from sellip.model.conventions import ANALYZER_ANGLES_DEG
 
 log = logging.getLogger(__name__)
 
@@ -139,7 +140,7 @@ def linearize_capture(capture_dir: str | Path, output: str | Path, threads: int 
                       bad_frames: str = "error") -> Path:
     """Linearize every frame of a capture into a zarr store at ``output`` (layout in the module docstring).
 
-    bad_frames: "error" raises :class:`sellip.io.CaptureError` naming the file and its frames.csv row for a
+    bad_frames: "error" raises :class:`sellip.capture.files.CaptureError` naming the file and its frames.csv row for a
     bad capture or frame, and nothing is written; "skip" leaves bad frames out (module docstring). Raises
     CaptureError when every frame is bad.
     """

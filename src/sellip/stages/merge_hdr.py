@@ -6,7 +6,7 @@ Written store (read lazily by later stages with :func:`read_hdr`):
 
 ``analyzers``
     (V, H, W, 4, C) float32, one view per chunk: I0, I45, I90, I135
-    (:data:`sellip.conventions.ANALYZER_ANGLES_DEG`) in linear sRGB (C = 3) or
+    (:data:`sellip.model.conventions.ANALYZER_ANGLES_DEG`) in linear sRGB (C = 3) or
     mono (C = 1). Units: relative radiance, ``linear / (flash_level * exposure_s)``
     where linear is 1 at the sensor's full scale (white - black). 0 where no frame is valid.
 ``valid``
@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 from zarr.codecs import BloscCodec
 
-from sellip import ingest
+from sellip.capture import ingest
 from sellip.stages.linearize import atomic_directory, map_in_threads, progress_logger
 
 log = logging.getLogger(__name__)

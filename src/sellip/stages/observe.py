@@ -15,8 +15,8 @@ views spread evenly over their order (:func:`spread_subset`; for an orbit, evenl
 measure what fewer views cost (config ``observe.max_views``; the initial mesh still uses every view).
 The flash position (``light.position_m``, camera coordinates) comes from capture.yaml.
 
-Views are processed ``view_chunk`` at a time (:class:`sellip.observe.Observer`), and each
-group is written to the store (layout: :mod:`sellip.observe`) before the next starts, so memory
+Views are processed ``view_chunk`` at a time (:class:`sellip.fit.observe.Observer`), and each
+group is written to the store (layout: :mod:`sellip.fit.observe`) before the next starts, so memory
 holds one HDR view and N x view_chunk observations. The store is written under a temporary
 name and renamed when complete.
 """
@@ -31,9 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-from sellip.io import CaptureError, read_capture
-from sellip.observe import ObservationWriter, ObserveError, ObserveSettings, Observer, Visibility, read_mesh
-from sellip.render import Camera, flash_light
+from sellip.capture.files import CaptureError
+from sellip.capture.reader import read_capture
+from sellip.fit.observe import ObservationWriter, ObserveError, Observer, ObserveSettings, Visibility, read_mesh
+from sellip.model.render import Camera, flash_light
 
 log = logging.getLogger(__name__)
 
@@ -114,10 +115,10 @@ def run_stage(mesh_path: str | Path, cameras_path: str | Path, hdr_path: str | P
     ``exclude_views``: views left out of the store (held out for evaluation, never used in the fit).
     ``max_views``: keep only this many of the other views, spread evenly (:func:`spread_subset`); None: all.
     """
+    from sellip.report.timing import mark
     from sellip.stages.linearize import atomic_directory, progress_logger
     from sellip.stages.merge_hdr import read_hdr
     from sellip.stages.sfm import read_cameras
-    from sellip.timing import mark
 
     mark("read")
     started = time.perf_counter()

@@ -7,7 +7,7 @@
                             --capture CAPTURE --exclude-views v004 ... --mask-threshold 0.03]
 
 The mesh's vertices move along its normals until its surface agrees with the iteration's fitted normals, as far
-as the fit's normal confidence allows (:func:`sellip.geometry.refine_from_normals`, docs/geometry_update.md);
+as the fit's normal confidence allows (:func:`sellip.geometry.update.refine_from_normals`, docs/geometry_update.md);
 what normals cannot tell (the mean offset, the shape far from any confident normal) is held at ``--reference-
 mesh`` (the loop's initial mesh, so that small biases of the normals do not add up over the iterations; default:
 ``--mesh``). With ``--silhouette`` > 0 the photographs' silhouettes hold the mean offset and size instead: the
@@ -15,9 +15,9 @@ current model is rendered in every view but the held-out ones as the camera woul
 mosaic, the ingest's demosaicing: :func:`predicted_diffuse`), the same silhouette operator is applied to the
 render and to the photograph, both boundaries are placed to a fraction of a pixel, and each contour vertex moves
 the model's silhouette onto the photograph's (:func:`measure_silhouettes`,
-:func:`sellip.geometry.silhouette_constraints`). The faces stay, so every vertex
+:func:`sellip.geometry.update.silhouette_constraints`). The faces stay, so every vertex
 keeps its parameters (the next fit's warm start) and the vertex count does not drift. Written atomically as a
-model PLY (:func:`sellip.io.write_param_mesh`) with the normals of the new surface and the ``confidence``: the
+model PLY (:func:`sellip.model.ply.write_param_mesh`) with the normals of the new surface and the ``confidence``: the
 mesh of the next iteration. Beside it, ``<output>.json`` says how far the surface moved and how far the fitted
 normals were from the mesh's before and after (a convergence figure that needs no ground truth).
 """
@@ -37,7 +37,7 @@ log = logging.getLogger(__name__)
 
 def raw_camera(capture, camera):
     """The raw sensor's camera (capture.yaml ``camera``: intrinsics at the mosaic's resolution, its lens
-    distortion) at the pose of ``camera`` (a :class:`sellip.render.Camera` at the HDR resolution)."""
+    distortion) at the pose of ``camera`` (a :class:`sellip.model.render.Camera` at the HDR resolution)."""
     from sellip.stages.observe import hdr_camera
 
     lens = {**capture.config["camera"], "width": capture.sensor["width"], "height": capture.sensor["height"]}
@@ -48,18 +48,18 @@ def predicted_diffuse(renderer, camera, capture, plan) -> np.ndarray:
     """I_d = 2 I90 (H, W, C) of the current model as the photograph of ``camera`` (HDR resolution) would show it:
     rendered at the raw sensor's resolution and lens (:func:`raw_camera`) under the capture's flash, sampled by
     its polarization and colour mosaic and developed like a photograph (``plan``:
-    :func:`sellip.ingest.make_ingest_plan`; :func:`sellip.ingest.develop`), so that the demosaicing blurs its
+    :func:`sellip.capture.ingest.make_ingest_plan`; :func:`sellip.capture.ingest.develop`), so that the demosaicing blurs its
     silhouette as it blurs the photograph's. The background is a tiny positive value: the silhouette
     operator then ranks the same pixels as in a photograph, whose background is noise, not zero
-    (:func:`sellip.geometry.silhouette_level` takes its level from a percentile of the positive pixels).
+    (:func:`sellip.geometry.silhouettes.silhouette_level` takes its level from a percentile of the positive pixels).
 
     Only what I90 needs is computed: the raw pixels behind the 90-degree analyzer (one in four: the render is a
     camera on their lattice, one sample at each pixel's centre), inside the model's box (whole mosaic periods,
     with a margin of two for the demosaicing's reach), and that analyzer's demosaicing."""
-    from sellip.conventions import ANALYZER_ANGLES_DEG
-    from sellip.ingest import CELL, analyzer_plan, develop
-    from sellip.render import Camera, flash_light
-    from sellip.sensor import sensor_colors
+    from sellip.capture.ingest import CELL, analyzer_plan, develop
+    from sellip.capture.sensor import sensor_colors
+    from sellip.model.conventions import ANALYZER_ANGLES_DEG
+    from sellip.model.render import Camera, flash_light
 
     light = capture.config["light"]
     raw = raw_camera(capture, camera)
@@ -98,13 +98,14 @@ def measure_silhouettes(mesh, mesh_normals: np.ndarray, shading_normals: np.ndar
     the observed silhouette of each photograph against the same operator's silhouette of the current model
     (``mesh`` with its geometric ``mesh_normals`` (V, 3), shaded with ``shading_normals`` (V, 3) and ``params``)
     as the camera would photograph it (:func:`predicted_diffuse`), both placed to a fraction of a pixel
-    (:class:`sellip.geometry.Silhouette`, :func:`sellip.geometry.silhouette_constraints`). Returns the constraints
+    (:class:`sellip.geometry.silhouettes.Silhouette`, :func:`sellip.geometry.update.silhouette_constraints`). Returns the constraints
     and a per-view summary (constraints; the mean and RMS offset in pixels, positive where the photograph's
     silhouette lies outside)."""
-    from sellip.geometry import Silhouette, SilhouetteConstraints, silhouette_constraints
-    from sellip.ingest import make_ingest_plan
-    from sellip.io import read_capture
-    from sellip.render import ParamMesh, Renderer
+    from sellip.capture.ingest import make_ingest_plan
+    from sellip.capture.reader import read_capture
+    from sellip.geometry.silhouettes import Silhouette
+    from sellip.geometry.update import SilhouetteConstraints, silhouette_constraints
+    from sellip.model.render import ParamMesh, Renderer
     from sellip.stages.render_outputs import load_cameras
     from sellip.stages.sfm import diffuse_view
 
@@ -137,14 +138,15 @@ def run_stage(params_path: Path, mesh_path: Path, output: Path, smoothness: floa
     """Write the next iteration's mesh ``output`` and ``<output>.json``; returns the summary written there.
     ``min_confidence``: the vertices whose normal agreement is reported. ``silhouette`` > 0: the weight of the
     silhouette constraints of the photographs (``cameras_path``, ``hdr_path``, ``capture_path`` needed; the
-    ``exclude_views`` not used; ``mask_options`` of :func:`sellip.geometry.silhouette_masks`)."""
-    from sellip.evaluate import angular_error_deg
-    from sellip.fit import confidence_from_uncertainty
-    from sellip.geometry import blend_normals, mesh_distances, refine_from_normals, vertex_normals
-    from sellip.io import write_param_mesh
-    from sellip.observe import read_mesh
-    from sellip.params import PARAM_FIELDS, ParamsError, params_from, read_params, same_vertices
-    from sellip.render import ParamMesh
+    ``exclude_views`` not used; ``mask_options`` of :func:`sellip.geometry.silhouettes.silhouette_masks`)."""
+    from sellip.fit.observe import read_mesh
+    from sellip.fit.vertex_fit import confidence_from_uncertainty
+    from sellip.geometry.meshes import blend_normals, mesh_distances, vertex_normals
+    from sellip.geometry.update import refine_from_normals
+    from sellip.model.params import PARAM_FIELDS, ParamsError, params_from, read_params, same_vertices
+    from sellip.model.ply import write_param_mesh
+    from sellip.model.render import ParamMesh
+    from sellip.report.evaluate import angular_error_deg
 
     started = time.perf_counter()
     store = read_params(params_path)
@@ -242,8 +244,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sellip.observe import ObserveError
-    from sellip.params import ParamsError
+    from sellip.fit.observe import ObserveError
+    from sellip.model.params import ParamsError
 
     try:
         run_stage(args.params, args.mesh, args.output, args.smoothness, args.anchor, args.rounds,

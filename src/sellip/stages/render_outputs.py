@@ -9,7 +9,7 @@ polarizer from capture.yaml ``light``. ``--views`` (default, or none given: DEFA
 spread over cameras.csv; views without a pose, e.g. not registered by SfM, are skipped with a warning)
 are re-rendered; the first is the reference view of everything else.
 
-Written into the folder ``--output`` (appears only when complete; :mod:`sellip.outputs` makes the images):
+Written into the folder ``--output`` (appears only when complete; :mod:`sellip.report.outputs` makes the images):
 
 ``view_<id>.png``             re-rendered captured view (s0, sRGB, its 99.5th percentile white)
 ``view_<id>_measured.png``    the measured HDR view after one global scale, same exposure as the render
@@ -31,9 +31,11 @@ from pathlib import Path
 
 import numpy as np
 
-from sellip.io import CaptureError, read_capture, read_param_mesh, read_ply
-from sellip.observe import ObserveError
-from sellip.outputs import write_renders
+from sellip.capture.files import CaptureError
+from sellip.capture.reader import read_capture
+from sellip.fit.observe import ObserveError
+from sellip.model.ply import PlyError, read_param_mesh, read_ply
+from sellip.report.outputs import write_renders
 
 log = logging.getLogger(__name__)
 
@@ -128,7 +130,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         run_stage(args.model, args.cameras, args.hdr, args.capture, args.output, views=args.views,
                   supersample=args.supersample)
-    except (OutputsError, CaptureError, ObserveError) as exc:
+    except (OutputsError, CaptureError, PlyError, ObserveError) as exc:
         log.error("%s", exc)
         return 1
     return 0

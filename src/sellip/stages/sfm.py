@@ -15,10 +15,10 @@ Modes (config ``sfm.mode``):
 ``sfm``
     poses.csv is ignored. cameras.csv holds the registered views' SfM poses in metric
     scale: origin at the object centre, median camera-to-object distance = capture.yaml
-    ``scene.distance_m`` (:func:`sellip.sfm.metric_normalization`).
+    ``scene.distance_m`` (:func:`sellip.geometry.sfm.metric_normalization`).
 
-Images: I_d = 2 I90 of hdr.zarr, silhouette-masked (:func:`sellip.geometry.silhouette_masks`),
-magnified when the object is small (:func:`sellip.sfm.feature_upscale`), tone-mapped to 8 bit.
+Images: I_d = 2 I90 of hdr.zarr, silhouette-masked (:func:`sellip.geometry.silhouettes.silhouette_masks`),
+magnified when the object is small (:func:`sellip.geometry.sfm.feature_upscale`), tone-mapped to 8 bit.
 
 Written (all or nothing): ``cameras.csv`` (view_id, qw, qx, qy, qz, tx, ty, tz: cam_from_world,
 metres) and the folder ``--output`` with ``report.json`` (mode, registered/unregistered views,
@@ -41,9 +41,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from sellip import geometry, sfm
-from sellip.conventions import quaternion_to_rotation, rotation_to_quaternion
-from sellip.io import POSE_COLUMNS, read_capture, validate_poses, write_ply
+from sellip.capture.files import POSE_COLUMNS
+from sellip.capture.reader import read_capture
+from sellip.capture.tables import validate_poses
+from sellip.geometry import alignment, sfm
+from sellip.geometry import silhouettes as geometry_silhouettes
+from sellip.model.conventions import quaternion_to_rotation, rotation_to_quaternion
+from sellip.model.ply import write_ply
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +97,7 @@ def view_masks(hdr, mask_options: dict) -> np.ndarray:
     masks = []
     for index in range(len(hdr.view_ids)):
         diffuse, valid = diffuse_view(hdr, index)
-        masks.append(geometry.silhouette_masks(diffuse[None], valid[None], **mask_options)[0])
+        masks.append(geometry_silhouettes.silhouette_masks(diffuse[None], valid[None], **mask_options)[0])
     return np.stack(masks)
 
 
@@ -107,7 +111,7 @@ def intrinsics_matrix(intrinsics: dict) -> np.ndarray:
 
 
 def compare_to_known(result: sfm.SfmResult, known_rotations: np.ndarray, known_translations: np.ndarray,
-                     distance_m: float) -> tuple[geometry.Similarity, dict, pd.DataFrame]:
+                     distance_m: float) -> tuple[alignment.Similarity, dict, pd.DataFrame]:
     """Align SfM cameras to known poses (Sim(3)) and measure them.
 
     known_*: poses of the same views as ``result`` (NaN rows are skipped). Returns the similarity
@@ -115,10 +119,10 @@ def compare_to_known(result: sfm.SfmResult, known_rotations: np.ndarray, known_t
     metres and as a fraction of ``distance_m``) and a per-view table.
     """
     usable = result.registered & np.isfinite(known_translations).all(axis=1)
-    align = geometry.align_cameras(result.rotations[usable], result.translations[usable],
+    align = alignment.align_cameras(result.rotations[usable], result.translations[usable],
                                    known_rotations[usable], known_translations[usable])
     rotations, translations = align.apply_to_poses(result.rotations[usable], result.translations[usable])
-    rotation_deg, centre_m = geometry.pose_errors(rotations, translations, known_rotations[usable],
+    rotation_deg, centre_m = alignment.pose_errors(rotations, translations, known_rotations[usable],
                                                   known_translations[usable])
     table = pd.DataFrame({"view_id": np.asarray(result.view_ids)[usable], "rotation_error_deg": rotation_deg,
                           "centre_error_m": centre_m, "centre_error_fraction": centre_m / distance_m})

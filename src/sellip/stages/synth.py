@@ -2,10 +2,10 @@
 
     sellip synth --scene demo --out captures/demo [--views N --width W --height H --seed S] [--noise-scale K]
 
-For each view of a handheld orbit (:func:`sellip.scenes.handheld_orbit`) the
-scene is rendered once with the full pBRDF (:mod:`sellip.render`) under the
+For each view of a handheld orbit (:func:`sellip.capture.scenes.handheld_orbit`) the
+scene is rendered once with the full pBRDF (:mod:`sellip.model.render`) under the
 rig's polarized flash, then exposed at each flash level through the sensor
-model (:mod:`sellip.sensor`) with independent noise. Written: capture.yaml,
+model (:mod:`sellip.capture.sensor`) with independent noise. Written: capture.yaml,
 frames.csv, poses.csv, raw/ frames, ground_truth/model.ply. The same seed
 gives byte-identical files; the folder appears only when complete.
 """
@@ -19,10 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from sellip.io import GROUND_TRUTH_MESH, RAW_FORMATS, CaptureWriter, write_param_mesh
-from sellip.render import Renderer, flash_light
-from sellip.scenes import SCENES, build_scene, handheld_orbit
-from sellip.sensor import SensorModel, simulate_raw
+from sellip.capture.files import GROUND_TRUTH_MESH
+from sellip.capture.scenes import SCENES, build_scene, handheld_orbit
+from sellip.capture.sensor import SensorModel, simulate_raw
+from sellip.capture.writer import RAW_FORMATS, CaptureWriter
+from sellip.model.ply import write_param_mesh
+from sellip.model.render import Renderer, flash_light
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +45,7 @@ def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width:
 
     width, height: raw mosaic size (multiples of 4); distortion: OpenCV (k1, k2, p1, p2, k3) or None;
     noise_scale: sensor noise standard deviations x this at the same signal
-    (:meth:`sellip.sensor.SensorModel.with_noise_scale`; 1 is the real device).
+    (:meth:`sellip.capture.sensor.SensorModel.with_noise_scale`; 1 is the real device).
     """
     from tqdm import tqdm
 

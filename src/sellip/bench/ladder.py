@@ -1,0 +1,160 @@
+"""The accuracy ladder (docs/accuracy.md): where the error of a reconstruction enters, rung by rung.
+
+Each rung adds one source of error to the one before, on the same synthetic capture:
+
+- ``render``: the true mesh observed in noise-free analyzer images rendered straight at the HDR grid
+  (no sensor, no mosaic, no ingest): what sampling images at the vertices costs;
+- ``sensor``: the true mesh observed in the capture's own HDR images (sensor noise, the polarization
+  and colour mosaic, demosaicing, HDR merge);
+- ``mesh`` / ``hull`` (benchmarks/accuracy_ladder.py): the whole workflow from the true mesh
+  (``init.mode: mesh``) or from the visual hull.
+
+The first two rungs are one observe + one fit pass (no augmentation, no iterations) on the true
+mesh's vertices; their figures are those of :func:`figures`.
+
+Public API::
+
+    render_hdr(capture, hdr, output, supersample=2) -> Path       # noise-free HDR store of the true mesh
+    fit_true_mesh(capture, hdr, workdir, observe_settings) -> dict  # observe + fit on the true mesh
+    figures(fit, truth) -> dict                                     # eta per material / vertex, normals
+    psnr_ceiling(capture, hdr, views, vertices=None) -> dict        # held-out PSNR of the truth (resampled)
+
+:func:`psnr_ceiling` says what a per-vertex model can score at all: the true mesh and parameters, or the truth
+resampled on a mesh of a given vertex count (each vertex takes its nearest true vertex's parameters), rendered at
+the held-out views and scored against the capture's images as ``evaluate_model`` scores a model.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from sellip.capture.files import GROUND_TRUTH_MESH
+from sellip.capture.reader import read_capture
+from sellip.model.ply import read_param_mesh, write_param_mesh
+
+
+def render_hdr(capture: str | Path, hdr: str | Path, output: str | Path, supersample: int = 2) -> Path:
+    """A copy of the ``hdr`` store whose analyzer images are rendered noise-free from the capture's true
+    mesh at the HDR grid (same intrinsics, poses from poses.csv, same flash), scaled to the store's units
+    (the synthetic capture's flash power over the raw range); every pixel valid."""
+    import zarr
+
+    from sellip.model.render import Camera, Renderer, flash_light
+    from sellip.stages.merge_hdr import read_hdr
+    from sellip.stages.sfm import intrinsics_matrix, read_cameras
+
+    capture, output = Path(capture), Path(output)
+    config = read_capture(capture, check_files=False).config
+    truth = read_param_mesh(capture / GROUND_TRUTH_MESH)
+    source = read_hdr(hdr)
+    view_ids, rotations, translations = read_cameras(capture / "poses.csv")
+    sensor = config["sensor"]
+    scale = float(config["synthetic"]["flash_power_dn"]) / (float(sensor["white_level"]) - float(sensor["black_level"]))
+    tmp = output.with_name(output.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(hdr, tmp)
+    group = zarr.open_group(str(tmp), mode="r+")
+    renderer = Renderer(truth)
+    k = intrinsics_matrix(source.intrinsics)
+    size = int(source.intrinsics["width"]), int(source.intrinsics["height"])
+    for v, view_id in enumerate(source.view_ids):
+        row = view_ids.index(view_id)
+        camera = Camera(k, rotations[row], translations[row], *size)
+        light = flash_light(camera, config["light"]["position_m"], config["light"]["polarizer_deg"])
+        analyzers = np.asarray(renderer.render(camera, light, supersample=supersample).analyzers, np.float32)
+        group["analyzers"][v] = scale * analyzers
+        group["valid"][v] = np.ones(analyzers.shape[:2], bool)
+    shutil.rmtree(output, ignore_errors=True)
+    tmp.rename(output)
+    return output
+
+
+def fit_true_mesh(capture: str | Path, hdr: str | Path, workdir: str | Path, observe_settings=None,
+                  compilation_cache: str | None = None) -> dict:
+    """Observe the capture's true mesh in ``hdr`` and fit every vertex (one pass, default FitSettings);
+    returns :func:`figures` of the fit. Intermediate stores go to ``workdir``."""
+    from sellip.fit.observe import ObserveSettings
+    from sellip.stages import fit as fit_stage
+    from sellip.stages import observe as observe_stage
+
+    capture, workdir = Path(capture), Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    truth = read_param_mesh(capture / GROUND_TRUTH_MESH)
+    mesh = workdir / "true_mesh.ply"
+    write_param_mesh(mesh, truth)
+    shutil.rmtree(workdir / "observations.zarr", ignore_errors=True)
+    observe_stage.run_stage(mesh, capture / "poses.csv", hdr, capture, workdir / "observations.zarr",
+                            observe_settings or ObserveSettings())
+    fit_stage.run_stage(workdir / "observations.zarr", (0, 1), workdir / "fit.npz",
+                        compilation_cache=compilation_cache)
+    return figures(dict(np.load(workdir / "fit.npz")), truth)
+
+
+def figures(fit: dict, truth) -> dict:
+    """Figures of a fit on the true mesh's vertices (rows in the same order): over the fitted vertices,
+    eta per true material (median of its vertices, paper Table 1) and per vertex, normal error."""
+    from sellip.fit.records import STATUS_FITTED
+    from sellip.report.evaluate import angular_error_deg, eta_per_material
+
+    fitted = np.asarray(fit["status"]) == STATUS_FITTED
+    if not fitted.any():
+        raise ValueError(f"no vertex of the {len(fitted)} was fitted (too few usable views each): "
+                         "use more views or a larger capture")
+    eta_true = np.asarray(truth.params.eta, np.float64)[fitted]
+    eta = np.asarray(fit["eta"], np.float64)[fitted]
+    error = 100 * np.abs(eta - eta_true) / eta_true
+    normal = angular_error_deg(np.asarray(fit["normal"], np.float64)[fitted], np.asarray(truth.normals)[fitted])
+    material = None if truth.material is None else np.asarray(truth.material)[fitted]
+    return {"fitted": int(fitted.sum()), "vertices": len(fitted),
+            "eta_per_material": eta_per_material(eta, eta_true, material),
+            "eta_vertex_median_pct": float(np.median(error)), "eta_vertex_p90_pct": float(np.percentile(error, 90)),
+            "normal_median_deg": float(np.median(normal)), "normal_p90_deg": float(np.percentile(normal, 90))}
+
+
+def resampled_truth(truth, vertices: int):
+    """The true ParamMesh on a mesh of about ``vertices`` vertices (:func:`sellip.geometry.scan.resample_to_count`, as the
+    ``mesh`` rung's initial mesh), each vertex with the parameters and material of its nearest true vertex."""
+    from scipy.spatial import cKDTree
+
+    from sellip.geometry.meshes import vertex_normals
+    from sellip.geometry.scan import resample_to_count
+    from sellip.model.pbrdf import PBRDFParams
+    from sellip.model.render import ParamMesh
+
+    points, faces = resample_to_count(np.asarray(truth.vertices, np.float64), np.asarray(truth.faces), vertices)
+    _, nearest = cKDTree(np.asarray(truth.vertices)).query(points)
+    params = PBRDFParams(*(np.asarray(value)[nearest] for value in truth.params))
+    material = None if truth.material is None else np.asarray(truth.material)[nearest]
+    return ParamMesh(vertices=points, faces=faces, normals=vertex_normals(points, faces), params=params,
+                     material=material)
+
+
+def psnr_ceiling(capture: str | Path, hdr: str | Path, views: list[str], vertices: int | None = None,
+                 supersample: int = 2) -> dict:
+    """Held-out PSNR (dB; :func:`sellip.stages.evaluate.view_psnr`, as evaluate_model scores a model) of the
+    capture's ground truth at ``views`` against the HDR images of ``hdr``: the true mesh itself (``vertices`` None)
+    or :func:`resampled_truth` at ``vertices``.
+    Returns {"vertices", "views": {view_id: dB}, "mean_db"}."""
+    from sellip.model.render import Renderer, flash_light
+    from sellip.stages.evaluate import view_psnr
+    from sellip.stages.merge_hdr import read_hdr
+    from sellip.stages.observe import hdr_camera
+    from sellip.stages.sfm import read_cameras
+
+    capture = Path(capture)
+    light = read_capture(capture, check_files=False).config["light"]
+    truth = read_param_mesh(capture / GROUND_TRUTH_MESH)
+    model = truth if vertices is None else resampled_truth(truth, vertices)
+    store = read_hdr(hdr)
+    view_ids, rotations, translations = read_cameras(capture / "poses.csv")
+    renderer = Renderer(model)
+    scores = {}
+    for view_id in views:
+        row = view_ids.index(view_id)
+        camera = hdr_camera(store.intrinsics, rotations[row], translations[row], hdr)
+        lamp = flash_light(camera, light["position_m"], float(light["polarizer_deg"]))
+        scores[view_id] = view_psnr(renderer, camera, lamp, store, view_id, supersample)["psnr_db"]
+    return {"vertices": model.num_vertices, "views": scores, "mean_db": float(np.mean(list(scores.values())))}

@@ -1,0 +1,461 @@
+"""Material clusters (paper §4.3, DESIGN §7; docs/augment.md): K-means on the feature (eta, rho_d
+RGB) of the confidently fitted vertices, K chosen by BIC; small clusters merged; spatially incoherent clusters
+(a cut through one material's noise) merged; regions of another albedo inside a cluster added; a material cut
+along its eta merged. Pure numpy/scikit-learn, no I/O.
+
+Features (:func:`cluster_features`): rho_d chromaticity (r, g of rho_d / sum rho_d) over 0.02, log mean rho_d
+over 0.2, eta over 0.05: one unit is about a just-distinguishable material difference in each. Degenerate
+statistics (flat colours, no confident vertex) degrade to fewer clusters and a note, never an exception.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from sellip.fit import parameterization, records
+
+log = logging.getLogger(__name__)
+
+
+CHROMA_SCALE = 0.02
+LOG_BRIGHTNESS_SCALE = 0.2
+ETA_SCALE = 0.05
+VARIANCE_FLOOR = 0.5**2  # per-dimension variance floor of the BIC Gaussians (feature units): spreads below half a unit are not structure
+REGION_OUTLIER_P = 1e-3  # an albedo in this tail of its cluster's robust Gaussian is an outlier (_region_centres)
+REGION_EPS = 1.0  # outliers within this many albedo feature units of each other are one group (DBSCAN)
+REGION_MIN_SAMPLES = 5  # ... with at least this many in a group's core
+REGION_FIT_POINTS = 500  # the robust Gaussian is fitted to at most this many of a cluster's vertices (seeded): 0.03 s
+CUT_ALBEDO_SD = 3.0  # two clusters whose mean albedos are closer than this many pooled sd may be one material ...
+CUT_MODE_POINTS = 4000  # ... cut along its eta: their features along the line between the centres have one mode
+CUT_ETA_SE = 3.0  # ... or, within CUT_MODES_ALBEDO_SD, two albedo modes whose etas split by albedo are this many SE apart
+CUT_MODES_ALBEDO_SD = 5.0  # the albedo modes of one textured material: 2.4-4.1 sd apart; two real materials 5.45 and more
+
+
+@dataclass(frozen=True)
+class AugmentSettings:
+    """Settings of the clustering and of the per-cluster lobe fit."""
+
+    k_max: int = 8  # K is chosen in 1..k_max
+    min_cluster_vertices: int = 50  # smaller clusters are merged into their nearest neighbour
+    # A material occupies a region: a cluster whose vertices' nearest neighbours on the surface lie in it less
+    # often than this (on average) is a split of a material's noise, not a material, and is merged; a region of
+    # another albedo inside a cluster at least this coherent becomes a cluster (:func:`_region_centres`); and two
+    # clusters that are one material cut along its eta are merged (:func:`_eta_cut`) (0: none of the three;
+    # docs/augment.md).
+    min_coherence: float = 0.5
+    coherence_neighbours: int = 6  # the nearest vertices (3-D) that stand for a vertex's 1-ring
+    min_confidence: float = 0.1  # vertices clustered and pooled: status fitted and confidence >= this
+    cluster_points: int = 20000  # at most this many vertices (seeded subsample) choose K and the centres
+    restarts: int = 4  # K-means++ restarts per K (the lowest inertia wins)
+    max_samples: int = 16384  # (vertex, view) samples per cluster lobe fit (seeded subsample)
+    lambda_theta: float = 1.0  # weight of L_theta = Delta theta_h^2 (radians): 1 deg costs a 1.7 % I_s error
+    max_theta_error_deg: float = 5.0  # |Delta theta_h| bound
+    alternations: int = 4  # (lobe parameters, Delta theta_h) alternations
+
+
+class Clustering(NamedTuple):
+    """labels (N,) int32 in 0..K-1 for every vertex; centres (K, 4) feature units; bic {K: value};
+    merges: one dict per merged cluster (vertices, into, reason); used (N,) bool, the vertices clustered;
+    regions: one dict per cluster added for a region of another albedo inside a cluster (:func:`_region_centres`);
+    notes: what was degenerate (a rule that could not apply to these data, and what was done instead)."""
+
+    labels: np.ndarray
+    centres: np.ndarray
+    bic: dict
+    merges: list
+    used: np.ndarray
+    regions: tuple = ()
+    notes: tuple = ()
+
+
+# --- clustering --------------------------------------------------------------------------------
+
+def cluster_features(eta, rho_d) -> np.ndarray:
+    """Feature (N, 4) of N vertices from eta (N,) and rho_d (N, 3): chromaticity (2), log brightness, eta."""
+    rho_d = np.maximum(np.asarray(rho_d, np.float64), 1e-6)
+    total = rho_d.sum(-1)
+    chroma = rho_d[:, :2] / total[:, None]
+    return np.column_stack([chroma / CHROMA_SCALE, np.log(total / 3) / LOG_BRIGHTNESS_SCALE,
+                            np.asarray(eta, np.float64) / ETA_SCALE])
+
+
+def _squared_distances(x, centres):
+    return np.maximum(np.sum(x * x, 1)[:, None] - 2 * x @ centres.T + np.sum(centres * centres, 1)[None], 0)
+
+
+def kmeans(x: np.ndarray, k: int, rng: np.random.Generator, restarts: int = 4, iterations: int = 100):
+    """K-means++ seeding and Lloyd iterations, ``restarts`` times; the lowest inertia wins.
+
+    x (n, d); returns (centres (k, d), labels (n,), inertia). Deterministic for a given ``rng`` state.
+    """
+    n = len(x)
+    best = None
+    for _ in range(restarts):
+        centres = [x[rng.integers(n)]]
+        d2 = _squared_distances(x, np.asarray(centres))[:, 0]
+        for _ in range(1, k):
+            total = d2.sum()
+            index = rng.choice(n, p=d2 / total) if total > 0 else rng.integers(n)
+            centres.append(x[index])
+            d2 = np.minimum(d2, _squared_distances(x, x[index][None])[:, 0])
+        centres = np.asarray(centres)
+        for _ in range(iterations):
+            labels = np.argmin(_squared_distances(x, centres), 1)
+            counts = np.bincount(labels, minlength=k)
+            sums = np.zeros_like(centres)
+            np.add.at(sums, labels, x)
+            new = np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None], centres)
+            if np.allclose(new, centres, rtol=0, atol=1e-10):
+                break
+            centres = new
+        d2 = _squared_distances(x, centres)
+        labels = np.argmin(d2, 1)
+        inertia = float(np.take_along_axis(d2, labels[:, None], 1).sum())
+        if best is None or inertia < best[2]:
+            best = (centres, labels, inertia)
+    return best
+
+
+def bic(x: np.ndarray, labels: np.ndarray, k: int) -> float:
+    """Bayesian information criterion of a partition of x (n, d) into k clusters (lower is better).
+
+    Each cluster is a Gaussian with its own diagonal covariance (variances floored at
+    :data:`VARIANCE_FLOOR`) and a mixing weight: 2 d k + k - 1 parameters.
+    """
+    n, d = x.shape
+    log_likelihood = 0.0
+    for j in range(k):
+        members = x[labels == j]
+        if len(members) == 0:
+            continue
+        variance = np.maximum(members.var(0), VARIANCE_FLOOR)
+        log_likelihood += (len(members) * np.log(len(members) / n)
+                           - 0.5 * len(members) * np.sum(np.log(2 * np.pi * variance)) - 0.5 * len(members) * d)
+    return float(-2 * log_likelihood + (2 * d * k + k - 1) * np.log(n))
+
+
+def choose_k(x: np.ndarray, k_max: int, rng: np.random.Generator, restarts: int = 4):
+    """K-means for K = 1..k_max (at most one cluster per 2 points); K with the lowest BIC.
+
+    Returns (K, centres (K, d), bic {K: value}).
+    """
+    results, values = {}, {}
+    for k in range(1, max(1, min(k_max, len(x) // 2)) + 1):
+        centres, labels, _ = kmeans(x, k, rng, restarts)
+        results[k] = centres
+        values[k] = bic(x, labels, k)
+    k = min(values, key=values.get)
+    return k, results[k], values
+
+
+def spatial_coherence(labels, vertices, neighbours: int = 6) -> np.ndarray:
+    """(K,) per cluster of ``labels`` (N,) in 0..K-1: the share of its vertices' ``neighbours`` nearest other
+    vertices (``vertices`` (N, 3), a stand-in for the mesh's 1-ring) that are in the cluster too, averaged over
+    its vertices (NaN for an empty cluster). A material's region scores near 1 (the demo's: 0.92-0.99; sphere_ior's
+    seven: 0.92-0.97); a cluster that k-means cut out of one material's eta noise scores near its share of the
+    surface (0.34-0.38 on the demo)."""
+    return _coherence(np.asarray(labels, np.intp), nearest_vertices(vertices, neighbours))
+
+
+def nearest_vertices(vertices, neighbours: int) -> np.ndarray:
+    """(N, <= neighbours) the indices of each vertex's nearest other vertices."""
+    from scipy.spatial import cKDTree
+
+    vertices = np.asarray(vertices, np.float64)
+    k = min(neighbours + 1, len(vertices))
+    if k < 2:
+        return np.zeros((len(vertices), 0), np.intp)
+    return cKDTree(vertices).query(vertices, k=k)[1][:, 1:]
+
+
+def _coherence(labels, near) -> np.ndarray:
+    count = int(labels.max()) + 1 if labels.size else 0
+    if near.shape[1] == 0:
+        return np.ones(count)
+    same = (labels[near] == labels[:, None]).mean(1)
+    sums, members = np.bincount(labels, weights=same, minlength=count), np.bincount(labels, minlength=count)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return sums / members
+
+
+def _region_centres(features, used, centres, near, settings: AugmentSettings, rng) -> tuple[np.ndarray, list, list]:
+    """Centres (K + R, d) with a centre added for each small material that k-means left inside a cluster, one
+    record per added centre, and the notes of clusters whose albedos had no spread (:func:`_robust_mahalanobis`).
+
+    BIC does not spend a cluster on a material of 1 % of the surface (the demo's eyes and beak, 67 of 5.7k
+    vertices, inside the plumage's cluster), and its median eta then is the plumage's. Per cluster: the albedo
+    features (chromaticity, brightness; not the noisy eta) of its clustered vertices; a robust Gaussian
+    (scikit-learn ``MinCovDet``, fitted to at most ``REGION_FIT_POINTS`` of them); the members in its
+    ``REGION_OUTLIER_P`` tail; those grouped in albedo (DBSCAN, ``REGION_EPS`` feature units). A group is a
+    material when it is a region: of its vertices' ``coherence_neighbours`` nearest vertices, those clustered
+    are in the group at least ``min_coherence`` of the time (the demo's eyes: 0.56-0.66; the scattered tails of
+    texture and noise on the demo, sphere_ior and the stability spheres: at most 0.39), and its centre, added,
+    takes at least ``min_cluster_vertices`` clustered vertices. Its centre is the group's mean feature (eta too).
+    """
+    from scipy.stats import chi2
+    from sklearn.cluster import DBSCAN
+
+    labels = np.argmin(_squared_distances(features, centres), 1)
+    threshold = chi2.ppf(1 - REGION_OUTLIER_P, 3)
+    regions, notes = [], []
+    for cluster in range(len(centres)):
+        members = np.flatnonzero(used & (labels == cluster))
+        if members.size < settings.min_cluster_vertices:
+            continue
+        albedo = features[members, :3]
+        sample = albedo if len(albedo) <= REGION_FIT_POINTS else albedo[rng.choice(len(albedo), REGION_FIT_POINTS,
+                                                                                    replace=False)]
+        distances, note = _robust_mahalanobis(sample, albedo, rng, cluster)
+        notes += [note] if note else []
+        outliers = members[distances > threshold]
+        if outliers.size < REGION_MIN_SAMPLES:
+            continue
+        groups = DBSCAN(eps=REGION_EPS, min_samples=REGION_MIN_SAMPLES).fit_predict(features[outliers, :3])
+        for group in range(groups.max() + 1):
+            region = np.zeros(len(features), bool)
+            region[outliers[groups == group]] = True
+            around = near[region]
+            known = used[around]  # a neighbour without a clustered fit says nothing either way
+            coherence = float(region[around][known].mean()) if known.any() else 0.0
+            record = {"inside": cluster, "vertices": int(region.sum()), "coherence": round(coherence, 3)}
+            if coherence < settings.min_coherence:
+                log.debug("albedo outliers of cluster %d not a region: %s", cluster, record)
+                continue
+            trial = np.vstack([centres, features[region].mean(0)])
+            record["clustered_vertices"] = int(np.sum(np.argmin(_squared_distances(features[used], trial), 1)
+                                                      == len(centres)))
+            if record["clustered_vertices"] < settings.min_cluster_vertices:
+                log.debug("region inside cluster %d too small for a cluster: %s", cluster, record)
+                continue
+            log.info("cluster %d holds a region of another albedo (%d vertices, coherence %.2f): a cluster of its own",
+                     cluster, region.sum(), coherence)
+            centres = trial
+            regions.append(record)
+    return centres, regions, notes
+
+
+DEGENERATE_VARIANCE = 1e-12  # a robust covariance eigenvalue below this (feature units^2) is no spread at all
+
+
+def _robust_mahalanobis(sample: np.ndarray, x: np.ndarray, rng, cluster: int = -1) -> tuple[np.ndarray, str | None]:
+    """Squared Mahalanobis distances (n,) of ``x`` (n, d) from the robust Gaussian (scikit-learn ``MinCovDet``) of
+    ``sample`` (m, d), and a note when that Gaussian was degenerate (None otherwise).
+
+    Where more than half of the sample shares one value in some direction (a texture of flat colours, dark vertices
+    whose albedo sits at the feature floor: many identical rows), the minimum-covariance-determinant estimate is
+    singular and ``MinCovDet`` raises. The robust Gaussian is then degenerate, not absent: its location is the
+    sample's median and its spread in each direction without spread is ``VARIANCE_FLOOR`` (spreads below half a
+    feature unit are not structure, as in :func:`bic`), so what differs from the shared value by more than about a
+    unit is still an outlier. Logged; a non-degenerate sample gives ``MinCovDet``'s own distances.
+    """
+    import warnings
+
+    from sklearn.covariance import MinCovDet
+
+    try:
+        with warnings.catch_warnings():  # "not full rank": handled below
+            warnings.simplefilter("ignore", UserWarning)
+            gaussian = MinCovDet(random_state=int(rng.integers(2**31))).fit(sample)
+        location, covariance = gaussian.location_, gaussian.covariance_
+    except ValueError:  # the support's covariance is 0: every direction is degenerate
+        gaussian, location, covariance = None, np.median(sample, 0), np.zeros((sample.shape[1],) * 2)
+    values, vectors = np.linalg.eigh(covariance)
+    degenerate = ~(values > DEGENERATE_VARIANCE)
+    if gaussian is not None and not degenerate.any():
+        return gaussian.mahalanobis(x), None
+    note = (f"cluster {cluster}: its albedos have no spread in {int(degenerate.sum())} of {len(values)} directions "
+            f"(flat colours or dark vertices): the region search took a spread of {np.sqrt(VARIANCE_FLOOR):g} "
+            "feature units there")
+    log.info("%s", note)
+    values = np.where(degenerate, VARIANCE_FLOOR, values)
+    projected = (np.asarray(x, np.float64) - location) @ vectors
+    return np.sum(projected**2 / values, 1), note
+
+
+def _separation(gap: np.ndarray, pooled: np.ndarray) -> float:
+    """Mahalanobis length of ``gap`` (d,) under the covariance ``pooled`` (d, d); a direction without spread (two
+    flat colours) counts with ``VARIANCE_FLOOR``, as in :func:`_robust_mahalanobis`, so that a gap along it is
+    large, not ignored."""
+    values, vectors = np.linalg.eigh(pooled)
+    degenerate = ~(values > DEGENERATE_VARIANCE)
+    if not degenerate.any():
+        return float(np.sqrt(gap @ np.linalg.lstsq(pooled, gap, rcond=None)[0]))
+    projected = gap @ vectors
+    return float(np.sqrt(np.sum(projected**2 / np.where(degenerate, VARIANCE_FLOOR, values))))
+
+
+def _one_mode(x: np.ndarray, rng) -> bool:
+    """Whether the 1-D sample ``x`` (n,) has one mode: a two-component Gaussian mixture fitted to it (at most
+    CUT_MODE_POINTS, seeded) has one local maximum between its 0.5th and 99.5th percentiles."""
+    from sklearn.mixture import GaussianMixture
+
+    if len(x) > CUT_MODE_POINTS:
+        x = rng.choice(x, CUT_MODE_POINTS, replace=False)
+    if not np.ptp(x) > 0:  # one value (or NaN): one mode, and no mixture to fit
+        return True
+    mixture = GaussianMixture(2, random_state=int(rng.integers(2**31))).fit(x[:, None])
+    grid = np.linspace(*np.percentile(x, [0.5, 99.5]), 400)[:, None]
+    density = mixture.score_samples(grid)
+    return int(np.sum((density[1:-1] > density[:-2]) & (density[1:-1] > density[2:]))) <= 1
+
+
+def _same_eta_by_albedo(A: np.ndarray, B: np.ndarray, rng) -> bool:
+    """Whether the features (n, 4) of two clusters are two albedo modes of one eta: their albedos (chromaticity,
+    brightness) projected on the line between the two mean albedos have two modes, and their members split again by
+    albedo alone (the nearer of the two mean albedos) have median etas within CUT_ETA_SE standard errors (each
+    1.2533 x its robust sd / sqrt(n)). Two materials of one albedo are one albedo mode, whatever their etas.
+    k-means on (albedo, eta) takes a material's high-eta vertices for one albedo mode and its low-eta ones for the
+    other: tiny_speckle's rough material, two albedo modes 2.4 pooled sd apart, as two clusters at eta 1.384 and
+    1.442 (true 1.40); split by albedo alone they are 1.397 and 1.411 (docs/accuracy.md)."""
+    x = np.concatenate([A, B])
+    line = B[:, :3].mean(0) - A[:, :3].mean(0)
+    if not np.linalg.norm(line) > 0:  # one mean albedo: one albedo mode
+        return False
+    if _one_mode(x[:, :3] @ (line / np.linalg.norm(line)), rng):
+        return False
+    to_a = np.sum((x[:, :3] - A[:, :3].mean(0)) ** 2, 1) <= np.sum((x[:, :3] - B[:, :3].mean(0)) ** 2, 1)
+    groups = [x[to_a, 3], x[~to_a, 3]]
+    if min(len(g) for g in groups) < 5:
+        return False
+    medians = [np.median(g) for g in groups]
+    se = [1.2533 * 1.4826 * np.median(np.abs(g - m)) / np.sqrt(len(g)) for g, m in zip(groups, medians)]
+    return abs(medians[0] - medians[1]) <= CUT_ETA_SE * np.hypot(*se)
+
+
+def _eta_cut(features, used, centres, rng) -> tuple[int, int, float] | None:
+    """(keep, drop, separation) for the pair of clusters that is most likely one material cut along its eta noise,
+    None when no pair is. A pair is when its mean albedos (chromaticity, brightness) are within CUT_ALBEDO_SD pooled
+    standard deviations and its clustered vertices' features, projected on the line between the two centres, have
+    one mode; or when they are within CUT_MODES_ALBEDO_SD and are two albedo modes of one eta
+    (:func:`_same_eta_by_albedo`: a textured material, two modes on that line too). k-means cuts a material so when
+    BIC takes more clusters than materials: sphere_ior's eta 1.462 wedge at 98k vertices, two halves at eta 1.507 and
+    1.422, 1.97 sd apart in albedo, coherence 0.69 and 0.73, which the coherence test passes; the albedo modes of
+    the stability spheres' materials 2.4-4.1 sd apart; two real materials are 5.4 sd apart and more on sphere_ior,
+    the demo and the stability spheres (docs/accuracy.md). The larger cluster keeps its index."""
+    labels = np.argmin(_squared_distances(features[used], centres), 1)
+    x = features[used]
+    members = [x[labels == k] for k in range(len(centres))]
+    best = None
+    for a in range(len(centres)):
+        for b in range(a + 1, len(centres)):
+            A, B = members[a], members[b]
+            if len(A) < 5 or len(B) < 5:
+                continue
+            pooled = (np.cov(A[:, :3].T) * (len(A) - 1) + np.cov(B[:, :3].T) * (len(B) - 1)) / (len(A) + len(B) - 2)
+            gap = A[:, :3].mean(0) - B[:, :3].mean(0)
+            separation = _separation(gap, pooled)
+            if separation >= CUT_MODES_ALBEDO_SD or (best is not None and separation >= best[2]):
+                continue
+            line = B.mean(0) - A.mean(0)
+            line = line / np.linalg.norm(line) if np.linalg.norm(line) > 0 else line  # one centre: one mode
+            if (separation < CUT_ALBEDO_SD and _one_mode(np.concatenate([A, B]) @ line, rng)) \
+                    or _same_eta_by_albedo(A, B, rng):
+                best = (a, b, separation) if len(A) >= len(B) else (b, a, separation)
+    return best
+
+
+def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings = AugmentSettings(),
+                      seed: int = 0, vertices=None) -> Clustering:
+    """Material clusters of N vertices from their fitted eta (N,), rho_d (N, 3), status (N,) and confidence (N,).
+
+    The vertices with status fitted and confidence >= ``min_confidence`` (a seeded subsample of at
+    most ``cluster_points``) choose K (:func:`choose_k`) and the centres. A cluster with fewer than
+    ``min_cluster_vertices`` of them is merged into the nearest other centre (logged), smallest first.
+    With ``vertices`` (N, 3), a cluster whose spatial coherence (:func:`spatial_coherence`) is below
+    ``min_coherence`` is then merged into the cluster most of its vertices' neighbours belong to, the least
+    coherent first (logged): k-means on (chroma, brightness, eta) also cuts one material along its eta noise,
+    and such a cut's median eta is biased by construction (the demo's plumage: a cluster of 396 of its vertices
+    at eta 1.325 against 1.492, coherence 0.34). Before that test, a region of another albedo inside a cluster
+    becomes a cluster of its own (:func:`_region_centres`), which that test then leaves (it passed it as a group).
+    Last, two clusters that are one material cut along its eta (:func:`_eta_cut`) are merged, closest first. Every
+    vertex, also unfitted ones, is labelled with its nearest centre; labels are ordered by cluster size (0 the
+    largest).
+    """
+    rng = np.random.default_rng(seed)
+    features = cluster_features(eta, rho_d)
+    used = (np.asarray(status) == records.STATUS_FITTED) & (np.asarray(confidence) >= settings.min_confidence)
+    used &= ~parameterization.eta_at_bound(eta)  # no eta to cluster on: dark_noisy's vertices at 1.05 were a cluster of their own
+    used &= np.all(np.isfinite(features), 1)
+    if not used.any():  # nothing to cluster on: one cluster, said so (the stage fits its lobe on every vertex)
+        note = (f"no vertex is fitted with confidence >= {settings.min_confidence} and an eta inside its range "
+                f"({len(features)} vertices): one cluster of them all")
+        log.warning("%s", note)
+        finite = np.all(np.isfinite(features), 1)
+        centre = np.median(features[finite], 0) if finite.any() else np.zeros(features.shape[1])
+        return Clustering(labels=np.zeros(len(features), np.int32), centres=centre[None], bic={}, merges=[],
+                          used=used, notes=(note,))
+    pool = np.flatnonzero(used)
+    if pool.size > settings.cluster_points:
+        pool = np.sort(rng.choice(pool, settings.cluster_points, replace=False))
+    _, centres, values = choose_k(features[pool], settings.k_max, rng, settings.restarts)
+    merges = []
+    while len(centres) > 1:
+        labels = np.argmin(_squared_distances(features[pool], centres), 1)
+        counts = np.bincount(labels, minlength=len(centres))
+        small = int(np.argmin(counts))
+        if counts[small] >= settings.min_cluster_vertices:
+            break
+        others = np.delete(np.arange(len(centres)), small)
+        into = int(others[np.argmin(_squared_distances(centres[small][None], centres[others])[0])])
+        merges.append({"cluster": small, "vertices": int(counts[small]), "into": into,
+                       "reason": f"{int(counts[small])} confident vertices < min_cluster_vertices "
+                                 f"{settings.min_cluster_vertices}"})
+        log.info("cluster %d (%d confident vertices) merged into cluster %d: fewer than %d", small,
+                 counts[small], into, settings.min_cluster_vertices)
+        members = (labels == small) | (labels == into)
+        centres[into] = features[pool][members].mean(0)
+        centres = centres[others]
+    near = nearest_vertices(vertices, settings.coherence_neighbours) if vertices is not None and settings.min_coherence > 0 \
+        else None
+    regions, notes = [], []
+    if near is not None:
+        centres, regions, notes = _region_centres(features, used, centres, near, settings, rng)
+    # A region passed the coherence test as a group. As a cluster its centre also takes vertices of a similar albedo
+    # elsewhere and its coherence can fall (the demo's eyes with 24 views: the group 0.65, its cluster 0.43): the
+    # test below skips regions.
+    is_region = np.arange(len(centres)) >= len(centres) - len(regions)
+    while near is not None and len(centres) > 1:
+        labels = np.argmin(_squared_distances(features, centres), 1)
+        coherence = _coherence(labels, near)
+        coherence = np.where(np.isnan(coherence) | is_region, np.inf, coherence)  # an empty cluster: no region
+        worst = int(np.argmin(coherence))
+        if coherence[worst] >= settings.min_coherence:
+            break
+        members = np.flatnonzero(labels == worst)
+        around = labels[near[members]].ravel()
+        others = np.delete(np.arange(len(centres)), worst)
+        into = int(others[np.argmax(np.bincount(around, minlength=len(centres))[others])])
+        merges.append({"cluster": worst, "vertices": int(members.size), "into": into,
+                       "reason": f"spatially incoherent: {coherence[worst]:.2f} of its vertices' neighbours in it "
+                                 f"< min_coherence {settings.min_coherence}"})
+        log.info("cluster %d (%d vertices) merged into cluster %d: spatially incoherent (%.2f of its vertices' "
+                 "neighbours in it)", worst, members.size, into, coherence[worst])
+        merged = used & ((labels == worst) | (labels == into))
+        if merged.any():
+            centres[into] = features[merged].mean(0)
+        centres, is_region = centres[others], is_region[others]
+    while near is not None and len(centres) > 1:
+        cut = _eta_cut(features, used, centres, rng)
+        if cut is None:
+            break
+        keep, drop, separation = cut
+        labels = np.argmin(_squared_distances(features, centres), 1)
+        merges.append({"cluster": drop, "vertices": int(np.sum(used & (labels == drop))), "into": keep,
+                       "reason": f"one material cut along its eta: mean albedos {separation:.2f} pooled sd apart, "
+                                 f"one mode between the centres (< {CUT_ALBEDO_SD:g} sd) or two albedo modes of "
+                                 f"one eta (< {CUT_MODES_ALBEDO_SD:g} sd)"})
+        log.info("cluster %d merged into cluster %d: %s", drop, keep, merges[-1]["reason"])
+        centres[keep] = features[used & ((labels == keep) | (labels == drop))].mean(0)
+        centres = np.delete(centres, drop, axis=0)
+    counts = np.bincount(np.argmin(_squared_distances(features[pool], centres), 1), minlength=len(centres))
+    order = np.argsort(-counts, kind="stable")
+    centres = centres[order]
+    labels = np.argmin(_squared_distances(features, centres), 1).astype(np.int32)
+    return Clustering(labels=labels, centres=centres, bic=values, merges=merges, used=used, regions=tuple(regions),
+                      notes=tuple(notes))
+
+

@@ -1,0 +1,148 @@
+"""The per-vertex fit's settings and records: :class:`FitSettings`, the status codes, the model
+codes (which lobes), :class:`Observations` (the fit's input), :class:`VirtualSamples`, :class:`FitResult`.
+
+Arrays are batch-first: N vertices with K view slots each; unused slots have weight 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from sellip.model.pbrdf import PBRDFParams
+
+STATUS_FITTED = 0
+STATUS_TOO_FEW_VIEWS = 1
+STATUS_FAILED = 2
+STATUS_NAMES = {STATUS_FITTED: "fitted", STATUS_TOO_FEW_VIEWS: "too few views", STATUS_FAILED: "failed"}
+
+ETA_BOUNDS = (1.05, 3.0)
+SIGMA_BOUNDS = (0.01, 1.0)
+LOBE_GAP = 0.1  # sigma_ss >= sigma_s + LOBE_GAP
+LOBE_SETS = ("diffuse", "specular", "full")
+"""The reflection lobes a fit may use (DESIGN §7 model selection): none, the specular lobe, or
+specular and single scattering (with sigma_ss free, or fixed by ``FitSettings.sigma_ss_fixed``)."""
+
+MODELS = (0, 1, 2, 3)
+"""The per-vertex model codes, simplest first (:data:`sellip.model.params.MODEL_NAMES`): 0 diffuse,
+1 + specular, 2 + single scattering with sigma_ss fixed, 3 + single scattering (:mod:`sellip.fit.selection`)."""
+
+DEFAULT_FIXED_SIGMA_SS = 0.9
+"""Model 2's sigma_ss when the settings do not fix it (paper §6: 0.9 or 1.0)."""
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """Settings of the per-vertex fit (config section ``fit``)."""
+
+    lambda_psi: float = 100.0  # DESIGN §5 starts at 1; 100 with dimensionless residuals (docs/fit.md)
+    lambda_d: float = 100.0
+    lambda_s: float = 1.0
+    lambda_phi: float = 100.0
+    max_iterations: int = 30  # per stage
+    normal_stage_iterations: int = 10  # the first stage (normal and eta, roughness held)
+    tolerance: float = 1e-3  # relative loss decrease (of a near Gauss-Newton step) at which LM stops
+    gradient_tolerance: float = 1e-3  # ... or when the residual is this close to orthogonal to the Jacobian
+    min_views: int = 8
+    dark_threshold: float = 0.02  # a view is too dark below this fraction of the vertex's median diffuse level
+    chroma_threshold: float = 0.2  # colour outlier: distance of the unit-norm colour to the robust mean colour
+    outlier_threshold: float = 4.0  # a view is an outlier when its residual exceeds this many robust sigmas ...
+    outlier_floor: float = 0.05  # ... and this relative error
+    shading_outlier_floor: float = 0.9  # a shading outlier is also > e^0.9 = 2.5x off the median apparent albedo
+    sigma_ss_fixed: float | None = None  # fix sigma_ss (paper §6: 0.9 or 1.0) instead of fitting it
+    lobes: str = "full"  # reflection lobes of the model: "diffuse" (none), "specular" (no single scattering), "full"
+    round_iterations: int = 4  # LM iterations between compactions of the still-running vertices
+    lm_batch: int = 512  # vertices advanced together by one compiled LM kernel
+    chunk_size: int = 8192  # vertices prepared and finalized together (bounds memory)
+    fit_normal: bool = True  # False holds the normal at normal0 (the augmented refit, docs/augment.md)
+    lambda_g: float = 0.1  # weight of the virtual specular samples against the real views (paper Eq. 24)
+    virtual_count: int = 180  # M virtual samples per vertex, at theta_h = 0, step, ..., (M - 1) step
+    virtual_step_deg: float = 0.5  # their theta_h spacing (degrees)
+    # The diffuse intensity's Fresnel transmissions use a held eta (the warm start's, then each LM stage's result),
+    # so that eta is fitted from the polarization and the specular lobe, not from the diffuse shading's falloff,
+    # which texture below the pixel and geometry errors bend (docs/fit.md). False: the fitted eta everywhere.
+    hold_diffuse_eta: bool = True
+
+    def __post_init__(self):
+        if self.lobes not in LOBE_SETS:
+            raise ValueError(f"FitSettings.lobes must be one of {LOBE_SETS}, got {self.lobes!r}")
+
+
+def model_of(settings: FitSettings) -> int:
+    """The model code (:data:`MODELS`) a FitSettings fits: its lobe set and whether sigma_ss is fixed."""
+    if settings.lobes == "diffuse":
+        return 0
+    if settings.lobes == "specular":
+        return 1
+    return 2 if settings.sigma_ss_fixed is not None else 3
+
+
+def model_arrays(models, sigma_ss_fixed: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex models (N,) (:data:`MODELS`) as the fit kernels take them: lobe_mask (N, 2), 1 where the
+    model has the specular / single-scattering lobe, and the fixed sigma_ss (N,): ``sigma_ss_fixed``
+    for model 2, NaN (free or absent) otherwise."""
+    models = np.asarray(models)
+    if models.size and (models.min() < 0 or models.max() > MODELS[-1]):
+        raise ValueError(f"models must be in {MODELS}, got {np.unique(models).tolist()}")
+    lobe_mask = np.stack([models >= 1, models >= 2], -1).astype(np.float64)
+    return lobe_mask, np.where(models == 2, float(sigma_ss_fixed), np.nan)
+
+
+class Observations(NamedTuple):
+    """Observations of N vertices in K view slots (unused slots: weight 0).
+
+    diffuse, diffuse_pol, specular: (N, K, 3) I_d, I_alpha, I_s (exposure-normalized linear RGB).
+    to_light, to_camera, camera_up, light_axis: (N, K, 3) unit vectors (world): surface -> flash,
+    surface -> camera, the camera's up axis, the flash polarizer axis; light_distance: (N, K) metres.
+    usable: (N, K) bool, the view sees the vertex and its pixels are valid (not saturated).
+    """
+
+    diffuse: jnp.ndarray
+    diffuse_pol: jnp.ndarray
+    specular: jnp.ndarray
+    to_light: jnp.ndarray
+    to_camera: jnp.ndarray
+    light_distance: jnp.ndarray
+    camera_up: jnp.ndarray
+    light_axis: jnp.ndarray
+    usable: jnp.ndarray
+
+
+class VirtualSamples(NamedTuple):
+    """Virtual specular observations of N vertices (paper Eq. 24, docs/augment.md), M per vertex.
+
+    Each is an exactly coaxial view (theta_i = theta_o = theta_h, theta_d = 0) at the vertex's
+    median flash distance. theta_h: (N, M) radians. reflectance: (N, M, 3) the reflection lobes
+    per unit shading, R+(0; eta) (rho_s kappa_s + rho_ss kappa_ss) (:func:`virtual_reflectance`),
+    in the units of the fitted albedos. weight: (N, M) w^a, normalized cos theta_h (sum 1 per
+    vertex; all 0 for a vertex without virtual samples); the fit scales it by ``lambda_g``.
+    """
+
+    theta_h: jnp.ndarray
+    reflectance: jnp.ndarray
+    weight: jnp.ndarray
+
+
+class FitResult(NamedTuple):
+    """Per-vertex results, each batch-first: normal (N, 3), params (PBRDFParams with batch N),
+    status (N,) int, confidence (N,) in [0, 1], loss (N,), views_used (N,), iterations (N,), and the
+    Gauss-Newton standard deviations normal_std_deg (N,) and eta_std (N,) the confidence comes from
+    (inf where the vertex was not fitted or its Gauss-Newton matrix is singular; confidence 0 there),
+    and sigma_s_std (N,), the same for the specular roughness (whether a vertex's lobe differs from
+    its material's, :func:`sellip.fit.lobes.material_or_own`)."""
+
+    normal: jnp.ndarray
+    params: PBRDFParams
+    status: jnp.ndarray
+    confidence: jnp.ndarray
+    loss: jnp.ndarray
+    views_used: jnp.ndarray
+    iterations: jnp.ndarray
+    normal_std_deg: jnp.ndarray
+    eta_std: jnp.ndarray
+    sigma_s_std: jnp.ndarray
+
+
