@@ -74,10 +74,10 @@ def main(argv=None) -> int:
     from sellip.bench.ladder import fit_true_mesh, psnr_ceiling, render_hdr
     from sellip.bench.stability import held_out_views
     from sellip.capture.files import GROUND_TRUTH_MESH
+    from sellip.capture.hdr import merge_capture
+    from sellip.capture.linearize import linearize_capture
+    from sellip.capture.synthetic import synthesize_capture
     from sellip.fit.observe import ObserveSettings
-    from sellip.stages.linearize import linearize_capture
-    from sellip.stages.merge_hdr import merge_capture
-    from sellip.stages.synth import synthesize_capture
 
     tag = f"{args.scene}_{args.views}v_{args.width}x{args.height}"
     work = (args.workdir / tag).resolve()

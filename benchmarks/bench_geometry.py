@@ -32,8 +32,8 @@ def rendered(args) -> dict:
     from sellip.geometry import hull as geometry_hull
     from sellip.geometry import meshes, sfm
     from sellip.geometry import silhouettes as geometry_silhouettes
+    from sellip.geometry.poses import compare_to_known
     from sellip.model.render import Renderer, flash_light
-    from sellip.stages.sfm import compare_to_known
 
     scene = build_scene(args.scene)
     cameras = handheld_orbit(args.views, args.width, args.height, np.random.default_rng(args.seed),
@@ -93,22 +93,23 @@ def rendered(args) -> dict:
 def capture(args) -> dict:
     from sellip.capture.files import GROUND_TRUTH_MESH
     from sellip.geometry import hull as geometry_hull
+    from sellip.geometry import initial as geometry_initial
     from sellip.geometry import meshes
+    from sellip.geometry import poses as geometry_poses
+    from sellip.geometry.cameras import read_cameras
     from sellip.model.ply import read_ply
-    from sellip.stages import init_mesh as init_stage
     from sellip.stages import sfm as sfm_stage
-    from sellip.stages.sfm import read_cameras
 
     out = Path(args.workdir or tempfile.mkdtemp(prefix="bench-geometry-"))
     started = time.perf_counter()
-    report = sfm_stage.run_stage(args.hdr, args.capture, out / "cameras.csv", out / "sfm", mode="verify",
+    report = geometry_poses.solve_poses(args.hdr, args.capture, out / "cameras.csv", out / "sfm", mode="verify",
                                  options=sfm_stage.sfm.SfmOptions(threads=args.cores),
                                  min_registered_fraction=0.0)
     sfm_s = time.perf_counter() - started
     print(f"sfm (verify): {sfm_s:.1f} s, registered {report['registered']}/{report['views']}, "
           f"verify {json.dumps(report.get('verify'))}", flush=True)
     started = time.perf_counter()
-    mesh_report = init_stage.run_stage(args.hdr, out / "cameras.csv", out / "sfm", out / "init.ply",
+    mesh_report = geometry_initial.make_initial_mesh(args.hdr, out / "cameras.csv", out / "sfm", out / "init.ply",
                                        options=geometry_hull.InitMeshOptions(max_vertices=args.max_vertices,
                                                                         threads=args.cores))
     init_s = time.perf_counter() - started

@@ -26,11 +26,11 @@ import numpy as np
 import pandas as pd
 
 from sellip.capture import ingest
+from sellip.capture.hdr import merge_capture
+from sellip.capture.linearize import linearize_capture
 from sellip.capture.reader import read_capture, read_raw_frame
 from sellip.capture.sensor import SensorModel, camera_rgb_from_srgb, mosaic_sample
 from sellip.capture.writer import write_capture
-from sellip.stages.linearize import linearize_capture
-from sellip.stages.merge_hdr import merge_capture
 
 WIDTH, HEIGHT = 2448, 2048
 LEVELS = (1 / 4, 1 / 8, 1 / 16)

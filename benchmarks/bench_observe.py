@@ -47,13 +47,13 @@ def ring_and_sphere(vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def write_inputs(folder: Path, vertices: int, views: int, width: int, height: int) -> dict:
     import zarr
 
+    from sellip.capture.hdr import HDR_CODEC
     from sellip.capture.ingest import output_intrinsics
     from sellip.capture.scenes import handheld_orbit
     from sellip.capture.sensor import SensorModel
     from sellip.capture.writer import CaptureWriter
+    from sellip.geometry.cameras import write_cameras
     from sellip.model.ply import write_ply
-    from sellip.stages.merge_hdr import HDR_CODEC
-    from sellip.stages.sfm import write_cameras
 
     points, faces, normals = ring_and_sphere(vertices)
     write_ply(folder / "mesh.ply", {**{n: points[:, k].astype(np.float32) for k, n in enumerate("xyz")},

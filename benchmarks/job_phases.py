@@ -3,7 +3,7 @@
     python benchmarks/job_phases.py results/demo [--json out.json]
 
 Reads the Snakemake benchmark files (wall time per job) and the phases line that ``sellip`` writes at
-the end of every job's log (:mod:`sellip.report.timing`), and prints :func:`sellip.report.timing.phase_table`.
+the end of every job's log (:mod:`sellip.timing`), and prints :func:`sellip.timing.phase_table`.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ def main(argv=None) -> int:
     parser.add_argument("--json", type=Path, default=None, help="also write the per-rule sums here")
     args = parser.parse_args(argv)
     from sellip.report.evaluate import stage_timings
-    from sellip.report.timing import phase_table
+    from sellip.timing import phase_table
 
     if not (args.results / "benchmarks").is_dir():
         parser.error(f"{args.results / 'benchmarks'} does not exist (not a workflow run's results folder)")

@@ -27,8 +27,8 @@ def replay(run: Path, iteration: int, overrides: dict | None = None):
     """The clustering of ``run``'s pass ``iteration`` re-run on its stored fit with the run's settings and seed
     (clusters.json) and ``overrides`` (AugmentSettings fields) over them. Returns (clustering, settings, store)."""
     from sellip.fit import clusters as fit_clusters
+    from sellip.fit.lobe_store import clustering_settings
     from sellip.model.params import read_params
-    from sellip.stages.cluster_lobes import clustering_settings
 
     folder = run / "iter" / str(iteration)
     info = json.loads((folder / "clusters" / "clusters.json").read_text())
@@ -54,9 +54,9 @@ def main(argv=None) -> int:
 
     from sellip.fit import clusters as fit_clusters
     from sellip.fit import lobes
+    from sellip.fit.shard import overrides_from_pairs
     from sellip.model.ply import read_param_mesh
     from sellip.report.evaluate import eta_per_material
-    from sellip.stages.fit import overrides_from_pairs
 
     try:
         overrides = overrides_from_pairs(args.set, fit_clusters.AugmentSettings)

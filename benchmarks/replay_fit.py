@@ -5,9 +5,9 @@
 
 RUN is a workflow's results folder (``results/<name>``) whose pass N kept its observations: run the workflow with
 ``snakemake --notemp`` up to ``results/<name>/iter/N/clusters`` (``observations.zarr`` is temporary otherwise). The
-replay runs the fit stage (:func:`sellip.stages.fit.run_stage`, one shard, the default prior: pass 0's start) with
+replay runs the fit stage (:func:`sellip.fit.shard.fit_shard`, one shard, the default prior: pass 0's start) with
 the pass's fit settings as its ``clusters/clusters.json`` records them (the workflow's ``fit.settings`` for the
-pass, :func:`sellip.stages.cluster_lobes.recorded_fit_settings`) and ``--set`` over them, then prints, over the fitted vertices with confidence > 0.1: the
+pass, :func:`sellip.fit.lobe_store.recorded_fit_settings`) and ``--set`` over them, then prints, over the fitted vertices with confidence > 0.1: the
 normal error (median, p90) against the nearest true vertex's normal, and per true material the median eta error,
 its median on the darker and brighter halves of the material (by the true albedo of the 12 true vertices nearest
 each vertex), the median absolute eta error and the correlation of eta with that albedo. docs/fit.md ("Why the
@@ -40,9 +40,10 @@ def main(argv=None) -> int:
     import zarr
     from scipy.spatial import cKDTree
 
+    from sellip.fit.lobe_store import recorded_fit_settings
+    from sellip.fit.shard import fit_shard as run_stage
+    from sellip.fit.shard import overrides_from_pairs
     from sellip.model.ply import read_param_mesh
-    from sellip.stages.cluster_lobes import recorded_fit_settings
-    from sellip.stages.fit import overrides_from_pairs, run_stage
 
     observations = args.run / "iter" / str(args.iteration) / "observations.zarr"
     if not observations.exists():

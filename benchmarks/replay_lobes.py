@@ -39,10 +39,10 @@ def main(argv=None) -> int:
 
     from sellip.fit import lobes as fit_lobes
     from sellip.fit import selection as fit_selection
+    from sellip.fit.lobe_store import clustering_settings, load_rows, recorded_fit_settings
     from sellip.fit.observe import open_observations
     from sellip.model.params import read_params
     from sellip.model.ply import read_param_mesh
-    from sellip.stages.cluster_lobes import clustering_settings, load_rows, recorded_fit_settings
 
     folder = args.run / "iter" / str(args.iteration)
     observations = folder / "observations.zarr"

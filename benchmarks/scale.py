@@ -46,7 +46,7 @@ def run_size(scene: str, size: dict, work: Path, cores: int) -> dict:
     """Synthesize (once) and run one size; return its record (also ``work/<tag>/run.json``)."""
     from sellip.bench.stability import held_out_views
     from sellip.bench.sweep import SnakemakeRunner
-    from sellip.stages.synth import synthesize_capture
+    from sellip.capture.synthetic import synthesize_capture
 
     tag = f"{scene}_{size['views']}v_{size['width']}x{size['height']}_{size['max_vertices']}n_{size['iterations']}it"
     folder = work / tag

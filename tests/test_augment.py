@@ -279,7 +279,7 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
     assert sorted(p.name for p in clusters.iterdir()) == ["clusters.json", "labels.npy", "lobes.csv", "lobes.png",
                                                         "models.npy"]
     assert not list(tmp_path.glob("*.tmp"))
-    from sellip.stages.cluster_lobes import read_lobes, read_models
+    from sellip.fit.lobe_store import read_lobes, read_models
 
     assert read_models(clusters, 120).shape == (120,)
 
@@ -525,8 +525,8 @@ def test_stage_degrades_when_no_vertex_is_confident_or_has_a_usable_sample(tmp_p
 
     import zarr
 
+    from sellip.fit.lobe_store import read_lobes, read_models
     from sellip.model.params import read_params, write_params
-    from sellip.stages.cluster_lobes import read_lobes, read_models
 
     _write_stores(tmp_path, scene)
     store = read_params(tmp_path / "fit.zarr")

@@ -14,12 +14,12 @@ from test_outputs import make_tiny_run
 
 from sellip.capture.scenes import build_scene
 from sellip.geometry.alignment import Similarity
+from sellip.geometry.cameras import read_cameras, write_cameras
 from sellip.model.params import write_params
 from sellip.model.ply import write_param_mesh
 from sellip.model.render import ParamMesh
 from sellip.report import evaluate
-from sellip.stages import evaluate as evaluate_stage
-from sellip.stages.sfm import read_cameras, write_cameras
+from sellip.report import metrics as report_metrics
 
 
 @pytest.fixture(scope="module")
@@ -180,7 +180,7 @@ def _fake_benchmarks(results, vertices=1200):
 
 
 def test_stage_timings_sum_per_rule_and_count_vertex_fits(tmp_path):
-    from sellip.report.timing import format_report
+    from sellip.timing import format_report
 
     bench = _fake_benchmarks(tmp_path, vertices=1200)
     logs = tmp_path / "logs" / "fit_pbrdf" / "0" / "fit"
@@ -243,7 +243,7 @@ def test_evaluate_aligns_an_sfm_world_model_and_reports_nulls_without_ground_tru
     status[: n // 2] = 2  # failed: not confident
     write_params(run / "params.zarr", {"vertices": model.vertices, "normals": tilted.normals,
                                        **tilted.params._asdict(), "confidence": np.ones(n), "status": status})
-    metrics = evaluate_stage.run_stage(run / "model.ply", run / "cameras.csv", tiny_run["hdr"], tiny_run["capture"],
+    metrics = report_metrics.evaluate_model(run / "model.ply", run / "cameras.csv", tiny_run["hdr"], tiny_run["capture"],
                                        run / "metrics.json", params_path=run / "params.zarr",
                                        held_out=[view_ids[0]], geometry_samples=5000, supersample=1)
     assert metrics["alignment"]["method"] == "sim3"
@@ -259,7 +259,7 @@ def test_evaluate_aligns_an_sfm_world_model_and_reports_nulls_without_ground_tru
     bare = tmp_path / "capture"
     shutil.copytree(tiny_run["capture"], bare)
     shutil.rmtree(bare / "ground_truth")
-    metrics = evaluate_stage.run_stage(tiny_run["model"], tiny_run["cameras"], tiny_run["hdr"], bare,
+    metrics = report_metrics.evaluate_model(tiny_run["model"], tiny_run["cameras"], tiny_run["hdr"], bare,
                                        tmp_path / "no_gt.json", held_out=[view_ids[0]], supersample=2,
                                        benchmarks=_fake_benchmarks(tmp_path / "bench_run"))
     written = json.loads((tmp_path / "no_gt.json").read_text())

@@ -119,9 +119,10 @@ def test_bumps_converge_from_a_smooth_start():
 
 
 def test_refine_and_finalize_stages_write_readable_models(tmp_path):
+    from sellip.fit import finalize as fit_finalize
+    from sellip.fit import refine as fit_refine
     from sellip.model.params import MODEL_NAMES, ParamsError, read_params, write_params
     from sellip.model.ply import read_param_mesh, read_ply, write_ply
-    from sellip.stages import finalize, refine_geometry
 
     rng = np.random.default_rng(2)
     vertices, normals, faces = rippled_sphere(rng, amplitude_m=0.0, noise_m=0.0008, subdivisions=3)
@@ -133,7 +134,7 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
     write_params(tmp_path / "params.zarr", arrays)
     write_ply(tmp_path / "sphere.ply", {"x": vertices[:, 0], "y": vertices[:, 1], "z": vertices[:, 2],
                                         "nx": normals[:, 0], "ny": normals[:, 1], "nz": normals[:, 2]}, faces)
-    summary = refine_geometry.run_stage(tmp_path / "params.zarr", tmp_path / "sphere.ply", tmp_path / "mesh.ply")
+    summary = fit_refine.refine_geometry(tmp_path / "params.zarr", tmp_path / "sphere.ply", tmp_path / "mesh.ply")
     mesh = read_param_mesh(tmp_path / "mesh.ply")
     assert summary["vertices"] == mesh.num_vertices == n
     np.testing.assert_array_equal(read_ply(tmp_path / "mesh.ply")[1], faces)
@@ -151,7 +152,7 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
                                        "nx": normals[:-3, 0], "ny": normals[:-3, 1], "nz": normals[:-3, 2]},
               faces[np.all(faces < n - 3, axis=1)])
     with pytest.raises(ParamsError, match="other.ply.*not the same mesh"):
-        refine_geometry.run_stage(tmp_path / "params.zarr", tmp_path / "sphere.ply", tmp_path / "x.ply",
+        fit_refine.refine_geometry(tmp_path / "params.zarr", tmp_path / "sphere.ply", tmp_path / "x.ply",
                                   reference_mesh=tmp_path / "other.ply")
 
     # The final pass fits the final mesh: its store has the mesh's vertices.
@@ -165,13 +166,13 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
     np.save(tmp_path / "clusters" / "labels.npy", (mesh.vertices[:, 0] > 0).astype(np.int32))
     import pandas as pd
 
-    from sellip.stages.cluster_lobes import LOBE_COLUMNS
+    from sellip.fit.lobe_store import LOBE_COLUMNS
 
     lobe = {"vertices": m // 2, "sigma_s": 0.3, "sigma_ss": 0.6, "rho_s": 0.5, "rho_ss_r": 0.0, "rho_ss_g": 0.0,
             "rho_ss_b": 0.0, "samples": 100, "loss": 0.1, "model": 3}
     pd.DataFrame([{**lobe, "cluster": k, "eta": eta} for k, eta in enumerate((1.4, 1.6))])[list(LOBE_COLUMNS)].to_csv(
         tmp_path / "clusters" / "lobes.csv", index=False)
-    finalize.run_stage(tmp_path / "last.zarr", tmp_path / "mesh.ply", tmp_path / "final" / "model.ply",
+    fit_finalize.finalize_model(tmp_path / "last.zarr", tmp_path / "mesh.ply", tmp_path / "final" / "model.ply",
                        tmp_path / "final" / "params.zarr", tmp_path / "clusters", model=3)
     model_vertex, model_faces = read_ply(tmp_path / "final" / "model.ply")
     assert model_vertex["model"].dtype == np.uint8 and np.all(model_vertex["model"] == 3) and 3 in MODEL_NAMES
@@ -191,7 +192,7 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
     # With a well-known sigma_s that differs from the cluster's, a vertex keeps its own lobe (sigma_s and rho_s) ...
     own = np.arange(m) < 5
     write_params(tmp_path / "last.zarr", {**final, "sigma_s_std": np.where(own, 0.005, 0.2)})
-    finalize.run_stage(tmp_path / "last.zarr", tmp_path / "mesh.ply", tmp_path / "final" / "model.ply",
+    fit_finalize.finalize_model(tmp_path / "last.zarr", tmp_path / "mesh.ply", tmp_path / "final" / "model.ply",
                        tmp_path / "final" / "params.zarr", tmp_path / "clusters", model=3, deviation_support=0)
     store = read_params(tmp_path / "final" / "params.zarr")
     np.testing.assert_array_equal(store["lobe_source"], own)
@@ -203,7 +204,7 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
     cap, alone = order[:30], order[-1]
     deviates = np.isin(np.arange(m), cap) | (np.arange(m) == alone)
     write_params(tmp_path / "last.zarr", {**final, "sigma_s_std": np.where(deviates, 0.005, 0.2)})
-    finalize.run_stage(tmp_path / "last.zarr", tmp_path / "mesh.ply", tmp_path / "final" / "model.ply",
+    fit_finalize.finalize_model(tmp_path / "last.zarr", tmp_path / "mesh.ply", tmp_path / "final" / "model.ply",
                        tmp_path / "final" / "params.zarr", tmp_path / "clusters", model=3)
     source = read_params(tmp_path / "final" / "params.zarr")["lobe_source"].astype(bool)
     assert source[order[:10]].all() and not source[alone] and source.sum() <= 30 and not source[order[30:]].any()
@@ -211,7 +212,7 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
     # (fit.eta_at_bound): it takes its material's (as a spot it would pass the rule) and stays out of that eta.
     pinned = np.where(np.isin(np.arange(m), cap), 1.05, final["eta"])
     write_params(tmp_path / "last.zarr", {**final, "eta": pinned, "eta_std": np.full(m, 0.001)})
-    finalize.run_stage(tmp_path / "last.zarr", tmp_path / "mesh.ply", tmp_path / "final" / "model.ply",
+    fit_finalize.finalize_model(tmp_path / "last.zarr", tmp_path / "mesh.ply", tmp_path / "final" / "model.ply",
                        tmp_path / "final" / "params.zarr", tmp_path / "clusters", model=3)
     store = read_params(tmp_path / "final" / "params.zarr")
     assert not store["eta_source"].any()
@@ -224,7 +225,7 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
 
     # A store that does not belong to the mesh is refused, naming both files.
     with pytest.raises(ParamsError, match="params.zarr.*mesh.ply"):
-        finalize.run_stage(tmp_path / "params.zarr", tmp_path / "mesh.ply", tmp_path / "x.ply", tmp_path / "x.zarr")
+        fit_finalize.finalize_model(tmp_path / "params.zarr", tmp_path / "mesh.ply", tmp_path / "x.ply", tmp_path / "x.zarr")
 
 
 def coverage_mask(vertices, faces, camera):
@@ -316,16 +317,16 @@ def test_silhouettes_do_not_roughen_a_part_the_normals_do_not_see():
 def tiny_capture(tmp_path_factory):
     """The tiny sphere (4 cm radius), 8 views of 320x256 raw pixels, ingested, with its known poses and true model."""
     from sellip.capture.files import GROUND_TRUTH_MESH
+    from sellip.capture.hdr import merge_capture
+    from sellip.capture.linearize import linearize_capture
+    from sellip.capture.synthetic import synthesize_capture
+    from sellip.geometry import poses as geometry_poses
     from sellip.model.ply import read_param_mesh
-    from sellip.stages import sfm
-    from sellip.stages.linearize import linearize_capture
-    from sellip.stages.merge_hdr import merge_capture
-    from sellip.stages.synth import synthesize_capture
 
     root = tmp_path_factory.mktemp("silhouettes")
     folder = synthesize_capture("tiny", root / "capture", views=8, width=320, height=256, seed=3, progress=False)
     hdr = merge_capture(linearize_capture(folder, root / "linear.zarr"), root / "hdr.zarr")
-    sfm.run_stage(hdr, folder, root / "cameras.csv", root / "sfm", mode="known")
+    geometry_poses.solve_poses(hdr, folder, root / "cameras.csv", root / "sfm", mode="known")
     return {"folder": folder, "hdr": hdr, "cameras": root / "cameras.csv", "root": root,
             "truth": read_param_mesh(folder / GROUND_TRUTH_MESH)}
 
@@ -336,7 +337,7 @@ def test_the_true_model_predicts_the_photographs_silhouettes(tiny_capture):
     8 views, RMS 0.1 px; the threshold alone puts them 0.2-0.9 px inside the true outline, and a render at the
     HDR resolution without the mosaic 0.13 px outside: docs/geometry_update.md), and a model 1.5 mm low is seen
     1.5 mm low."""
-    from sellip.stages.refine_geometry import measure_silhouettes
+    from sellip.fit.refine import measure_silhouettes
 
     truth = tiny_capture["truth"]
     for shift_m in (0.0, 0.0015):
@@ -363,9 +364,9 @@ def test_the_prediction_is_the_photograph_of_the_render(tiny_capture):
     from sellip.capture.ingest import develop, make_ingest_plan
     from sellip.capture.reader import read_capture
     from sellip.capture.sensor import sensor_mosaic
+    from sellip.fit.refine import predicted_diffuse, raw_camera
+    from sellip.geometry.cameras import load_cameras
     from sellip.model.render import Renderer, flash_light
-    from sellip.stages.refine_geometry import predicted_diffuse, raw_camera
-    from sellip.stages.render_outputs import load_cameras
 
     capture = read_capture(tiny_capture["folder"], check_files=False)
     plan = make_ingest_plan(capture.sensor, capture.config["camera"], capture.layout)
@@ -390,10 +391,10 @@ def test_the_stage_moves_a_displaced_model_onto_the_silhouettes(tiny_capture, tm
     summary says so."""
     import json
 
+    from sellip.fit import refine as fit_refine
     from sellip.fit.observe import read_mesh
     from sellip.model.params import write_params
     from sellip.model.ply import write_ply
-    from sellip.stages import refine_geometry
 
     truth = tiny_capture["truth"]
     vertices = truth.vertices - [0.0, 0.0, 0.0015]
@@ -408,7 +409,7 @@ def test_the_stage_moves_a_displaced_model_onto_the_silhouettes(tiny_capture, tm
                   hdr_path=tiny_capture["hdr"], capture_path=tiny_capture["folder"])
     low = []
     for weight in (0.0, 0.1):
-        summary = refine_geometry.run_stage(tmp_path / "params.zarr", tmp_path / "low.ply", tmp_path / f"{weight}.ply",
+        summary = fit_refine.refine_geometry(tmp_path / "params.zarr", tmp_path / "low.ply", tmp_path / f"{weight}.ply",
                                             silhouette=weight, **common)
         low.append(-1e3 * fitted_sphere(read_mesh(tmp_path / f"{weight}.ply").vertices)[0][2])
         assert json.loads((tmp_path / f"{weight}.ply.json").read_text())["silhouette_constraints"] == \

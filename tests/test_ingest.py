@@ -10,13 +10,13 @@ import pytest
 
 from sellip.capture import ingest
 from sellip.capture.files import CaptureError
+from sellip.capture.hdr import merge_capture, read_hdr
+from sellip.capture.linearize import linearize_capture
 from sellip.capture.mosaic import mosaic_layout
 from sellip.capture.reader import read_capture, read_raw_file, read_raw_frame
 from sellip.capture.sensor import SensorModel, camera_rgb_from_srgb, simulate_raw
 from sellip.capture.writer import CaptureWriter, write_capture
 from sellip.model.conventions import ANALYZER_ANGLES_DEG, analyzers_to_stokes, stokes_to_analyzers
-from sellip.stages.linearize import linearize_capture
-from sellip.stages.merge_hdr import merge_capture, read_hdr
 
 REAL_FRAME = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "polarizer_IMX250MZR.png"
 IMX250 = [[90, 45], [135, 0]]

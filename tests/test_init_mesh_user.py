@@ -17,11 +17,11 @@ import yaml
 
 from sellip.capture.files import GROUND_TRUTH_MESH
 from sellip.geometry import hull as geometry_hull
+from sellip.geometry import initial as geometry_initial
 from sellip.geometry import meshes
 from sellip.geometry import scan as geometry_scan
+from sellip.geometry.initial import InitMeshError
 from sellip.model.ply import read_ply
-from sellip.stages import init_mesh
-from sellip.stages.init_mesh import InitMeshError
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -29,16 +29,16 @@ REPO = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory):
     """The tiny sphere (4 cm radius), 8 views of 320x256 raw pixels, ingested, with its known poses."""
-    from sellip.stages import sfm
-    from sellip.stages.linearize import linearize_capture
-    from sellip.stages.merge_hdr import merge_capture
-    from sellip.stages.synth import synthesize_capture
+    from sellip.capture.hdr import merge_capture
+    from sellip.capture.linearize import linearize_capture
+    from sellip.capture.synthetic import synthesize_capture
+    from sellip.geometry import poses as geometry_poses
 
     root = tmp_path_factory.mktemp("user_mesh")
     folder = synthesize_capture("tiny", root / "capture", views=8, width=320, height=256, seed=3, supersample=1,
                                 progress=False)
     hdr = merge_capture(linearize_capture(folder, root / "linear.zarr"), root / "hdr.zarr")
-    sfm.run_stage(hdr, folder, root / "cameras.csv", root / "sfm", mode="known")
+    geometry_poses.solve_poses(hdr, folder, root / "cameras.csv", root / "sfm", mode="known")
     vertex, faces = read_ply(folder / GROUND_TRUTH_MESH)
     truth = np.stack([vertex[k] for k in "xyz"], axis=1).astype(np.float64)
     return {"folder": folder, "root": root, "hdr": hdr, "truth": (truth, faces)}
@@ -54,7 +54,7 @@ def write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
 
 def run(capture, mesh_path, output: Path, max_vertices: int = 3000) -> dict:
     root = capture["root"]
-    return init_mesh.run_stage(capture["hdr"], root / "cameras.csv", root / "sfm", output, mode="mesh",
+    return geometry_initial.make_initial_mesh(capture["hdr"], root / "cameras.csv", root / "sfm", output, mode="mesh",
                                options=geometry_hull.InitMeshOptions(max_vertices=max_vertices), mesh_path=mesh_path)
 
 

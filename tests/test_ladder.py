@@ -32,9 +32,9 @@ def test_psnr_ceiling_falls_when_the_truth_has_fewer_vertices(tmp_path):
     texture blurs and the ceiling falls (measured at 320x256: 29.0 dB for the truth, 26.8 dB at 2,000 vertices,
     21.1 dB at 300)."""
     from sellip.bench.ladder import psnr_ceiling, resampled_truth
-    from sellip.stages.linearize import linearize_capture
-    from sellip.stages.merge_hdr import merge_capture
-    from sellip.stages.synth import synthesize_capture
+    from sellip.capture.hdr import merge_capture
+    from sellip.capture.linearize import linearize_capture
+    from sellip.capture.synthetic import synthesize_capture
 
     capture = synthesize_capture("tiny", tmp_path / "capture", views=4, width=320, height=256, seed=3, progress=False)
     hdr = merge_capture(linearize_capture(capture, tmp_path / "linear.zarr"), tmp_path / "hdr.zarr")

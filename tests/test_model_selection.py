@@ -76,7 +76,7 @@ def test_every_candidate_model_runs_one_compiled_program(scene):
 
 
 def test_model_codes_settings_and_caps():
-    from sellip.stages.fit import settings_from_pairs
+    from sellip.fit.shard import settings_from_pairs
 
     for code in records.MODELS:
         assert records.model_of(fit_selection.settings_for_model(HELD, code)) == code
@@ -209,9 +209,9 @@ def _write_stores(folder, scene):
 
 
 def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, scene, caplog, monkeypatch):
+    from sellip.fit import finalize as fit_finalize
     from sellip.model.params import read_params
     from sellip.model.ply import read_ply, write_ply
-    from sellip.stages import finalize
 
     _write_stores(tmp_path, scene)
     stores = ["--params", str(tmp_path / "fit.zarr"), "--observations", str(tmp_path / "observations.zarr")]
@@ -258,7 +258,7 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     write_ply(tmp_path / "mesh.ply", {**{k: scene["positions"][:, i] for i, k in enumerate("xyz")},
                                       **{f"n{k}": scene["normals"][:, i] for i, k in enumerate("xyz")}},
               np.array([[0, 1, 2]]))
-    summary = finalize.run_stage(tmp_path / "refit.zarr", tmp_path / "mesh.ply", tmp_path / "model.ply",
+    summary = fit_finalize.finalize_model(tmp_path / "refit.zarr", tmp_path / "mesh.ply", tmp_path / "model.ply",
                                  tmp_path / "final.zarr", tmp_path / "clusters")
     vertex, _ = read_ply(tmp_path / "model.ply")
     np.testing.assert_array_equal(vertex["model"], vertex_models)

@@ -27,12 +27,13 @@ from sellip.fit.observe import (
     relative_slope,
     silhouette_distance,
 )
+from sellip.fit.observe_mesh import observe_mesh as run_stage
+from sellip.fit.observe_mesh import pair_views
+from sellip.geometry.cameras import hdr_camera, read_cameras, write_cameras
 from sellip.model.conventions import observations_from_analyzers, stokes_to_analyzers
 from sellip.model.pbrdf import PBRDFParams, full_stokes
 from sellip.model.ply import write_ply
 from sellip.model.render import Camera, ParamMesh, Renderer, flash_light
-from sellip.stages.observe import hdr_camera, pair_views, run_stage
-from sellip.stages.sfm import read_cameras, write_cameras
 
 WIDTH, HEIGHT, FOCAL = 200, 160, 900.0
 RADIUS = 0.04

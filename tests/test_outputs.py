@@ -13,12 +13,12 @@ import pytest
 from sellip.capture import ingest
 from sellip.capture.files import GROUND_TRUTH_MESH
 from sellip.capture.reader import read_capture
+from sellip.capture.synthetic import synthesize_capture
+from sellip.geometry.cameras import hdr_camera
 from sellip.model.pbrdf import PBRDFParams, full_mueller
 from sellip.model.ply import read_param_mesh
 from sellip.model.render import Camera, Light, ParamMesh, Renderer, flash_light
 from sellip.report import outputs
-from sellip.stages.observe import hdr_camera
-from sellip.stages.synth import synthesize_capture
 
 FLASH_CAM = (0.0, 0.05, 0.0)
 
@@ -45,7 +45,7 @@ def make_tiny_run(root: Path, views: int = 4, raw_width: int = 192, raw_height: 
     hdr.zarr holds noise-free renders of the ground truth (times ``flash_power``) at the HDR grid of the
     capture (ingest.output_intrinsics); cameras.csv holds poses.csv; final/model.ply is the ground truth.
     """
-    from sellip.stages.sfm import write_cameras
+    from sellip.geometry.cameras import write_cameras
 
     capture = synthesize_capture("tiny", root / "capture", views=views, width=raw_width, height=raw_height, seed=5,
                                  supersample=1, raw_format="png", progress=False)
@@ -221,9 +221,9 @@ def test_render_outputs_names_a_missing_model(tiny_run, tmp_path):
 
 
 def test_render_outputs_skips_views_without_a_pose_and_defaults_when_none_is_given(tiny_run, tmp_path):
-    from sellip.stages import render_outputs
+    from sellip.report import outputs as report_outputs
 
-    index = render_outputs.run_stage(tiny_run["model"], tiny_run["cameras"], tiny_run["hdr"], tiny_run["capture"],
+    index = report_outputs.render_outputs(tiny_run["model"], tiny_run["cameras"], tiny_run["hdr"], tiny_run["capture"],
                                      tmp_path / "r", views=["v999", tiny_run["view_ids"][2]], supersample=1)
     assert index["views"] == [tiny_run["view_ids"][2]]
-    assert render_outputs.default_views(list("abcdefg"), 3) == ["a", "d", "g"]
+    assert report_outputs.default_views(list("abcdefg"), 3) == ["a", "d", "g"]

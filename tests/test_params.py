@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from sellip.fit.shard import parse_shard, settings_from_pairs, shard_rows
 from sellip.model.params import ParamsError, fill_from_neighbours, read_params, transfer_nearest, write_params
-from sellip.stages.fit import parse_shard, settings_from_pairs, shard_rows
 
 
 @pytest.mark.parametrize("total,chunk,shards", [(10, 4, 3), (29169, 4096, 2), (5, 4096, 4), (100, 7, 100)])
@@ -61,9 +61,9 @@ def test_params_round_trip_and_errors(tmp_path):
 def test_gather_keeps_the_starting_normal_of_unfitted_vertices(tmp_path):
     """Parameters of unfitted vertices come from their fitted neighbours, normals do not: the fit hands
     back each unfitted vertex's starting (mesh) normal, which gather-fit keeps."""
+    from sellip.fit import shard
     from sellip.fit.observe import ObservationWriter, ObserveMesh, ObserveSettings
     from sellip.fit.records import STATUS_FITTED, STATUS_TOO_FEW_VIEWS
-    from sellip.stages import gather_fit
 
     rng = np.random.default_rng(1)
     n = 40
@@ -88,7 +88,7 @@ def test_gather_keeps_the_starting_normal_of_unfitted_vertices(tmp_path):
                  rho_d=np.full((k, 3), 0.3), rho_s=np.full(k, 0.1), sigma_s=np.full(k, 0.2),
                  rho_ss=np.zeros((k, 3)), sigma_ss=np.full(k, 0.6))
         shards.append(path)
-    gather_fit.run_stage(tmp_path / "observations.zarr", shards[::-1], tmp_path / "fit.zarr")
+    shard.gather_shards(tmp_path / "observations.zarr", shards[::-1], tmp_path / "fit.zarr")
     store = read_params(tmp_path / "fit.zarr")
     np.testing.assert_allclose(store["normals"], normals, atol=1e-6)
     np.testing.assert_allclose(store["eta"], 1.5, atol=1e-6)  # filled from the fitted neighbours

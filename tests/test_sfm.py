@@ -15,10 +15,11 @@ from sellip.capture.reader import read_capture
 from sellip.capture.scenes import build_scene, handheld_orbit
 from sellip.geometry import hull as geometry_hull
 from sellip.geometry import meshes, sfm, silhouettes
+from sellip.geometry.cameras import read_cameras
+from sellip.geometry.poses import compare_to_known
 from sellip.model.conventions import camera_center
 from sellip.model.ply import read_ply
 from sellip.model.render import Renderer, flash_light
-from sellip.stages.sfm import compare_to_known, read_cameras
 
 VIEWS, WIDTH, HEIGHT = 36, 320, 256
 DISTANCE_M = 0.9

@@ -18,10 +18,10 @@ import yaml
 from sellip.bench import stability, stability_table
 from sellip.bench.sweep_plan import merge
 from sellip.capture import files, reader
+from sellip.capture import synthetic as capture_synthetic
 from sellip.capture.scenes import build_scene, icosphere, vertex_normals
 from sellip.capture.sensor import SensorModel, simulate_raw
 from sellip.model import ply as model_ply
-from sellip.stages import synth
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -77,7 +77,7 @@ def test_noise_scale_multiplies_the_noise_and_keeps_the_signal():
 
 
 def test_synth_records_the_noise_scale_and_the_workflow_passes_it(tmp_path):
-    path = synth.synthesize_capture("tiny_dark", tmp_path / "capture", views=1, width=64, height=48, supersample=1,
+    path = capture_synthetic.synthesize_capture("tiny_dark", tmp_path / "capture", views=1, width=64, height=48, supersample=1,
                                     progress=False, noise_scale=3.0)
     extra = reader.read_capture(path).config["synthetic"]
     assert extra["noise_scale"] == 3.0 and extra["gain_e_per_dn"] == pytest.approx(2.58 / 9)
@@ -98,7 +98,7 @@ def test_synth_records_the_noise_scale_and_the_workflow_passes_it(tmp_path):
 @pytest.fixture(scope="module")
 def small_capture(tmp_path_factory):
     """Three views of the tiny sphere at 64x48 (9 DNG frames)."""
-    return synth.synthesize_capture("tiny", tmp_path_factory.mktemp("capture") / "tiny", views=3, width=64, height=48,
+    return capture_synthetic.synthesize_capture("tiny", tmp_path_factory.mktemp("capture") / "tiny", views=3, width=64, height=48,
                                     supersample=1, progress=False)
 
 
@@ -110,9 +110,9 @@ def _copy(capture, to):
 
 
 def test_bad_frames_skip_merges_from_the_other_frames_and_drops_empty_views(small_capture, tmp_path, caplog):
-    from sellip.stages import sfm
-    from sellip.stages.linearize import linearize_capture
-    from sellip.stages.merge_hdr import merge_capture, read_hdr
+    from sellip.capture.hdr import merge_capture, read_hdr
+    from sellip.capture.linearize import linearize_capture
+    from sellip.geometry import poses as geometry_poses
 
     clean = read_hdr(merge_capture(linearize_capture(small_capture, tmp_path / "clean" / "linear.zarr"),
                                    tmp_path / "clean" / "hdr.zarr"))
@@ -149,16 +149,17 @@ def test_bad_frames_skip_merges_from_the_other_frames_and_drops_empty_views(smal
         assert np.median(np.abs(a[bright] / b[bright] - 1)) < 0.05
     # Stages that never read raw frames go on; known poses only for the views that remain, and a held-out
     # view that was dropped is simply not there to hold out.
+    from sellip.fit import observe_mesh
     from sellip.stages import observe
 
     cameras = tmp_path / "skip" / "cameras.csv"
-    sfm.run_stage(tmp_path / "skip" / "hdr.zarr", capture, cameras, tmp_path / "skip" / "sfm", mode="known")
+    geometry_poses.solve_poses(tmp_path / "skip" / "hdr.zarr", capture, cameras, tmp_path / "skip" / "sfm", mode="known")
     assert list(pd.read_csv(cameras)["view_id"]) == ["v000", "v001"]
-    observe.run_stage(capture / files.GROUND_TRUTH_MESH, cameras, tmp_path / "skip" / "hdr.zarr", capture,
+    observe_mesh.observe_mesh(capture / files.GROUND_TRUTH_MESH, cameras, tmp_path / "skip" / "hdr.zarr", capture,
                       tmp_path / "skip" / "observations.zarr", exclude_views=("v002",))
     assert zarr.open_group(str(tmp_path / "skip" / "observations.zarr"), mode="r").attrs["view_ids"] == ["v000", "v001"]
     with pytest.raises(observe.ObserveError, match="v009"):  # a held-out view that never existed is an error
-        observe.run_stage(capture / files.GROUND_TRUTH_MESH, cameras, tmp_path / "skip" / "hdr.zarr", capture,
+        observe_mesh.observe_mesh(capture / files.GROUND_TRUTH_MESH, cameras, tmp_path / "skip" / "hdr.zarr", capture,
                           tmp_path / "skip" / "other.zarr", exclude_views=("v009",))
     with pytest.raises(files.MissingFileError):
         reader.read_capture(capture)  # the default still insists on every file

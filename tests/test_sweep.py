@@ -18,9 +18,9 @@ import yaml
 
 from sellip.bench import sweep, sweep_plan, sweep_tables
 from sellip.capture.scenes import SPHERE_IOR_ETAS
+from sellip.fit.observe_mesh import spread_subset
 from sellip.model.pbrdf import PBRDFParams
 from sellip.model.render import ParamMesh
-from sellip.stages.observe import spread_subset
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -261,7 +261,7 @@ def test_front_marks_and_chart(tmp_path):
 
 
 def test_tables_markdown_has_every_section():
-    from sellip.stages.bench_sweep import tables_markdown
+    from sellip.bench.sweep_report import tables_markdown
 
     table = _table([("sphere_ior", "base", None, 100.0, 10.0, 15.0, 20.0, 40.0),
                     ("sphere_ior", "augment", False, 60.0, 10.5, 15.0, 14.0, 40.0),

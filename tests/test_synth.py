@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from sellip.capture import files, reader
+from sellip.capture import synthetic as capture_synthetic
 from sellip.capture.scenes import SPHERE_IOR_ETAS, build_scene, device_intrinsics, handheld_orbit, look_at_rotation
 from sellip.capture.sensor import SensorModel, simulate_raw
 from sellip.model import ply
 from sellip.model.render import Camera, Renderer, flash_light
-from sellip.stages import synth
 
 TINY = dict(views=3, width=64, height=48, supersample=1, progress=False)
 
@@ -50,9 +50,9 @@ def test_cli_writes_a_valid_capture_with_ground_truth(tmp_path):
 
 
 def test_same_seed_gives_byte_identical_files(tmp_path):
-    a = synth.synthesize_capture("tiny", tmp_path / "a", seed=3, **TINY)
-    b = synth.synthesize_capture("tiny", tmp_path / "b", seed=3, **TINY)
-    c = synth.synthesize_capture("tiny", tmp_path / "c", seed=4, **TINY)
+    a = capture_synthetic.synthesize_capture("tiny", tmp_path / "a", seed=3, **TINY)
+    b = capture_synthetic.synthesize_capture("tiny", tmp_path / "b", seed=3, **TINY)
+    c = capture_synthetic.synthesize_capture("tiny", tmp_path / "c", seed=4, **TINY)
     files_a, files_b, files_c = _files(a), _files(b), _files(c)
     assert files_a == files_b
     assert files_a["raw/v000_f0.dng"] != files_c["raw/v000_f0.dng"]
@@ -68,9 +68,9 @@ def test_a_failed_run_leaves_no_capture(tmp_path, monkeypatch):
             raise RuntimeError("simulated crash")
         return simulate_raw(*args, **kwargs)
 
-    monkeypatch.setattr(synth, "simulate_raw", failing)
+    monkeypatch.setattr(capture_synthetic, "simulate_raw", failing)
     with pytest.raises(RuntimeError, match="simulated crash"):
-        synth.synthesize_capture("tiny", tmp_path / "cap", seed=0, **TINY)
+        capture_synthetic.synthesize_capture("tiny", tmp_path / "cap", seed=0, **TINY)
     assert list(tmp_path.iterdir()) == []
 
 
@@ -165,7 +165,7 @@ def test_demo_highlights_saturate_at_the_strongest_flash_while_diffuse_stays_in_
 
 def test_png_frames_and_lens_distortion(tmp_path):
     distortion = [-0.1, 0.02, 0.0, 0.0, 0.0]
-    path = synth.synthesize_capture("tiny", tmp_path / "cap", seed=0, raw_format="png", distortion=distortion,
+    path = capture_synthetic.synthesize_capture("tiny", tmp_path / "cap", seed=0, raw_format="png", distortion=distortion,
                                     **{**TINY, "views": 1})
     capture = reader.read_capture(path, check_raw=True)
     assert capture.config["camera"]["distortion"] == distortion

@@ -1,12 +1,11 @@
-"""Where a job's time goes (sellip.report.timing): phases add up, JAX compile time is counted apart, logs round-trip."""
+"""Where a job's time goes (sellip.timing): phases add up, JAX compile time is counted apart, logs round-trip."""
 
 from __future__ import annotations
 
 import logging
 import time
 
-from sellip import cli
-from sellip.report import timing
+from sellip import cli, timing
 
 
 def test_phases_and_jax_compiles_add_up_to_the_job():

@@ -12,7 +12,7 @@ import importlib
 import logging
 import sys
 
-from sellip.report import timing
+from sellip import timing
 
 # command name -> (module under sellip.stages, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -50,7 +50,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run one stage; its last log line is where the job's time went (:mod:`sellip.report.timing`)."""
+    """Run one stage; its last log line is where the job's time went (:mod:`sellip.timing`)."""
     clock = timing.start()
     argv = sys.argv[1:] if argv is None else list(argv)
     command = next((a for a in argv if not a.startswith("-")), None)

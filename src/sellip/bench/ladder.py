@@ -42,9 +42,9 @@ def render_hdr(capture: str | Path, hdr: str | Path, output: str | Path, supersa
     (the synthetic capture's flash power over the raw range); every pixel valid."""
     import zarr
 
+    from sellip.capture.hdr import read_hdr
+    from sellip.geometry.cameras import intrinsics_matrix, read_cameras
     from sellip.model.render import Camera, Renderer, flash_light
-    from sellip.stages.merge_hdr import read_hdr
-    from sellip.stages.sfm import intrinsics_matrix, read_cameras
 
     capture, output = Path(capture), Path(output)
     config = read_capture(capture, check_files=False).config
@@ -76,9 +76,8 @@ def fit_true_mesh(capture: str | Path, hdr: str | Path, workdir: str | Path, obs
                   compilation_cache: str | None = None) -> dict:
     """Observe the capture's true mesh in ``hdr`` and fit every vertex (one pass, default FitSettings);
     returns :func:`figures` of the fit. Intermediate stores go to ``workdir``."""
+    from sellip.fit import observe_mesh, shard
     from sellip.fit.observe import ObserveSettings
-    from sellip.stages import fit as fit_stage
-    from sellip.stages import observe as observe_stage
 
     capture, workdir = Path(capture), Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
@@ -86,9 +85,9 @@ def fit_true_mesh(capture: str | Path, hdr: str | Path, workdir: str | Path, obs
     mesh = workdir / "true_mesh.ply"
     write_param_mesh(mesh, truth)
     shutil.rmtree(workdir / "observations.zarr", ignore_errors=True)
-    observe_stage.run_stage(mesh, capture / "poses.csv", hdr, capture, workdir / "observations.zarr",
+    observe_mesh.observe_mesh(mesh, capture / "poses.csv", hdr, capture, workdir / "observations.zarr",
                             observe_settings or ObserveSettings())
-    fit_stage.run_stage(workdir / "observations.zarr", (0, 1), workdir / "fit.npz",
+    shard.fit_shard(workdir / "observations.zarr", (0, 1), workdir / "fit.npz",
                         compilation_cache=compilation_cache)
     return figures(dict(np.load(workdir / "fit.npz")), truth)
 
@@ -97,7 +96,8 @@ def figures(fit: dict, truth) -> dict:
     """Figures of a fit on the true mesh's vertices (rows in the same order): over the fitted vertices,
     eta per true material (median of its vertices, paper Table 1) and per vertex, normal error."""
     from sellip.fit.records import STATUS_FITTED
-    from sellip.report.evaluate import angular_error_deg, eta_per_material
+    from sellip.geometry.meshes import angular_error_deg
+    from sellip.report.evaluate import eta_per_material
 
     fitted = np.asarray(fit["status"]) == STATUS_FITTED
     if not fitted.any():
@@ -134,15 +134,14 @@ def resampled_truth(truth, vertices: int):
 
 def psnr_ceiling(capture: str | Path, hdr: str | Path, views: list[str], vertices: int | None = None,
                  supersample: int = 2) -> dict:
-    """Held-out PSNR (dB; :func:`sellip.stages.evaluate.view_psnr`, as evaluate_model scores a model) of the
+    """Held-out PSNR (dB; :func:`sellip.report.metrics.view_psnr`, as evaluate_model scores a model) of the
     capture's ground truth at ``views`` against the HDR images of ``hdr``: the true mesh itself (``vertices`` None)
     or :func:`resampled_truth` at ``vertices``.
     Returns {"vertices", "views": {view_id: dB}, "mean_db"}."""
+    from sellip.capture.hdr import read_hdr
+    from sellip.geometry.cameras import hdr_camera, read_cameras
     from sellip.model.render import Renderer, flash_light
-    from sellip.stages.evaluate import view_psnr
-    from sellip.stages.merge_hdr import read_hdr
-    from sellip.stages.observe import hdr_camera
-    from sellip.stages.sfm import read_cameras
+    from sellip.report.metrics import view_psnr
 
     capture = Path(capture)
     light = read_capture(capture, check_files=False).config["light"]

@@ -13,6 +13,13 @@ from scipy.spatial import cKDTree
 # --------------------------------------------------------------------------- mesh distances
 
 
+def angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle (N,) in degrees between direction vectors a and b (N, 3) (normalized here; atan2 form, exact near 0)."""
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1)))
+
+
 def surface_samples(vertices: np.ndarray, faces: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
     """(count, 3) points drawn uniformly (by area) on a triangle mesh."""
     rng = np.random.default_rng(seed)

@@ -41,7 +41,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from sellip.geometry.alignment import Similarity, align_cameras
-from sellip.geometry.meshes import mesh_distances
+from sellip.geometry.meshes import angular_error_deg, mesh_distances
 from sellip.geometry.silhouettes import silhouette_masks
 from sellip.model.render import ParamMesh
 from sellip.report.outputs import fit_scale
@@ -96,11 +96,6 @@ def _summary(values: np.ndarray, percentile_90: bool = False) -> dict | None:
     return out
 
 
-def angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angle (N,) in degrees between direction vectors a and b (N, 3) (normalized here; atan2 form, exact near 0)."""
-    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
-    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
-    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1)))
 
 
 def eta_per_material(eta: np.ndarray, eta_gt: np.ndarray, material: np.ndarray | None) -> dict | None:
@@ -266,11 +261,11 @@ def stage_timings(benchmarks_dir: str | Path, results_dir: str | Path | None = N
     summed over the passes that have fit_pbrdf benchmarks (``fit_pbrdf/{it}/{pass}/{shard}.tsv``), divided
     by those jobs' summed wall time (per core-second of a single-threaded shard job)
     (``results_dir`` defaults to the parent of ``benchmarks_dir``); None with a reason when not available.
-    Per rule also ``phases``: the seconds of each part of its jobs (:mod:`sellip.report.timing`: start-up, imports,
+    Per rule also ``phases``: the seconds of each part of its jobs (:mod:`sellip.timing`: start-up, imports,
     read, trace, compile, fit, write ...) summed from the phases line of each job's log, the log at the same
     path under ``results_dir/logs`` (``phases_jobs``: how many logs had one).
     """
-    from sellip.report.timing import read_job_phases
+    from sellip.timing import read_job_phases
 
     benchmarks_dir = Path(benchmarks_dir)
     results_dir = Path(results_dir) if results_dir is not None else benchmarks_dir.parent

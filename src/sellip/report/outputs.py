@@ -30,12 +30,16 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from sellip.capture.reader import read_capture
 from sellip.capture.scenes import look_at_rotation
+from sellip.geometry.cameras import load_cameras
+from sellip.model.ply import read_param_mesh, read_ply
 from sellip.model.render import Camera, Light, ParamMesh, Renderer, flash_light
 from sellip.report.previews import WHITE_PERCENTILE, dolp_aolp, srgb_encode, to_uint8
 
@@ -458,3 +462,53 @@ def write_renders(mesh: ParamMesh, cameras: dict[str, Camera], flash_position_ca
     (output / "index.json").write_text(json.dumps(index, indent=2))
     return index
 
+
+DEFAULT_VIEWS = 3
+"""Views re-rendered when --views is not given (evenly spread over cameras.csv)."""
+
+
+
+class OutputsError(ValueError):
+    """An input of render-outputs or evaluate that is missing or inconsistent (the message names the file)."""
+
+
+
+def default_views(view_ids: list[str], count: int = DEFAULT_VIEWS) -> list[str]:
+    """``count`` view ids evenly spread over ``view_ids`` (all of them when there are fewer)."""
+    picks = np.unique(np.linspace(0, len(view_ids) - 1, min(count, len(view_ids))).round().astype(int))
+    return [view_ids[i] for i in picks]
+
+
+
+def model_confidence(model_path: str | Path) -> np.ndarray | None:
+    """The ``confidence`` vertex property of a model PLY (V,) float64, None when it has none."""
+    vertex, _ = read_ply(model_path)
+    return vertex["confidence"].astype(np.float64) if "confidence" in vertex else None
+
+
+
+def render_outputs(model_path: str | Path, cameras_path: str | Path, hdr_path: str | Path, capture_path: str | Path,
+              output: str | Path, views: list[str] | None = None, supersample: int = 2) -> dict:
+    """Write the renders folder (module docstring); returns its index."""
+    from sellip.jobs import atomic_directory
+
+    started = time.perf_counter()
+    if not Path(model_path).is_file():
+        raise OutputsError(f"{model_path}: model does not exist")
+    mesh = read_param_mesh(model_path)
+    light = read_capture(capture_path, check_files=False).config["light"]  # no raw frame is read here
+    cameras, hdr = load_cameras(cameras_path, hdr_path)
+    unknown = [v for v in views or [] if v not in cameras]
+    if unknown:  # e.g. views SfM could not register: render the others
+        log.warning("%s has no pose for requested view(s) %s; they are skipped", cameras_path, unknown)
+    views = [v for v in views or [] if v in cameras] or default_views(list(cameras))
+    confidence = model_confidence(model_path)
+    extra = {"confidence": confidence} if confidence is not None else None
+    log.info("%s: %d vertices; rendering views %s at %dx%d (supersample %d)", model_path, mesh.num_vertices, views,
+             cameras[views[0]].width, cameras[views[0]].height, supersample)
+    with atomic_directory(output) as tmp:
+        tmp.mkdir()
+        index = write_renders(mesh, cameras, light["position_m"], float(light["polarizer_deg"]), views, tmp,
+                              supersample=supersample, measured=hdr.view, extra_maps=extra)
+    log.info("wrote %s (%d files) in %.1f s", output, len(index["files"]) + 1, time.perf_counter() - started)
+    return index

@@ -15,9 +15,16 @@ below ``dark_fraction`` of the exposure scale (there the angle is noise).
 
 from __future__ import annotations
 
+import logging
+from pathlib import Path
+
 import numpy as np
 
+from sellip.capture.hdr import read_hdr
+from sellip.jobs import atomic_directory, progress_logger
 from sellip.model.conventions import analyzers_to_stokes, observations_from_analyzers
+
+log = logging.getLogger(__name__)
 
 PREVIEW_KINDS = ("s0", "dolp", "aolp", "diffuse", "specular")
 """The preview images of every view, in this order."""
@@ -93,3 +100,18 @@ def preview_images(analyzers: np.ndarray, valid: np.ndarray, dark_fraction: floa
         "specular": srgb_encode(np.maximum(specular, 0) / scale) * mask,
     }
     return {kind: to_uint8(images[kind]) for kind in PREVIEW_KINDS}
+
+
+def write_previews(hdr_path: str | Path, output: str | Path) -> Path:
+    """Write the previews of every view of ``hdr_path`` into the folder ``output``."""
+    import imageio.v3 as iio
+
+    hdr = read_hdr(hdr_path)
+    done = progress_logger(len(hdr.view_ids), "previewed views", log)
+    with atomic_directory(output) as tmp:
+        tmp.mkdir()
+        for count, view_id in enumerate(hdr.view_ids, start=1):
+            for kind, image in preview_images(*hdr.view(view_id)).items():
+                iio.imwrite(tmp / f"{view_id}_{kind}.png", image)
+            done(count)
+    return Path(output)

@@ -24,250 +24,18 @@ The file is written under a temporary name and renamed.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import os
-import time
 from pathlib import Path
 
-import numpy as np
-
-from sellip.capture.files import GROUND_TRUTH_MESH, CaptureError
-from sellip.capture.reader import read_capture
+from sellip.capture.files import CaptureError
 from sellip.fit.observe import ObserveError
-from sellip.model.params import ParamsError, read_params
-from sellip.model.ply import PlyError, read_param_mesh
-from sellip.model.render import Camera, Renderer, flash_light
-from sellip.report import evaluate
-from sellip.report.outputs import NEW_LIGHT_OFFSET_M, convergence_figure, moved_flash, save_figure, timings_figure
-from sellip.stages.render_outputs import OutputsError, load_cameras, model_confidence
+from sellip.geometry.cameras import CamerasError
+from sellip.model.params import ParamsError
+from sellip.model.ply import PlyError
+from sellip.report.metrics import evaluate_model
+from sellip.report.outputs import OutputsError
 
 log = logging.getLogger(__name__)
-
-
-def confident_vertices(model_path: Path, params_path: Path | None, count: int) -> tuple[np.ndarray, str | None]:
-    """(N,) bool confident vertices (module docstring) and a note when no confidence was available."""
-    if params_path is not None:
-        arrays = read_params(params_path)
-        if len(arrays["vertices"]) != count:
-            raise OutputsError(f"{params_path}: {len(arrays['vertices'])} vertices, but {model_path} has {count}")
-        confident = np.ones(count, bool)
-        if "status" in arrays:
-            confident &= arrays["status"] == 0
-        if "confidence" in arrays:
-            confident &= arrays["confidence"] > 0
-        return confident, None
-    confidence = model_confidence(model_path)
-    if confidence is not None:
-        return confidence > 0, None
-    return np.ones(count, bool), f"neither --params nor a confidence property in {model_path}: all vertices count"
-
-
-def sfm_mode(cameras_path: Path, report_path: Path | None) -> str | None:
-    """The ``mode`` of the sfm stage's report.json (default: <cameras dir>/sfm/report.json), None if absent."""
-    path = report_path or Path(cameras_path).parent / "sfm" / "report.json"
-    if not path.is_file():
-        return None
-    return json.loads(path.read_text()).get("mode")
-
-
-def _moved_camera(camera: Camera, similarity) -> Camera:
-    if similarity is None:
-        return camera
-    rotation, translation = similarity.apply_to_poses(np.asarray(camera.rotation), np.asarray(camera.translation))
-    return Camera(camera.intrinsics, rotation, translation, camera.width, camera.height, camera.distortion)
-
-
-def geometry_convergence(mesh_paths: list, fit_paths: list, truth, similarity) -> list[dict]:
-    """:func:`sellip.report.evaluate.geometry_series` of the loop's mesh files and first-pass fit stores."""
-    from sellip.fit.observe import read_mesh
-    from sellip.model.render import ParamMesh
-
-    meshes, fitted = [], []
-    for index, path in enumerate(mesh_paths):
-        mesh = read_mesh(path)
-        meshes.append(ParamMesh(mesh.vertices, mesh.faces, mesh.normals, params=None))
-        if index < len(fit_paths):
-            store = read_params(fit_paths[index])
-            counted = (store["status"] == 0) & (store["confidence"] > 0)
-            fitted.append((store["normals"], counted))
-    rows = evaluate.geometry_series(meshes, fitted, truth, similarity)
-    for row in rows:
-        log.info("mesh %d: moved %s mm, Chamfer to the truth %s mm, mesh normals %s deg, fitted %s deg", row["mesh"],
-                 _rounded(row["chamfer_to_previous_mm"]), _rounded(row.get("chamfer_mm")),
-                 _rounded((row.get("mesh_normal_deg") or {}).get("median")),
-                 _rounded((row.get("fitted_normal_deg") or {}).get("median")))
-    return rows
-
-
-def _rounded(value, digits: int = 3):
-    return None if value is None else round(float(value), digits)
-
-
-def _mean_db(per_view: dict) -> float | None:
-    values = [v["psnr_db"] for v in per_view.values() if v.get("psnr_db") is not None]
-    return float(np.mean(values)) if values else None
-
-
-def view_psnr(renderer, camera: Camera, light, hdr, view_id: str, supersample: int = 2) -> dict:
-    """:func:`sellip.report.evaluate.psnr` of ``renderer``'s image at ``camera`` under ``light`` against the HDR store's view
-    ``view_id``, inside :func:`sellip.report.evaluate.render_mask`: how a model (or the ground truth) scores at a captured
-    view."""
-    result = renderer.render(camera, light, supersample=supersample)
-    analyzers, valid = hdr.view(view_id)
-    return evaluate.psnr(analyzers, result.analyzers, evaluate.render_mask(analyzers, valid, result.coverage))
-
-
-def run_stage(model_path: str | Path, cameras_path: str | Path, hdr_path: str | Path, capture_path: str | Path,
-              output: str | Path, params_path: str | Path | None = None, benchmarks: str | Path | None = None,
-              held_out: list[str] | None = None, sim3_from_sfm: bool = False, sfm_report: str | Path | None = None,
-              supersample: int = 2, geometry_samples: int = 50000, timings_plot: str | Path | None = None,
-              new_light_offset_cam=NEW_LIGHT_OFFSET_M, iteration_meshes: list | None = None,
-              iteration_fits: list | None = None, convergence_plot: str | Path | None = None) -> dict:
-    """Compute the figures of merit and write ``output`` (metrics.json); returns the metrics.
-
-    ``iteration_meshes``: the loop's meshes in order (the initial one, then each iteration's), and
-    ``iteration_fits``: the first-pass fit store of each (its fitted normals): ``geometry_iterations``
-    in metrics.json and the ``convergence_plot``."""
-    started = time.perf_counter()
-    model_path, capture_path, output = Path(model_path), Path(capture_path), Path(output)
-    if not model_path.is_file():
-        raise OutputsError(f"{model_path}: model does not exist")
-    model = read_param_mesh(model_path)
-    capture = read_capture(capture_path, check_files=False)  # raw frames are ingest's business
-    light = capture.config["light"]
-    cameras, hdr = load_cameras(cameras_path, hdr_path)
-    held_out = list(held_out or [])
-    reasons: dict[str, str] = {}
-    metrics: dict = {"model": str(model_path), "cameras": str(cameras_path), "capture": str(capture_path),
-                     "settings": {"supersample": supersample, "psnr_peak_percentile": evaluate.PSNR_PEAK_PERCENTILE,
-                                  "psnr_max_db": evaluate.PSNR_MAX_DB, "geometry_samples": geometry_samples,
-                                  "new_light_offset_cam_m": list(map(float, new_light_offset_cam))}}
-    renderer = Renderer(model)
-
-    def flash(camera: Camera):
-        return flash_light(camera, light["position_m"], polarizer_deg=float(light["polarizer_deg"]))
-
-    # Held-out views: the model (cameras.csv world) against the measured HDR images.
-    held_out_psnr = {}
-    for view_id in held_out:
-        if view_id not in cameras:
-            held_out_psnr[view_id] = {"psnr_db": None, "reason": f"no pose in {cameras_path}"}
-            continue
-        camera = cameras[view_id]
-        held_out_psnr[view_id] = view_psnr(renderer, camera, flash(camera), hdr, view_id, supersample)
-        log.info("held-out %s: PSNR %s dB", view_id, held_out_psnr[view_id]["psnr_db"])
-    metrics["psnr_held_out"] = {"views": held_out_psnr, "mean_db": _mean_db(held_out_psnr)} if held_out else None
-    if not held_out:
-        reasons["psnr_held_out"] = "no --held-out views given"
-
-    # Ground truth.
-    truth_path = capture_path / GROUND_TRUTH_MESH
-    ground_truth_keys = ("alignment", "vertices", "normal_error_deg", "eta_relative_error_pct",
-                         "rho_d_relative_rmse", "sigma_s_abs_error", "sigma_ss_abs_error",
-                         "correspondence_distance_mm", "geometry", "psnr_new_light")
-    metrics.update({key: None for key in ground_truth_keys})
-    metrics["ground_truth"] = str(truth_path) if truth_path.is_file() else None
-    similarity, truth = None, None
-    if not truth_path.is_file():
-        for key in ground_truth_keys:
-            reasons[key] = f"the capture has no ground truth ({truth_path} does not exist)"
-    else:
-        truth = read_param_mesh(truth_path)
-        mode = sfm_mode(Path(cameras_path), Path(sfm_report) if sfm_report else None)
-        if sim3_from_sfm or mode == "sfm":
-            if capture.poses is None:
-                for key in ground_truth_keys:
-                    reasons[key] = (f"cameras came from SfM and {capture_path} has no poses.csv to align them "
-                                    "to the ground truth")
-                truth = None
-            else:
-                from sellip.stages.sfm import read_cameras
-
-                own = read_cameras(cameras_path)
-                ref_ids = list(capture.poses["view_id"])
-                ref = [capture.pose(v) for v in ref_ids]
-                try:
-                    similarity = evaluate.camera_alignment(*own, ref_ids, np.stack([r for r, _ in ref]),
-                                                           np.stack([t for _, t in ref]))
-                except ValueError as exc:
-                    raise OutputsError(f"{cameras_path} vs {capture_path}/poses.csv: {exc}") from None
-                metrics["alignment"] = {"method": "sim3", "source": "cameras.csv centres -> poses.csv centres",
-                                        "sfm_mode": mode, "scale": similarity.scale,
-                                        "rotation": similarity.rotation.tolist(),
-                                        "translation": similarity.translation.tolist()}
-        else:
-            metrics["alignment"] = {"method": "none", "sfm_mode": mode,
-                                    "source": "cameras.csv is in the ground truth's world (poses.csv)"}
-    if truth is not None:
-        confident, note = confident_vertices(model_path, Path(params_path) if params_path else None,
-                                             model.num_vertices)
-        if note:
-            reasons["confident_vertices"] = note
-        metrics["vertices"] = {"model": model.num_vertices, "confident": int(confident.sum()),
-                               "ground_truth": truth.num_vertices}
-        metrics.update(evaluate.parameter_errors(model, truth, confident, similarity))
-        for key in ("eta_relative_error_pct", "rho_d_relative_rmse", "sigma_s_abs_error", "sigma_ss_abs_error"):
-            if metrics[key] is None:
-                reasons[key] = "no confident vertex with this lobe in the ground truth"
-        metrics["geometry"] = evaluate.geometry_errors(model, truth, similarity, samples=geometry_samples)
-        log.info("normals: median %.2f deg (confident %s); chamfer %.3f mm, hausdorff %.3f mm",
-                 metrics["normal_error_deg"]["all"]["median"],
-                 (metrics["normal_error_deg"]["confident"] or {}).get("median"),
-                 metrics["geometry"]["chamfer_mm"], metrics["geometry"]["hausdorff_mm"])
-        # New light: ground truth and model rendered under the same moved flash, ground-truth world.
-        moved_model = renderer if similarity is None else Renderer(evaluate.transform_mesh(model, similarity))
-        truth_renderer = Renderer(truth)
-        new_light = {}
-        for view_id in [v for v in held_out if v in cameras] or [next(iter(cameras))]:
-            camera = _moved_camera(cameras[view_id], similarity)
-            lamp = moved_flash(camera, light["position_m"], new_light_offset_cam, float(light["polarizer_deg"]))
-            reference = truth_renderer.render(camera, lamp, supersample=supersample)
-            estimate = moved_model.render(camera, lamp, supersample=supersample)
-            new_light[view_id] = evaluate.psnr(reference.analyzers, estimate.analyzers,
-                                               (reference.coverage > 0) | (estimate.coverage > 0))
-            log.info("new light at %s: PSNR %s dB", view_id, new_light[view_id]["psnr_db"])
-        metrics["psnr_new_light"] = {"views": new_light, "mean_db": _mean_db(new_light)}
-        # The held-out PSNR's ceiling: the ground truth itself rendered at the held-out views against the same
-        # images. Detail finer than the HDR grid (texture the demosaicing blurs) caps it below any model's.
-        if metrics["psnr_held_out"] is not None:
-            ceiling = {}
-            for view_id in [v for v in held_out if v in cameras]:
-                camera = _moved_camera(cameras[view_id], similarity)
-                ceiling[view_id] = view_psnr(truth_renderer, camera, flash(camera), hdr, view_id, supersample)
-                metrics["psnr_held_out"]["views"][view_id]["ground_truth_psnr_db"] = ceiling[view_id]["psnr_db"]
-            metrics["psnr_held_out"]["ground_truth_mean_db"] = _mean_db(ceiling)
-            log.info("held-out PSNR of the ground truth itself (the ceiling): %s dB",
-                     metrics["psnr_held_out"]["ground_truth_mean_db"])
-
-    # How the geometry converged over the loop.
-    metrics["geometry_iterations"] = None
-    if iteration_meshes:
-        metrics["geometry_iterations"] = geometry_convergence(iteration_meshes, iteration_fits or [], truth,
-                                                              similarity)
-        if convergence_plot is not None:
-            save_figure(convergence_figure(metrics["geometry_iterations"]), convergence_plot)
-    else:
-        reasons["geometry_iterations"] = "no --iteration-meshes given"
-
-    # Stage timings.
-    metrics["timings"] = None
-    if benchmarks is None:
-        reasons["timings"] = "no --benchmarks folder given"
-    elif not Path(benchmarks).is_dir():
-        reasons["timings"] = f"{benchmarks} does not exist"
-    else:
-        metrics["timings"] = evaluate.stage_timings(benchmarks)
-        if timings_plot is not None and metrics["timings"]["rules"]:
-            save_figure(timings_figure(metrics["timings"]["rules"]), timings_plot)
-    metrics["reasons"] = reasons
-    metrics["evaluate_s"] = time.perf_counter() - started
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(f".{output.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(metrics, indent=2, allow_nan=False))
-    tmp.rename(output)
-    log.info("wrote %s in %.1f s", output, metrics["evaluate_s"])
-    return metrics
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -299,12 +67,12 @@ def main(args: argparse.Namespace) -> int:
     if args.supersample < 1:
         raise SystemExit("--supersample must be at least 1")
     try:
-        run_stage(args.model, args.cameras, args.hdr, args.capture, args.output, params_path=args.params,
+        evaluate_model(args.model, args.cameras, args.hdr, args.capture, args.output, params_path=args.params,
                   benchmarks=args.benchmarks, held_out=args.held_out, sim3_from_sfm=args.sim3_from_sfm,
                   sfm_report=args.sfm_report, supersample=args.supersample, geometry_samples=args.geometry_samples,
                   timings_plot=args.timings_plot, iteration_meshes=args.iteration_meshes,
                   iteration_fits=args.iteration_fits, convergence_plot=args.convergence_plot)
-    except (OutputsError, CaptureError, PlyError, ObserveError, ParamsError) as exc:
+    except (OutputsError, CamerasError, CaptureError, PlyError, ObserveError, ParamsError) as exc:
         log.error("%s", exc)
         return 1
     return 0

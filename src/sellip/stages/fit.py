@@ -32,176 +32,12 @@ sigma_ss is ``--set sigma_ss_fixed`` when given, else ``--fixed-sigma-ss``. The 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import logging
-import time
 from pathlib import Path
 
-import numpy as np
+from sellip.fit.shard import fit_shard, parse_shard, settings_from_pairs
 
 log = logging.getLogger(__name__)
-
-
-def parse_shard(text: str) -> tuple[int, int]:
-    """'i-of-n' (Snakemake's scatteritem, 1-based) -> (i - 1, n)."""
-    try:
-        index, total = text.split("-of-")
-        index, total = int(index), int(total)
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(f"--shard expects 'i-of-n' (e.g. 2-of-4), got {text!r}") from error
-    if not 1 <= index <= total:
-        raise argparse.ArgumentTypeError(f"--shard {text!r}: i must be in 1..n")
-    return index - 1, total
-
-
-def shard_rows(num_vertices: int, chunk: int, index: int, total: int) -> tuple[int, int]:
-    """Vertex range [start, stop) of shard ``index`` (0-based) of ``total``, in whole chunks."""
-    blocks = -(-num_vertices // chunk)
-    first, last = index * blocks // total, (index + 1) * blocks // total
-    return min(first * chunk, num_vertices), min(last * chunk, num_vertices)
-
-
-def settings_from_pairs(pairs: list[str]):
-    """FitSettings with ``key=value`` overrides (:func:`overrides_from_pairs`)."""
-    from sellip.fit.records import FitSettings
-
-    return FitSettings(**overrides_from_pairs(pairs, FitSettings))
-
-
-def overrides_from_pairs(pairs: list[str], settings_class) -> dict:
-    """{field: value} of ``key=value`` pairs for the dataclass ``settings_class`` (types from its fields;
-    'null'/'none' -> None). Raises ValueError naming the pair for an unknown key or a value of the wrong type."""
-    fields = {f.name: f for f in dataclasses.fields(settings_class)}
-    values = {}
-    for pair in pairs:
-        key, sep, text = pair.partition("=")
-        if not sep or key not in fields:
-            raise ValueError(f"--set expects KEY=VALUE with KEY one of {sorted(fields)}, got {pair!r}")
-        if fields[key].type in ("str", str):
-            values[key] = text
-        elif text.lower() in ("null", "none", ""):
-            values[key] = None
-        elif fields[key].type in ("bool", bool):
-            if text.lower() not in ("true", "false", "1", "0"):
-                raise ValueError(f"--set {key} expects true or false, got {text!r}")
-            values[key] = text.lower() in ("true", "1")
-        else:
-            kind = int if fields[key].type in ("int", int) else float
-            try:
-                values[key] = kind(text)
-            except ValueError:
-                raise ValueError(f"--set {key} expects a{'n integer' if kind is int else ' number'}, "
-                                 f"got {text!r}") from None
-    return values
-
-
-def enable_compilation_cache(directory: str | Path | None) -> None:
-    """Reuse XLA compilations across processes (every shard job compiles the same kernels), and the
-    exported kernels under ``directory/exported`` (:mod:`sellip.fit.kernels`: no tracing in later jobs)."""
-    if not directory:
-        return
-    import jax
-
-    from sellip.fit import kernels
-
-    Path(directory).mkdir(parents=True, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", str(Path(directory).resolve()))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    kernels.enable(Path(directory).resolve() / "exported")
-
-
-def run_stage(observations: Path, shard: tuple[int, int], output: Path, prior: Path | None = None,
-              dtype: str = "float32", settings=None, compilation_cache: str | None = None,
-              lobes: Path | None = None, fixed_sigma_ss: float = 0.9) -> dict:
-    """Fit one shard and write ``output`` (.npz, atomically); with ``lobes`` the augmented refit.
-    Every vertex is fitted with its model (module docstring); ``fixed_sigma_ss`` is model 2's
-    sigma_ss when ``settings.sigma_ss_fixed`` is None. Returns a summary dict."""
-    from sellip.report.timing import mark
-
-    mark("imports")
-    import jax
-
-    if dtype == "float64":
-        jax.config.update("jax_enable_x64", True)
-    enable_compilation_cache(compilation_cache)
-    from sellip.fit.observe import load_observations, open_observations
-    from sellip.fit.records import STATUS_NAMES, FitSettings, model_of
-    from sellip.fit.selection import cap_models, fit_by_model
-    from sellip.fit.vertex_fit import default_prior
-    from sellip.model.params import PARAM_FIELDS, params_from, read_params, same_vertices, transfer_nearest
-
-    mark("read")
-    settings = settings or FitSettings()
-    group = open_observations(observations)
-    total = int(group.attrs["num_vertices"])
-    chunk = int(group["diffuse"].chunks[0])
-    start, stop = shard_rows(total, chunk, *shard)
-    log.info("shard %d of %d: vertices [%d, %d) of %d", shard[0] + 1, shard[1], start, stop, total)
-    data = load_observations(observations, start, stop)
-    float_type = np.dtype(dtype)
-    obs = type(data.observations)(*[np.asarray(x, float_type) if np.asarray(x).dtype.kind == "f" else np.asarray(x)
-                                    for x in data.observations])
-    n = stop - start
-    normal0 = data.normals.astype(float_type)
-    virtual = None
-    models, source = np.full(n, model_of(settings), np.uint8), "the fit settings"
-    if lobes is not None:
-        from sellip.fit.lobes import virtual_samples
-        from sellip.stages.cluster_lobes import read_lobes, read_models
-
-        labels, cluster_lobes = read_lobes(lobes)
-        if len(labels) != total:
-            raise ValueError(f"{lobes}/labels.npy: {len(labels)} labels for the {total} vertices of {observations}")
-        virtual = virtual_samples(labels[start:stop], cluster_lobes, settings, float_type)
-        models, source = read_models(lobes, total)[start:stop], f"{lobes}/models.npy"
-        log.info("augmented fit: %d cluster lobes, %d virtual samples per vertex, lambda_g %g",
-                 len(cluster_lobes), settings.virtual_count, settings.lambda_g)
-    if prior is not None:
-        previous = read_params(prior)
-        nearest = transfer_nearest(previous["vertices"], data.vertices)
-        start_params = params_from({k: previous[k][nearest] for k in PARAM_FIELDS}, float_type)
-        log.info("warm start from %s (nearest of %d vertices)", prior, len(previous["vertices"]))
-        if lobes is None and "model" in previous:
-            models, source = previous["model"][nearest], f"{prior} (nearest vertex)"
-        same_mesh = len(previous["vertices"]) == total and same_vertices(previous["vertices"][start:stop],
-                                                                         data.vertices)
-        if lobes is not None and same_mesh:
-            normal0 = previous["normals"][start:stop].astype(float_type)
-            log.info("refit: starting normals from %s", prior)
-        elif lobes is not None:
-            log.info("%s is on another mesh (the previous iteration's): the starting normals are the mesh's", prior)
-    else:
-        start_params = default_prior(n, float_type)
-    models = cap_models(models, settings)
-    per_model = {int(m): int(np.sum(models == m)) for m in np.unique(models)}
-    log.info("models from %s: %s vertices per model (model 2's sigma_ss %s)", source, per_model,
-             settings.sigma_ss_fixed if settings.sigma_ss_fixed is not None else fixed_sigma_ss)
-    mark("fit")
-    began = time.perf_counter()
-    if n:
-        result = fit_by_model(obs, normal0, start_params, models, settings, fixed_sigma_ss,
-                              progress=lambda done: log.info("fitted %d / %d vertices (%.0f s)", done, n,
-                                                             time.perf_counter() - began), virtual=virtual)
-    seconds = time.perf_counter() - began
-    mark("write")
-    arrays = {"start": np.asarray(start), "stop": np.asarray(stop)}
-    if n:
-        arrays.update(normal=result.normal, status=result.status, confidence=result.confidence, loss=result.loss,
-                      views_used=result.views_used, iterations=result.iterations,
-                      normal_std_deg=result.normal_std_deg, eta_std=result.eta_std,
-                      sigma_s_std=result.sigma_s_std, model=models,
-                      **{name: getattr(result.params, name) for name in result.params._fields})
-    output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(output.name + ".tmp.npz")
-    np.savez(tmp, **arrays)
-    tmp.replace(output)
-    counts = {STATUS_NAMES[s]: int(np.sum(result.status == s)) for s in STATUS_NAMES} if n else {}
-    summary = {"vertices": n, "seconds": seconds, "vertex_fits_per_second": n / seconds if seconds > 0 else 0.0,
-               "status": counts, "models": per_model}
-    log.info("shard done: %d vertices in %.1f s (%.0f vertex-fits/s); %s", n, seconds,
-             summary["vertex_fits_per_second"], counts)
-    return summary
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -229,7 +65,7 @@ def main(args: argparse.Namespace) -> int:
         settings = settings_from_pairs(args.overrides)
         if not 0.02 <= args.fixed_sigma_ss <= 1:
             raise ValueError(f"--fixed-sigma-ss must be in [0.02, 1], got {args.fixed_sigma_ss}")
-        run_stage(args.observations, args.shard, args.output, args.prior, args.dtype, settings,
+        fit_shard(args.observations, args.shard, args.output, args.prior, args.dtype, settings,
                   args.compilation_cache, args.lobes, args.fixed_sigma_ss)
     except (ObserveError, ValueError) as error:
         log.error("%s", error)

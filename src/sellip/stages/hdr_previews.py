@@ -13,26 +13,9 @@ import argparse
 import logging
 from pathlib import Path
 
-from sellip.report.previews import preview_images
-from sellip.stages.linearize import atomic_directory, progress_logger
-from sellip.stages.merge_hdr import read_hdr
+from sellip.report.previews import write_previews
 
 log = logging.getLogger(__name__)
-
-
-def write_previews(hdr_path: str | Path, output: str | Path) -> Path:
-    """Write the previews of every view of ``hdr_path`` into the folder ``output``."""
-    import imageio.v3 as iio
-
-    hdr = read_hdr(hdr_path)
-    done = progress_logger(len(hdr.view_ids), "previewed views", log)
-    with atomic_directory(output) as tmp:
-        tmp.mkdir()
-        for count, view_id in enumerate(hdr.view_ids, start=1):
-            for kind, image in preview_images(*hdr.view(view_id)).items():
-                iio.imwrite(tmp / f"{view_id}_{kind}.png", image)
-            done(count)
-    return Path(output)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

@@ -22,190 +22,14 @@ check). A warning names the views whose silhouette disagrees with the hull (or w
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import os
-import tempfile
-import time
 from pathlib import Path
 
-import numpy as np
-
 from sellip.geometry import hull as geometry_hull
-from sellip.geometry import scan as geometry_scan
-from sellip.geometry import sfm
-from sellip.model.ply import read_ply, write_ply
-from sellip.stages.sfm import add_image_arguments, diffuse_view, intrinsics_matrix, read_cameras, view_masks
+from sellip.geometry.initial import MODES, InitMeshError, make_initial_mesh
+from sellip.stages._arguments import add_image_arguments
 
 log = logging.getLogger(__name__)
-
-MODES = ("hull", "mvs", "mesh")
-
-MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off")
-"""Mesh files ``init.mode: mesh`` reads (open3d); PLY and OBJ are the documented ones."""
-
-
-class InitMeshError(RuntimeError):
-    """The initial mesh cannot be built with the given inputs (e.g. mvs without CUDA, a supplied mesh that does
-    not fit the silhouettes)."""
-
-
-def read_user_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """A triangle mesh file (open3d): vertices (V, 3) float64, faces (F, 3) int64 and the file's vertex normals
-    (V, 3) or None. Vertices at the same position are merged (a triangle soup, as STL and some PLY writers
-    store it, would otherwise fall apart into single triangles); degenerate and duplicated faces are dropped.
-    Raises InitMeshError naming the file when it is missing, unreadable, or has no triangles."""
-    import open3d as o3d
-
-    path = Path(path)
-    if not path.is_file():
-        raise InitMeshError(f"{path}: the mesh file of init.mode 'mesh' (init.mesh_path) does not exist")
-    if path.suffix.lower() not in MESH_SUFFIXES:
-        raise InitMeshError(f"{path}: not a mesh file that init.mode 'mesh' reads ({', '.join(MESH_SUFFIXES)})")
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        mesh = o3d.io.read_triangle_mesh(str(path))
-    if len(mesh.vertices) == 0:
-        raise InitMeshError(f"{path}: cannot be read as a triangle mesh (open3d finds no vertices: damaged, or not a "
-                            f"{path.suffix.lstrip('.').upper()} file)")
-    if len(mesh.triangles) == 0:
-        raise InitMeshError(f"{path}: has {len(mesh.vertices)} vertices but no triangles (a point cloud?); "
-                            "init.mode 'mesh' needs a triangle mesh")
-    mesh.remove_duplicated_vertices()
-    mesh.remove_degenerate_triangles()
-    mesh.remove_duplicated_triangles()
-    mesh.remove_unreferenced_vertices()
-    vertices, faces = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.triangles, np.int64)
-    if len(faces) == 0 or not np.isfinite(vertices).all():
-        raise InitMeshError(f"{path}: has no usable triangles (all degenerate) or non-finite vertex coordinates")
-    normals = np.asarray(mesh.vertex_normals, np.float64) if mesh.has_vertex_normals() else None
-    if normals is not None and not (np.isfinite(normals).all() and np.linalg.norm(normals, axis=1).mean() > 0.5):
-        normals = None  # zeros or NaN: no orientation to learn from
-    return vertices, faces, normals
-
-
-def sparse_observations(sfm_dir: Path, view_ids: list[str]) -> tuple[np.ndarray, list[np.ndarray], np.ndarray] | None:
-    """SfM points (P, 3), their observing view indices (into ``view_ids``) and errors (P,) in px of the
-    hdr images, from ``sfm_dir/sparse`` (None when the folder has no model, e.g. sfm.mode known)."""
-    import pycolmap
-
-    if not (sfm_dir / "sparse" / "points3D.bin").is_file():
-        return None
-    report = json.loads((sfm_dir / "report.json").read_text())
-    upscale = float(report.get("upscale", 1))
-    index_of_view = {v: i for i, v in enumerate(view_ids)}
-    reconstruction = pycolmap.Reconstruction(sfm_dir / "sparse")
-    view_of_image = {image_id: index_of_view.get(report["image_names"][image.name])
-                     for image_id, image in reconstruction.images.items()}
-    points, views, errors = [], [], []
-    for point in reconstruction.points3D.values():
-        observers = {view_of_image[e.image_id] for e in point.track.elements} - {None}
-        if observers:
-            points.append(point.xyz)
-            views.append(np.array(sorted(observers)))
-            errors.append(point.error / upscale)
-    return np.asarray(points, np.float64).reshape(-1, 3), views, np.asarray(errors)
-
-
-def mvs_points(hdr, sfm_dir: Path, view_ids: list[str], masks: np.ndarray, threads: int) -> tuple[np.ndarray,
-                                                                                                  np.ndarray]:
-    """Oriented points (N, 3), (N, 3) from COLMAP PatchMatch stereo + fusion on the SfM model (CUDA only)."""
-    import pycolmap
-
-    if not pycolmap.has_cuda:
-        raise InitMeshError("init.mode 'mvs' needs pycolmap built with CUDA (pycolmap.has_cuda is False); "
-                            "use init.mode 'hull' (CPU)")
-    if not (sfm_dir / "sparse" / "points3D.bin").is_file():
-        raise InitMeshError(f"init.mode 'mvs' needs an SfM model in {sfm_dir}/sparse; run with sfm.mode sfm or verify")
-    report = json.loads((sfm_dir / "report.json").read_text())
-    upscale = int(report.get("upscale", 1))
-    index_of_view = {v: i for i, v in enumerate(view_ids)}
-    with tempfile.TemporaryDirectory(prefix="sellip-mvs-") as work:
-        work = Path(work)
-        image_dir = work / "images"
-        image_dir.mkdir()
-        import imageio.v3 as iio
-
-        for name, view in report["image_names"].items():
-            if view in index_of_view:
-                diffuse, _ = diffuse_view(hdr, hdr.view_ids.index(view))
-                image, _ = sfm.feature_image(diffuse, masks[index_of_view[view]], upscale)
-                iio.imwrite(image_dir / name, image)
-        pycolmap.undistort_images(work / "dense", sfm_dir / "sparse", image_dir, num_threads=threads)
-        pycolmap.patch_match_stereo(work / "dense")
-        pycolmap.stereo_fusion(work / "fused.ply", work / "dense", output_type="PLY")
-        vertex, _ = read_ply(work / "fused.ply")
-    points = np.stack([vertex[k] for k in ("x", "y", "z")], axis=1).astype(np.float64)
-    normals = np.stack([vertex[k] for k in ("nx", "ny", "nz")], axis=1).astype(np.float64)
-    return points, normals
-
-
-def run_stage(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: str | Path, output: str | Path,
-              mode: str = "hull", options: geometry_hull.InitMeshOptions = geometry_hull.InitMeshOptions(),
-              mask_options: dict | None = None, disagreement_warn: float = 0.05,
-              mesh_path: str | Path | None = None) -> dict:
-    """Run the stage (see the module docstring); returns the report written beside the mesh.
-
-    mesh_path: the mesh of mode ``mesh`` (required there, ignored otherwise), as given (the workflow resolves
-    ``init.mesh_path`` against the capture folder).
-    """
-    from sellip.stages.merge_hdr import read_hdr
-
-    started = time.perf_counter()
-    if mode == "mesh":
-        if not mesh_path:
-            raise InitMeshError("init.mode 'mesh' needs the mesh file: set init.mesh_path (--mesh-path)")
-        user_mesh = read_user_mesh(mesh_path)  # before the silhouettes: a bad file fails fast
-    elif mesh_path:
-        log.warning("init.mode %r: the mesh %s is not used (init.mesh_path is read with init.mode 'mesh' only)",
-                    mode, mesh_path)
-    hdr = read_hdr(hdr_path)
-    view_ids, rotations, translations = read_cameras(cameras_path)
-    unknown = [v for v in view_ids if v not in hdr.view_ids]
-    if unknown:
-        raise InitMeshError(f"{cameras_path}: views {unknown[:10]} are not in {hdr_path}")
-    all_masks = view_masks(hdr, mask_options or {})
-    masks = all_masks[[hdr.view_ids.index(v) for v in view_ids]]
-    intrinsics = intrinsics_matrix(hdr.intrinsics)
-    if mode == "mesh":
-        vertices, faces, normals = user_mesh
-        mesh = geometry_scan.user_initial_mesh(vertices, faces, masks, intrinsics, rotations, translations, options,
-                                          normals=normals)
-        if mesh.check.problems:
-            raise InitMeshError(f"{mesh_path}: the mesh (init.mesh_path) does not fit the silhouettes of the "
-                                f"{len(view_ids)} views of {cameras_path}: " + "; ".join(mesh.check.problems))
-        disagreement, against, advice = 1.0 - mesh.check.inside_fraction, "the supplied mesh", ""
-        extra_report = {"mesh_path": str(mesh_path), "check": mesh.check.stats(view_ids)}
-    else:
-        sfm_dir = Path(sfm_dir)
-        sparse = sparse_observations(sfm_dir, view_ids)
-        extra = mvs_points(hdr, sfm_dir, view_ids, masks, options.threads) if mode == "mvs" else None
-        mesh = geometry_hull.initial_mesh(masks, intrinsics, rotations, translations, options,
-                                     *(sparse if sparse is not None else (None, None, None)), extra_points=extra)
-        disagreement, against, extra_report = mesh.carving.disagreement, "the visual hull", {}
-        advice = f"; min_inside_fraction {options.min_inside_fraction:.2f} tolerates a few bad masks"
-
-    disagreeing = [v for v, d in zip(view_ids, disagreement) if d > disagreement_warn]
-    if disagreeing:
-        log.warning("%d of %d silhouettes disagree with %s (more than %.0f%% of it outside the mask): %s. Check "
-                    "the poses of these views or the mask threshold (sfm.mask_threshold)%s.", len(disagreeing),
-                    len(view_ids), against, 100 * disagreement_warn, ", ".join(disagreeing[:30]), advice)
-    report = dict(mesh.stats, mode=mode, views=len(view_ids), **extra_report,
-                  silhouette_disagreement={v: float(d) for v, d in zip(view_ids, disagreement)},
-                  disagreeing_views=disagreeing, total_s=time.perf_counter() - started)
-    output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp_mesh = output.with_name(f".{output.name}.tmp-{os.getpid()}")
-    info = output.with_suffix(".json")
-    tmp_info = info.with_name(f".{info.name}.tmp-{os.getpid()}")
-    vertices, normals = mesh.vertices.astype(np.float32), mesh.normals.astype(np.float32)
-    write_ply(tmp_mesh, {"x": vertices[:, 0], "y": vertices[:, 1], "z": vertices[:, 2],
-                         "nx": normals[:, 0], "ny": normals[:, 1], "nz": normals[:, 2]}, mesh.faces)
-    tmp_info.write_text(json.dumps(report, indent=2))
-    tmp_info.rename(info)
-    tmp_mesh.rename(output)
-    log.info("initial mesh: %d vertices, %d faces (%s, %.1f s)", len(vertices), len(mesh.faces), mode,
-             report["total_s"])
-    return report
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -230,7 +54,7 @@ def main(args: argparse.Namespace) -> int:
                                        poisson_depth=args.poisson_depth, target_depth=args.target_depth,
                                        max_vertices=args.max_vertices, threads=args.threads)
     try:
-        run_stage(args.hdr, args.cameras, args.sfm, args.output, mode=args.mode, options=options,
+        make_initial_mesh(args.hdr, args.cameras, args.sfm, args.output, mode=args.mode, options=options,
                   mask_options={"threshold": args.mask_threshold}, mesh_path=args.mesh_path)
     except (InitMeshError, ValueError) as exc:
         log.error("%s", exc)

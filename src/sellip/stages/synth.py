@@ -14,80 +14,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import time
 from pathlib import Path
 
-import numpy as np
-
-from sellip.capture.files import GROUND_TRUTH_MESH
-from sellip.capture.scenes import SCENES, build_scene, handheld_orbit
-from sellip.capture.sensor import SensorModel, simulate_raw
-from sellip.capture.writer import RAW_FORMATS, CaptureWriter
-from sellip.model.ply import write_param_mesh
-from sellip.model.render import Renderer, flash_light
+from sellip.capture.scenes import SCENES
+from sellip.capture.synthetic import synthesize_capture
+from sellip.capture.writer import RAW_FORMATS
 
 log = logging.getLogger(__name__)
-
-FLASH_LEVELS = (1 / 4, 1 / 8, 1 / 16)
-"""Relative flash power of the frames of each view (the paper's bracket)."""
-
-FLASH_POSITION_CAM = (0.0, 0.05, 0.0)
-"""The flash 5 cm from the lens, below it (OpenCV y is down): capture.yaml light.position_m."""
-
-EXPOSURE_S = 0.005
-"""Nominal shutter time written to frames.csv; the flash dominates, so it does not scale the signal."""
-
-
-def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width: int = 612, height: int = 512,
-                       seed: int = 0, supersample: int = 2, raw_format: str = "dng", distortion=None,
-                       flash_levels=FLASH_LEVELS, progress: bool = True, noise_scale: float = 1.0) -> Path:
-    """Render and write a synthetic capture of ``scene_name`` to ``out``; returns the folder.
-
-    width, height: raw mosaic size (multiples of 4); distortion: OpenCV (k1, k2, p1, p2, k3) or None;
-    noise_scale: sensor noise standard deviations x this at the same signal
-    (:meth:`sellip.capture.sensor.SensorModel.with_noise_scale`; 1 is the real device).
-    """
-    from tqdm import tqdm
-
-    started = time.perf_counter()
-    scene = build_scene(scene_name)
-    cameras = handheld_orbit(views, width, height, np.random.default_rng([seed, 1]),
-                             distance_m=scene.distance_m, elevation_deg=scene.elevation_deg,
-                             distortion=distortion)
-    sensor = SensorModel(width=width, height=height).with_noise_scale(noise_scale)
-    k = cameras[0].intrinsics
-    config = {
-        "sensor": sensor.capture_sensor(),
-        "camera": {"fx": float(k[0, 0]), "fy": float(k[1, 1]), "cx": float(k[0, 2]), "cy": float(k[1, 2]),
-                   "distortion": [float(c) for c in (distortion if distortion is not None else [0.0] * 5)],
-                   "color_matrix": [list(map(float, row)) for row in sensor.color_matrix]},
-        "light": {"position_m": list(FLASH_POSITION_CAM), "polarizer_deg": 0},
-        "scene": {"distance_m": float(np.mean(scene.distance_m))},
-        "synthetic": {"scene": scene_name, "seed": int(seed), "views": int(views), "supersample": int(supersample),
-                      "flash_power_dn": float(scene.flash_power), "gain_e_per_dn": sensor.gain_e_per_dn,
-                      "read_noise_e": sensor.read_noise_e, "noise_scale": float(noise_scale),
-                      "ground_truth": GROUND_TRUTH_MESH},
-    }
-    renderer = Renderer(scene.mesh)
-    saturated = []
-    with CaptureWriter(out, config, raw_format=raw_format) as writer:
-        for index, camera in enumerate(tqdm(cameras, desc=f"synth {scene_name}", unit="view", disable=not progress)):
-            view_id = f"v{index:03d}"
-            light = flash_light(camera, FLASH_POSITION_CAM, polarizer_deg=0.0)
-            analyzers = renderer.render(camera, light, supersample=supersample).analyzers
-            for level_index, level in enumerate(flash_levels):
-                rng = np.random.default_rng([seed, 2, index, level_index])
-                raw = simulate_raw(analyzers, sensor, scene.flash_power * level, rng)
-                saturated.append(float(np.mean(raw >= sensor.white_level)))
-                writer.add_frame(f"{view_id}_f{level_index}", view_id, raw, flash_level=level, exposure_s=EXPOSURE_S)
-            writer.add_pose(view_id, camera.rotation, camera.translation)
-        write_param_mesh(writer.path_in_capture(GROUND_TRUTH_MESH), scene.mesh)
-        path = writer.finish()
-    strongest = np.asarray(saturated).reshape(views, len(flash_levels))[:, 0]
-    log.info("wrote %s: %d views x %d frames at %dx%d in %.1f s; views with saturated pixels at flash %.3g: %d",
-             path, views, len(flash_levels), width, height, time.perf_counter() - started, flash_levels[0],
-             int(np.sum(strongest > 0)))
-    return path
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

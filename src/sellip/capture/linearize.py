@@ -1,0 +1,146 @@
+"""Linearize a capture's raw frames (DESIGN §2 linearize; docs/ingest.md): black and white level,
+saturation mask, demosaic into the four analyzer images, colour matrix, undistortion, one store for all
+frames (:func:`linearize_capture`); a bad frame stops with its file and row, or is left out with
+``bad_frames: skip``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sellip.capture import ingest
+from sellip.capture.files import FRAMES_CSV, RAWPY_SUFFIXES, CaptureError, MissingFileError
+from sellip.capture.reader import read_capture, read_raw_frame
+from sellip.jobs import atomic_directory, map_in_threads, progress_logger
+from sellip.model.conventions import ANALYZER_ANGLES_DEG
+
+log = logging.getLogger(__name__)
+
+
+BLACK_LEVEL_SOURCES = ("capture", "file")
+"""Where black levels come from: capture.yaml (all formats), or a RAW file's own (rawpy) levels."""
+
+
+
+BAD_FRAME_POLICIES = ("error", "skip")
+"""What a missing or unreadable raw frame does: stop the stage, or leave the frame out with a warning."""
+
+
+
+def _frame_black(path: Path, plan: ingest.IngestPlan, black_level_from: str) -> np.ndarray | None:
+    """The black level to use for one frame file: None for the plan's (capture.yaml) levels."""
+    if black_level_from == "file" and path.suffix.lower() in RAWPY_SUFFIXES:
+        black = ingest.rawpy_black_level(path)
+        if black.shape != plan.raw_shape:
+            raise CaptureError(str(path), None, f"rawpy's black-level map has shape {black.shape}, "
+                                                f"expected the mosaic shape {plan.raw_shape}")
+        return black
+    return None
+
+
+
+def _check_file_black_level(path: Path, plan: ingest.IngestPlan) -> None:
+    """Warn when a RAW file declares black levels other than capture.yaml's (the ones used)."""
+    declared = ingest.rawpy_black_level(path)
+    if declared.shape == plan.raw_shape and not np.allclose(declared, plan.black, atol=0.5):
+        log.warning("%s declares black levels %s (rawpy, per position) but capture.yaml gives %s; using "
+                    "capture.yaml's (run with --black-level-from file to use the file's)", path,
+                    np.unique(declared).tolist(), np.unique(plan.black).tolist())
+
+
+
+def _frame_row(capture, index: int) -> str:
+    """'frames.csv row i (line i+2), frame_id ..., view ...': where a frame comes from, for messages."""
+    row = capture.frames.iloc[index]
+    return (f"{capture.root / FRAMES_CSV} row {index} (line {index + 2}), frame_id {row['frame_id']!r}, "
+            f"view {row['view_id']!r}")
+
+
+
+def linearize_capture(capture_dir: str | Path, output: str | Path, threads: int = 1,
+                      saturation: float = ingest.DEFAULT_SATURATION, black_level_from: str = "capture",
+                      bad_frames: str = "error") -> Path:
+    """Linearize every frame of a capture into a zarr store at ``output`` (layout in the module docstring).
+
+    bad_frames: "error" raises :class:`sellip.capture.files.CaptureError` naming the file and its frames.csv row for a
+    bad capture or frame, and nothing is written; "skip" leaves bad frames out (module docstring). Raises
+    CaptureError when every frame is bad.
+    """
+    if black_level_from not in BLACK_LEVEL_SOURCES:
+        raise ValueError(f"black_level_from must be one of {BLACK_LEVEL_SOURCES}, got {black_level_from!r}")
+    if bad_frames not in BAD_FRAME_POLICIES:
+        raise ValueError(f"bad_frames must be one of {BAD_FRAME_POLICIES}, got {bad_frames!r}")
+    import zarr
+
+    started = time.perf_counter()
+    skip = bad_frames == "skip"
+    capture = read_capture(capture_dir, check_files=not skip)
+    frames = capture.frames
+    plan = ingest.make_ingest_plan(capture.sensor, capture.config["camera"], capture.layout, saturation)
+    out = plan.intrinsics
+    channels = plan.demosaic.channels
+    paths = [capture.root / rel for rel in frames["file"]]
+    raw_paths = [p for p in paths if p.suffix.lower() in RAWPY_SUFFIXES and p.is_file()]
+    if black_level_from == "capture" and raw_paths:
+        try:
+            _check_file_black_level(raw_paths[0], plan)
+        except Exception as exc:  # noqa: BLE001 -- rawpy raises many types; the frame's own read reports it
+            log.debug("black-level check of %s failed: %s", raw_paths[0], exc)
+    log.info("%s: %d frames of %d views, raw %dx%d -> %dx%d x 4 analyzers x %d channels, %d thread(s)",
+             capture.root, len(frames), len(capture.view_ids), plan.raw_shape[1], plan.raw_shape[0],
+             out["width"], out["height"], channels, threads)
+
+    with atomic_directory(output) as tmp:
+        group = zarr.open_group(str(tmp), mode="w")
+        shape = (len(frames), out["height"], out["width"], len(ANALYZER_ANGLES_DEG), channels)
+        linear = group.create_array("linear", shape=shape, chunks=(1,) + shape[1:], dtype="float32",
+                                    fill_value=np.nan, compressors=None)
+
+        def run(index: int) -> str | None:
+            """Linearize frame ``index``; returns None, or (skip) why the frame was left out."""
+            try:
+                if not paths[index].is_file():  # rawpy reports a missing file as an I/O error
+                    raise MissingFileError(str(paths[index]), None, "raw frame does not exist")
+                raw = read_raw_frame(capture, frames.iloc[index])
+                black = _frame_black(paths[index], plan, black_level_from)
+            except CaptureError as exc:
+                if not skip:
+                    raise type(exc)(exc.file, _frame_row(capture, index),
+                                    f"{exc.problem} (ingest.bad_frames: skip leaves such frames out)") from None
+                log.warning("skipping %s: %s", _frame_row(capture, index), exc)
+                return str(exc)
+            try:
+                linear[index] = ingest.process_frame(raw, plan, black)
+            except ingest.IngestError as exc:
+                raise ingest.IngestError(f"{paths[index]}: {exc}") from None
+            return None
+
+        skipped = map_in_threads(run, len(frames), threads, progress_logger(len(frames), "linearized frames"))
+        if all(reason is not None for reason in skipped):
+            raise CaptureError(str(capture.root / FRAMES_CSV), None,
+                               f"none of its {len(frames)} raw frames could be read (first: {skipped[0]})")
+        group.attrs.update({
+            "frame_id": frames["frame_id"].tolist(),
+            "view_id": frames["view_id"].tolist(),
+            "flash_level": [float(v) for v in frames["flash_level"]],
+            "exposure_s": [float(v) for v in frames["exposure_s"]],
+            "intrinsics": out,
+            "analyzer_angles_deg": list(ANALYZER_ANGLES_DEG),
+            "channels": "RGB" if channels == 3 else "mono",
+            "raw_shape": list(plan.raw_shape),
+            "capture": str(capture.root),
+            "saturation": float(saturation),
+            "black_level_from": black_level_from,
+            "bad_frames": bad_frames,
+            "skipped": skipped,
+        })
+    left_out = [frames["frame_id"].iloc[i] for i, reason in enumerate(skipped) if reason is not None]
+    if left_out:
+        log.warning("left out %d of %d frames (ingest.bad_frames: skip): %s", len(left_out), len(frames),
+                    ", ".join(left_out[:30]))
+    log.info("wrote %s in %.1f s", output, time.perf_counter() - started)
+    return Path(output)

@@ -1,0 +1,166 @@
+"""One augmentation pass (rule ``cluster_lobes``; paper §4.3, DESIGN §7): the material clusters, each
+cluster's model chosen on held-out vertices, each cluster's lobe fitted, written to the cluster-lobes
+directory (:func:`cluster_and_fit_lobes`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sellip.fit.lobe_store import LOBE_COLUMNS, load_rows, lobes_schema, plot_lobes
+
+log = logging.getLogger(__name__)
+
+
+def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: int = 0, settings=None,
+              fit_settings=None, compilation_cache: str | None = None, selection=None,
+              inherit_models: bool = False) -> dict:
+    """Cluster the vertices of ``params``, choose each cluster's model (``selection``:
+    :class:`sellip.fit.selection.SelectionSettings`, default on), fit the cluster lobes on ``observations``,
+    write ``output``."""
+    from sellip.timing import mark
+
+    mark("imports")
+    import jax
+
+    from sellip.fit.shard import enable_compilation_cache
+
+    jax.config.update("jax_enable_x64", True)  # one small problem per cluster: float64 costs little
+    enable_compilation_cache(compilation_cache)
+    import pandas as pd
+
+    from sellip.fit.clusters import AugmentSettings, cluster_materials
+    from sellip.fit.lobes import fit_cluster_lobe, no_lobe
+    from sellip.fit.observe import ObserveError, open_observations
+    from sellip.fit.records import FitSettings, model_of
+    from sellip.fit.selection import SelectionSettings, allowed_models, select_model, settings_for_model
+    from sellip.model.params import MODEL_NAMES, read_params, same_vertices
+
+    settings = settings or AugmentSettings()
+    fit_settings = fit_settings or FitSettings()
+    selection = selection or SelectionSettings()
+    mark("read")
+    store = read_params(params)
+    group = open_observations(observations)
+    total = int(group.attrs["num_vertices"])
+    n = len(store["vertices"])
+    if not same_vertices(np.asarray(group["vertices"][...]), store["vertices"]):
+        raise ObserveError(observations, f"holds {total} vertices that are not the {n} vertices of {params} "
+                                         "(cluster-lobes needs the params and observations of the same mesh)")
+    mark("cluster")
+    clustering = cluster_materials(store["eta"], store["rho_d"], store["status"], store["confidence"], settings, seed,
+                                   vertices=store["vertices"])
+    k = len(clustering.centres)
+    log.info("K = %d clusters (BIC over K: %s), %d merges, %d regions", k,
+             {key: round(value, 1) for key, value in clustering.bic.items()}, len(clustering.merges),
+             len(clustering.regions))
+    allowed = allowed_models(fit_settings, selection.candidates)
+    if selection.enabled:
+        log.info("model selection: candidates %s, %.0f %% of each cluster's vertices held out, tolerance %g + %g SE",
+                 allowed, 100 * selection.held_out_fraction, selection.tolerance, selection.standard_errors)
+    inherited = None
+    if selection.enabled and inherit_models:
+        if "model" in store:
+            inherited = np.asarray(store["model"], np.int64)
+            log.info("models inherited from %s (no candidate fits this iteration)", params)
+        else:
+            log.warning("%s has no models to inherit: selecting", params)
+    rng = np.random.default_rng(seed)
+    lobes, rows_out, colors, models, choices = [], [], [], [], []
+    notes = list(clustering.notes)
+    for cluster in range(k):
+        members = np.flatnonzero((clustering.labels == cluster) & clustering.used)
+        if members.size == 0:  # its lobe comes from what its vertices have: lower confidence, said so
+            members = np.flatnonzero(clustering.labels == cluster)
+            notes.append(f"cluster {cluster} has no confidently fitted vertex: its lobe is fitted on all its "
+                         f"{members.size} vertices")
+            log.warning("%s", notes[-1])
+        # Enough vertices for max_samples samples at >= 8 usable views each, a seeded subset.
+        limit = max(64, settings.max_samples // 8)
+        rows = np.sort(rng.choice(members, limit, replace=False)) if members.size > limit else members
+        mark("read")
+        obs = load_rows(group, rows)
+        mark("select")
+        eta0 = float(np.median(store["eta"][members]))
+        if not np.isfinite(eta0):
+            eta0 = 1.5  # DESIGN §5's start
+        began, lobe = time.perf_counter(), None
+        if not np.asarray(obs.usable).any():
+            model, lobe = 0, no_lobe(eta0)
+            reason = "no usable (vertex, view) sample: no lobe (model 0)"
+            notes.append(f"cluster {cluster}: {reason}")
+            log.warning("%s", notes[-1])
+            choices.append({"cluster": cluster, "model": model, "name": MODEL_NAMES[model], "reason": reason,
+                            "candidates": {}, "seconds": 0.0})
+        elif inherited is not None:
+            counts_here = np.bincount(inherited[clustering.labels == cluster], minlength=len(MODEL_NAMES))
+            # The most common model, or the most complex allowed one below it.
+            model = max((m for m in allowed if m <= int(np.argmax(counts_here))), default=allowed[0])
+            reason = (f"model {model}: inherited, most of its vertices had it in {Path(params).name} "
+                      f"({', '.join(f'model {m}: {c}' for m, c in enumerate(counts_here) if c)})")
+            log.info("cluster %d: %s", cluster, reason)
+            choices.append({"cluster": cluster, "model": model, "name": MODEL_NAMES[model], "reason": reason,
+                            "inherited": True, "candidates": {}, "seconds": time.perf_counter() - began})
+        elif selection.enabled:
+            choice = select_model(obs, store["normals"][rows], store["rho_d"][rows], eta0, fit_settings, selection,
+                                  settings, seed=seed + cluster)
+            model = choice.model
+            log.info("cluster %d: %s (%.1f s)", cluster, choice.reason, time.perf_counter() - began)
+            choices.append({"cluster": cluster, "model": model, "name": MODEL_NAMES[model], "reason": choice.reason,
+                            "best": choice.best, "train_vertices": choice.train_vertices,
+                            "held_out_vertices": choice.held_out_vertices,
+                            "held_out_samples": choice.held_out_samples,
+                            "candidates": {str(m): row for m, row in choice.candidates.items()},
+                            "seconds": time.perf_counter() - began})
+        else:
+            model = model_of(fit_settings)
+        mark("fit")
+        if lobe is None:
+            lobe = fit_cluster_lobe(obs, store["normals"][rows], store["rho_d"][rows], eta0,
+                                    settings_for_model(fit_settings, model, selection.sigma_ss_fixed), settings,
+                                    seed=seed + cluster)
+        log.info("cluster %d: %d vertices (%d confident), %d samples, model %d: eta %.3f sigma_s %.3f sigma_ss %.3f "
+                 "rho_s %.4g rho_ss %s", cluster, int(np.sum(clustering.labels == cluster)), members.size,
+                 lobe.samples, model, lobe.eta, lobe.sigma_s, lobe.sigma_ss, lobe.rho_s, np.round(lobe.rho_ss, 4))
+        lobes.append(lobe)
+        models.append(model)
+        mean_color = np.asarray(obs.diffuse)[np.asarray(obs.usable)].sum(0)
+        colors.append(mean_color / mean_color.sum() if mean_color.sum() > 0 else np.full(3, 1 / 3))
+        rows_out.append({"cluster": cluster, "vertices": int(np.sum(clustering.labels == cluster)), "eta": lobe.eta,
+                         "sigma_s": lobe.sigma_s, "sigma_ss": lobe.sigma_ss, "rho_s": lobe.rho_s,
+                         **{f"rho_ss_{c}": float(lobe.rho_ss[i]) for i, c in enumerate("rgb")},
+                         "samples": lobe.samples, "loss": lobe.loss, "model": model})
+    mark("write")
+    table = lobes_schema().validate(pd.DataFrame(rows_out, columns=list(LOBE_COLUMNS)))
+    vertex_models = np.asarray(models, np.uint8)[clustering.labels]
+    counts = {str(m): int(np.sum(vertex_models == m)) for m in sorted(MODEL_NAMES)}
+    log.info("vertices per model: %s", counts)
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    tmp = output.with_name(output.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    np.save(tmp / "labels.npy", clustering.labels.astype(np.int32))
+    np.save(tmp / "models.npy", vertex_models)
+    table.to_csv(tmp / "lobes.csv", index=False)
+    plot_lobes(tmp / "lobes.png", lobes, lambda i: colors[i], models)
+    summary = {"k": k, "bic": {str(key): value for key, value in clustering.bic.items()},
+               "k_bic": int(min(clustering.bic, key=clustering.bic.get)) if clustering.bic else k,
+               "merges": clustering.merges, "regions": clustering.regions, "degenerate": notes,
+               "clustered_vertices": int(clustering.used.sum()), "vertices": n, "seed": seed,
+               "settings": dataclasses.asdict(settings), "fit_settings": dataclasses.asdict(fit_settings),
+               "model_selection": {"enabled": selection.enabled, "settings": dataclasses.asdict(selection),
+                                   "allowed": allowed, "inherited": inherited is not None,
+                                   "models": [int(m) for m in models], "vertices_per_model": counts,
+                                   "clusters": choices}}
+    (tmp / "clusters.json").write_text(json.dumps(summary, indent=2))
+    shutil.rmtree(output, ignore_errors=True)
+    tmp.rename(output)
+    return summary

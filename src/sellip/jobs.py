@@ -1,0 +1,74 @@
+"""How a stage writes its outputs (every stage family uses it; it imports nothing of sellip): a directory built
+under a temporary name and renamed when complete (:func:`atomic_directory`), progress lines for long loops
+(:func:`progress_logger`), and an ordered thread map (:func:`map_in_threads`).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+
+
+@contextmanager
+def atomic_directory(output: str | Path):
+    """Yield a temporary sibling of ``output`` to write into; rename it to ``output`` on success, delete it on error."""
+    output = Path(output)
+    tmp = output.parent / f".{output.name}.tmp-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        yield tmp
+        if output.exists():
+            shutil.rmtree(output)
+        tmp.rename(output)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+
+def progress_logger(total: int, what: str, logger: logging.Logger = log,
+                    every_s: float = 5.0) -> Callable[[int], None]:
+    """A callback ``done(count)`` that logs progress with throughput at most every ``every_s`` seconds and at the end."""
+    started = time.perf_counter()
+    last = [started]
+
+    def done(count: int) -> None:
+        now = time.perf_counter()
+        if count == total or now - last[0] >= every_s:
+            last[0] = now
+            logger.info("%s %d/%d (%.2f /s)", what, count, total, count / max(now - started, 1e-9))
+
+    return done
+
+
+
+def map_in_threads(function: Callable[[int], object], count: int, threads: int,
+                   done: Callable[[int], None]) -> list:
+    """``[function(i) for i in range(count)]`` on ``threads`` threads, calling ``done(n)`` as results arrive in order.
+
+    On the first error the tasks not yet started are cancelled and the error is raised.
+    """
+    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        futures = [pool.submit(function, i) for i in range(count)]
+        results = []
+        try:
+            for future in futures:
+                results.append(future.result())
+                done(len(results))
+        except BaseException:
+            for future in futures:
+                future.cancel()
+            raise
+    return results
