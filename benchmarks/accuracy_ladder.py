@@ -35,6 +35,7 @@ def workflow_rung(capture: Path, name: str, results: Path, iterations: int, core
     """Run the workflow on ``capture`` (config.yaml, then ``overrides``; log in ``results/<name>.log``) and
     return the figures of its metrics.json."""
     from sellip.bench.sweep import SnakemakeRunner
+    from sellip.report.metrics import headline_figures
 
     metrics = results / name / "metrics.json"
     if not metrics.is_file():
@@ -42,14 +43,7 @@ def workflow_rung(capture: Path, name: str, results: Path, iterations: int, core
         print(f"{name}: snakemake, log {log}", flush=True)
         SnakemakeRunner(results.parent, cores=cores)(
             {"capture": str(capture), "name": name, "iterations": iterations, **overrides}, [], log)
-    m = json.loads(metrics.read_text())
-    held_out = m.get("psnr_held_out") or {}
-    return {"eta_per_material": m.get("eta_per_material"),
-            "eta_vertex_median_pct": m["eta_relative_error_pct"]["median"],
-            "eta_vertex_p90_pct": m["eta_relative_error_pct"].get("p90"),
-            "normal_median_deg": m["normal_error_deg"]["all"]["median"],
-            "normal_p90_deg": m["normal_error_deg"]["all"].get("p90"),
-            "held_out_psnr_db": held_out.get("mean_db")}
+    return headline_figures(json.loads(metrics.read_text()))
 
 
 def main(argv=None) -> int:

@@ -47,6 +47,7 @@ def run_size(scene: str, size: dict, work: Path, cores: int) -> dict:
     from sellip.bench.stability import held_out_views
     from sellip.bench.sweep import SnakemakeRunner
     from sellip.capture.synthetic import synthesize_capture
+    from sellip.report.metrics import headline_figures
 
     tag = f"{scene}_{size['views']}v_{size['width']}x{size['height']}_{size['max_vertices']}n_{size['iterations']}it"
     folder = work / tag
@@ -68,14 +69,10 @@ def run_size(scene: str, size: dict, work: Path, cores: int) -> dict:
     print(f"{tag}: snakemake ({size['iterations']} iterations), log {log}", flush=True)
     wall, cpu = SnakemakeRunner(folder, cores=cores)(config, [], log)
     metrics = json.loads((folder / "results" / "run" / "metrics.json").read_text())
-    per = metrics.get("eta_per_material") or {}
     record = {"tag": tag, **size, "views_fitted": size["views"] - HELD_OUT, "pixels": size["width"] * size["height"],
               "vertices": int(metrics["vertices"]["model"]), "wall_s": wall, "cpu_s": cpu, "synth_s": synth_s,
               "cores": cores, "benchmarks": str(folder / "results" / "run" / "benchmarks"),
-              "figures": {"eta_per_material_mean_pct": per.get("mean_error_pct"),
-                          "eta_per_material_max_pct": per.get("max_error_pct"),
-                          "normal_median_deg": metrics["normal_error_deg"]["all"]["median"],
-                          "held_out_psnr_db": (metrics.get("psnr_held_out") or {}).get("mean_db")}}
+              "figures": headline_figures(metrics)}
     record_path.write_text(json.dumps(record, indent=2))
     return record
 

@@ -199,3 +199,19 @@ def phase_table(rules: dict) -> str:
     lines.append("| **all** | " + str(sum(e["jobs"] for e in rules.values())) + " | "
                  + " | ".join(f"**{total[name]:.1f}**" for name in header[2:]) + " |")
     return "\n".join(lines)
+
+
+def read_benchmark(path: str | Path) -> dict:
+    """One Snakemake ``benchmark:`` file (tab-separated, one row per repeat): ``wall_s`` (mean of ``s``), ``cpu_s``
+    (mean of ``cpu_time``, user + system; NaN without the column) and ``max_rss_mb`` (max of ``max_rss``; NaN
+    without it). ValueError naming the file when it has no row with an ``s`` column."""
+    import math
+
+    import pandas as pd
+
+    table = pd.read_csv(path, sep="\t")
+    if table.empty or "s" not in table.columns:
+        raise ValueError(f"{path}: not a Snakemake benchmark file (no row with an 's' column)")
+    return {"wall_s": float(table["s"].mean()),
+            "cpu_s": float(table["cpu_time"].mean()) if "cpu_time" in table.columns else math.nan,
+            "max_rss_mb": float(table["max_rss"].max()) if "max_rss" in table.columns else math.nan}

@@ -1,1 +1,70 @@
-"""sellip.bench."""
+"""Benchmarks that run whole workflows to measure them (above report).
+
+The speed-accuracy sweep, the stability suite, the accuracy ladder and the scale runs: each plans
+Snakemake runs of the workflow, runs them and tabulates what they measured (docs/benchmarks.md).
+
+Modules and what they export (each name is importable from here too)::
+
+    ladder: The accuracy ladder (docs/accuracy.md): where the error of a reconstruction enters, rung by rung
+        render_hdr, fit_true_mesh, figures, resampled_truth, psnr_ceiling
+    scale: How each stage's cost grows with the capture (issue #20): per-job costs of measured workflow runs, a cost
+      model fitted to them, and the time it predicts for a capture that was not run (docs/speed.md, "Scale")
+        RULE_TERMS, ITERATED_RULES, SHARDED_RULES, CaptureSize, size_terms, job_costs, rule_costs, fit_cost_model,
+        predict
+    stability: The stability suite (issue #9): small reconstructions built to hit the known failure modes
+        BASE_VIEWS, BASE_SEED, PERTURB_SEED, StabilityError, CASES, CASE_NAMES, held_out_views, base_config,
+        case_config, perturb_along_normals, perturb_mesh_file, miscalibrate_flash, damage_frames, snakemake_command,
+        failure_reason, run_case, write_tables, run_suite
+    stability_table: The stability suite's measurements: one row per case from its results folder (figures of merit,
+      non-finite outputs, how well confidence flags bad vertices), the table's schema, and the markdown tables of
+      docs/benchmarks.md
+        Case, BAD_NORMAL_DEG, BAD_ETA_PCT, LOW_CONFIDENCE, rank_auc, confidence_flagging, INFINITE_WHEN_UNKNOWN,
+        nonfinite_outputs, COLUMNS, empty_row, case_row, validate_table, stability_markdown
+    sweep: Speed-accuracy sweep of the whole workflow (issue #9): one factor at a time from a base configuration
+        UPSTREAM_RULES, UPSTREAM_OUTPUTS, link_upstream, cache_entries, SnakemakeRunner, xla_compile_seconds,
+        RECOMPILE_FRACTION, RECORD, SweepPaths, prepare_scene, run_variant, run_sweep
+    sweep_plan: What the speed-accuracy sweep varies (:class:`Factor`, the presets), the nested-config helpers (get,
+      set, merge, the defaults of config/config.yaml) and the plan of runs (:class:`Variant`, one per factor value and
+      scene), with the checkout (``REPO``) whose Snakefile runs them and the sweep's error
+        REPO, SweepError, Factor, FACTORS, SCENE_FACTORS, PRESETS, get_key, set_key, merge, load_defaults,
+        value_label, Variant, plan_variants, variant_overrides
+    sweep_report: The sweep's report (``sellip bench-sweep``): η per material of a run's results against the truth,
+      the vertices per model, and the markdown tables and files the sweep writes (:func:`write_outputs`)
+        ior_of_results, SWEEP_MD, IOR_MD, AUG_MD, SIGMA_MD, MODEL_MD, vertex_models, tables_markdown, write_outputs
+    sweep_tables: The sweep's results: Pareto front, the table (one row per run, pandera-checked), the speed-
+      accuracy chart, the paper's comparisons (Table 1 eta, augmentation, sigma_ss, model selection) and markdown
+      tables; atomic writers of the figures and tables
+        pareto_front, TIME_RULES, FIGURES, SWEEP_COLUMNS, TIME_AXIS, job_cpu_seconds, sweep_row, sweep_schema,
+        sweep_table, CHART_FIGURES, sweep_figure, front_marks, save_figure_atomic, write_csv_atomic,
+        write_text_atomic, PAPER_TABLE1, PAPER_TABLE1_AVERAGE_PCT, PAPER_AUGMENTATION_PSNR_DB,
+        PAPER_SIGMA_SS_PSNR_DB, PAPER_SIGMA_SS_SAVING_PCT, ior_table, augmentation_table, sigma_ss_table,
+        model_selection_table, markdown_table
+
+See docs/architecture.md for what this package owns and what it may import.
+"""
+
+from sellip._exports import lazy_exports
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
+    "ladder": ("render_hdr", "fit_true_mesh", "figures", "resampled_truth", "psnr_ceiling"),
+    "scale": ("RULE_TERMS", "ITERATED_RULES", "SHARDED_RULES", "CaptureSize", "size_terms", "job_costs", "rule_costs",
+           "fit_cost_model", "predict"),
+    "stability": ("BASE_VIEWS", "BASE_SEED", "PERTURB_SEED", "StabilityError", "CASES", "CASE_NAMES", "held_out_views",
+           "base_config", "case_config", "perturb_along_normals", "perturb_mesh_file", "miscalibrate_flash",
+           "damage_frames", "snakemake_command", "failure_reason", "run_case", "write_tables", "run_suite"),
+    "stability_table": ("Case", "BAD_NORMAL_DEG", "BAD_ETA_PCT", "LOW_CONFIDENCE", "rank_auc", "confidence_flagging",
+           "INFINITE_WHEN_UNKNOWN", "nonfinite_outputs", "COLUMNS", "empty_row", "case_row", "validate_table",
+           "stability_markdown"),
+    "sweep": ("UPSTREAM_RULES", "UPSTREAM_OUTPUTS", "link_upstream", "cache_entries", "SnakemakeRunner",
+           "xla_compile_seconds", "RECOMPILE_FRACTION", "RECORD", "SweepPaths", "prepare_scene", "run_variant",
+           "run_sweep"),
+    "sweep_plan": ("REPO", "SweepError", "Factor", "FACTORS", "SCENE_FACTORS", "PRESETS", "get_key", "set_key", "merge",
+           "load_defaults", "value_label", "Variant", "plan_variants", "variant_overrides"),
+    "sweep_report": ("ior_of_results", "SWEEP_MD", "IOR_MD", "AUG_MD", "SIGMA_MD", "MODEL_MD", "vertex_models",
+           "tables_markdown", "write_outputs"),
+    "sweep_tables": ("pareto_front", "TIME_RULES", "FIGURES", "SWEEP_COLUMNS", "TIME_AXIS", "job_cpu_seconds", "sweep_row",
+           "sweep_schema", "sweep_table", "CHART_FIGURES", "sweep_figure", "front_marks", "save_figure_atomic",
+           "write_csv_atomic", "write_text_atomic", "PAPER_TABLE1", "PAPER_TABLE1_AVERAGE_PCT",
+           "PAPER_AUGMENTATION_PSNR_DB", "PAPER_SIGMA_SS_PSNR_DB", "PAPER_SIGMA_SS_SAVING_PCT", "ior_table",
+           "augmentation_table", "sigma_ss_table", "model_selection_table", "markdown_table"),
+})

@@ -73,6 +73,8 @@ def job_costs(benchmarks_dir: str | Path):
     rule, iteration (int, or -1 for a rule without iterations), wall_s, cpu_s (user + system), max_rss_mb."""
     import pandas as pd
 
+    from sellip.timing import read_benchmark
+
     rows = []
     benchmarks_dir = Path(benchmarks_dir)
     for path in sorted(benchmarks_dir.rglob("*.tsv")):
@@ -84,13 +86,7 @@ def job_costs(benchmarks_dir: str | Path):
             if not token.isdigit():
                 raise ValueError(f"{path}: a {rule} benchmark outside an iteration folder ({relative})")
             iteration = int(token)
-        table = pd.read_csv(path, sep="\t")
-        if table.empty or "s" not in table.columns:
-            raise ValueError(f"{path}: not a Snakemake benchmark file (no row with an 's' column)")
-        rows.append({"rule": rule, "iteration": iteration, "wall_s": float(table["s"].mean()),
-                     "cpu_s": float(table["cpu_time"].mean()) if "cpu_time" in table.columns else np.nan,
-                     "max_rss_mb": float(table["max_rss"].max()) if "max_rss" in table.columns else np.nan,
-                     "job": str(relative.with_suffix(""))})
+        rows.append({"rule": rule, "iteration": iteration, **read_benchmark(path), "job": str(relative.with_suffix(""))})
     if not rows:
         raise ValueError(f"no benchmark files under {benchmarks_dir}")
     return pd.DataFrame(rows)

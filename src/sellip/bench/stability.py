@@ -23,7 +23,7 @@ Public API::
     nonfinite_outputs(results_dir) -> dict[str, int]
     case_row(case, workdir, wall_s, error=None) -> dict
     STABILITY_SCHEMA, validate_table(rows) -> DataFrame
-    markdown_table(table) -> str
+    stability_markdown(table) -> str
     run_case(case, workdir, snakefile, cores=2, ...) -> dict
     run_suite(cases, out, snakefile, cores=2, ...) -> DataFrame       # writes stability.csv / .md
 
@@ -51,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sellip.bench.stability_table import Case, _fmt, case_row, markdown_table, validate_table
+from sellip.bench.stability_table import Case, _fmt, case_row, stability_markdown, validate_table
 from sellip.bench.sweep_plan import merge
 
 log = logging.getLogger(__name__)
@@ -180,7 +180,7 @@ def _write_atomic(path: Path, write: Callable[[Path], None]) -> None:
 def perturb_mesh_file(path: str | Path, sigma_m: float, seed: int) -> None:
     """Rewrite a mesh PLY (x y z nx ny nz, faces) with its vertices perturbed along its normals and the
     normals of the new surface (area-weighted); other properties kept. Atomic (temporary file + rename)."""
-    from sellip.capture.scenes import vertex_normals
+    from sellip.geometry.meshes import vertex_normals
     from sellip.model.ply import read_ply, write_ply
 
     path = Path(path)
@@ -189,7 +189,7 @@ def perturb_mesh_file(path: str | Path, sigma_m: float, seed: int) -> None:
         raise StabilityError(f"{path}: expected a triangle mesh with x y z nx ny nz vertex properties")
     xyz = np.stack([vertex[k] for k in "xyz"], axis=1)
     moved = perturb_along_normals(xyz, np.stack([vertex[k] for k in ("nx", "ny", "nz")], axis=1), sigma_m, seed)
-    normals = vertex_normals(moved, np.asarray(faces, np.int64))
+    normals = vertex_normals(moved, np.asarray(faces, np.int64), area_weighted=True)
     out = dict(vertex)
     for k, name in enumerate("xyz"):
         out[name] = moved[:, k].astype(vertex[name].dtype)
@@ -349,7 +349,7 @@ def write_tables(rows: Sequence[Mapping], out: str | Path) -> Path:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     _write_atomic(out / "stability.csv", lambda tmp: table.to_csv(tmp, index=False))
-    _write_atomic(out / "stability.md", lambda tmp: tmp.write_text(markdown_table(table)))
+    _write_atomic(out / "stability.md", lambda tmp: tmp.write_text(stability_markdown(table)))
     return out / "stability.csv"
 
 

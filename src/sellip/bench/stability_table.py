@@ -298,7 +298,7 @@ def _markdown(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]
     return lines + ["| " + " | ".join(row) + " |" for row in rows]
 
 
-def markdown_table(table) -> str:
+def stability_markdown(table) -> str:
     """The suite's tables in Markdown: the figures of merit per case, then finiteness and confidence flagging."""
     records = table.to_dict("records")
     merit, flags = [], []

@@ -69,6 +69,7 @@ def linearize_capture(capture_dir: str | Path, output: str | Path, threads: int 
     bad_frames: "error" raises :class:`sellip.capture.files.CaptureError` naming the file and its frames.csv row for a
     bad capture or frame, and nothing is written; "skip" leaves bad frames out (module docstring). Raises
     CaptureError when every frame is bad.
+    Long: the per-frame loop and its bad-frame policy share the store being written; split, they would pass it around.
     """
     if black_level_from not in BLACK_LEVEL_SOURCES:
         raise ValueError(f"black_level_from must be one of {BLACK_LEVEL_SOURCES}, got {black_level_from!r}")

@@ -53,6 +53,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from sellip.geometry.meshes import vertex_normals
 from sellip.model.pbrdf import PBRDFParams
 from sellip.model.render import Camera, ParamMesh
 
@@ -131,16 +132,6 @@ def icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
     return vertices, np.ascontiguousarray(faces)
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (V, 3) of a triangle mesh."""
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    face_normals = np.cross(b - a, c - a)  # length = twice the area
-    normals = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(normals, faces[:, k], face_normals)
-    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
-
-
 def random_unit_vectors(count: int, rng: np.random.Generator) -> np.ndarray:
     v = rng.normal(size=(count, 3))
     return v / np.linalg.norm(v, axis=1, keepdims=True)
@@ -199,7 +190,9 @@ def _demo(relief_m: float = 0.0, name: str = "demo", fine: bool = False) -> Scen
     ``fine=False`` (the demo): feathers in soft patches of about 9 mm and eyes of 12 mm, detail that the demo's
     6k-vertex model (2.3 mm edges) and 612x512 pixels (0.5 mm) can carry. ``fine=True`` (demo_fine, the demo
     until 2026-11-25): 3 mm feather cells with dark edges and a speckle of 12,000 cells at the HDR pixel, 2 mm
-    eyeballs in deep sockets. ``relief_m``: height of a feather relief between the 3 mm cells (0: none)."""
+    eyeballs in deep sockets. ``relief_m``: height of a feather relief between the 3 mm cells (0: none).
+
+    Long: one object built part by part (shape, eyes, beak, disc, feathers, materials), read top to bottom."""
     rng = np.random.default_rng(20220804)
     d, faces = icosphere(7)
     x, y, z = d[:, 0], d[:, 1], d[:, 2]
@@ -272,7 +265,7 @@ def _demo(relief_m: float = 0.0, name: str = "demo", fine: bool = False) -> Scen
     albedo[region == 1] *= (0.8 + 0.35 * np.cos(bars * z[region == 1]) ** 2)[:, None]  # chevron bars
     albedo = np.clip(albedo, 0.005, 0.6)
 
-    mesh = ParamMesh(vertices=vertices, faces=faces, normals=vertex_normals(vertices, faces),
+    mesh = ParamMesh(vertices=vertices, faces=faces, normals=vertex_normals(vertices, faces, area_weighted=True),
                      params=_params_from_regions(materials, region, albedo), material=region)
     return Scene(name, mesh, materials, flash_power=64000.0)
 
@@ -334,7 +327,7 @@ def _two_material_sphere(name: str, materials: tuple[Material, Material], checke
         radius = radius + feather_relief(f1, edge, cell_rad, relief_m)
     shaped = bool(bumps) or bool(relief_m)
     vertices = radius[:, None] * d if shaped else 0.04 * d
-    normals = vertex_normals(vertices, faces) if shaped else d.copy()
+    normals = vertex_normals(vertices, faces, area_weighted=True) if shaped else d.copy()
     mesh = ParamMesh(vertices=vertices, faces=faces, normals=normals,
                      params=_params_from_regions(materials, region, albedo), material=region)
     return Scene(name, mesh, materials, flash_power=flash_power)
@@ -445,7 +438,7 @@ def _cow() -> Scene:
     albedo = np.asarray(COW_PATCH_ALBEDO, np.float64)[np.where(black[cell], 0, 1)]
     material = Material("cow", eta=1.5, rho_d=COW_PATCH_ALBEDO[1], rho_s=0.8, sigma_s=0.2)
     region = np.zeros(len(d), np.int64)
-    mesh = ParamMesh(vertices=vertices, faces=faces, normals=vertex_normals(vertices, faces),
+    mesh = ParamMesh(vertices=vertices, faces=faces, normals=vertex_normals(vertices, faces, area_weighted=True),
                      params=_params_from_regions((material,), region, albedo), material=region)
     return Scene("cow", mesh, (material,), flash_power=TINY_FLASH_POWER)
 

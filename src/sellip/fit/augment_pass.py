@@ -19,12 +19,72 @@ from sellip.fit.lobe_store import LOBE_COLUMNS, load_rows, lobes_schema, plot_lo
 log = logging.getLogger(__name__)
 
 
+def _choose_model(cluster: int, obs, store: dict, rows, eta0: float, clustering, inherited, allowed, params,
+                  fit_settings, selection, settings, seed: int, notes: list):
+    """(model, lobe or None, the choice's record for clusters.json or None) of one cluster: no lobe without a usable
+    sample (a note), the model most of its vertices had (``inherited``), the model selection's, or the fit
+    settings' model."""
+    from sellip.fit.lobes import no_lobe
+    from sellip.fit.records import model_of
+    from sellip.fit.selection import select_model
+    from sellip.model.params import MODEL_NAMES
+
+    began, lobe, choice = time.perf_counter(), None, None
+    if not np.asarray(obs.usable).any():
+        model, lobe = 0, no_lobe(eta0)
+        reason = "no usable (vertex, view) sample: no lobe (model 0)"
+        notes.append(f"cluster {cluster}: {reason}")
+        log.warning("%s", notes[-1])
+        choice = {"cluster": cluster, "model": model, "name": MODEL_NAMES[model], "reason": reason,
+                  "candidates": {}, "seconds": 0.0}
+    elif inherited is not None:
+        counts_here = np.bincount(inherited[clustering.labels == cluster], minlength=len(MODEL_NAMES))
+        # The most common model, or the most complex allowed one below it.
+        model = max((m for m in allowed if m <= int(np.argmax(counts_here))), default=allowed[0])
+        reason = (f"model {model}: inherited, most of its vertices had it in {Path(params).name} "
+                  f"({', '.join(f'model {m}: {c}' for m, c in enumerate(counts_here) if c)})")
+        log.info("cluster %d: %s", cluster, reason)
+        choice = {"cluster": cluster, "model": model, "name": MODEL_NAMES[model], "reason": reason,
+                  "inherited": True, "candidates": {}, "seconds": time.perf_counter() - began}
+    elif selection.enabled:
+        picked = select_model(obs, store["normals"][rows], store["rho_d"][rows], eta0, fit_settings, selection,
+                              settings, seed=seed + cluster)
+        model = picked.model
+        log.info("cluster %d: %s (%.1f s)", cluster, picked.reason, time.perf_counter() - began)
+        choice = {"cluster": cluster, "model": model, "name": MODEL_NAMES[model], "reason": picked.reason,
+                  "best": picked.best, "train_vertices": picked.train_vertices,
+                  "held_out_vertices": picked.held_out_vertices, "held_out_samples": picked.held_out_samples,
+                  "candidates": {str(m): row for m, row in picked.candidates.items()},
+                  "seconds": time.perf_counter() - began}
+    else:
+        model = model_of(fit_settings)
+    return model, lobe, choice
+
+
+def _write_directory(output: Path, labels, vertex_models, table, lobes, colors, models, summary: dict) -> None:
+    """The cluster-lobes directory (:mod:`sellip.fit.lobe_store`), built under a temporary name, then renamed."""
+    output.parent.mkdir(parents=True, exist_ok=True)
+    tmp = output.with_name(output.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    np.save(tmp / "labels.npy", labels.astype(np.int32))
+    np.save(tmp / "models.npy", vertex_models)
+    table.to_csv(tmp / "lobes.csv", index=False)
+    plot_lobes(tmp / "lobes.png", lobes, lambda i: colors[i], models)
+    (tmp / "clusters.json").write_text(json.dumps(summary, indent=2))
+    shutil.rmtree(output, ignore_errors=True)
+    tmp.rename(output)
+
+
 def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: int = 0, settings=None,
               fit_settings=None, compilation_cache: str | None = None, selection=None,
               inherit_models: bool = False) -> dict:
     """Cluster the vertices of ``params``, choose each cluster's model (``selection``:
     :class:`sellip.fit.selection.SelectionSettings`, default on), fit the cluster lobes on ``observations``,
-    write ``output``."""
+    write ``output``.
+
+    Long: the per-cluster loop gathers the lobes table, the plot's colours and the choices that clusters.json
+    records side by side; the model choice and the writing are :func:`_choose_model` and :func:`_write_directory`."""
     from sellip.timing import mark
 
     mark("imports")
@@ -37,10 +97,10 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
     import pandas as pd
 
     from sellip.fit.clusters import AugmentSettings, cluster_materials
-    from sellip.fit.lobes import fit_cluster_lobe, no_lobe
+    from sellip.fit.lobes import fit_cluster_lobe
     from sellip.fit.observe import ObserveError, open_observations
-    from sellip.fit.records import FitSettings, model_of
-    from sellip.fit.selection import SelectionSettings, allowed_models, select_model, settings_for_model
+    from sellip.fit.records import FitSettings
+    from sellip.fit.selection import SelectionSettings, allowed_models, settings_for_model
     from sellip.model.params import MODEL_NAMES, read_params, same_vertices
 
     settings = settings or AugmentSettings()
@@ -91,36 +151,10 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
         eta0 = float(np.median(store["eta"][members]))
         if not np.isfinite(eta0):
             eta0 = 1.5  # DESIGN §5's start
-        began, lobe = time.perf_counter(), None
-        if not np.asarray(obs.usable).any():
-            model, lobe = 0, no_lobe(eta0)
-            reason = "no usable (vertex, view) sample: no lobe (model 0)"
-            notes.append(f"cluster {cluster}: {reason}")
-            log.warning("%s", notes[-1])
-            choices.append({"cluster": cluster, "model": model, "name": MODEL_NAMES[model], "reason": reason,
-                            "candidates": {}, "seconds": 0.0})
-        elif inherited is not None:
-            counts_here = np.bincount(inherited[clustering.labels == cluster], minlength=len(MODEL_NAMES))
-            # The most common model, or the most complex allowed one below it.
-            model = max((m for m in allowed if m <= int(np.argmax(counts_here))), default=allowed[0])
-            reason = (f"model {model}: inherited, most of its vertices had it in {Path(params).name} "
-                      f"({', '.join(f'model {m}: {c}' for m, c in enumerate(counts_here) if c)})")
-            log.info("cluster %d: %s", cluster, reason)
-            choices.append({"cluster": cluster, "model": model, "name": MODEL_NAMES[model], "reason": reason,
-                            "inherited": True, "candidates": {}, "seconds": time.perf_counter() - began})
-        elif selection.enabled:
-            choice = select_model(obs, store["normals"][rows], store["rho_d"][rows], eta0, fit_settings, selection,
-                                  settings, seed=seed + cluster)
-            model = choice.model
-            log.info("cluster %d: %s (%.1f s)", cluster, choice.reason, time.perf_counter() - began)
-            choices.append({"cluster": cluster, "model": model, "name": MODEL_NAMES[model], "reason": choice.reason,
-                            "best": choice.best, "train_vertices": choice.train_vertices,
-                            "held_out_vertices": choice.held_out_vertices,
-                            "held_out_samples": choice.held_out_samples,
-                            "candidates": {str(m): row for m, row in choice.candidates.items()},
-                            "seconds": time.perf_counter() - began})
-        else:
-            model = model_of(fit_settings)
+        model, lobe, choice = _choose_model(cluster, obs, store, rows, eta0, clustering, inherited, allowed, params,
+                                            fit_settings, selection, settings, seed, notes)
+        if choice is not None:
+            choices.append(choice)
         mark("fit")
         if lobe is None:
             lobe = fit_cluster_lobe(obs, store["normals"][rows], store["rho_d"][rows], eta0,
@@ -142,15 +176,6 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
     vertex_models = np.asarray(models, np.uint8)[clustering.labels]
     counts = {str(m): int(np.sum(vertex_models == m)) for m in sorted(MODEL_NAMES)}
     log.info("vertices per model: %s", counts)
-    output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(output.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    np.save(tmp / "labels.npy", clustering.labels.astype(np.int32))
-    np.save(tmp / "models.npy", vertex_models)
-    table.to_csv(tmp / "lobes.csv", index=False)
-    plot_lobes(tmp / "lobes.png", lobes, lambda i: colors[i], models)
     summary = {"k": k, "bic": {str(key): value for key, value in clustering.bic.items()},
                "k_bic": int(min(clustering.bic, key=clustering.bic.get)) if clustering.bic else k,
                "merges": clustering.merges, "regions": clustering.regions, "degenerate": notes,
@@ -160,7 +185,5 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
                                    "allowed": allowed, "inherited": inherited is not None,
                                    "models": [int(m) for m in models], "vertices_per_model": counts,
                                    "clusters": choices}}
-    (tmp / "clusters.json").write_text(json.dumps(summary, indent=2))
-    shutil.rmtree(output, ignore_errors=True)
-    tmp.rename(output)
+    _write_directory(Path(output), clustering.labels, vertex_models, table, lobes, colors, models, summary)
     return summary

@@ -358,6 +358,25 @@ def _eta_cut(features, used, centres, rng) -> tuple[int, int, float] | None:
     return best
 
 
+def _merge_while(centres: np.ndarray, is_region: np.ndarray, find, merges: list) -> tuple[np.ndarray, np.ndarray]:
+    """Merge clusters while ``find(centres, is_region)`` names one: it returns None, or (drop, into, vertices,
+    reason, members): ``drop`` is merged into ``into`` (recorded in ``merges`` and logged), whose centre becomes the
+    mean of ``members`` (the features of both clusters' vertices; kept when there are none). ``is_region`` (K,)
+    flags follow the centres. Returns the centres and flags left."""
+    while len(centres) > 1:
+        found = find(centres, is_region)
+        if found is None:
+            break
+        drop, into, vertices, reason, members = found
+        merges.append({"cluster": drop, "vertices": vertices, "into": into, "reason": reason})
+        log.info("cluster %d (%d vertices) merged into cluster %d: %s", drop, vertices, into, reason)
+        centres = centres.copy()
+        if len(members):
+            centres[into] = members.mean(0)
+        centres, is_region = np.delete(centres, drop, axis=0), np.delete(is_region, drop)
+    return centres, is_region
+
+
 def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings = AugmentSettings(),
                       seed: int = 0, vertices=None) -> Clustering:
     """Material clusters of N vertices from their fitted eta (N,), rho_d (N, 3), status (N,) and confidence (N,).
@@ -374,6 +393,7 @@ def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings 
     Last, two clusters that are one material cut along its eta (:func:`_eta_cut`) are merged, closest first. Every
     vertex, also unfitted ones, is labelled with its nearest centre; labels are ordered by cluster size (0 the
     largest).
+    Long: the merge rules' finders are closures over the features and the pool; the driver is :func:`_merge_while`.
     """
     rng = np.random.default_rng(seed)
     features = cluster_features(eta, rho_d)
@@ -392,65 +412,56 @@ def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings 
     if pool.size > settings.cluster_points:
         pool = np.sort(rng.choice(pool, settings.cluster_points, replace=False))
     _, centres, values = choose_k(features[pool], settings.k_max, rng, settings.restarts)
-    merges = []
-    while len(centres) > 1:
+    def too_small(centres, is_region):
         labels = np.argmin(_squared_distances(features[pool], centres), 1)
         counts = np.bincount(labels, minlength=len(centres))
         small = int(np.argmin(counts))
         if counts[small] >= settings.min_cluster_vertices:
-            break
+            return None
         others = np.delete(np.arange(len(centres)), small)
         into = int(others[np.argmin(_squared_distances(centres[small][None], centres[others])[0])])
-        merges.append({"cluster": small, "vertices": int(counts[small]), "into": into,
-                       "reason": f"{int(counts[small])} confident vertices < min_cluster_vertices "
-                                 f"{settings.min_cluster_vertices}"})
-        log.info("cluster %d (%d confident vertices) merged into cluster %d: fewer than %d", small,
-                 counts[small], into, settings.min_cluster_vertices)
-        members = (labels == small) | (labels == into)
-        centres[into] = features[pool][members].mean(0)
-        centres = centres[others]
-    near = nearest_vertices(vertices, settings.coherence_neighbours) if vertices is not None and settings.min_coherence > 0 \
-        else None
-    regions, notes = [], []
-    if near is not None:
-        centres, regions, notes = _region_centres(features, used, centres, near, settings, rng)
-    # A region passed the coherence test as a group. As a cluster its centre also takes vertices of a similar albedo
-    # elsewhere and its coherence can fall (the demo's eyes with 24 views: the group 0.65, its cluster 0.43): the
-    # test below skips regions.
-    is_region = np.arange(len(centres)) >= len(centres) - len(regions)
-    while near is not None and len(centres) > 1:
+        return (small, into, int(counts[small]), f"{int(counts[small])} confident vertices < min_cluster_vertices "
+                f"{settings.min_cluster_vertices}", features[pool][(labels == small) | (labels == into)])
+
+    def incoherent(centres, is_region):
         labels = np.argmin(_squared_distances(features, centres), 1)
         coherence = _coherence(labels, near)
         coherence = np.where(np.isnan(coherence) | is_region, np.inf, coherence)  # an empty cluster: no region
         worst = int(np.argmin(coherence))
         if coherence[worst] >= settings.min_coherence:
-            break
+            return None
         members = np.flatnonzero(labels == worst)
         around = labels[near[members]].ravel()
         others = np.delete(np.arange(len(centres)), worst)
         into = int(others[np.argmax(np.bincount(around, minlength=len(centres))[others])])
-        merges.append({"cluster": worst, "vertices": int(members.size), "into": into,
-                       "reason": f"spatially incoherent: {coherence[worst]:.2f} of its vertices' neighbours in it "
-                                 f"< min_coherence {settings.min_coherence}"})
-        log.info("cluster %d (%d vertices) merged into cluster %d: spatially incoherent (%.2f of its vertices' "
-                 "neighbours in it)", worst, members.size, into, coherence[worst])
-        merged = used & ((labels == worst) | (labels == into))
-        if merged.any():
-            centres[into] = features[merged].mean(0)
-        centres, is_region = centres[others], is_region[others]
-    while near is not None and len(centres) > 1:
+        return (worst, into, int(members.size), f"spatially incoherent: {coherence[worst]:.2f} of its vertices' "
+                f"neighbours in it < min_coherence {settings.min_coherence}",
+                features[used & ((labels == worst) | (labels == into))])
+
+    def eta_cut(centres, is_region):
         cut = _eta_cut(features, used, centres, rng)
         if cut is None:
-            break
+            return None
         keep, drop, separation = cut
         labels = np.argmin(_squared_distances(features, centres), 1)
-        merges.append({"cluster": drop, "vertices": int(np.sum(used & (labels == drop))), "into": keep,
-                       "reason": f"one material cut along its eta: mean albedos {separation:.2f} pooled sd apart, "
-                                 f"one mode between the centres (< {CUT_ALBEDO_SD:g} sd) or two albedo modes of "
-                                 f"one eta (< {CUT_MODES_ALBEDO_SD:g} sd)"})
-        log.info("cluster %d merged into cluster %d: %s", drop, keep, merges[-1]["reason"])
-        centres[keep] = features[used & ((labels == keep) | (labels == drop))].mean(0)
-        centres = np.delete(centres, drop, axis=0)
+        return (drop, keep, int(np.sum(used & (labels == drop))),
+                f"one material cut along its eta: mean albedos {separation:.2f} pooled sd apart, one mode between "
+                f"the centres (< {CUT_ALBEDO_SD:g} sd) or two albedo modes of one eta (< {CUT_MODES_ALBEDO_SD:g} sd)",
+                features[used & ((labels == keep) | (labels == drop))])
+
+    merges = []
+    centres, _ = _merge_while(centres, np.zeros(len(centres), bool), too_small, merges)
+    near = nearest_vertices(vertices, settings.coherence_neighbours) if vertices is not None and settings.min_coherence > 0 \
+        else None
+    regions, notes = [], []
+    if near is not None:
+        centres, regions, notes = _region_centres(features, used, centres, near, settings, rng)
+        # A region passed the coherence test as a group. As a cluster its centre also takes vertices of a similar
+        # albedo elsewhere and its coherence can fall (the demo's eyes with 24 views: the group 0.65, its cluster
+        # 0.43): the coherence test skips regions.
+        is_region = np.arange(len(centres)) >= len(centres) - len(regions)
+        centres, _ = _merge_while(centres, is_region, incoherent, merges)
+        centres, _ = _merge_while(centres, np.zeros(len(centres), bool), eta_cut, merges)
     counts = np.bincount(np.argmin(_squared_distances(features[pool], centres), 1), minlength=len(centres))
     order = np.argsort(-counts, kind="stable")
     centres = centres[order]

@@ -24,7 +24,9 @@ def finalize_model(params_path: Path, mesh_path: Path, output_model: Path, outpu
     with its rho_s) unless the vertex's sigma_s differs by more than ``lobe_deviation_sigmas`` of its std (at
     least 0.01, the rule's floor), and either way only where at least ``deviation_support`` of its 6 nearest vertices
     deviate the same way (:func:`sellip.fit.lobes.material_or_own`; <= 0: every vertex's own). An eta pinned at a bound
-    (:func:`sellip.fit.parameterization.eta_at_bound`) is no estimate: the vertex takes its material's, and is not in its median."""
+    (:func:`sellip.fit.parameterization.eta_at_bound`) is no estimate: the vertex takes its material's, and is not in its median.
+
+    Long: one job's steps in order (read, per-material values, fill, confidence, write), each a call."""
     from sellip.fit.clusters import AugmentSettings, nearest_vertices
     from sellip.fit.lobe_store import read_lobes
     from sellip.fit.lobes import cluster_medians, material_or_own

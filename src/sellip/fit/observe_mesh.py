@@ -87,6 +87,7 @@ def observe_mesh(mesh_path: str | Path, cameras_path: str | Path, hdr_path: str 
 
     ``exclude_views``: views left out of the store (held out for evaluation, never used in the fit).
     ``max_views``: keep only this many of the other views, spread evenly (:func:`spread_subset`); None: all.
+    Long: one job's steps in order (pair, check, cameras, observe, write), each a call.
     """
     from sellip.capture.hdr import read_hdr
     from sellip.geometry.cameras import read_cameras

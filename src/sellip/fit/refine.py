@@ -120,7 +120,9 @@ def refine_geometry(params_path: Path, mesh_path: Path, output: Path, smoothness
     """Write the next iteration's mesh ``output`` and ``<output>.json``; returns the summary written there.
     ``min_confidence``: the vertices whose normal agreement is reported. ``silhouette`` > 0: the weight of the
     silhouette constraints of the photographs (``cameras_path``, ``hdr_path``, ``capture_path`` needed; the
-    ``exclude_views`` not used; ``mask_options`` of :func:`sellip.geometry.silhouettes.silhouette_masks`)."""
+    ``exclude_views`` not used; ``mask_options`` of :func:`sellip.geometry.silhouettes.silhouette_masks`).
+
+    Long: one job's steps in order (read, blend, silhouettes, integrate, carry parameters, write), each a call."""
     from sellip.fit.observe import read_mesh
     from sellip.fit.vertex_fit import confidence_from_uncertainty
     from sellip.geometry.meshes import angular_error_deg, blend_normals, mesh_distances, vertex_normals

@@ -94,7 +94,9 @@ def fit_shard(observations: Path, shard: tuple[int, int], output: Path, prior: P
               lobes: Path | None = None, fixed_sigma_ss: float = 0.9) -> dict:
     """Fit one shard and write ``output`` (.npz, atomically); with ``lobes`` the augmented refit.
     Every vertex is fitted with its model (module docstring); ``fixed_sigma_ss`` is model 2's
-    sigma_ss when ``settings.sigma_ss_fixed`` is None. Returns a summary dict."""
+    sigma_ss when ``settings.sigma_ss_fixed`` is None. Returns a summary dict.
+
+    Long: one job's steps in order (read, prior, virtual samples, fit by model, write), each a call."""
     from sellip.timing import mark
 
     mark("imports")

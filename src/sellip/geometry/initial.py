@@ -23,7 +23,7 @@ from sellip.model.ply import read_ply, write_ply
 log = logging.getLogger(__name__)
 
 
-MODES = ("hull", "mvs", "mesh")
+INIT_MODES = ("hull", "mvs", "mesh")
 
 
 

@@ -173,15 +173,25 @@ def remesh_to_count(vertices: np.ndarray, faces: np.ndarray, target_vertices: in
     return out_vertices, out_faces
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unit vertex normals (V, 3) of a mesh with counter-clockwise faces seen from outside (open3d)."""
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray, area_weighted: bool = False) -> np.ndarray:
+    """Unit vertex normals (V, 3) of a mesh with counter-clockwise faces seen from outside.
+
+    ``area_weighted=False``: open3d's ``compute_vertex_normals`` (the sum of the unit normals of a vertex's faces),
+    what the reconstruction uses; True: the sum of the face normals weighted by their areas (the synthetic scenes'
+    ground truth, where faces differ in size)."""
+    if area_weighted:
+        a, b, c = (vertices[faces[:, k]] for k in range(3))
+        face_normals = np.cross(b - a, c - a)  # length = twice the area
+        normals = np.zeros_like(vertices)
+        for k in range(3):
+            np.add.at(normals, faces[:, k], face_normals)
+        return normals / np.linalg.norm(normals, axis=1, keepdims=True)
     import open3d as o3d
 
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(vertices, np.float64)),
                                      o3d.utility.Vector3iVector(np.asarray(faces, np.int32)))
     mesh.compute_vertex_normals()
     return np.asarray(mesh.vertex_normals, np.float64)
-
 
 
 def blend_normals(fitted: np.ndarray, geometric: np.ndarray, confidence: np.ndarray) -> np.ndarray:

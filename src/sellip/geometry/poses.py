@@ -22,7 +22,7 @@ from sellip.model.ply import write_ply
 log = logging.getLogger(__name__)
 
 
-MODES = ("known", "verify", "sfm")
+POSE_MODES = ("known", "verify", "sfm")
 
 
 
@@ -59,7 +59,9 @@ def compare_to_known(result: sfm.SfmResult, known_rotations: np.ndarray, known_t
 def solve_poses(hdr_path: str | Path, capture_path: str | Path, cameras_path: str | Path, output: str | Path,
               mode: str = "known", options: sfm.SfmOptions = sfm.SfmOptions(), min_registered_fraction: float = 0.9,
               feature_object_px: float = 400.0, max_upscale: int = 3, mask_options: dict | None = None) -> dict:
-    """Run the stage (see the module docstring); returns the report."""
+    """Run the stage (see the module docstring); returns the report.
+
+    Long: the three modes share their reading, scaling and writing; one function keeps their order visible."""
     from sellip.capture.hdr import read_hdr
     from sellip.jobs import atomic_directory
 

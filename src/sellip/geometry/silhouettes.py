@@ -6,6 +6,7 @@ Images are (V, H, W[, C]) batch first; pixel centres at integer coordinates (Ope
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass
 
@@ -41,8 +42,28 @@ def background_noise(luminance: np.ndarray, usable: np.ndarray) -> tuple[float, 
     return background, 1.4826 * float(np.median(background - below)) if below.size else 0.0
 
 
-def silhouette_level(image: np.ndarray, valid: np.ndarray | None = None, threshold: float = 0.03,
-                     percentile: float = 99.0) -> tuple[np.ndarray, float]:
+@dataclass(frozen=True)
+class SilhouetteOptions:
+    """How a silhouette is cut (:func:`silhouette_masks`, :meth:`Silhouette.of`): ``threshold`` times the
+    ``percentile`` of the pixels above the background's noise floor is the level (:func:`silhouette_level`); then an
+    opening with a disk of ``open_px`` (noise specks), a closing with ``close_px`` (cracks), background holes
+    smaller than ``max_hole_fraction`` of the object area filled, object blobs smaller than ``min_blob_fraction`` of
+    the largest dropped (docs/geometry.md)."""
+
+    threshold: float = 0.03
+    percentile: float = 99.0
+    open_px: int = 1
+    close_px: int = 2
+    max_hole_fraction: float = 0.02
+    min_blob_fraction: float = 0.01
+
+
+DEFAULT_SILHOUETTE = SilhouetteOptions()
+
+
+def silhouette_level(image: np.ndarray, valid: np.ndarray | None = None,
+                     threshold: float = DEFAULT_SILHOUETTE.threshold,
+                     percentile: float = DEFAULT_SILHOUETTE.percentile) -> tuple[np.ndarray, float]:
     """The luminance (H, W) float32 (mean over channels of an (H, W) or (H, W, C) image, NaN as 0) and the level
     above which :func:`silhouette_masks` calls a pixel object: ``threshold`` times the ``percentile`` of the
     ``valid`` pixels above the background's noise floor (:func:`background_noise`, :data:`BACKGROUND_NOISE_SIGMAS`
@@ -70,9 +91,7 @@ def silhouette_level(image: np.ndarray, valid: np.ndarray | None = None, thresho
                           floor)
 
 
-def silhouette_masks(images: np.ndarray, valid: np.ndarray | None = None, threshold: float = 0.03,
-                     percentile: float = 99.0, open_px: int = 1, close_px: int = 2,
-                     max_hole_fraction: float = 0.02, min_blob_fraction: float = 0.01) -> np.ndarray:
+def silhouette_masks(images: np.ndarray, valid: np.ndarray | None = None, **options) -> np.ndarray:
     """Object silhouettes of flash photographs (the lit object against a dark background).
 
     images: (V, H, W) or (V, H, W, C) linear intensities (e.g. I_d); valid: optional (V, H, W) bool
@@ -83,30 +102,32 @@ def silhouette_masks(images: np.ndarray, valid: np.ndarray | None = None, thresh
     disk of ``open_px`` (noise specks), closing with ``close_px`` (cracks), background holes
     smaller than ``max_hole_fraction`` of the object area filled (dark texture inside the object;
     larger holes such as a torus's are kept), object blobs smaller than ``min_blob_fraction`` of
-    the largest removed. Returns (V, H, W) bool.
+    the largest removed: ``options`` are fields of :class:`SilhouetteOptions` (its defaults otherwise).
+    Returns (V, H, W) bool.
     """
+    cut = dataclasses.replace(DEFAULT_SILHOUETTE, **options)
     images = np.asarray(images)
     masks = np.zeros(images.shape[:3], bool)
     for k in range(len(images)):
         view_valid = None if valid is None else valid[k]
-        luminance, level = silhouette_level(images[k], view_valid, threshold, percentile)
-        masks[k] = _cut(luminance, level, view_valid, open_px, close_px, max_hole_fraction, min_blob_fraction)
+        luminance, level = silhouette_level(images[k], view_valid, cut.threshold, cut.percentile)
+        masks[k] = _cut(luminance, level, view_valid, cut)
     return masks
 
 
-def _cut(luminance: np.ndarray, level: float, valid: np.ndarray | None, open_px: int, close_px: int,
-         max_hole_fraction: float, min_blob_fraction: float) -> np.ndarray:
+def _cut(luminance: np.ndarray, level: float, valid: np.ndarray | None, cut: SilhouetteOptions) -> np.ndarray:
     """One view's mask of :func:`silhouette_masks` from its luminance (H, W) and level (all False at level 0)."""
     if level <= 0:
         return np.zeros(luminance.shape, bool)
     mask = luminance > level
     if valid is not None:
         mask |= ~np.asarray(valid, bool) & ndimage.binary_dilation(mask)
-    if open_px:
-        mask = ndimage.binary_opening(mask, _disk(open_px))
-    if close_px:
-        mask = ndimage.binary_closing(np.pad(mask, close_px), _disk(close_px))[close_px:-close_px, close_px:-close_px]
-    return _clean_components(mask, max_hole_fraction, min_blob_fraction)
+    if cut.open_px:
+        mask = ndimage.binary_opening(mask, _disk(cut.open_px))
+    if cut.close_px:
+        c = cut.close_px
+        mask = ndimage.binary_closing(np.pad(mask, c), _disk(c))[c:-c, c:-c]
+    return _clean_components(mask, cut.max_hole_fraction, cut.min_blob_fraction)
 
 
 def _clean_components(mask: np.ndarray, max_hole_fraction: float, min_blob_fraction: float) -> np.ndarray:
@@ -146,13 +167,11 @@ class Silhouette:
     level: float
 
     @staticmethod
-    def of(image: np.ndarray, valid: np.ndarray | None = None, threshold: float = 0.03, percentile: float = 99.0,
-           open_px: int = 1, close_px: int = 2, max_hole_fraction: float = 0.02,
-           min_blob_fraction: float = 0.01) -> Silhouette:
-        """The silhouette of one (H, W) or (H, W, C) image; the options of :func:`silhouette_masks`."""
-        luminance, level = silhouette_level(image, valid, threshold, percentile)
-        return Silhouette(_cut(luminance, level, valid, open_px, close_px, max_hole_fraction, min_blob_fraction),
-                          luminance, level)
+    def of(image: np.ndarray, valid: np.ndarray | None = None, **options) -> Silhouette:
+        """The silhouette of one (H, W) or (H, W, C) image; ``options``: fields of :class:`SilhouetteOptions`."""
+        cut = dataclasses.replace(DEFAULT_SILHOUETTE, **options)
+        luminance, level = silhouette_level(image, valid, cut.threshold, cut.percentile)
+        return Silhouette(_cut(luminance, level, valid, cut), luminance, level)
 
     @functools.cached_property
     def distance(self) -> np.ndarray:

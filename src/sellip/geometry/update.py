@@ -148,6 +148,7 @@ def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals:
     ``silhouette_weight sum_k (g_k . (x_i + d_i m_i - x0_i) - offset_k)^2``: each contour vertex moves its
     view's silhouette onto the observed one. This is what fixes the mean offset and size that normals cannot tell,
     and that the anchor would otherwise keep from the initial mesh.
+    Long: the rounds of one sparse least-squares problem (normal targets, smoothness, anchor, silhouettes).
     """
     from scipy import sparse
     from scipy.sparse.linalg import cg, spsolve

@@ -242,16 +242,6 @@ def render_mask(measured_analyzers: np.ndarray, valid: np.ndarray, coverage: np.
 # --------------------------------------------------------------------------- timings
 
 
-def _benchmark_seconds(path: Path) -> float:
-    """Wall time of one Snakemake benchmark file: the mean of its ``s`` column (one row per repeat)."""
-    import pandas as pd
-
-    table = pd.read_csv(path, sep="\t")
-    if "s" not in table.columns or table.empty:
-        raise ValueError(f"{path}: not a Snakemake benchmark file (expected a tab-separated 's' column)")
-    return float(table["s"].mean())
-
-
 def stage_timings(benchmarks_dir: str | Path, results_dir: str | Path | None = None) -> dict:
     """Wall time per rule from Snakemake ``benchmark:`` files, and vertex fits per second.
 
@@ -265,7 +255,7 @@ def stage_timings(benchmarks_dir: str | Path, results_dir: str | Path | None = N
     read, trace, compile, fit, write ...) summed from the phases line of each job's log, the log at the same
     path under ``results_dir/logs`` (``phases_jobs``: how many logs had one).
     """
-    from sellip.timing import read_job_phases
+    from sellip.timing import read_benchmark, read_job_phases
 
     benchmarks_dir = Path(benchmarks_dir)
     results_dir = Path(results_dir) if results_dir is not None else benchmarks_dir.parent
@@ -274,7 +264,7 @@ def stage_timings(benchmarks_dir: str | Path, results_dir: str | Path | None = N
     for path in sorted(benchmarks_dir.rglob("*.tsv")):
         relative = path.relative_to(benchmarks_dir)
         rule = relative.parts[0].removesuffix(".tsv")
-        seconds = _benchmark_seconds(path)
+        seconds = read_benchmark(path)["wall_s"]
         entry = rules.setdefault(rule, {"s": 0.0, "jobs": 0, "phases": {}, "phases_jobs": 0})
         entry["s"] += seconds
         entry["jobs"] += 1

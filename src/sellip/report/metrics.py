@@ -113,6 +113,106 @@ def view_psnr(renderer, camera: Camera, light, hdr, view_id: str, supersample: i
 
 
 
+def _truth_and_alignment(truth_path: Path, ground_truth_keys, capture, capture_path: Path, cameras_path, sfm_report,
+                         sim3_from_sfm: bool, metrics: dict, reasons: dict):
+    """(truth mesh or None, Similarity from the cameras' world to the truth's or None): the ground truth when the
+    capture has one, and the Sim(3) alignment when the cameras came from SfM (recorded in ``metrics``; why a figure
+    is missing in ``reasons``)."""
+    similarity, truth = None, None
+    if not truth_path.is_file():
+        for key in ground_truth_keys:
+            reasons[key] = f"the capture has no ground truth ({truth_path} does not exist)"
+    else:
+        truth = read_param_mesh(truth_path)
+        mode = sfm_mode(Path(cameras_path), Path(sfm_report) if sfm_report else None)
+        if sim3_from_sfm or mode == "sfm":
+            if capture.poses is None:
+                for key in ground_truth_keys:
+                    reasons[key] = (f"cameras came from SfM and {capture_path} has no poses.csv to align them "
+                                    "to the ground truth")
+                truth = None
+            else:
+                from sellip.geometry.cameras import read_cameras
+
+                own = read_cameras(cameras_path)
+                ref_ids = list(capture.poses["view_id"])
+                ref = [capture.pose(v) for v in ref_ids]
+                try:
+                    similarity = evaluate.camera_alignment(*own, ref_ids, np.stack([r for r, _ in ref]),
+                                                           np.stack([t for _, t in ref]))
+                except ValueError as exc:
+                    raise OutputsError(f"{cameras_path} vs {capture_path}/poses.csv: {exc}") from None
+                metrics["alignment"] = {"method": "sim3", "source": "cameras.csv centres -> poses.csv centres",
+                                        "sfm_mode": mode, "scale": similarity.scale,
+                                        "rotation": similarity.rotation.tolist(),
+                                        "translation": similarity.translation.tolist()}
+        else:
+            metrics["alignment"] = {"method": "none", "sfm_mode": mode,
+                                    "source": "cameras.csv is in the ground truth's world (poses.csv)"}
+    return truth, similarity
+
+
+def _ground_truth_figures(model, truth, similarity, renderer, cameras, hdr, held_out, flash, light, metrics: dict,
+                          reasons: dict, model_path: Path, params_path, supersample: int, geometry_samples: int,
+                          new_light_offset_cam) -> None:
+    """The figures against the ground truth, into ``metrics``: vertices, parameter errors, geometry, the new-light
+    PSNR, and the held-out PSNR's ceiling (the ground truth's own)."""
+    confident, note = confident_vertices(model_path, Path(params_path) if params_path else None,
+                                         model.num_vertices)
+    if note:
+        reasons["confident_vertices"] = note
+    metrics["vertices"] = {"model": model.num_vertices, "confident": int(confident.sum()),
+                           "ground_truth": truth.num_vertices}
+    metrics.update(evaluate.parameter_errors(model, truth, confident, similarity))
+    for key in ("eta_relative_error_pct", "rho_d_relative_rmse", "sigma_s_abs_error", "sigma_ss_abs_error"):
+        if metrics[key] is None:
+            reasons[key] = "no confident vertex with this lobe in the ground truth"
+    metrics["geometry"] = evaluate.geometry_errors(model, truth, similarity, samples=geometry_samples)
+    log.info("normals: median %.2f deg (confident %s); chamfer %.3f mm, hausdorff %.3f mm",
+             metrics["normal_error_deg"]["all"]["median"],
+             (metrics["normal_error_deg"]["confident"] or {}).get("median"),
+             metrics["geometry"]["chamfer_mm"], metrics["geometry"]["hausdorff_mm"])
+    # New light: ground truth and model rendered under the same moved flash, ground-truth world.
+    moved_model = renderer if similarity is None else Renderer(evaluate.transform_mesh(model, similarity))
+    truth_renderer = Renderer(truth)
+    new_light = {}
+    for view_id in [v for v in held_out if v in cameras] or [next(iter(cameras))]:
+        camera = _moved_camera(cameras[view_id], similarity)
+        lamp = moved_flash(camera, light["position_m"], new_light_offset_cam, float(light["polarizer_deg"]))
+        reference = truth_renderer.render(camera, lamp, supersample=supersample)
+        estimate = moved_model.render(camera, lamp, supersample=supersample)
+        new_light[view_id] = evaluate.psnr(reference.analyzers, estimate.analyzers,
+                                           (reference.coverage > 0) | (estimate.coverage > 0))
+        log.info("new light at %s: PSNR %s dB", view_id, new_light[view_id]["psnr_db"])
+    metrics["psnr_new_light"] = {"views": new_light, "mean_db": _mean_db(new_light)}
+    # The held-out PSNR's ceiling: the ground truth itself rendered at the held-out views against the same
+    # images. Detail finer than the HDR grid (texture the demosaicing blurs) caps it below any model's.
+    if metrics["psnr_held_out"] is not None:
+        ceiling = {}
+        for view_id in [v for v in held_out if v in cameras]:
+            camera = _moved_camera(cameras[view_id], similarity)
+            ceiling[view_id] = view_psnr(truth_renderer, camera, flash(camera), hdr, view_id, supersample)
+            metrics["psnr_held_out"]["views"][view_id]["ground_truth_psnr_db"] = ceiling[view_id]["psnr_db"]
+        metrics["psnr_held_out"]["ground_truth_mean_db"] = _mean_db(ceiling)
+        log.info("held-out PSNR of the ground truth itself (the ceiling): %s dB",
+                 metrics["psnr_held_out"]["ground_truth_mean_db"])
+
+
+def _timings(benchmarks, timings_plot, reasons: dict) -> dict | None:
+    """Per-rule wall times from the Snakemake benchmark files (:func:`sellip.report.evaluate.stage_timings`) and
+    their plot; None, with the reason, without the folder."""
+    if benchmarks is None:
+        reasons["timings"] = "no --benchmarks folder given"
+        return None
+    if not Path(benchmarks).is_dir():
+        reasons["timings"] = f"{benchmarks} does not exist"
+        return None
+    timings = evaluate.stage_timings(benchmarks)
+    if timings_plot is not None and timings["rules"]:
+        save_figure(timings_figure(timings["rules"]), timings_plot)
+    return timings
+
+
 def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: str | Path, capture_path: str | Path,
               output: str | Path, params_path: str | Path | None = None, benchmarks: str | Path | None = None,
               held_out: list[str] | None = None, sim3_from_sfm: bool = False, sfm_report: str | Path | None = None,
@@ -163,77 +263,11 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
                          "correspondence_distance_mm", "geometry", "psnr_new_light")
     metrics.update({key: None for key in ground_truth_keys})
     metrics["ground_truth"] = str(truth_path) if truth_path.is_file() else None
-    similarity, truth = None, None
-    if not truth_path.is_file():
-        for key in ground_truth_keys:
-            reasons[key] = f"the capture has no ground truth ({truth_path} does not exist)"
-    else:
-        truth = read_param_mesh(truth_path)
-        mode = sfm_mode(Path(cameras_path), Path(sfm_report) if sfm_report else None)
-        if sim3_from_sfm or mode == "sfm":
-            if capture.poses is None:
-                for key in ground_truth_keys:
-                    reasons[key] = (f"cameras came from SfM and {capture_path} has no poses.csv to align them "
-                                    "to the ground truth")
-                truth = None
-            else:
-                from sellip.geometry.cameras import read_cameras
-
-                own = read_cameras(cameras_path)
-                ref_ids = list(capture.poses["view_id"])
-                ref = [capture.pose(v) for v in ref_ids]
-                try:
-                    similarity = evaluate.camera_alignment(*own, ref_ids, np.stack([r for r, _ in ref]),
-                                                           np.stack([t for _, t in ref]))
-                except ValueError as exc:
-                    raise OutputsError(f"{cameras_path} vs {capture_path}/poses.csv: {exc}") from None
-                metrics["alignment"] = {"method": "sim3", "source": "cameras.csv centres -> poses.csv centres",
-                                        "sfm_mode": mode, "scale": similarity.scale,
-                                        "rotation": similarity.rotation.tolist(),
-                                        "translation": similarity.translation.tolist()}
-        else:
-            metrics["alignment"] = {"method": "none", "sfm_mode": mode,
-                                    "source": "cameras.csv is in the ground truth's world (poses.csv)"}
+    truth, similarity = _truth_and_alignment(truth_path, ground_truth_keys, capture, capture_path, cameras_path,
+                                              sfm_report, sim3_from_sfm, metrics, reasons)
     if truth is not None:
-        confident, note = confident_vertices(model_path, Path(params_path) if params_path else None,
-                                             model.num_vertices)
-        if note:
-            reasons["confident_vertices"] = note
-        metrics["vertices"] = {"model": model.num_vertices, "confident": int(confident.sum()),
-                               "ground_truth": truth.num_vertices}
-        metrics.update(evaluate.parameter_errors(model, truth, confident, similarity))
-        for key in ("eta_relative_error_pct", "rho_d_relative_rmse", "sigma_s_abs_error", "sigma_ss_abs_error"):
-            if metrics[key] is None:
-                reasons[key] = "no confident vertex with this lobe in the ground truth"
-        metrics["geometry"] = evaluate.geometry_errors(model, truth, similarity, samples=geometry_samples)
-        log.info("normals: median %.2f deg (confident %s); chamfer %.3f mm, hausdorff %.3f mm",
-                 metrics["normal_error_deg"]["all"]["median"],
-                 (metrics["normal_error_deg"]["confident"] or {}).get("median"),
-                 metrics["geometry"]["chamfer_mm"], metrics["geometry"]["hausdorff_mm"])
-        # New light: ground truth and model rendered under the same moved flash, ground-truth world.
-        moved_model = renderer if similarity is None else Renderer(evaluate.transform_mesh(model, similarity))
-        truth_renderer = Renderer(truth)
-        new_light = {}
-        for view_id in [v for v in held_out if v in cameras] or [next(iter(cameras))]:
-            camera = _moved_camera(cameras[view_id], similarity)
-            lamp = moved_flash(camera, light["position_m"], new_light_offset_cam, float(light["polarizer_deg"]))
-            reference = truth_renderer.render(camera, lamp, supersample=supersample)
-            estimate = moved_model.render(camera, lamp, supersample=supersample)
-            new_light[view_id] = evaluate.psnr(reference.analyzers, estimate.analyzers,
-                                               (reference.coverage > 0) | (estimate.coverage > 0))
-            log.info("new light at %s: PSNR %s dB", view_id, new_light[view_id]["psnr_db"])
-        metrics["psnr_new_light"] = {"views": new_light, "mean_db": _mean_db(new_light)}
-        # The held-out PSNR's ceiling: the ground truth itself rendered at the held-out views against the same
-        # images. Detail finer than the HDR grid (texture the demosaicing blurs) caps it below any model's.
-        if metrics["psnr_held_out"] is not None:
-            ceiling = {}
-            for view_id in [v for v in held_out if v in cameras]:
-                camera = _moved_camera(cameras[view_id], similarity)
-                ceiling[view_id] = view_psnr(truth_renderer, camera, flash(camera), hdr, view_id, supersample)
-                metrics["psnr_held_out"]["views"][view_id]["ground_truth_psnr_db"] = ceiling[view_id]["psnr_db"]
-            metrics["psnr_held_out"]["ground_truth_mean_db"] = _mean_db(ceiling)
-            log.info("held-out PSNR of the ground truth itself (the ceiling): %s dB",
-                     metrics["psnr_held_out"]["ground_truth_mean_db"])
+        _ground_truth_figures(model, truth, similarity, renderer, cameras, hdr, held_out, flash, light, metrics,
+                              reasons, model_path, params_path, supersample, geometry_samples, new_light_offset_cam)
 
     # How the geometry converged over the loop.
     metrics["geometry_iterations"] = None
@@ -245,16 +279,7 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
     else:
         reasons["geometry_iterations"] = "no --iteration-meshes given"
 
-    # Stage timings.
-    metrics["timings"] = None
-    if benchmarks is None:
-        reasons["timings"] = "no --benchmarks folder given"
-    elif not Path(benchmarks).is_dir():
-        reasons["timings"] = f"{benchmarks} does not exist"
-    else:
-        metrics["timings"] = evaluate.stage_timings(benchmarks)
-        if timings_plot is not None and metrics["timings"]["rules"]:
-            save_figure(timings_figure(metrics["timings"]["rules"]), timings_plot)
+    metrics["timings"] = _timings(benchmarks, timings_plot, reasons)
     metrics["reasons"] = reasons
     metrics["evaluate_s"] = time.perf_counter() - started
     output.parent.mkdir(parents=True, exist_ok=True)
@@ -263,3 +288,18 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
     tmp.rename(output)
     log.info("wrote %s in %.1f s", output, metrics["evaluate_s"])
     return metrics
+
+
+def headline_figures(metrics: dict) -> dict:
+    """The figures a benchmark reports from a parsed ``metrics.json``: η per material (``eta_per_material``, the
+    record, and its ``_mean_pct`` and ``_max_pct``), η per vertex (median and p90 %), normals (median and p90 deg)
+    and the held-out PSNR (dB); None where the run has no such figure."""
+    per = metrics.get("eta_per_material") or {}
+    eta = metrics.get("eta_relative_error_pct") or {}
+    normals = (metrics.get("normal_error_deg") or {}).get("all") or {}
+    return {"eta_per_material": metrics.get("eta_per_material"),
+            "eta_per_material_mean_pct": per.get("mean_error_pct"), "eta_per_material_max_pct": per.get("max_error_pct"),
+            "eta_vertex_median_pct": eta.get("median"), "eta_vertex_p90_pct": eta.get("p90"),
+            "normal_median_deg": normals.get("median"), "normal_p90_deg": normals.get("p90"),
+            "held_out_psnr_db": (metrics.get("psnr_held_out") or {}).get("mean_db")}
+

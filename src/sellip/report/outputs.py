@@ -388,6 +388,7 @@ def write_renders(mesh: ParamMesh, cameras: dict[str, Camera], flash_position_ca
     to re-render (the first is the reference view of the novel view, the new light, the Mueller, AoLP/DoP
     images and the maps); measured: optional ``view_id -> (analyzers (H, W, 4, C), valid (H, W))`` for the
     measured counterpart of each re-rendered view. File names: see docs/outputs.md.
+    Long: one image per kind and view, written in a fixed order (docs/outputs.md's list).
     """
     import imageio.v3 as iio
 

@@ -26,7 +26,7 @@ import logging
 from pathlib import Path
 
 from sellip.geometry import hull as geometry_hull
-from sellip.geometry.initial import MODES, InitMeshError, make_initial_mesh
+from sellip.geometry.initial import INIT_MODES, InitMeshError, make_initial_mesh
 from sellip.stages._arguments import add_image_arguments
 
 log = logging.getLogger(__name__)
@@ -38,7 +38,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cameras", required=True, type=Path, help="cameras.csv (sellip sfm)")
     parser.add_argument("--sfm", required=True, type=Path, help="the sfm folder (sparse model, report)")
     parser.add_argument("--output", required=True, type=Path, help="mesh PLY to write (+ .json beside it)")
-    parser.add_argument("--mode", choices=MODES, default="hull")
+    parser.add_argument("--mode", choices=INIT_MODES, default="hull")
     parser.add_argument("--mesh-path", type=Path, default=None,
                         help="mode mesh: the mesh to start from (PLY/OBJ, in the cameras.csv world, metres)")
     parser.add_argument("--hull-resolution", type=int, default=defaults.hull_resolution)

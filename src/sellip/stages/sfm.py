@@ -35,7 +35,7 @@ import logging
 from pathlib import Path
 
 from sellip.geometry import sfm
-from sellip.geometry.poses import MODES, solve_poses
+from sellip.geometry.poses import POSE_MODES, solve_poses
 from sellip.stages._arguments import add_image_arguments
 
 log = logging.getLogger(__name__)
@@ -56,7 +56,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--capture", required=True, type=Path, help="capture folder (capture.yaml, poses.csv)")
     parser.add_argument("--cameras", required=True, type=Path, help="cameras.csv to write")
     parser.add_argument("--output", required=True, type=Path, help="folder for the sparse model and report")
-    parser.add_argument("--mode", choices=MODES, default="known", help="known poses, verify them, or SfM only")
+    parser.add_argument("--mode", choices=POSE_MODES, default="known", help="known poses, verify them, or SfM only")
     parser.add_argument("--matching", choices=("auto", "exhaustive", "retrieval"), default=defaults.matching)
     parser.add_argument("--exhaustive-max-views", type=int, default=defaults.exhaustive_max_views,
                         help="auto matching: exhaustive up to this many views, retrieval above")

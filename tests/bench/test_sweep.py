@@ -22,7 +22,7 @@ from sellip.fit.observe_mesh import spread_subset
 from sellip.model.pbrdf import PBRDFParams
 from sellip.model.render import ParamMesh
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 # --------------------------------------------------------------------------- Pareto front

@@ -23,7 +23,7 @@ from sellip.geometry import scan as geometry_scan
 from sellip.geometry.initial import InitMeshError
 from sellip.model.ply import read_ply
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,7 @@ from sellip.capture.sensor import SensorModel, camera_rgb_from_srgb, simulate_ra
 from sellip.capture.writer import CaptureWriter, write_capture
 from sellip.model.conventions import ANALYZER_ANGLES_DEG, analyzers_to_stokes, stokes_to_analyzers
 
-REAL_FRAME = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "polarizer_IMX250MZR.png"
+REAL_FRAME = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "polarizer_IMX250MZR.png"
 IMX250 = [[90, 45], [135, 0]]
 LEVELS = (1 / 4, 1 / 8, 1 / 16)
 EXPOSURE_S = 0.005

@@ -101,10 +101,10 @@ def _fit_script(tmp_path) -> str:
         import json, sys
         import numpy as np
         from sellip import timing
-        from sellip.stages.fit import enable_compilation_cache
+        from sellip.fit.shard import enable_compilation_cache
         enable_compilation_cache({str(tmp_path / 'cache')!r})
         from sellip.fit import FitSettings, default_prior, fit_vertices
-        sys.path.insert(0, {str(Path(__file__).parent)!r})
+        sys.path[:0] = [{str(Path(__file__).parent)!r}, {str(Path(__file__).parents[1])!r}]
         from test_fit import _scene
         params, normals, obs, start = _scene(40, seed=3, n_views=12)
         clock = timing.start()

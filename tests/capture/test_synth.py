@@ -120,7 +120,7 @@ def test_the_config_schema_offers_every_scene():
 
     from sellip.capture.scenes import SCENES
 
-    schema = yaml.safe_load((Path(__file__).parents[1] / "config" / "config.schema.yaml").read_text())
+    schema = yaml.safe_load((Path(__file__).parents[2] / "config" / "config.schema.yaml").read_text())
     assert schema["properties"]["demo"]["properties"]["scene"]["enum"] == list(SCENES)
     for name in ("demo_fine", "tiny_speckle"):
         assert build_scene(name).name == name

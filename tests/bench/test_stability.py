@@ -19,11 +19,12 @@ from sellip.bench import stability, stability_table
 from sellip.bench.sweep_plan import merge
 from sellip.capture import files, reader
 from sellip.capture import synthetic as capture_synthetic
-from sellip.capture.scenes import build_scene, icosphere, vertex_normals
+from sellip.capture.scenes import build_scene, icosphere
+from sellip.geometry.meshes import vertex_normals
 from sellip.capture.sensor import SensorModel, simulate_raw
 from sellip.model import ply as model_ply
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 # --------------------------------------------------------------------------- scenes and the noise option
@@ -57,7 +58,7 @@ def test_bumpy_scene_has_bumps_and_dents_with_the_normals_of_its_surface():
     radius = np.linalg.norm(mesh.vertices, axis=1)
     assert mesh.vertices.shape == (10242, 3) and len(TINY_BUMPS) == 6
     assert radius.max() == pytest.approx(0.044, abs=2e-4) and radius.min() == pytest.approx(0.036, abs=2e-4)
-    np.testing.assert_allclose(mesh.normals, vertex_normals(mesh.vertices, mesh.faces))
+    np.testing.assert_allclose(mesh.normals, vertex_normals(mesh.vertices, mesh.faces, area_weighted=True))
     tilt = np.degrees(np.arccos(np.clip(np.sum(mesh.normals * mesh.vertices / radius[:, None], axis=1), -1, 1)))
     assert 15 < tilt.max() < 25 and np.mean(tilt > 5) > 0.1  # detail a smooth sphere does not have
     np.testing.assert_array_equal(np.unique(mesh.params.eta), [1.4, 1.6])  # the tiny scene's materials
@@ -170,7 +171,7 @@ def test_bad_frames_skip_merges_from_the_other_frames_and_drops_empty_views(smal
 
 def test_perturbation_moves_along_the_normals_by_sigma_and_is_seeded():
     d, faces = icosphere(3)
-    normals = vertex_normals(d, faces)
+    normals = vertex_normals(d, faces, area_weighted=True)
     moved = stability.perturb_along_normals(d, 2 * normals, 0.01, seed=7)
     offset = moved - d
     np.testing.assert_allclose(np.linalg.norm(np.cross(offset, normals), axis=1), 0, atol=1e-12)
@@ -196,7 +197,7 @@ def test_perturbed_mesh_file_keeps_faces_and_gets_the_new_surfaces_normals(tmp_p
     radius = np.linalg.norm(xyz, axis=1)
     assert 0.015 < np.std(radius) < 0.025 and out["x"].dtype == np.float32
     normals = np.stack([out[k] for k in ("nx", "ny", "nz")], axis=1)
-    np.testing.assert_allclose(normals, vertex_normals(xyz.astype(np.float64), faces), atol=1e-6)
+    np.testing.assert_allclose(normals, vertex_normals(xyz.astype(np.float64), faces, area_weighted=True), atol=1e-6)
     assert [p.name for p in tmp_path.iterdir()] == ["init.ply"]  # no temporary left behind
 
 

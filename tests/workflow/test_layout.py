@@ -1,0 +1,43 @@
+"""The package layout of docs/architecture.md holds (scripts/check_layout.py), and the checker finds what breaks it."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _checker():
+    spec = importlib.util.spec_from_file_location("check_layout", REPO / "scripts" / "check_layout.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["check_layout"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_package_has_no_cycle_no_import_above_its_floor_and_no_stage_importing_a_stage():
+    assert _checker().problems(REPO / "src") == []
+
+
+def test_the_checker_finds_a_cycle_a_floor_violation_a_stage_import_and_a_long_function(tmp_path):
+    src = tmp_path / "src" / "sellip"
+    for folder in ("model", "fit", "stages"):
+        (src / folder).mkdir(parents=True)
+        (src / folder / "__init__.py").write_text("")
+    (src / "model" / "a.py").write_text("from sellip.fit.b import x\n")  # model importing fit: above its floor
+    (src / "fit" / "b.py").write_text("from sellip.model.a import y\nx = 1\n")  # and a cycle
+    (src / "stages" / "one.py").write_text("from sellip.stages.two import z\n")
+    (src / "stages" / "two.py").write_text("z = 1\n")
+    (src / "stages" / "_shared.py").write_text("w = 1\n")
+    (src / "stages" / "three.py").write_text("from sellip.stages._shared import w\n")  # a shared helper: allowed
+    (src / "fit" / "long.py").write_text("def f():\n    '''Short.'''\n" + "    x = 1\n" * 90
+                                         + "def g():\n    '''Long: a reason.'''\n" + "    x = 1\n" * 90)
+    found = _checker().problems(tmp_path / "src")
+    assert any("sellip.model.a imports sellip.fit.b, above its floor" in p for p in found)
+    assert any(p.startswith("import cycle:") and "sellip.model.a" in p and "sellip.fit.b" in p for p in found)
+    assert any("sellip.stages.one imports the stage sellip.stages.two" in p for p in found)
+    assert not any("_shared" in p for p in found)
+    assert [p for p in found if "long.py" in p] == [f"{src / 'fit' / 'long.py'}:1: f is 92 lines (> 80) and its "
+                                                    "docstring does not say why (Long: ...)"]
