@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The workflow on a real SLURM cluster: a one-node cluster on this machine, the tiny synthetic
-# scene of tests/test_workflow.py run through workflow/profiles/slurm (every job via sbatch), the
+# scene of tests/workflow/test_workflow.py run through workflow/profiles/slurm (every job via sbatch), the
 # same target run locally, and the two parameter stores compared.
 #
 #   sudo scripts/slurm_localhost.sh [--repo DIR] [--workdir DIR] [--python PY] [--keep-cluster]
@@ -16,7 +16,7 @@
 #
 # Needs root (apt-get install slurm-wlm munge on first use, daemons without systemd) on
 # Debian/Ubuntu. Idempotent: daemons left by an earlier run are stopped first, the work folder is
-# rebuilt. pytest wrapper: SELLIP_SLURM_TEST=1 pytest tests/test_slurm.py. docs/hpc.md has more.
+# rebuilt. pytest wrapper: SELLIP_SLURM_TEST=1 pytest tests/workflow/test_slurm.py. docs/hpc.md has more.
 set -euo pipefail
 
 REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
@@ -176,14 +176,14 @@ fi
 TIMES[cluster]=$((SECONDS - t))
 say "cluster up: node $NODE, $CPUS CPUs, $MEM_MB MB, partition $PARTITION"
 
-# 3. The tiny scene's config (tests/test_workflow.py) and the slurm profile with its two
+# 3. The tiny scene's config (tests/workflow/test_workflow.py) and the slurm profile with its two
 #    cluster-specific values filled in and its resources clamped to this node.
 "$PY" - "$REPO" "$WORK" "$PARTITION" "$CPUS" "$MEM_MB" <<'EOF'
 import shutil, sys
 from pathlib import Path
 import yaml
 repo, work, partition, cpus, mem = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], int(sys.argv[4]), int(sys.argv[5])
-sys.path.insert(0, str(repo / "tests"))
+sys.path[:0] = [str(repo / "tests" / "workflow"), str(repo / "tests")]
 from test_workflow import tiny_config
 for run in ("slurm", "local"):
     (work / run).mkdir(parents=True, exist_ok=True)

@@ -5,7 +5,7 @@
   loads no heavy library that the family's environment does not install (scripts/check_envs.py).
 - `test_tiny_scene_on_a_localhost_slurm_cluster`: only with SELLIP_SLURM_TEST=1, as root on
   Debian/Ubuntu (about 4 minutes): scripts/slurm_localhost.sh sets up a one-node SLURM cluster,
-  runs the tiny scene of tests/test_workflow.py through workflow/profiles/slurm (every job through
+  runs the tiny scene of tests/workflow/test_workflow.py through workflow/profiles/slurm (every job through
   sbatch), runs the same target locally and compares the parameter stores array by array.
 """
 
