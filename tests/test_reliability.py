@@ -216,3 +216,38 @@ def test_nested_overrides_of_each_type_pass_the_workflow(tmp_path):
     assert result.returncode == 0, text[-3000:]
     assert "--min-coherence 0 " in text and "--k-max 3 " in text and "--refine-intrinsics" in text
     assert "--max-views" not in text
+
+
+def test_a_failed_jobs_message_reaches_the_console(run):
+    """With `ingest.bad_frames: error` the missing frame stops linearize: the console shows the stage's own message
+    (file, frames.csv row) and where the full log is, not only Snakemake's 'check log file(s)'."""
+    result = snakemake(run["workdir"], run["capture"], f"results/{NAME} strict/hdr.zarr", "--config",
+                       f"name={NAME} strict", "ingest={bad_frames: error}", check=False)
+    assert result.returncode != 0
+    text = result.stdout + result.stderr
+    shown = text.split("sellip: rule linearize_frames failed")[1]
+    assert f"results/{NAME} strict/logs/linearize_frames.log" in shown.splitlines()[0]
+    assert "v003_f1.dng" in shown and "row 10 (line 12)" in shown and "does not exist" in shown
+    assert not (run["workdir"] / "results" / f"{NAME} strict" / "hdr.zarr").exists()
+
+
+def test_failed_job_logs_and_their_error_lines(tmp_path):
+    """The parts of the console message, on a Snakemake log and a job log of the formats they have."""
+    job_log = tmp_path / "results" / "x" / "logs" / "fit_pbrdf" / "0.log"
+    job_log.parent.mkdir(parents=True)
+    job_log.write_text("2026-01-01 10:00:00,000 INFO sellip.stages.fit: started\n"
+                       "2026-01-01 10:00:01,000 WARNING sellip.stages.fit: 3 vertices without views\n"
+                       "2026-01-01 10:00:02,000 ERROR sellip.stages.fit: obs.zarr: shard 2 of 2: out of memory\n")
+    snake_log = tmp_path / "snake.log"
+    snake_log.write_text("Error in rule fit_pbrdf:\n    message: None\n    jobid: 3\n"
+                         "    log: results/x/logs/fit_pbrdf/0.log (check log file(s) for error details)\n"
+                         "    shell:\n        sellip fit ...\nShutting down, this might take some time.\n")
+    assert workflow_support.failed_job_logs(snake_log) == [("fit_pbrdf", ["results/x/logs/fit_pbrdf/0.log"])]
+    shown = workflow_support.format_failures(snake_log, tmp_path)
+    assert shown.splitlines() == ["sellip: rule fit_pbrdf failed (full log: results/x/logs/fit_pbrdf/0.log)",
+                                  "  obs.zarr: shard 2 of 2: out of memory"]
+    assert workflow_support.collect_warnings(tmp_path / "results" / "x" / "logs") == [
+        ("fit_pbrdf/0.log", "3 vertices without views")]
+    # A log without sellip's ERROR lines (a traceback): its last lines.
+    job_log.write_text("Traceback (most recent call last):\n  File x\nValueError: bad\n")
+    assert workflow_support.error_lines(job_log)[-1] == "ValueError: bad"

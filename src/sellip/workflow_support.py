@@ -178,12 +178,16 @@ def format_warnings(warnings: list[tuple[str, str]], limit: int = 20) -> str:
     return "\n".join(lines)
 
 
-def failed_job_logs(snakemake_log: str | Path) -> list[tuple[str, list[str]]]:
-    """(rule, its log files) of each ``Error in rule NAME:`` block in Snakemake's own log file."""
-    try:
-        lines = Path(snakemake_log).read_text(encoding="utf-8", errors="replace").splitlines()
-    except (OSError, TypeError):
-        return []
+def failed_job_logs(snakemake_log) -> list[tuple[str, list[str]]]:
+    """(rule, its log files) of each ``Error in rule NAME:`` block in Snakemake's own log file (a path, or the list
+    of paths that Snakemake passes to ``onerror``)."""
+    paths = [snakemake_log] if isinstance(snakemake_log, (str, Path)) else list(snakemake_log or [])
+    lines = []
+    for path in paths:
+        try:
+            lines += Path(path).read_text(encoding="utf-8", errors="replace").splitlines()
+        except (OSError, TypeError):
+            continue
     failed, rule = [], None
     for line in lines:
         start = re.match(r"^Error in rule (\S+):", line)
@@ -214,7 +218,7 @@ def error_lines(log: str | Path, limit: int = 8) -> list[str]:
     return lines[-limit:]
 
 
-def format_failures(snakemake_log: str | Path, root: str | Path = ".") -> str:
+def format_failures(snakemake_log, root: str | Path = ".") -> str:
     """What failed and why, for the console: for each failed rule, its log's error lines and where the log is."""
     out = []
     for rule, logs in failed_job_logs(snakemake_log):
