@@ -251,3 +251,21 @@ def test_failed_job_logs_and_their_error_lines(tmp_path):
     # A log without sellip's ERROR lines (a traceback): its last lines.
     job_log.write_text("Traceback (most recent call last):\n  File x\nValueError: bad\n")
     assert workflow_support.error_lines(job_log)[-1] == "ValueError: bad"
+
+
+def test_the_runs_warnings_are_in_metrics_json(tmp_path_factory):
+    """`sellip evaluate --logs` (rule evaluate_model) writes the run's warnings into metrics.json (the report)."""
+    from test_outputs import make_tiny_run
+
+    from sellip.stages import evaluate as evaluate_stage
+
+    tiny = make_tiny_run(tmp_path_factory.mktemp("warnings"), views=3)
+    logs = tiny["results"] / "logs"
+    (logs / "sub").mkdir(parents=True, exist_ok=True)
+    (logs / "sub" / "observe.log").write_text(
+        "2026-01-01 10:00:00,000 WARNING sellip.stages.observe: poses.csv has no pose for 1 view(s): ['v002']\n")
+    metrics = evaluate_stage.run_stage(tiny["model"], tiny["cameras"], tiny["hdr"], tiny["capture"],
+                                       tiny["results"] / "metrics.json", geometry_samples=500, supersample=1,
+                                       logs=logs)
+    assert metrics["warnings"] == [{"log": "sub/observe.log",
+                                    "message": "poses.csv has no pose for 1 view(s): ['v002']"}]

@@ -80,6 +80,7 @@ rule evaluate_model:
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
         benchmarks=f"{RESULTS}/benchmarks",
+        logs=f"{RESULTS}/logs",
         held_out=config["evaluate"]["held_out_views"],
     conda:
         "../../envs/report.yaml"
@@ -92,7 +93,7 @@ rule evaluate_model:
         " --hdr {input.hdr:q} --capture {params.capture:q} --benchmarks {params.benchmarks:q}"
         " --held-out {params.held_out:q} --output {output.metrics:q} --timings-plot {output.timings:q}"
         " --iteration-meshes {input.meshes:q} --iteration-fits {input.fits:q} --convergence-plot {output.convergence:q}"
-        " > {log:q} 2>&1"
+        " --logs {params.logs:q} > {log:q} 2>&1"
 
 
 onsuccess:

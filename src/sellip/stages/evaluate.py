@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from sellip import evaluate
+from sellip import workflow_support
 from sellip.io import GROUND_TRUTH_MESH, CaptureError, read_capture, read_param_mesh
 from sellip.observe import ObserveError
 from sellip.outputs import NEW_LIGHT_OFFSET_M, convergence_figure, moved_flash, save_figure, timings_figure
@@ -121,7 +122,8 @@ def run_stage(model_path: str | Path, cameras_path: str | Path, hdr_path: str | 
               held_out: list[str] | None = None, sim3_from_sfm: bool = False, sfm_report: str | Path | None = None,
               supersample: int = 2, geometry_samples: int = 50000, timings_plot: str | Path | None = None,
               new_light_offset_cam=NEW_LIGHT_OFFSET_M, iteration_meshes: list | None = None,
-              iteration_fits: list | None = None, convergence_plot: str | Path | None = None) -> dict:
+              iteration_fits: list | None = None, convergence_plot: str | Path | None = None,
+              logs: str | Path | None = None) -> dict:
     """Compute the figures of merit and write ``output`` (metrics.json); returns the metrics.
 
     ``iteration_meshes``: the loop's meshes in order (the initial one, then each iteration's), and
@@ -258,6 +260,9 @@ def run_stage(model_path: str | Path, cameras_path: str | Path, hdr_path: str | 
         metrics["timings"] = evaluate.stage_timings(benchmarks)
         if timings_plot is not None and metrics["timings"]["rules"]:
             save_figure(timings_figure(metrics["timings"]["rules"]), timings_plot)
+    # The run's warnings (a frame left out, views without a pose: docs/reliability.md), from the jobs' logs.
+    metrics["warnings"] = [{"log": name, "message": message} for name, message in
+                           (workflow_support.collect_warnings(logs) if logs is not None else [])]
     metrics["reasons"] = reasons
     metrics["evaluate_s"] = time.perf_counter() - started
     output.parent.mkdir(parents=True, exist_ok=True)
@@ -290,6 +295,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iteration-fits", type=Path, nargs="*", default=[],
                         help="the first-pass fit store (fit.zarr) of each of those meshes (fitted normals)")
     parser.add_argument("--convergence-plot", type=Path, default=None, help="also write the convergence PNG")
+    parser.add_argument("--logs", type=Path, default=None, help="the run's log folder: its warnings into metrics.json")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -301,7 +307,7 @@ def main(args: argparse.Namespace) -> int:
                   benchmarks=args.benchmarks, held_out=args.held_out, sim3_from_sfm=args.sim3_from_sfm,
                   sfm_report=args.sfm_report, supersample=args.supersample, geometry_samples=args.geometry_samples,
                   timings_plot=args.timings_plot, iteration_meshes=args.iteration_meshes,
-                  iteration_fits=args.iteration_fits, convergence_plot=args.convergence_plot)
+                  iteration_fits=args.iteration_fits, convergence_plot=args.convergence_plot, logs=args.logs)
     except (OutputsError, CaptureError, ObserveError, ParamsError) as exc:
         log.error("%s", exc)
         return 1
