@@ -269,3 +269,77 @@ def test_the_runs_warnings_are_in_metrics_json(tmp_path_factory):
                                        logs=logs)
     assert metrics["warnings"] == [{"log": "sub/observe.log",
                                     "message": "poses.csv has no pose for 1 view(s): ['v002']"}]
+
+
+# --------------------------------------------------------------------------- units (item 4)
+
+def orbit(distance_m: float = 0.9, views: int = 12, seed: int = 0):
+    """Poses of a handheld orbit about the origin at about ``distance_m``: rotations (V, 3, 3), translations (V, 3)."""
+    import numpy as np
+
+    from sellip.scenes import handheld_orbit
+
+    cameras = handheld_orbit(views, 256, 208, np.random.default_rng(seed), distance_m=(distance_m * 0.9,
+                                                                                        distance_m * 1.1))
+    return np.stack([c.rotation for c in cameras]), np.stack([c.translation for c in cameras])
+
+
+def test_camera_distances_are_those_to_the_point_the_cameras_look_at():
+    import numpy as np
+
+    from sellip.capture.checks import camera_distances
+
+    rotations, translations = orbit(0.9)
+    distances = camera_distances(rotations, translations)
+    assert np.median(distances) == pytest.approx(0.9, rel=0.05)
+    # The same poses in millimetres: the same distances, times 1000.
+    np.testing.assert_allclose(camera_distances(rotations, 1000 * translations), 1000 * distances, rtol=1e-9)
+
+
+@pytest.mark.parametrize("scale, distance, expected", [
+    (1000.0, 0.9, r"translations look like millimetres.*divide tx, ty, tz by 1000"),
+    (100.0, 0.9, r"translations look like centimetres.*divide tx, ty, tz by 100"),
+    (1 / 0.0254, 0.9, r"translations look like inches.*by 39.37"),
+    (1.0, 900.0, r"scene.distance_m looks like millimetres.*0.9 m would fit"),
+    (20.0, 0.9, r"expected translations in metres"),
+])
+def test_poses_in_other_units_than_scene_distance_are_named(scale, distance, expected):
+    from sellip.capture.checks import PoseUnitsError, check_pose_units
+
+    rotations, translations = orbit(0.9)
+    with pytest.raises(PoseUnitsError, match=expected) as info:
+        check_pose_units(rotations, scale * translations, distance, "cap/poses.csv")
+    assert str(info.value).startswith("cap/poses.csv: columns tx, ty, tz: the cameras are a median")
+
+
+def test_poses_in_metres_pass_also_with_missing_rows():
+    import numpy as np
+
+    from sellip.capture.checks import check_pose_units
+
+    rotations, translations = orbit(0.9)
+    translations[3] = np.nan
+    assert check_pose_units(rotations, translations, 0.9) == pytest.approx(0.9, rel=0.05)
+    assert check_pose_units(rotations, translations, 0.5) == pytest.approx(0.9, rel=0.05)  # within 4x: rough
+    assert np.isnan(check_pose_units(rotations[:1], translations[:1], 0.9))  # one view: nothing to check
+
+
+def test_the_sfm_stage_stops_on_poses_in_millimetres(run, tmp_path, caplog):
+    """The workflow's poses stage on the run's HDR images with poses.csv in millimetres: exit 1 with the message,
+    no cameras.csv. (Before: it ran to the end with a model 1000 times too large.)"""
+    import pandas as pd
+
+    from sellip.cli import main
+
+    capture = tmp_path / "mm capture"
+    capture.mkdir()
+    for name in ("capture.yaml", "frames.csv"):
+        shutil.copy(run["capture"] / name, capture / name)
+    poses = pd.read_csv(run["capture"] / "poses.csv", dtype={"view_id": str})
+    poses[["tx", "ty", "tz"]] *= 1000
+    poses.to_csv(capture / "poses.csv", index=False)
+    hdr = run["workdir"] / "results" / NAME / "hdr.zarr"
+    status = main(["sfm", "--hdr", str(hdr), "--capture", str(capture), "--cameras", str(tmp_path / "cameras.csv"),
+                   "--output", str(tmp_path / "sfm"), "--mode", "known"])
+    assert status == 1 and not (tmp_path / "cameras.csv").exists() and not (tmp_path / "sfm").exists()
+    assert "translations look like millimetres" in caplog.text and "poses.csv" in caplog.text

@@ -43,7 +43,8 @@ import pandas as pd
 
 from sellip import geometry, sfm
 from sellip.conventions import quaternion_to_rotation, rotation_to_quaternion
-from sellip.io import POSE_COLUMNS, read_capture, validate_poses, write_ply
+from sellip.capture import checks
+from sellip.io import POSE_COLUMNS, POSES_CSV, CaptureError, read_capture, validate_poses, write_ply
 
 log = logging.getLogger(__name__)
 
@@ -157,6 +158,9 @@ def run_stage(hdr_path: str | Path, capture_path: str | Path, cameras_path: str 
                                                                             "qz": 0.0}))
         known_translations[poses["qw"].isna().to_numpy()] = np.nan
         known = (known_rotations, known_translations)
+        if mode != "sfm":  # poses in millimetres would give a model 1000 times too large (docs/reliability.md)
+            checks.check_pose_units(known_rotations, known_translations, distance_m, str(Path(capture_path) /
+                                    POSES_CSV), str(Path(capture_path) / "capture.yaml"))
     if mode == "known" and known is None:
         log.info("sfm.mode is 'known' but %s has no poses.csv: running SfM", capture_path)
         mode = "sfm"
@@ -270,7 +274,7 @@ def main(args: argparse.Namespace) -> int:
         run_stage(args.hdr, args.capture, args.cameras, args.output, mode=args.mode, options=options,
                   min_registered_fraction=args.min_registered_fraction, feature_object_px=args.feature_object_px,
                   max_upscale=args.max_upscale, mask_options={"threshold": args.mask_threshold})
-    except sfm.RegistrationError as exc:
+    except (sfm.RegistrationError, CaptureError) as exc:
         log.error("%s", exc)
         return 1
     return 0
