@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -118,7 +119,13 @@ _MATRIX3 = {"type": "array", "items": _VECTOR3, "minItems": 3, "maxItems": 3}
 CONFIG_SCHEMA: dict = {
     "type": "object",
     "required": ["sensor", "camera", "light", "scene"],
+    # Like the sections' keys, a top-level key must be known (a misspelt `scene:` must not pass silently): the four
+    # sections, `synthetic` (sellip synth's record), `notes`, and any key starting with `x_` (the user's own).
+    "additionalProperties": False,
+    "patternProperties": {"^x_": {}},
     "properties": {
+        "synthetic": {"type": "object"},
+        "notes": {},
         "sensor": {
             "type": "object",
             "additionalProperties": False,
@@ -166,7 +173,8 @@ CONFIG_SCHEMA: dict = {
         },
     },
 }
-"""JSON schema of capture.yaml (DESIGN §3). Other top-level sections (e.g. ``synthetic``) are kept as they are."""
+"""JSON schema of capture.yaml (DESIGN §3). ``synthetic``, ``notes`` and ``x_*`` sections are kept as they are;
+another top-level key is an error, as inside the sections."""
 
 
 def _key_path(parts) -> str:
@@ -180,8 +188,11 @@ def _schema_problem(error: jsonschema.ValidationError) -> tuple[str, str]:
         missing = error.message.split("'")[1] if "'" in error.message else error.message
         return _key_path(path + [missing]), "missing; this key is required"
     if error.validator == "additionalProperties":
-        unknown = sorted(set(error.instance) - set(error.schema["properties"]))
-        return _key_path(path + unknown[:1]), f"unknown key; expected only {sorted(error.schema['properties'])}"
+        unknown = sorted(key for key in set(error.instance) - set(error.schema["properties"])
+                         if not any(re.match(pattern, str(key)) for pattern in error.schema.get("patternProperties", {})))
+        allowed = sorted(error.schema["properties"]) + [f"{p.lstrip('^')}..." for p in error.schema.get(
+            "patternProperties", {})]
+        return _key_path(path + unknown[:1]), f"unknown key; expected only {allowed}"
     if error.validator == "oneOf":
         return _key_path(path), f"expected a number >= 0 or a nested list of numbers >= 0, got {error.instance!r}"
     expected = {
@@ -193,6 +204,19 @@ def _schema_problem(error: jsonschema.ValidationError) -> tuple[str, str]:
         "maxItems": f"expected at most {error.validator_value} items",
     }.get(error.validator, error.message)
     return _key_path(path), f"{expected}, got {error.instance!r}"
+
+
+MAX_LISTED_PROBLEMS = 10
+"""A file with several problems: the first in detail, then up to this many more listed, then a count."""
+
+
+def _more(others: list[str]) -> str:
+    """The problems after the first, listed (at most MAX_LISTED_PROBLEMS) and counted beyond that."""
+    if not others:
+        return ""
+    listed = "; ".join(others[:MAX_LISTED_PROBLEMS])
+    rest = f"; and {len(others) - MAX_LISTED_PROBLEMS} more" if len(others) > MAX_LISTED_PROBLEMS else ""
+    return f" (and {len(others)} more problem(s): {listed}{rest})"
 
 
 def validate_config(config: Mapping, file_label: str = CAPTURE_YAML) -> dict:
@@ -208,8 +232,8 @@ def validate_config(config: Mapping, file_label: str = CAPTURE_YAML) -> dict:
                     key=lambda e: [str(p) for p in e.absolute_path])
     if errors:
         key, problem = _schema_problem(errors[0])
-        more = f" (and {len(errors) - 1} more problem(s))" if len(errors) > 1 else ""
-        raise ConfigError(file_label, f"key '{key}'", problem + more)
+        others = [f"key '{k}': {p}" for k, p in map(_schema_problem, errors[1:])]
+        raise ConfigError(file_label, f"key '{key}'", problem + _more(others))
 
     cfg = {k: (dict(v) if isinstance(v, Mapping) else v) for k, v in config.items()}
     sensor, camera = cfg["sensor"], cfg["camera"]
@@ -299,7 +323,7 @@ def _table_error(exc: pa.errors.SchemaErrors, schema: pa.DataFrameSchema, file_l
         return base(file_label, None, str(exc))
     order = sorted(range(len(messages)), key=lambda i: (kinds[i] is base, i))
     first = order[0]
-    more = f" (and {len(messages) - 1} more problem(s))" if len(messages) > 1 else ""
+    more = _more([f"{messages[i][0]}: {messages[i][1]}" for i in order[1:]])
     return kinds[first](file_label, messages[first][0], messages[first][1] + more)
 
 
