@@ -106,7 +106,7 @@ CASES = {
                          ["row 2 (line 4), column 'flash_level'", "(0, 1]"]),
     "flash level above one": (set_cell("frames.csv", 5, "flash_level", "1.5"), ["row 5 (line 7)", "(0, 1]"]),
     "exposure not a number": (set_cell("frames.csv", 3, "exposure_s", "fast"),
-                              ["row 3 (line 5), column 'exposure_s'", "'fast'"]),
+                              ["row 3 (line 5), column 'exposure_s'", "got 'fast'"]),
     "empty file name": (set_cell("frames.csv", 1, "file", ""), ["row 1 (line 3), column 'file'"]),
     "column missing": (edit_csv("frames.csv", lambda t: t.drop(columns="exposure_s")),
                        ["column 'exposure_s'", "missing"]),
@@ -153,6 +153,8 @@ def test_a_bad_input_stops_with_its_message_and_leaves_nothing(pristine, tmp_pat
     assert status == 1 and errors, caplog.text[-2000:]
     for piece in pieces:
         assert piece in errors[-1], f"{piece!r} not in {errors[-1]!r}"
+    assert "more problem" not in errors[-1] or case in ("several problems, all listed", "duplicate frame_id",
+                                                       "duplicate pose"), errors[-1]  # no problem said twice
     assert str(capture) in errors[-1]  # the file is named with its path
     leftovers = list((tmp_path / "out").iterdir()) if (tmp_path / "out").exists() else []
     assert leftovers == [], leftovers
