@@ -188,3 +188,31 @@ def test_many_problems_are_listed_up_to_a_cap(pristine, tmp_path, caplog):
     message = str(info.value)
     assert "(and 11 more problem(s):" in message and "; and 1 more)" in message
     assert message.count("column 'flash_level'") == 1 + io.MAX_LISTED_PROBLEMS
+
+
+LIMITED = ("import resource, runpy, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+           "resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[1]),) * 2); sys.argv = ['sellip'] + sys.argv[2:]; "
+           "runpy.run_module('sellip.cli', run_name='__main__')")
+"""`python -c LIMITED BYTES ARGS...`: `sellip ARGS...` whose files may not grow past BYTES (a full disk, for that
+process: writes beyond fail with EFBIG instead of killing it with SIGXFSZ)."""
+
+
+def test_no_room_to_write_is_a_clear_error_and_leaves_nothing(pristine, tmp_path):
+    """`sellip linearize` with no room for its store (a file-size limit of 2 kB for the process, as a full disk
+    would): exit 1, a message that says what is wrong and what to do, and no store, whole or partial."""
+    import os
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    out.mkdir()
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(Path(__file__).parents[1] / "src"),
+                                                                     os.environ.get("PYTHONPATH")]))}
+    result = subprocess.run([sys.executable, "-c", LIMITED, "2048", "linearize", "--capture", str(pristine),
+                             "--output", str(out / "linear.zarr")], capture_output=True, text=True, env=env,
+                            timeout=300, check=False)
+    print(result.stderr[-1500:])
+    assert result.returncode == 1, result.stderr[-3000:]
+    assert "ERROR sellip: no room to write" in result.stderr and "File too large" in result.stderr
+    assert "run the same command again" in result.stderr and "Traceback" not in result.stderr
+    assert list(out.iterdir()) == []

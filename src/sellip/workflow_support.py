@@ -17,6 +17,7 @@ capture reports that, with file, row and column).
 from __future__ import annotations
 
 import csv
+import errno
 import re
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -233,3 +234,15 @@ def load_yaml(path: str | Path):
     """A YAML file (the config schema) as Python objects."""
     with open(path, encoding="utf-8") as handle:
         return yaml.safe_load(handle)
+
+
+NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+"""A write that failed for want of room: a full disk, a quota, a file-size limit."""
+
+
+def no_space_message(exc: OSError) -> str:
+    """What a stage says when a write fails for want of room (``exc.errno`` in NO_SPACE_ERRNOS)."""
+    where = f" while writing {exc.filename}" if getattr(exc, "filename", None) else ""
+    return (f"no room to write{where} ({exc.strerror or exc}): free disk space (or raise the quota / file-size "
+            "limit) and run the same command again; nothing half-written is kept (outputs are written under a "
+            "temporary name and renamed when complete)")
