@@ -244,8 +244,10 @@ def test_failed_job_logs_and_their_error_lines(tmp_path):
                          "    shell:\n        sellip fit ...\nShutting down, this might take some time.\n")
     assert workflow_support.failed_job_logs(snake_log) == [("fit_pbrdf", ["results/x/logs/fit_pbrdf/0.log"])]
     shown = workflow_support.format_failures(snake_log, tmp_path)
-    assert shown.splitlines() == ["sellip: rule fit_pbrdf failed (full log: results/x/logs/fit_pbrdf/0.log)",
-                                  "  obs.zarr: shard 2 of 2: out of memory"]
+    assert shown.splitlines()[:2] == ["sellip: rule fit_pbrdf failed (full log: results/x/logs/fit_pbrdf/0.log)",
+                                      "  obs.zarr: shard 2 of 2: out of memory"]
+    assert "run the same command again" in shown.splitlines()[2]
+    assert workflow_support.format_failures(tmp_path / "no such log") == ""
     assert workflow_support.collect_warnings(tmp_path / "results" / "x" / "logs") == [
         ("fit_pbrdf/0.log", "3 vertices without views")]
     # A log without sellip's ERROR lines (a traceback): its last lines.

@@ -227,6 +227,8 @@ def format_failures(snakemake_log, root: str | Path = ".") -> str:
             out.append(f"sellip: rule {rule} failed" + (f" (full log: {log})" if log else ""))
             if log:
                 out += [f"  {line}" for line in error_lines(Path(root) / log)]
+    if out:
+        out.append("sellip: fix that and run the same command again: finished jobs are kept (docs/reliability.md)")
     return "\n".join(out)
 
 

@@ -72,6 +72,7 @@ rule evaluate_model:
         meshes=[mesh_of(it) for it in range(ITERATIONS + 1)],
         fits=[f"{RESULTS}/iter/{it}/fit.zarr" for it in range(ITERATIONS)],
         truth=ground_truth_file(),
+        poses=poses_file(),  # with sfm.mode sfm, the SfM cameras are aligned to poses.csv for the figures
     output:
         metrics=report(f"{RESULTS}/metrics.json", caption="../report/metrics.rst", category="Metrics"),
         timings=report(f"{RESULTS}/final/timings.png", caption="../report/timings.rst", category="Metrics"),
@@ -98,7 +99,8 @@ rule evaluate_model:
 
 onsuccess:
     # The run's warnings (a frame left out, a view without a pose), from the jobs' logs (docs/reliability.md).
-    print(workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs")))
+    if warnings := workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs")):
+        print(warnings)
     # Where everything is (README: the main command ends by saying so).
     if Path(f"{RESULTS}/metrics.json").is_file():
         import json
@@ -117,5 +119,7 @@ onsuccess:
 
 onerror:
     # A failed job's own message (file, row, what was expected) on the console, not only in its log file.
-    print(workflow_support.format_failures(log), file=sys.stderr)
-    print(workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs")), file=sys.stderr)
+    for text in (workflow_support.format_failures(log),
+                 workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs"))):
+        if text:
+            print(text, file=sys.stderr)
