@@ -55,6 +55,12 @@ def planned(result: subprocess.CompletedProcess) -> set[str]:
     return {m.group(1) for m in re.finditer(r"^(\w+)\s+\d+\s*$", table, re.MULTILINE) if m.group(1) != "total"}
 
 
+def planned_counts(result: subprocess.CompletedProcess) -> dict[str, int]:
+    """Jobs per rule of a dry run's 'Job stats' table."""
+    table = (result.stdout + result.stderr).split("Job stats:")[1]
+    return {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\w+)\s+(\d+)\s*$", table, re.MULTILINE)}
+
+
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     """A finished run up to the initial mesh, in a work folder and capture folder with spaces and non-ASCII
@@ -211,9 +217,11 @@ def test_nested_overrides_of_each_type_pass_the_workflow(tmp_path):
     """`--config` with a nested number, integer, boolean and null: the dry run plans them (the shell shows them)."""
     result = snakemake(tmp_path, tmp_path / "none", "-n", "-p", "--config", "capture=", "name=demo",
                        "augment={min_coherence: 0, k_max: 3}", "sfm={refine_intrinsics: true}",
-                       "observe={max_views: null}", "init={mode: hull}", check=False)
+                       "observe={max_views: null}", "init={mode: hull}", "fit={shards: 3}", check=False)
     text = result.stdout + result.stderr
     assert result.returncode == 0, text[-3000:]
+    jobs = planned_counts(result)
+    assert jobs["fit_pbrdf"] == 3 * jobs["gather_fit"]  # three shards per pass
     assert "--min-coherence 0 " in text and "--k-max 3 " in text and "--refine-intrinsics" in text
     assert "--max-views" not in text
 
