@@ -14,7 +14,7 @@ report: "workflow/report/workflow.rst"
 # Vertex shards of the per-vertex fit: a fixed count (override with --set-scatter fit=N);
 # each shard job derives its vertex range at run time.
 scattergather:
-    fit=config["fit"]["shards"],
+    fit=int(config["fit"]["shards"]),  # int: a nested --config override is still a string here (docs/reliability.md)
 
 
 include: "workflow/rules/common.smk"

@@ -13,6 +13,7 @@ import logging
 import sys
 
 from sellip import timing
+from sellip import workflow_support
 
 # command name -> (module under sellip.stages, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -63,7 +64,13 @@ def main(argv: list[str] | None = None) -> int:
         stream=sys.stderr,
     )
     with timing.phase("run"):
-        status = int(module.main(args) or 0)
+        try:
+            status = int(module.main(args) or 0)
+        except OSError as exc:
+            if exc.errno not in workflow_support.NO_SPACE_ERRNOS:
+                raise
+            logging.getLogger("sellip").error("%s", workflow_support.no_space_message(exc))
+            return 1
     logging.getLogger("sellip").info(timing.format_report(clock.report()))
     return status
 

@@ -37,6 +37,23 @@ def _user_settings():
     return user
 
 
+try:
+    from sellip import workflow_support
+except ImportError:  # a Snakemake whose Python lacks sellip (e.g. --sdm conda): this checkout's own
+    sys.path.append(str(Path(workflow.basedir) / "src"))
+    from sellip import workflow_support
+
+# --config values nested in a mapping arrive as strings (`augment={min_coherence: 0}` gives '0'): read them as the
+# numbers, booleans and nulls the schema expects there (docs/reliability.md).
+config.update(workflow_support.coerce_to_schema(
+    dict(config), workflow_support.load_yaml(Path(workflow.basedir) / "config" / "config.schema.yaml")))
+
+# results/NAME/ must be one folder inside results/: name=.. or name=a/b would write elsewhere.
+try:
+    workflow_support.check_results_name(config.get("name"))
+except ValueError as exc:
+    raise WorkflowError(str(exc)) from None
+
 # The built-in demo (no `capture` given) runs with config `demo.overrides` in place of the defaults:
 # a laptop-sized model of a small, low-resolution capture; a user's capture gets the defaults.
 if not config["capture"]:
@@ -72,6 +89,25 @@ def capture_dir():
 def capture_file(name):
     """A file of the capture; for the built-in demo it is an output of synth_capture."""
     return str(Path(capture_dir()) / name)
+
+
+def raw_frames():
+    """The raw frames the capture's frames.csv names (those that exist: ingest reports the others): inputs of
+    linearize_frames, so that a replaced or added frame re-runs ingest and what follows. The built-in demo's
+    frames are made by synth_capture with its frames.csv, which is the input then."""
+    return workflow_support.raw_frame_files(capture_dir()) if config["capture"] else []
+
+
+def poses_file():
+    """The capture's poses.csv as a list (empty when it has none): an input of run_sfm, so that adding, removing or
+    editing it re-runs the poses and what follows."""
+    return [capture_file("poses.csv")] if not config["capture"] else workflow_support.optional_file(
+        capture_dir(), "poses.csv")
+
+
+def ground_truth_file():
+    """The capture's ground-truth mesh as a list (empty when it has none): an input of evaluate_model."""
+    return workflow_support.optional_file(capture_dir(), "ground_truth/model.ply") if config["capture"] else []
 
 
 def user_mesh():

@@ -13,7 +13,7 @@ rule finalize_model:
         model=f"{RESULTS}/final/model.ply",
         params=directory(f"{RESULTS}/final/params.zarr"),
     params:
-        clusters=lambda wildcards, input: f"--clusters {input.clusters}" if input.clusters else "",
+        clusters=lambda wildcards, input: f"--clusters {shlex.join(input.clusters)}" if input.clusters else "",
         eta_deviation_sigmas=config["final"]["eta_deviation_sigmas"],
         lobe_deviation_sigmas=config["final"]["lobe_deviation_sigmas"],
         deviation_support=config["final"]["deviation_support"],
@@ -24,11 +24,11 @@ rule finalize_model:
     benchmark:
         f"{RESULTS}/benchmarks/finalize_model.tsv"
     shell:
-        SELLIP + " finalize --params {input.params} --mesh {input.mesh} --output-model {output.model}"
-        " --output-params {output.params} {params.clusters}"
+        SELLIP + " finalize --params {input.params:q} --mesh {input.mesh:q} --output-model {output.model:q}"
+        " --output-params {output.params:q} {params.clusters}"
         " --eta-deviation-sigmas {params.eta_deviation_sigmas}"
         " --lobe-deviation-sigmas {params.lobe_deviation_sigmas}"
-        " --deviation-support {params.deviation_support} > {log} 2>&1"
+        " --deviation-support {params.deviation_support} > {log:q} 2>&1"
 
 
 rule render_outputs:
@@ -47,7 +47,7 @@ rule render_outputs:
         ),
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
-        views=" ".join(config["evaluate"]["render_views"]),
+        views=config["evaluate"]["render_views"],
         supersample=config["evaluate"]["supersample"],
     conda:
         "../../envs/report.yaml"
@@ -56,9 +56,9 @@ rule render_outputs:
     benchmark:
         f"{RESULTS}/benchmarks/render_outputs.tsv"
     shell:
-        SELLIP + " render-outputs --model {input.model} --cameras {input.cameras} --hdr {input.hdr}"
-        " --capture {params.capture} --output {output} --views {params.views}"
-        " --supersample {params.supersample} > {log} 2>&1"
+        SELLIP + " render-outputs --model {input.model:q} --cameras {input.cameras:q} --hdr {input.hdr:q}"
+        " --capture {params.capture:q} --output {output:q} --views {params.views:q}"
+        " --supersample {params.supersample} > {log:q} 2>&1"
 
 
 rule evaluate_model:
@@ -71,6 +71,8 @@ rule evaluate_model:
         renders=f"{RESULTS}/final/renders",  # evaluated last: its timings cover every other stage
         meshes=[mesh_of(it) for it in range(ITERATIONS + 1)],
         fits=[f"{RESULTS}/iter/{it}/fit.zarr" for it in range(ITERATIONS)],
+        truth=ground_truth_file(),
+        poses=poses_file(),  # with sfm.mode sfm, the SfM cameras are aligned to poses.csv for the figures
     output:
         metrics=report(f"{RESULTS}/metrics.json", caption="../report/metrics.rst", category="Metrics"),
         timings=report(f"{RESULTS}/final/timings.png", caption="../report/timings.rst", category="Metrics"),
@@ -79,7 +81,8 @@ rule evaluate_model:
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
         benchmarks=f"{RESULTS}/benchmarks",
-        held_out=" ".join(config["evaluate"]["held_out_views"]),
+        logs=f"{RESULTS}/logs",
+        held_out=config["evaluate"]["held_out_views"],
     conda:
         "../../envs/report.yaml"
     log:
@@ -87,14 +90,17 @@ rule evaluate_model:
     benchmark:
         f"{RESULTS}/benchmarks/evaluate_model.tsv"
     shell:
-        SELLIP + " evaluate --model {input.model} --params {input.params} --cameras {input.cameras}"
-        " --hdr {input.hdr} --capture {params.capture} --benchmarks {params.benchmarks}"
-        " --held-out {params.held_out} --output {output.metrics} --timings-plot {output.timings}"
-        " --iteration-meshes {input.meshes} --iteration-fits {input.fits} --convergence-plot {output.convergence}"
-        " > {log} 2>&1"
+        SELLIP + " evaluate --model {input.model:q} --params {input.params:q} --cameras {input.cameras:q}"
+        " --hdr {input.hdr:q} --capture {params.capture:q} --benchmarks {params.benchmarks:q}"
+        " --held-out {params.held_out:q} --output {output.metrics:q} --timings-plot {output.timings:q}"
+        " --iteration-meshes {input.meshes:q} --iteration-fits {input.fits:q} --convergence-plot {output.convergence:q}"
+        " --logs {params.logs:q} > {log:q} 2>&1"
 
 
 onsuccess:
+    # The run's warnings (a frame left out, a view without a pose), from the jobs' logs (docs/reliability.md).
+    if warnings := workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs")):
+        print(warnings)
     # Where everything is (README: the main command ends by saying so).
     if Path(f"{RESULTS}/metrics.json").is_file():
         import json
@@ -109,3 +115,11 @@ onsuccess:
         if normal:
             print(f"  normal error mean {normal['mean']:.2f} deg, eta error mean {eta.get('mean', float('nan')):.2f} %, "
                   f"held-out PSNR {psnr if psnr is None else round(psnr, 1)} dB")
+
+
+onerror:
+    # A failed job's own message (file, row, what was expected) on the console, not only in its log file.
+    for text in (workflow_support.format_failures(log),
+                 workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs"))):
+        if text:
+            print(text, file=sys.stderr)

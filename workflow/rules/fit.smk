@@ -53,8 +53,8 @@ rule fit_pbrdf:
     output:
         temp(f"{RESULTS}/iter/{{it}}/{{pass_}}/{{scatteritem}}.npz"),
     params:
-        prior=lambda wildcards, input: f"--prior {input.prior}" if input.prior else "",
-        lobes=lambda wildcards, input: f"--lobes {input.lobes}" if input.lobes else "",
+        prior=lambda wildcards, input: f"--prior {shlex.join(input.prior)}" if input.prior else "",
+        lobes=lambda wildcards, input: f"--lobes {shlex.join(input.lobes)}" if input.lobes else "",
         settings=fit_settings_args,
         fixed_sigma_ss=config["model_selection"]["sigma_ss_fixed"],
         dtype=config["fit"]["dtype"],
@@ -69,9 +69,9 @@ rule fit_pbrdf:
     benchmark:
         f"{RESULTS}/benchmarks/fit_pbrdf/{{it}}/{{pass_}}/{{scatteritem}}.tsv"
     shell:
-        SELLIP + " fit --observations {input.observations} --shard {wildcards.scatteritem}"
-        " --output {output} {params.prior} {params.lobes} --dtype {params.dtype} {params.settings}"
-        " --fixed-sigma-ss {params.fixed_sigma_ss} --compilation-cache {params.cache} > {log} 2>&1"
+        SELLIP + " fit --observations {input.observations:q} --shard {wildcards.scatteritem}"
+        " --output {output:q} {params.prior} {params.lobes} --dtype {params.dtype} {params.settings}"
+        " --fixed-sigma-ss {params.fixed_sigma_ss} --compilation-cache {params.cache:q} > {log:q} 2>&1"
 
 
 rule gather_fit:
@@ -87,8 +87,8 @@ rule gather_fit:
     benchmark:
         f"{RESULTS}/benchmarks/gather_fit/{{it}}/{{pass_}}.tsv"
     shell:
-        SELLIP + " gather-fit --observations {input.observations} --shards {input.shards}"
-        " --output {output} > {log} 2>&1"
+        SELLIP + " gather-fit --observations {input.observations:q} --shards {input.shards:q}"
+        " --output {output:q} > {log:q} 2>&1"
 
 
 rule cluster_lobes:
@@ -120,8 +120,8 @@ rule cluster_lobes:
     benchmark:
         f"{RESULTS}/benchmarks/cluster_lobes/{{it}}.tsv"
     shell:
-        SELLIP + " cluster-lobes --params {input.params} --observations {input.observations} --output {output}"
+        SELLIP + " cluster-lobes --params {input.params:q} --observations {input.observations:q} --output {output:q}"
         " --seed {params.seed} --k-max {params.k_max} --max-samples {params.max_samples}"
         " --min-cluster-vertices {params.min_cluster_vertices} --min-coherence {params.min_coherence}"
         " {params.settings} {params.selection}"
-        " --compilation-cache {params.cache} > {log} 2>&1"
+        " --compilation-cache {params.cache:q} > {log:q} 2>&1"

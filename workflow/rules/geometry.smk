@@ -8,6 +8,8 @@ rule run_sfm:
     input:
         hdr=f"{RESULTS}/hdr.zarr",
         capture=capture_file("capture.yaml"),
+        # poses.csv (when the capture has one) is an input: adding, removing or editing it re-runs the poses.
+        poses=poses_file(),
     output:
         cameras=f"{RESULTS}/cameras.csv",
         sfm=directory(f"{RESULTS}/sfm"),
@@ -32,13 +34,13 @@ rule run_sfm:
     benchmark:
         f"{RESULTS}/benchmarks/run_sfm.tsv"
     shell:
-        SELLIP + " sfm --hdr {input.hdr} --capture {params.capture} --cameras {output.cameras}"
-        " --output {output.sfm} --mode {params.mode} --matching {params.matching}"
+        SELLIP + " sfm --hdr {input.hdr:q} --capture {params.capture:q} --cameras {output.cameras:q}"
+        " --output {output.sfm:q} --mode {params.mode} --matching {params.matching}"
         " --exhaustive-max-views {params.exhaustive_max_views} --retrieval-neighbors {params.retrieval_neighbors}"
         " --max-features {params.max_features} --feature-object-px {params.feature_object_px}"
         " --max-upscale {params.max_upscale} {params.refine_intrinsics}"
         " --min-registered-fraction {params.min_registered_fraction} --mask-threshold {params.mask_threshold}"
-        " --seed {params.seed} --threads {threads} > {log} 2>&1"
+        " --seed {params.seed} --threads {threads} > {log:q} 2>&1"
 
 
 rule init_mesh:
@@ -68,11 +70,11 @@ rule init_mesh:
     benchmark:
         f"{RESULTS}/benchmarks/init_mesh.tsv"
     shell:
-        SELLIP + " init-mesh --hdr {input.hdr} --cameras {input.cameras} --sfm {input.sfm}"
-        " --output {output.mesh} --mode {params.mode} {params.mesh_path} --hull-resolution {params.hull_resolution}"
+        SELLIP + " init-mesh --hdr {input.hdr:q} --cameras {input.cameras:q} --sfm {input.sfm:q}"
+        " --output {output.mesh:q} --mode {params.mode} {params.mesh_path} --hull-resolution {params.hull_resolution}"
         " --min-inside-fraction {params.min_inside_fraction} --poisson-depth {params.poisson_depth}"
         " --target-depth {params.target_depth} --max-vertices {params.max_vertices}"
-        " --mask-threshold {params.mask_threshold} --threads {threads} > {log} 2>&1"
+        " --mask-threshold {params.mask_threshold} --threads {threads} > {log:q} 2>&1"
 
 
 rule refine_geometry:
@@ -94,7 +96,7 @@ rule refine_geometry:
         rounds=config["refine_geometry"]["rounds"],
         silhouette=lambda wildcards: at_iteration(config["refine_geometry"]["silhouette"], wildcards.it),
         capture=lambda wildcards, input: Path(input.capture).parent,
-        held_out=" ".join(config["evaluate"]["held_out_views"]),
+        held_out=config["evaluate"]["held_out_views"],
         mask_threshold=config["sfm"]["mask_threshold"],
     conda:
         "../../envs/geometry.yaml"
@@ -103,8 +105,8 @@ rule refine_geometry:
     benchmark:
         f"{RESULTS}/benchmarks/refine_geometry/{{it}}.tsv"
     shell:
-        SELLIP + " refine-geometry --params {input.params} --mesh {input.mesh} --output {output.mesh}"
-        " --reference-mesh {input.reference} --smoothness {params.smoothness}"
+        SELLIP + " refine-geometry --params {input.params:q} --mesh {input.mesh:q} --output {output.mesh:q}"
+        " --reference-mesh {input.reference:q} --smoothness {params.smoothness}"
         " --smoothness-unconfident {params.smoothness_unconfident} --anchor {params.anchor} --rounds {params.rounds}"
-        " --silhouette {params.silhouette} --cameras {input.cameras} --hdr {input.hdr} --capture {params.capture}"
-        " --exclude-views {params.held_out} --mask-threshold {params.mask_threshold} > {log} 2>&1"
+        " --silhouette {params.silhouette} --cameras {input.cameras:q} --hdr {input.hdr:q} --capture {params.capture:q}"
+        " --exclude-views {params.held_out:q} --mask-threshold {params.mask_threshold} > {log:q} 2>&1"

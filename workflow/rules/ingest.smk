@@ -6,6 +6,8 @@ rule linearize_frames:
     input:
         capture=capture_file("capture.yaml"),
         frames=capture_file("frames.csv"),
+        # Every raw frame is an input: a replaced or added frame re-runs ingest and what follows.
+        raw=raw_frames(),
     output:
         temp(directory(f"{RESULTS}/ingest/linear.zarr")),
     params:
@@ -21,9 +23,9 @@ rule linearize_frames:
     benchmark:
         f"{RESULTS}/benchmarks/linearize_frames.tsv"
     shell:
-        SELLIP + " linearize --capture {params.capture} --output {output} --threads {threads}"
+        SELLIP + " linearize --capture {params.capture:q} --output {output:q} --threads {threads}"
         " --saturation {params.saturation} --black-level-from {params.black_level_from}"
-        " --bad-frames {params.bad_frames} > {log} 2>&1"
+        " --bad-frames {params.bad_frames} > {log:q} 2>&1"
 
 
 rule merge_hdr:
@@ -39,7 +41,7 @@ rule merge_hdr:
     benchmark:
         f"{RESULTS}/benchmarks/merge_hdr.tsv"
     shell:
-        SELLIP + " merge-hdr --linear {input} --output {output} --threads {threads} > {log} 2>&1"
+        SELLIP + " merge-hdr --linear {input:q} --output {output:q} --threads {threads} > {log:q} 2>&1"
 
 
 rule plot_hdr_previews:
@@ -61,4 +63,4 @@ rule plot_hdr_previews:
     benchmark:
         f"{RESULTS}/benchmarks/plot_hdr_previews.tsv"
     shell:
-        SELLIP + " hdr-previews --hdr {input} --output {output} > {log} 2>&1"
+        SELLIP + " hdr-previews --hdr {input:q} --output {output:q} > {log:q} 2>&1"

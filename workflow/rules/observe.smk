@@ -25,7 +25,7 @@ rule gather_observations:
         mask_threshold=config["sfm"]["mask_threshold"],
         max_slope=config["observe"]["max_slope"],
         missing_poses=config["observe"]["missing_poses"],
-        held_out=" ".join(config["evaluate"]["held_out_views"]),
+        held_out=config["evaluate"]["held_out_views"],
         max_views=(f"--max-views {config['observe']['max_views']}"
                    if config["observe"].get("max_views") is not None else ""),
     threads: config["observe"]["threads"]
@@ -36,10 +36,10 @@ rule gather_observations:
     benchmark:
         f"{RESULTS}/benchmarks/gather_observations/{{it}}.tsv"
     shell:
-        SELLIP + " observe --mesh {input.mesh} --cameras {input.cameras} --hdr {input.hdr}"
-        " --capture {params.capture} --output {output} --vertex-chunk {params.vertex_chunk}"
+        SELLIP + " observe --mesh {input.mesh:q} --cameras {input.cameras:q} --hdr {input.hdr:q}"
+        " --capture {params.capture:q} --output {output:q} --vertex-chunk {params.vertex_chunk}"
         " --view-chunk {params.view_chunk} --occlusion-tolerance {params.occlusion_tolerance}"
         " --shadow-offset {params.shadow_offset} --min-cos {params.min_cos}"
         " --edge-margin {params.edge_margin} --mask-threshold {params.mask_threshold} --max-slope {params.max_slope}"
-        " --missing-poses {params.missing_poses} --exclude-views {params.held_out} {params.max_views}"
-        " --threads {threads} > {log} 2>&1"
+        " --missing-poses {params.missing_poses} --exclude-views {params.held_out:q} {params.max_views}"
+        " --threads {threads} > {log:q} 2>&1"

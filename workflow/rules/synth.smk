@@ -21,5 +21,5 @@ rule synth_capture:
         "results/benchmarks/synth_capture/{scene}.tsv"
     shell:
         SELLIP + " synth --scene {wildcards.scene} --out captures/{wildcards.scene}"
-        " --views {params.views} --width {params.width} --height {params.height}"
-        " --seed {params.seed} --noise-scale {params.noise_scale} --no-progress > {log} 2>&1"
+        " --views {params.views:q} --width {params.width} --height {params.height}"
+        " --seed {params.seed} --noise-scale {params.noise_scale} --no-progress > {log:q} 2>&1"

@@ -9,11 +9,15 @@ Modules and what they export (each name is importable from here too)::
     capture_yaml: capture.yaml (DESIGN §3): its JSON schema and :func:`validate_config`, which names the key, what
       was expected and what was found
         CONFIG_SCHEMA, validate_config
+    checks: Unit checks of a capture's numbers against each other (issue #38): lengths that are off by a factor of
+      1000 must not pass silently
+        DISTANCE_TOLERANCE, UNIT_MATCH, PoseUnitsError, camera_distances, likely_unit, check_pose_units
     files: The capture folder's file names and columns (DESIGN §3), and the errors every reader raises
       (:class:`CaptureError` and its kinds: each names the file, and where it applies the row, column or key)
         CAPTURE_YAML, FRAMES_CSV, POSES_CSV, RAW_DIR, GROUND_TRUTH_DIR, RAWPY_SUFFIXES, TIFF_SUFFIXES, PNG_SUFFIXES,
         FRAME_COLUMNS, POSE_COLUMNS, CaptureError, MissingFileError, ConfigError, UnknownLayoutError, FramesError,
-        DuplicateFrameError, FlashLevelError, PosesError, ViewWithoutFramesError, RawFrameError, GROUND_TRUTH_MESH
+        DuplicateFrameError, FlashLevelError, PosesError, ViewWithoutFramesError, RawFrameError, GROUND_TRUTH_MESH,
+        MAX_LISTED_PROBLEMS, more_problems
     hdr: The HDR store ``hdr.zarr`` (DESIGN §2 hdr_merge): one HDR image per view and analyzer (I0, I45, I90, I135,
       RGB, float32, relative radiance) and its valid mask, merged from a view's flash levels (:func:`merge_capture`),
       and its reader (:func:`read_hdr` -> :class:`HDRImages`)
@@ -34,9 +38,9 @@ Modules and what they export (each name is importable from here too)::
         Capture, read_capture, read_raw_file, read_raw_frame
     scenes: Procedural test scenes with known ground truth (no downloads) and handheld camera orbits
         SCENES, DEVICE_WIDTH_PX, DEVICE_FX_PX, SPHERE_IOR_ETAS, Material, DEMO_MATERIALS, DEMO_FINE_MATERIALS,
-        Scene, icosphere, vertex_normals, random_unit_vectors, cellular, bump, FEATHER_RELIEF_M, feather_relief,
-        TINY_FLASH_POWER, TINY_BUMPS, TINY_BUMP_WIDTH_RAD, TINY_MATERIALS, COW_PATCH_ALBEDO, build_scene,
-        device_intrinsics, look_at_rotation, handheld_orbit
+        Scene, icosphere, random_unit_vectors, cellular, bump, FEATHER_RELIEF_M, feather_relief, TINY_FLASH_POWER,
+        TINY_BUMPS, TINY_BUMP_WIDTH_RAD, TINY_MATERIALS, COW_PATCH_ALBEDO, build_scene, device_intrinsics,
+        look_at_rotation, handheld_orbit
     sensor: Sensor simulation: the IMX250MYR colour-polarization mosaic (DESIGN §3) from rendered analyzer images
         IMX250_POLARIZER_LAYOUT, DEFAULT_COLOR_MATRIX, SRGB_LUMINANCE, SensorModel, camera_rgb_from_srgb,
         mosaic_sample, sensor_mosaic, sensor_colors, simulate_raw
@@ -59,10 +63,13 @@ from sellip._exports import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "capture_yaml": ("CONFIG_SCHEMA", "validate_config"),
+    "checks": ("DISTANCE_TOLERANCE", "UNIT_MATCH", "PoseUnitsError", "camera_distances", "likely_unit",
+           "check_pose_units"),
     "files": ("CAPTURE_YAML", "FRAMES_CSV", "POSES_CSV", "RAW_DIR", "GROUND_TRUTH_DIR", "RAWPY_SUFFIXES",
            "TIFF_SUFFIXES", "PNG_SUFFIXES", "FRAME_COLUMNS", "POSE_COLUMNS", "CaptureError", "MissingFileError",
            "ConfigError", "UnknownLayoutError", "FramesError", "DuplicateFrameError", "FlashLevelError",
-           "PosesError", "ViewWithoutFramesError", "RawFrameError", "GROUND_TRUTH_MESH"),
+           "PosesError", "ViewWithoutFramesError", "RawFrameError", "GROUND_TRUTH_MESH", "MAX_LISTED_PROBLEMS",
+           "more_problems"),
     "hdr": ("UNITS", "HDR_CODEC", "HDRImages", "read_hdr", "merge_capture"),
     "ingest": ("CELL", "DEFAULT_SATURATION", "HDR_WEIGHT_FLOOR", "HDR_WEIGHT_WINDOW", "GUIDE_FLOOR", "IngestError",
            "black_level_map", "rawpy_black_level", "linearize", "analyzer_phases", "DemosaicPlan",
@@ -73,8 +80,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "mosaic": ("COLOR_LAYOUTS", "MosaicError", "MosaicLayout", "mosaic_layout"),
     "reader": ("Capture", "read_capture", "read_raw_file", "read_raw_frame"),
     "scenes": ("SCENES", "DEVICE_WIDTH_PX", "DEVICE_FX_PX", "SPHERE_IOR_ETAS", "Material", "DEMO_MATERIALS",
-           "DEMO_FINE_MATERIALS", "Scene", "icosphere", "vertex_normals", "random_unit_vectors", "cellular",
-           "bump", "FEATHER_RELIEF_M", "feather_relief", "TINY_FLASH_POWER", "TINY_BUMPS", "TINY_BUMP_WIDTH_RAD",
+           "DEMO_FINE_MATERIALS", "Scene", "icosphere", "random_unit_vectors", "cellular", "bump",
+           "FEATHER_RELIEF_M", "feather_relief", "TINY_FLASH_POWER", "TINY_BUMPS", "TINY_BUMP_WIDTH_RAD",
            "TINY_MATERIALS", "COW_PATCH_ALBEDO", "build_scene", "device_intrinsics", "look_at_rotation",
            "handheld_orbit"),
     "sensor": ("IMX250_POLARIZER_LAYOUT", "DEFAULT_COLOR_MATRIX", "SRGB_LUMINANCE", "SensorModel",

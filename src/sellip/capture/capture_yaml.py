@@ -4,12 +4,13 @@ what was expected and what was found.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 
 import jsonschema
 import numpy as np
 
-from sellip.capture.files import CAPTURE_YAML, ConfigError, UnknownLayoutError
+from sellip.capture.files import CAPTURE_YAML, ConfigError, UnknownLayoutError, more_problems
 from sellip.capture.mosaic import MosaicError, mosaic_layout
 
 # --------------------------------------------------------------------------- capture.yaml
@@ -21,7 +22,13 @@ _MATRIX3 = {"type": "array", "items": _VECTOR3, "minItems": 3, "maxItems": 3}
 CONFIG_SCHEMA: dict = {
     "type": "object",
     "required": ["sensor", "camera", "light", "scene"],
+    # Like the sections' keys, a top-level key must be known (a misspelt `scene:` must not pass silently): the four
+    # sections, `synthetic` (sellip synth's record), `notes`, and any key starting with `x_` (the user's own).
+    "additionalProperties": False,
+    "patternProperties": {"^x_": {}},
     "properties": {
+        "synthetic": {"type": "object"},
+        "notes": {},
         "sensor": {
             "type": "object",
             "additionalProperties": False,
@@ -69,7 +76,8 @@ CONFIG_SCHEMA: dict = {
         },
     },
 }
-"""JSON schema of capture.yaml (DESIGN §3). Other top-level sections (e.g. ``synthetic``) are kept as they are."""
+"""JSON schema of capture.yaml (DESIGN §3). ``synthetic``, ``notes`` and ``x_*`` sections are kept as they are;
+another top-level key is an error, as inside the sections."""
 
 
 def _key_path(parts) -> str:
@@ -83,8 +91,11 @@ def _schema_problem(error: jsonschema.ValidationError) -> tuple[str, str]:
         missing = error.message.split("'")[1] if "'" in error.message else error.message
         return _key_path(path + [missing]), "missing; this key is required"
     if error.validator == "additionalProperties":
-        unknown = sorted(set(error.instance) - set(error.schema["properties"]))
-        return _key_path(path + unknown[:1]), f"unknown key; expected only {sorted(error.schema['properties'])}"
+        unknown = sorted(key for key in set(error.instance) - set(error.schema["properties"])
+                         if not any(re.match(pattern, str(key)) for pattern in error.schema.get("patternProperties", {})))
+        allowed = sorted(error.schema["properties"]) + [f"{p.lstrip('^')}..." for p in error.schema.get(
+            "patternProperties", {})]
+        return _key_path(path + unknown[:1]), f"unknown key; expected only {allowed}"
     if error.validator == "oneOf":
         return _key_path(path), f"expected a number >= 0 or a nested list of numbers >= 0, got {error.instance!r}"
     expected = {
@@ -111,8 +122,8 @@ def validate_config(config: Mapping, file_label: str = CAPTURE_YAML) -> dict:
                     key=lambda e: [str(p) for p in e.absolute_path])
     if errors:
         key, problem = _schema_problem(errors[0])
-        more = f" (and {len(errors) - 1} more problem(s))" if len(errors) > 1 else ""
-        raise ConfigError(file_label, f"key '{key}'", problem + more)
+        others = [f"key '{k}': {p}" for k, p in map(_schema_problem, errors[1:])]
+        raise ConfigError(file_label, f"key '{key}'", problem + more_problems(others))
 
     cfg = {k: (dict(v) if isinstance(v, Mapping) else v) for k, v in config.items()}
     sensor, camera = cfg["sensor"], cfg["camera"]

@@ -69,3 +69,15 @@ class RawFrameError(CaptureError):
 
 GROUND_TRUTH_MESH = f"{GROUND_TRUTH_DIR}/model.ply"
 
+
+MAX_LISTED_PROBLEMS = 10
+"""A file with several problems: the first in detail, then up to this many more listed, then a count."""
+
+
+def more_problems(others: list[str]) -> str:
+    """The problems after the first, listed (at most MAX_LISTED_PROBLEMS) and counted beyond that."""
+    if not others:
+        return ""
+    listed = "; ".join(others[:MAX_LISTED_PROBLEMS])
+    rest = f"; and {len(others) - MAX_LISTED_PROBLEMS} more" if len(others) > MAX_LISTED_PROBLEMS else ""
+    return f" (and {len(others)} more problem(s): {listed}{rest})"

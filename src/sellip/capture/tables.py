@@ -20,6 +20,7 @@ from sellip.capture.files import (
     FlashLevelError,
     FramesError,
     PosesError,
+    more_problems,
 )
 
 # --------------------------------------------------------------------------- tables
@@ -75,9 +76,11 @@ def _table_error(exc: pa.errors.SchemaErrors, schema: pa.DataFrameSchema, file_l
             kinds.append(FlashLevelError if column == "flash_level" else base)
     if not messages:
         return base(file_label, None, str(exc))
+    unique = list(dict.fromkeys(zip(messages, kinds)))  # pandera reports a failed coercion twice
+    messages, kinds = [m for m, _ in unique], [k for _, k in unique]
     order = sorted(range(len(messages)), key=lambda i: (kinds[i] is base, i))
     first = order[0]
-    more = f" (and {len(messages) - 1} more problem(s))" if len(messages) > 1 else ""
+    more = more_problems([f"{messages[i][0]}: {messages[i][1]}" for i in order[1:]])
     return kinds[first](file_label, messages[first][0], messages[first][1] + more)
 
 

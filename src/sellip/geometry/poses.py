@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from sellip.capture.checks import check_pose_units
+from sellip.capture.files import POSES_CSV
 from sellip.capture.reader import read_capture
 from sellip.geometry import alignment, sfm
 from sellip.geometry.cameras import _pose_arrays, diffuse_view, intrinsics_matrix, view_masks, write_cameras
@@ -80,6 +82,9 @@ def solve_poses(hdr_path: str | Path, capture_path: str | Path, cameras_path: st
                                                                             "qz": 0.0}))
         known_translations[poses["qw"].isna().to_numpy()] = np.nan
         known = (known_rotations, known_translations)
+        if mode != "sfm":  # poses in millimetres would give a model 1000 times too large (docs/reliability.md)
+            check_pose_units(known_rotations, known_translations, distance_m, str(Path(capture_path) / POSES_CSV),
+                             str(Path(capture_path) / "capture.yaml"))
     if mode == "known" and known is None:
         log.info("sfm.mode is 'known' but %s has no poses.csv: running SfM", capture_path)
         mode = "sfm"

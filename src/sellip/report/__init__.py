@@ -12,7 +12,7 @@ Modules and what they export (each name is importable from here too)::
     metrics: The figures of merit of a reconstruction (DESIGN §8; rule ``evaluate_model``): normals, η per material
       and per vertex, albedo, roughness, Chamfer and Hausdorff, held-out and new-light PSNR, the geometry's
       convergence over the iterations -> ``metrics.json`` (:func:`evaluate_model`)
-        confident_vertices, sfm_mode, geometry_convergence, view_psnr, evaluate_model
+        confident_vertices, sfm_mode, geometry_convergence, view_psnr, evaluate_model, headline_figures
     outputs: Renders, Mueller-matrix images, AoLP/DoP images and parameter maps of a model (DESIGN §1 outputs, paper
       Fig. 10)
         NEW_LIGHT_OFFSET_M, NOVEL_ELEVATION_DEG, MUELLER_BASIS, DARK_FRACTION, MAP_SPECS, object_center,
@@ -33,7 +33,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "evaluate": ("PSNR_PEAK_PERCENTILE", "PSNR_MAX_DB", "FIT_RULE", "transform_mesh", "camera_alignment",
            "eta_per_material", "parameter_errors", "geometry_errors", "geometry_series", "psnr", "render_mask",
            "stage_timings", "vertex_errors"),
-    "metrics": ("confident_vertices", "sfm_mode", "geometry_convergence", "view_psnr", "evaluate_model"),
+    "metrics": ("confident_vertices", "sfm_mode", "geometry_convergence", "view_psnr", "evaluate_model",
+           "headline_figures"),
     "outputs": ("NEW_LIGHT_OFFSET_M", "NOVEL_ELEVATION_DEG", "MUELLER_BASIS", "DARK_FRACTION", "MAP_SPECS",
            "object_center", "novel_camera", "moved_flash", "mueller_image", "polarization_images",
            "parameter_maps", "fit_scale", "tone_map", "draw_map", "map_figure", "grid_figure", "mueller_figure",

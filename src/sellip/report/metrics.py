@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sellip import workflow_support
 from sellip.capture.files import GROUND_TRUTH_MESH
 from sellip.capture.reader import read_capture
 from sellip.geometry.cameras import load_cameras
@@ -218,7 +219,8 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
               held_out: list[str] | None = None, sim3_from_sfm: bool = False, sfm_report: str | Path | None = None,
               supersample: int = 2, geometry_samples: int = 50000, timings_plot: str | Path | None = None,
               new_light_offset_cam=NEW_LIGHT_OFFSET_M, iteration_meshes: list | None = None,
-              iteration_fits: list | None = None, convergence_plot: str | Path | None = None) -> dict:
+              iteration_fits: list | None = None, convergence_plot: str | Path | None = None,
+              logs: str | Path | None = None) -> dict:
     """Compute the figures of merit and write ``output`` (metrics.json); returns the metrics.
 
     ``iteration_meshes``: the loop's meshes in order (the initial one, then each iteration's), and
@@ -280,6 +282,9 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
         reasons["geometry_iterations"] = "no --iteration-meshes given"
 
     metrics["timings"] = _timings(benchmarks, timings_plot, reasons)
+    # The run's warnings (a frame left out, views without a pose: docs/reliability.md), from the jobs' logs.
+    metrics["warnings"] = [{"log": name, "message": message} for name, message in
+                           (workflow_support.collect_warnings(logs) if logs is not None else [])]
     metrics["reasons"] = reasons
     metrics["evaluate_s"] = time.perf_counter() - started
     output.parent.mkdir(parents=True, exist_ok=True)

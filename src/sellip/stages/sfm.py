@@ -34,6 +34,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from sellip.capture.files import CaptureError
 from sellip.geometry import sfm
 from sellip.geometry.poses import POSE_MODES, solve_poses
 from sellip.stages._arguments import add_image_arguments
@@ -79,7 +80,7 @@ def main(args: argparse.Namespace) -> int:
         solve_poses(args.hdr, args.capture, args.cameras, args.output, mode=args.mode, options=options,
                   min_registered_fraction=args.min_registered_fraction, feature_object_px=args.feature_object_px,
                   max_upscale=args.max_upscale, mask_options={"threshold": args.mask_threshold})
-    except sfm.RegistrationError as exc:
+    except (sfm.RegistrationError, CaptureError) as exc:
         log.error("%s", exc)
         return 1
     return 0

@@ -1,0 +1,218 @@
+"""The bad-input suite (issue #38, docs/reliability.md): one tiny capture is built once; each case copies it,
+breaks one thing, and runs the first stage that reads it (`sellip linearize`, as the rule `linearize_frames` runs
+it) through the command line's entry point. Every case must stop with exit status 1 and the message the table in
+docs/reliability.md promises (the file, the row / line / key, and what was expected), and leave no output behind;
+the `skip` cases run to the end with a warning instead.
+
+The workflow-level cases (stale inputs, paths with spaces, bad results names, nested overrides, the console
+message of a failed job, poses in millimetres) are in tests/test_reliability.py."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from sellip.cli import main
+
+HEIGHT, WIDTH = 48, 64
+
+
+@pytest.fixture(scope="module")
+def pristine(tmp_path_factory) -> Path:
+    """A tiny synthetic capture: 4 views x 3 flash levels of 64x48 raw pixels, with poses.csv."""
+    from sellip.capture.synthetic import synthesize_capture
+
+    return synthesize_capture("tiny", tmp_path_factory.mktemp("bad_inputs") / "capture", views=4, width=WIDTH,
+                              height=HEIGHT, seed=1, supersample=1, progress=False)
+
+
+def edit_yaml(edit):
+    def apply(capture: Path):
+        config = yaml.safe_load((capture / "capture.yaml").read_text())
+        edit(config)
+        (capture / "capture.yaml").write_text(yaml.safe_dump(config))
+    return apply
+
+
+def edit_csv(name: str, edit):
+    def apply(capture: Path):
+        table = pd.read_csv(capture / name, dtype=str, keep_default_na=False)
+        edit(table).to_csv(capture / name, index=False)
+    return apply
+
+
+def set_cell(name: str, row: int, column: str, value: str):
+    def edit(table):
+        table.loc[row, column] = value
+        return table
+    return edit_csv(name, edit)
+
+
+def write_file(relative: str, data: bytes):
+    return lambda capture: (capture / relative).write_bytes(data)
+
+
+def raw_array(relative: str, array: np.ndarray):
+    from sellip.capture.writer import write_raw_file
+
+    return lambda capture: write_raw_file(capture / relative, array, {"black_level": 64, "white_level": 4095})
+
+
+def truncate(relative: str, keep: int = 1000):
+    return lambda capture: (capture / relative).write_bytes((capture / relative).read_bytes()[:keep])
+
+
+def several_frames_problems(table):
+    table.loc[1, "flash_level"] = "0"
+    table.loc[2, "exposure_s"] = "-1"
+    table.loc[3, "frame_id"] = table.loc[0, "frame_id"]
+    return table
+
+
+CASES = {
+    # case: (how the capture is broken, the pieces of the message the user sees)
+    "capture.yaml missing": (lambda c: (c / "capture.yaml").unlink(), ["capture.yaml", "missing"]),
+    "frames.csv missing": (lambda c: (c / "frames.csv").unlink(), ["frames.csv", "missing"]),
+    "capture.yaml not YAML": (write_file("capture.yaml", b"sensor: [unclosed\n"), ["capture.yaml", "not valid YAML"]),
+    "capture.yaml not a mapping": (write_file("capture.yaml", b"- a list\n"), ["capture.yaml", "expected a mapping"]),
+    "required key missing": (edit_yaml(lambda c: c["camera"].pop("fx")), ["key 'camera.fx'", "required"]),
+    "unknown key in a section": (edit_yaml(lambda c: c["light"].update(colour=1)),
+                                 ["key 'light.colour'", "unknown key"]),
+    "unknown top-level key": (edit_yaml(lambda c: c.update(scenes={"distance_m": 0.9})),
+                              ["key 'scenes'", "unknown key", "x_..."]),
+    "wrong type": (edit_yaml(lambda c: c["sensor"].update(width="wide")), ["key 'sensor.width'", "integer"]),
+    "white level above the bit depth": (edit_yaml(lambda c: c["sensor"].update(white_level=65520)),
+                                        ["key 'sensor.white_level'", "at most 4095"]),
+    "black level at the white level": (edit_yaml(lambda c: c["sensor"].update(black_level=4095)),
+                                       ["key 'sensor.black_level'", "below white_level"]),
+    "unknown colour layout": (edit_yaml(lambda c: c["sensor"].update(color_layout="RGBW")),
+                              ["key 'sensor.color_layout'"]),
+    "unknown polarizer layout": (edit_yaml(lambda c: c["sensor"].update(polarizer_layout=[[0, 45], [90, 90]])),
+                                 ["key 'sensor.polarizer_layout'"]),
+    "width not a multiple of the mosaic": (edit_yaml(lambda c: c["sensor"].update(width=WIDTH + 2)),
+                                           ["key 'sensor.width'", "multiple of the mosaic period"]),
+    "singular colour matrix": (edit_yaml(lambda c: c["camera"].update(color_matrix=[[1, 0, 0]] * 3)),
+                               ["key 'camera.color_matrix'", "invertible"]),
+    "non-positive scene distance": (edit_yaml(lambda c: c["scene"].update(distance_m=0)),
+                                    ["key 'scene.distance_m'", "> 0"]),
+    "duplicate frame_id": (set_cell("frames.csv", 4, "frame_id", "v000_f0"), ["frames.csv", "duplicate frame_id"]),
+    "flash level zero": (set_cell("frames.csv", 2, "flash_level", "0"),
+                         ["row 2 (line 4), column 'flash_level'", "(0, 1]"]),
+    "flash level above one": (set_cell("frames.csv", 5, "flash_level", "1.5"), ["row 5 (line 7)", "(0, 1]"]),
+    "exposure not a number": (set_cell("frames.csv", 3, "exposure_s", "fast"),
+                              ["row 3 (line 5), column 'exposure_s'", "got 'fast'"]),
+    "empty file name": (set_cell("frames.csv", 1, "file", ""), ["row 1 (line 3), column 'file'"]),
+    "column missing": (edit_csv("frames.csv", lambda t: t.drop(columns="exposure_s")),
+                       ["column 'exposure_s'", "missing"]),
+    "several problems, all listed": (edit_csv("frames.csv", several_frames_problems),
+                                     ["(and 3 more problem(s):", "row 1 (line 3), column 'flash_level'",
+                                      "row 2 (line 4), column 'exposure_s'", "duplicate frame_id"]),
+    "frames.csv without rows": (write_file("frames.csv", b"frame_id,view_id,file,flash_level,exposure_s\n"),
+                                ["frames.csv", "no rows"]),
+    "frames.csv not text": (write_file("frames.csv", bytes(range(256)) * 4), ["frames.csv", "not a readable CSV"]),
+    "raw frame missing": (lambda c: (c / "raw" / "v001_f1.dng").unlink(),
+                          ["frames.csv: row 4 (line 6), column 'file'", "v001_f1.dng", "does not exist"]),
+    "raw frame truncated": (truncate("raw/v002_f0.dng"), ["v002_f0.dng", "row 6 (line 8)", "cannot be read",
+                                                           "bad_frames: skip"]),
+    "raw frame not a raw file": (write_file("raw/v000_f0.dng", b"not a dng at all" * 10),
+                                 ["v000_f0.dng", "cannot be read"]),
+    "raw frame of the wrong size": (raw_array("raw/v000_f1.dng", np.zeros((HEIGHT, WIDTH + 4), np.uint16)),
+                                    ["v000_f1.dng", f"got shape ({HEIGHT}, {WIDTH + 4})"]),
+    "raw frame of the wrong bit depth": (raw_array("raw/v000_f2.dng", np.full((HEIGHT, WIDTH), 65520, np.uint16)),
+                                         ["v000_f2.dng", "12-bit"]),
+    "pose of a view without frames": (edit_csv("poses.csv", lambda t: pd.concat([t, t.iloc[[0]].assign(
+        view_id="ghost")])), ["poses.csv", "'ghost'", "no frame"]),
+    "pose not a unit quaternion": (set_cell("poses.csv", 1, "qw", "2"),
+                                   ["poses.csv: row 1 (line 3), columns qw..qz", "unit quaternion"]),
+    "pose translation not a number": (set_cell("poses.csv", 2, "tx", "far"), ["poses.csv", "row 2 (line 4)",
+                                                                              "column 'tx'"]),
+    "duplicate pose": (set_cell("poses.csv", 2, "view_id", "v000"), ["poses.csv", "duplicate view_id"]),
+}
+
+
+def linearize(capture: Path, output: Path, *extra: str) -> int:
+    return main(["linearize", "--capture", str(capture), "--output", str(output), *extra])
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_a_bad_input_stops_with_its_message_and_leaves_nothing(pristine, tmp_path, case, caplog):
+    capture = tmp_path / "capture"
+    shutil.copytree(pristine, capture)
+    break_it, pieces = CASES[case]
+    break_it(capture)
+    output = tmp_path / "out" / "linear.zarr"
+    with caplog.at_level(logging.INFO):
+        status = linearize(capture, output)
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert status == 1 and errors, caplog.text[-2000:]
+    for piece in pieces:
+        assert piece in errors[-1], f"{piece!r} not in {errors[-1]!r}"
+    assert "more problem" not in errors[-1] or case in ("several problems, all listed", "duplicate frame_id",
+                                                       "duplicate pose"), errors[-1]  # no problem said twice
+    assert str(capture) in errors[-1]  # the file is named with its path
+    leftovers = list((tmp_path / "out").iterdir()) if (tmp_path / "out").exists() else []
+    assert leftovers == [], leftovers
+
+
+@pytest.mark.parametrize("case", ["raw frame missing", "raw frame truncated", "raw frame not a raw file"])
+def test_bad_frames_skip_leaves_the_frame_out_with_a_warning(pristine, tmp_path, case, caplog):
+    capture = tmp_path / "capture"
+    shutil.copytree(pristine, capture)
+    CASES[case][0](capture)
+    with caplog.at_level(logging.INFO):
+        status = linearize(capture, tmp_path / "linear.zarr", "--bad-frames", "skip")
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert status == 0 and (tmp_path / "linear.zarr").is_dir()
+    assert any("left out 1 of 12 frames" in w for w in warnings), warnings
+
+
+def test_the_pristine_capture_passes(pristine, tmp_path):
+    assert linearize(pristine, tmp_path / "linear.zarr") == 0 and (tmp_path / "linear.zarr" / "zarr.json").is_file()
+
+
+def test_many_problems_are_listed_up_to_a_cap(pristine, tmp_path, caplog):
+    """Every flash level of the 12 frames out of range: the first in detail, ten more listed, one counted."""
+    from sellip.capture import files, reader
+
+    capture = tmp_path / "capture"
+    shutil.copytree(pristine, capture)
+    edit_csv("frames.csv", lambda t: t.assign(flash_level="2"))(capture)
+    with pytest.raises(files.FlashLevelError) as info:
+        reader.read_capture(capture)
+    message = str(info.value)
+    assert "(and 11 more problem(s):" in message and "; and 1 more)" in message
+    assert message.count("column 'flash_level'") == 1 + files.MAX_LISTED_PROBLEMS
+
+
+LIMITED = ("import resource, runpy, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+           "resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[1]),) * 2); sys.argv = ['sellip'] + sys.argv[2:]; "
+           "runpy.run_module('sellip.cli', run_name='__main__')")
+"""`python -c LIMITED BYTES ARGS...`: `sellip ARGS...` whose files may not grow past BYTES (a full disk, for that
+process: writes beyond fail with EFBIG instead of killing it with SIGXFSZ)."""
+
+
+def test_no_room_to_write_is_a_clear_error_and_leaves_nothing(pristine, tmp_path):
+    """`sellip linearize` with no room for its store (a file-size limit of 2 kB for the process, as a full disk
+    would): exit 1, a message that says what is wrong and what to do, and no store, whole or partial."""
+    import os
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    out.mkdir()
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(Path(__file__).parents[2] / "src"),
+                                                                     os.environ.get("PYTHONPATH")]))}
+    result = subprocess.run([sys.executable, "-c", LIMITED, "2048", "linearize", "--capture", str(pristine),
+                             "--output", str(out / "linear.zarr")], capture_output=True, text=True, env=env,
+                            timeout=300, check=False)
+    print(result.stderr[-1500:])
+    assert result.returncode == 1, result.stderr[-3000:]
+    assert "ERROR sellip: no room to write" in result.stderr and "File too large" in result.stderr
+    assert "run the same command again" in result.stderr and "Traceback" not in result.stderr
+    assert list(out.iterdir()) == []

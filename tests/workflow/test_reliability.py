@@ -1,0 +1,355 @@
+"""Never a stale or misplaced result (issue #38), on the real workflow: every file and config value a stage reads is
+an input of the DAG (an edit re-runs exactly the jobs that depend on it, `snakemake -n`); paths with spaces and
+non-ASCII letters; results names that are not one folder are refused; nested `--config` overrides keep their types;
+a failing job's message and the run's warnings reach the console.
+
+The capture is the tiny sphere, 8 views of 128x96 raw pixels, in a folder whose name has a space and an 'é', one raw
+frame missing (run with `ingest.bad_frames: skip`) and its ground-truth mesh given as a scan (`init.mode: mesh`);
+the run goes as far as the initial mesh (about 20 s on 2 cores)."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from sellip import workflow_support
+
+REPO = Path(__file__).resolve().parents[2]
+NAME = "tïny run"
+INGEST = {"linearize_frames", "merge_hdr", "run_sfm", "init_mesh"}
+"""The jobs up to the initial mesh."""
+OLD = 946684800  # 2000-01-01: an mtime older than every output, so that only a changed input set can re-run a job
+
+
+def snakemake(workdir: Path, capture: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess:
+    """`snakemake` on the repository's workflow in ``workdir`` with the test's capture and settings."""
+    override = workdir / "over ride.yaml"
+    override.write_text(yaml.safe_dump({
+        "capture": str(capture), "name": NAME,
+        "ingest": {"bad_frames": "skip"},
+        "init": {"mode": "mesh", "mesh_path": "scan.ply", "max_vertices": 600},
+    }, allow_unicode=True), encoding="utf-8")
+    command = [sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "Snakefile"), "--directory", str(workdir),
+               "--configfile", str(REPO / "config" / "config.yaml"), str(override), "--cores", "2", *args]
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",
+           "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO / "src"), os.environ.get("PYTHONPATH")]))}
+    result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=900, check=False)
+    if check and result.returncode != 0:
+        raise AssertionError(f"snakemake {' '.join(args)} failed:\n{result.stdout[-3000:]}\n{result.stderr[-5000:]}")
+    return result
+
+
+def planned(result: subprocess.CompletedProcess) -> set[str]:
+    """The rules of the jobs a dry run would run (its 'Job stats' table); empty for 'Nothing to be done'."""
+    text = result.stdout + result.stderr
+    if "Nothing to be done" in text:
+        return set()
+    table = text.split("Job stats:")[1]
+    return {m.group(1) for m in re.finditer(r"^(\w+)\s+\d+\s*$", table, re.MULTILINE) if m.group(1) != "total"}
+
+
+def planned_counts(result: subprocess.CompletedProcess) -> dict[str, int]:
+    """Jobs per rule of a dry run's 'Job stats' table."""
+    table = (result.stdout + result.stderr).split("Job stats:")[1]
+    return {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\w+)\s+(\d+)\s*$", table, re.MULTILINE)}
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A finished run up to the initial mesh, in a work folder and capture folder with spaces and non-ASCII
+    letters; one raw frame was missing (skipped) during it and sits beside the capture."""
+    from sellip.capture.synthetic import synthesize_capture
+
+    workdir = tmp_path_factory.mktemp("reliability") / "work dir ø"
+    capture = synthesize_capture("tiny", workdir / "my capture é", views=8, width=128, height=96, seed=3,
+                                 supersample=1, progress=False)
+    shutil.copy(capture / "ground_truth" / "model.ply", capture / "scan.ply")
+    missing = capture / "raw" / "v003_f1.dng"
+    aside = workdir / "v003_f1.dng"
+    shutil.move(missing, aside)
+    target = f"results/{NAME}/mesh/init.ply"
+    first = snakemake(workdir, capture, target)
+    assert (workdir / target).is_file(), first.stderr[-3000:]
+    return {"workdir": workdir, "capture": capture, "target": target, "missing": missing, "aside": aside,
+            "log": first.stdout + first.stderr}
+
+
+def dry_run(run, *config: str) -> set[str]:
+    args = (run["target"], "-n") + (("--config", *config) if config else ())
+    return planned(snakemake(run["workdir"], run["capture"], *args))
+
+
+def test_an_unchanged_capture_needs_nothing(run):
+    assert dry_run(run) == set()
+
+
+@pytest.mark.parametrize("edit, expected", [
+    ("raw/v000_f0.dng", INGEST),           # a raw frame replaced (a good file for a truncated one)
+    ("frames.csv", INGEST),
+    ("capture.yaml", INGEST),
+    ("poses.csv", {"run_sfm", "init_mesh"}),  # a pose corrected
+    ("scan.ply", {"init_mesh"}),           # the scan of init.mode mesh edited in place
+])
+def test_an_edited_capture_file_reruns_exactly_what_reads_it(run, edit, expected):
+    """New content (Snakemake also compares checksums: a file touched but unchanged re-runs nothing); the original
+    put back (new mtime, old content), nothing is to be done."""
+    path = run["capture"] / edit
+    original = path.read_bytes()
+    path.write_bytes(original + (b"\n" if path.suffix in (".csv", ".yaml") else b"\0"))
+    try:
+        assert dry_run(run) == expected
+    finally:
+        path.write_bytes(original)
+    assert dry_run(run) == set()
+
+
+def test_a_frame_that_was_skipped_and_is_now_there_reruns_ingest(run):
+    """The frame missing during the run (left out with a warning) is put back with an old mtime: the input set
+    changed, so ingest and all that follows run again; taken away again, nothing is to be done."""
+    shutil.copy2(run["aside"], run["missing"])
+    os.utime(run["missing"], (OLD, OLD))
+    try:
+        assert dry_run(run) == INGEST
+    finally:
+        run["missing"].unlink()
+    assert dry_run(run) == set()
+
+
+def test_a_removed_poses_csv_reruns_the_poses(run):
+    poses = run["capture"] / "poses.csv"
+    aside = run["workdir"] / "poses.csv"
+    shutil.move(poses, aside)
+    try:
+        assert dry_run(run) == {"run_sfm", "init_mesh"}
+    finally:
+        shutil.move(aside, poses)
+    assert dry_run(run) == set()
+
+
+def test_a_changed_config_value_reruns_exactly_the_rules_that_use_it(run):
+    """Nested overrides of each type (item 6) re-run the rules whose params hold them."""
+    assert dry_run(run, "init={max_vertices: 700}") == {"init_mesh"}            # integer
+    assert dry_run(run, "sfm={mask_threshold: 0.05}") == {"run_sfm", "init_mesh"}  # number
+    assert dry_run(run, "ingest={saturation: 0.9}") == INGEST                    # number, first stage
+    assert dry_run(run, "sfm={refine_intrinsics: true}") == {"run_sfm", "init_mesh"}  # boolean
+    assert dry_run(run, "init={max_vertices: 600}") == set()                    # the run's own value
+
+
+def test_no_shell_command_reads_config_directly():
+    """Config values reach a command only through `params:` (whose changes Snakemake's default rerun trigger sees),
+    never formatted into the shell text, where a change would go unnoticed."""
+    for smk in sorted((REPO / "workflow" / "rules").glob("*.smk")):
+        text = smk.read_text()
+        for block in re.findall(r"^    shell:\n((?:        .*\n?)+)", text, re.MULTILINE):
+            assert "config" not in block, f"{smk.name}: a shell command reads config directly:\n{block}"
+
+
+def test_every_path_in_a_shell_command_is_quoted():
+    """{input}, {output}, {log} and the capture path are shell-quoted (`:q`): a space cannot split them."""
+    for smk in sorted((REPO / "workflow" / "rules").glob("*.smk")):
+        text = smk.read_text()
+        for block in re.findall(r"^    shell:\n((?:        .*\n?)+)", text, re.MULTILINE):
+            unquoted = re.findall(r"\{(?:input|output|log|params\.capture)(?:\.\w+)?\}", block)
+            assert not unquoted, f"{smk.name}: unquoted {unquoted}"
+
+
+def test_the_run_with_spaces_and_non_ascii_wrote_its_results(run):
+    results = run["workdir"] / "results" / NAME
+    assert (results / "mesh" / "init.ply").is_file() and (results / "cameras.csv").is_file()
+    assert "unrecognized arguments" not in run["log"]
+
+
+def test_warnings_reach_the_console_at_the_end(run):
+    """The skipped frame's warning, from the linearize log, is in the summary printed at the end of the run."""
+    assert "sellip: " in run["log"] and "warning(s)" in run["log"]
+    assert "v003_f1" in run["log"].split("warning(s)")[1]
+
+
+@pytest.mark.parametrize("name", ["..", ".", "a/b", "../up", "", "-n"])
+def test_a_results_name_that_is_not_one_folder_is_refused(tmp_path, name):
+    result = snakemake(tmp_path, tmp_path / "none", "-n", "--config", f"name={name}", check=False)
+    assert result.returncode != 0
+    assert "is not a usable results name" in result.stderr + result.stdout
+    assert not (tmp_path / "hdr.zarr").exists() and not (tmp_path / "results").exists()
+
+
+@pytest.mark.parametrize("name", ["owl", "owl 2", "eulenspiegel-ü", "v1.2"])
+def test_check_results_name_accepts_plain_folder_names(name):
+    assert workflow_support.check_results_name(name) == name
+
+
+@pytest.mark.parametrize("name", ["..", ".", "a/b", "a\\b", "", "x\ny", " x", "-x"])
+def test_check_results_name_refuses_others(name):
+    with pytest.raises(ValueError, match="not a usable results name"):
+        workflow_support.check_results_name(name)
+
+
+def test_nested_overrides_take_the_schema_types():
+    """Snakemake reads `--config 'augment={min_coherence: 0}'` with YAML's BaseLoader: every nested value a
+    string. coerce_to_schema gives each the schema's type, and leaves strings where strings are expected."""
+    schema = workflow_support.load_yaml(REPO / "config" / "config.schema.yaml")
+    given = {"augment": {"min_coherence": "0", "enabled": ["true", "false"]},
+             "observe": {"max_views": "null", "min_cos": "-0.5", "missing_poses": "skip"},
+             "fit": {"settings": {"lambda_d": ["1", "2.5"], "sigma_ss_fixed": "0.9", "max_iterations": "7"},
+                     "dtype": "float64"},
+             "refine_geometry": {"smoothness": "0.02"},
+             "sfm": {"refine_intrinsics": "false"}, "name": "007", "capture": "123"}
+    out = workflow_support.coerce_to_schema(given, schema)
+    assert out["augment"] == {"min_coherence": 0, "enabled": [True, False]}
+    assert out["observe"] == {"max_views": None, "min_cos": -0.5, "missing_poses": "skip"}
+    assert out["fit"]["settings"] == {"lambda_d": [1, 2.5], "sigma_ss_fixed": 0.9, "max_iterations": 7}
+    assert out["fit"]["dtype"] == "float64" and out["refine_geometry"] == {"smoothness": 0.02}
+    assert out["sfm"]["refine_intrinsics"] is False and out["name"] == "007" and out["capture"] == "123"
+    assert given["augment"]["min_coherence"] == "0"  # the input is left as it was
+    assert workflow_support.coerce_to_schema({"capture": None}, schema) == {"capture": ""}  # `--config capture=`
+    # A value of the wrong kind stays a string, for the schema to report.
+    assert workflow_support.coerce_to_schema({"augment": {"k_max": "many"}}, schema)["augment"]["k_max"] == "many"
+
+
+def test_nested_overrides_of_each_type_pass_the_workflow(tmp_path):
+    """`--config` with a nested number, integer, boolean and null: the dry run plans them (the shell shows them)."""
+    result = snakemake(tmp_path, tmp_path / "none", "-n", "-p", "--config", "capture=", "name=demo",
+                       "augment={min_coherence: 0, k_max: 3}", "sfm={refine_intrinsics: true}",
+                       "observe={max_views: null}", "init={mode: hull}", "fit={shards: 3}", check=False)
+    text = result.stdout + result.stderr
+    assert result.returncode == 0, text[-3000:]
+    jobs = planned_counts(result)
+    assert jobs["fit_pbrdf"] == 3 * jobs["gather_fit"]  # three shards per pass
+    assert "--min-coherence 0 " in text and "--k-max 3 " in text and "--refine-intrinsics" in text
+    assert "--max-views" not in text
+
+
+def test_a_failed_jobs_message_reaches_the_console(run):
+    """With `ingest.bad_frames: error` the missing frame stops linearize: the console shows the stage's own message
+    (file, frames.csv row) and where the full log is, not only Snakemake's 'check log file(s)'."""
+    result = snakemake(run["workdir"], run["capture"], f"results/{NAME} strict/hdr.zarr", "--config",
+                       f"name={NAME} strict", "ingest={bad_frames: error}", check=False)
+    assert result.returncode != 0
+    text = result.stdout + result.stderr
+    shown = text.split("sellip: rule linearize_frames failed")[1]
+    assert f"results/{NAME} strict/logs/linearize_frames.log" in shown.splitlines()[0]
+    assert "v003_f1.dng" in shown and "row 10 (line 12)" in shown and "does not exist" in shown
+    assert not (run["workdir"] / "results" / f"{NAME} strict" / "hdr.zarr").exists()
+
+
+def test_failed_job_logs_and_their_error_lines(tmp_path):
+    """The parts of the console message, on a Snakemake log and a job log of the formats they have."""
+    job_log = tmp_path / "results" / "x" / "logs" / "fit_pbrdf" / "0.log"
+    job_log.parent.mkdir(parents=True)
+    job_log.write_text("2026-01-01 10:00:00,000 INFO sellip.stages.fit: started\n"
+                       "2026-01-01 10:00:01,000 WARNING sellip.stages.fit: 3 vertices without views\n"
+                       "2026-01-01 10:00:02,000 ERROR sellip.stages.fit: obs.zarr: shard 2 of 2: out of memory\n")
+    snake_log = tmp_path / "snake.log"
+    snake_log.write_text("Error in rule fit_pbrdf:\n    message: None\n    jobid: 3\n"
+                         "    log: results/x/logs/fit_pbrdf/0.log (check log file(s) for error details)\n"
+                         "    shell:\n        sellip fit ...\nShutting down, this might take some time.\n")
+    assert workflow_support.failed_job_logs(snake_log) == [("fit_pbrdf", ["results/x/logs/fit_pbrdf/0.log"])]
+    shown = workflow_support.format_failures(snake_log, tmp_path)
+    assert shown.splitlines()[:2] == ["sellip: rule fit_pbrdf failed (full log: results/x/logs/fit_pbrdf/0.log)",
+                                      "  obs.zarr: shard 2 of 2: out of memory"]
+    assert "run the same command again" in shown.splitlines()[2]
+    assert workflow_support.format_failures(tmp_path / "no such log") == ""
+    assert workflow_support.collect_warnings(tmp_path / "results" / "x" / "logs") == [
+        ("fit_pbrdf/0.log", "3 vertices without views")]
+    # A log without sellip's ERROR lines (a traceback): its last lines.
+    job_log.write_text("Traceback (most recent call last):\n  File x\nValueError: bad\n")
+    assert workflow_support.error_lines(job_log)[-1] == "ValueError: bad"
+
+
+def test_the_runs_warnings_are_in_metrics_json(tmp_path_factory):
+    """`sellip evaluate --logs` (rule evaluate_model) writes the run's warnings into metrics.json (the report)."""
+    from test_outputs import make_tiny_run
+
+    from sellip.report.metrics import evaluate_model
+
+    tiny = make_tiny_run(tmp_path_factory.mktemp("warnings"), views=3)
+    logs = tiny["results"] / "logs"
+    (logs / "sub").mkdir(parents=True, exist_ok=True)
+    (logs / "sub" / "observe.log").write_text(
+        "2026-01-01 10:00:00,000 WARNING sellip.stages.observe: poses.csv has no pose for 1 view(s): ['v002']\n")
+    metrics = evaluate_model(tiny["model"], tiny["cameras"], tiny["hdr"], tiny["capture"],
+                                       tiny["results"] / "metrics.json", geometry_samples=500, supersample=1,
+                                       logs=logs)
+    assert metrics["warnings"] == [{"log": "sub/observe.log",
+                                    "message": "poses.csv has no pose for 1 view(s): ['v002']"}]
+
+
+# --------------------------------------------------------------------------- units (item 4)
+
+def orbit(distance_m: float = 0.9, views: int = 12, seed: int = 0):
+    """Poses of a handheld orbit about the origin at about ``distance_m``: rotations (V, 3, 3), translations (V, 3)."""
+    import numpy as np
+
+    from sellip.capture.scenes import handheld_orbit
+
+    cameras = handheld_orbit(views, 256, 208, np.random.default_rng(seed), distance_m=(distance_m * 0.9,
+                                                                                        distance_m * 1.1))
+    return np.stack([c.rotation for c in cameras]), np.stack([c.translation for c in cameras])
+
+
+def test_camera_distances_are_those_to_the_point_the_cameras_look_at():
+    import numpy as np
+
+    from sellip.capture.checks import camera_distances
+
+    rotations, translations = orbit(0.9)
+    distances = camera_distances(rotations, translations)
+    assert np.median(distances) == pytest.approx(0.9, rel=0.05)
+    # The same poses in millimetres: the same distances, times 1000.
+    np.testing.assert_allclose(camera_distances(rotations, 1000 * translations), 1000 * distances, rtol=1e-9)
+
+
+@pytest.mark.parametrize("scale, distance, expected", [
+    (1000.0, 0.9, r"translations look like millimetres.*divide tx, ty, tz by 1000"),
+    (100.0, 0.9, r"translations look like centimetres.*divide tx, ty, tz by 100"),
+    (1 / 0.0254, 0.9, r"translations look like inches.*by 39.37"),
+    (1.0, 900.0, r"scene.distance_m looks like millimetres.*0.9 m would fit"),
+    (20.0, 0.9, r"expected translations in metres"),
+])
+def test_poses_in_other_units_than_scene_distance_are_named(scale, distance, expected):
+    from sellip.capture.checks import PoseUnitsError, check_pose_units
+
+    rotations, translations = orbit(0.9)
+    with pytest.raises(PoseUnitsError, match=expected) as info:
+        check_pose_units(rotations, scale * translations, distance, "cap/poses.csv")
+    assert str(info.value).startswith("cap/poses.csv: columns tx, ty, tz: the cameras are a median")
+
+
+def test_poses_in_metres_pass_also_with_missing_rows():
+    import numpy as np
+
+    from sellip.capture.checks import check_pose_units
+
+    rotations, translations = orbit(0.9)
+    translations[3] = np.nan
+    assert check_pose_units(rotations, translations, 0.9) == pytest.approx(0.9, rel=0.05)
+    assert check_pose_units(rotations, translations, 0.5) == pytest.approx(0.9, rel=0.05)  # within 4x: rough
+    assert np.isnan(check_pose_units(rotations[:1], translations[:1], 0.9))  # one view: nothing to check
+
+
+def test_the_sfm_stage_stops_on_poses_in_millimetres(run, tmp_path, caplog):
+    """The workflow's poses stage on the run's HDR images with poses.csv in millimetres: exit 1 with the message,
+    no cameras.csv. (Before: it ran to the end with a model 1000 times too large.)"""
+    import pandas as pd
+
+    from sellip.cli import main
+
+    capture = tmp_path / "mm capture"
+    capture.mkdir()
+    for name in ("capture.yaml", "frames.csv"):
+        shutil.copy(run["capture"] / name, capture / name)
+    poses = pd.read_csv(run["capture"] / "poses.csv", dtype={"view_id": str})
+    poses[["tx", "ty", "tz"]] *= 1000
+    poses.to_csv(capture / "poses.csv", index=False)
+    hdr = run["workdir"] / "results" / NAME / "hdr.zarr"
+    status = main(["sfm", "--hdr", str(hdr), "--capture", str(capture), "--cameras", str(tmp_path / "cameras.csv"),
+                   "--output", str(tmp_path / "sfm"), "--mode", "known"])
+    assert status == 1 and not (tmp_path / "cameras.csv").exists() and not (tmp_path / "sfm").exists()
+    assert "translations look like millimetres" in caplog.text and "poses.csv" in caplog.text
