@@ -489,6 +489,7 @@
       updateAll(); render();
     },
     state: () => JSON.parse(JSON.stringify({ ...state, camera: state.camera })),
+    light: () => lightSetup(),  // world position, polarizer axis and incident Stokes of the current light
     orbit(dx, dy) { orbit(dx, dy); render(); },
     pick(x, y) { const hit = pick(x, y); render(); return hit && { ...hit, text: describeVertex(hit.vertex) }; },
     benchmark(frames) {  // frames per second of full redraws (the pixel read waits for the GPU)

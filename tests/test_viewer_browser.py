@@ -1,0 +1,188 @@
+"""Issue #40 in a real browser: headless Chromium (Debian's ``chromium``, driven by Playwright's Python package with
+``executable_path``; software WebGL2 through SwiftShader) opens the viewer from disk, snaps to a captured view
+under the flash, and its canvas is compared with sellip's own renderer (:class:`sellip.render.Renderer`, one sample
+per pixel centre, as the GPU rasterizes) at the same camera: PSNR over the object's pixels; the analyzer at 0 and
+90 degrees against the renderer's I0 - I90; every map, AoLP, DoP and Mueller mode non-empty and in range; the value
+under the cursor. Skipped when chromium or playwright is missing (``apt-get install chromium``; ``pip install
+playwright``: no browser download needed)."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from viewer_helpers import FLASH, write_results
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+BROWSER_ARGS = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"]
+HELD_OUT = "v005"
+
+pytestmark = pytest.mark.skipif(not shutil.which("chromium"), reason="needs Debian's chromium (apt-get install chromium)")
+
+
+def srgb(linear: np.ndarray) -> np.ndarray:
+    c = np.clip(linear, 0, 1)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    return float(10 * np.log10(1.0 / max(np.mean((a - b) ** 2), 1e-10)))
+
+
+@pytest.fixture(scope="module")
+def viewer(tmp_path_factory):
+    from sellip.report.viewer import load_inputs, write_viewer
+
+    results = write_results(tmp_path_factory.mktemp("browser"))
+    inputs = load_inputs(results)
+    inputs.light = dict(FLASH)
+    return results, write_viewer(results / "viewer", inputs)
+
+
+@pytest.fixture(scope="module")
+def page(viewer):
+    playwright = pytest.importorskip("playwright.sync_api")
+    with playwright.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=BROWSER_ARGS)
+        page = browser.new_page(viewport={"width": 1400, "height": 900}, device_scale_factor=1)
+        errors = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(viewer[1].resolve().as_uri())
+        page.wait_for_function("window.sellipViewer && (window.sellipViewer.ready || window.sellipViewer.error)",
+                               timeout=120_000)
+        assert page.evaluate("window.sellipViewer.error || null") is None and not errors, errors
+        page.evaluate("window.sellipViewer.setSize(512, 416)")
+        yield page
+        browser.close()
+
+
+def canvas(page) -> np.ndarray:
+    """(H, W, 3) float in [0, 1] of the canvas as displayed."""
+    import imageio.v3 as iio
+
+    return iio.imread(page.locator("#view").screenshot())[..., :3].astype(np.float64) / 255
+
+
+@pytest.fixture(scope="module")
+def reference(viewer):
+    """sellip's renderer at the held-out view under the flash: Stokes (H, W, 4, 3) and coverage."""
+    from sellip.io import read_param_mesh
+    from sellip.render import Camera, Renderer, flash_light
+    from sellip.report.viewer import read_pose_table
+
+    results, _ = viewer
+    mesh = read_param_mesh(results / "final" / "model.ply")
+    import zarr
+
+    k = zarr.open_group(str(results / "hdr.zarr"), mode="r").attrs["intrinsics"]
+    view, rotation, translation = next(c for c in read_pose_table(results / "cameras.csv") if c[0] == HELD_OUT)
+    camera = Camera(np.array([[k["fx"], 0, k["cx"]], [0, k["fy"], k["cy"]], [0, 0, 1]]), rotation, translation,
+                    int(k["width"]), int(k["height"]))
+    render = Renderer(mesh).render(camera, flash_light(camera, FLASH["position_m"], FLASH["polarizer_deg"]),
+                                   supersample=1, shadows=False)
+    return render.stokes.astype(np.float64), render.coverage
+
+
+def test_flash_view_matches_sellips_renderer(page, reference):
+    stokes, coverage = reference
+    mask = coverage > 0.5
+    exposure = 1.0 / np.percentile(stokes[..., 0, :][mask], 99)
+    page.evaluate(f"window.sellipViewer.snapToView('{HELD_OUT}')")
+    page.evaluate(f"window.sellipViewer.set({{mode: 'relight', light: 'flash', exposure: {exposure}, srgb: true, "
+                  f"useAnalyzer: false, frusta: false}})")
+    shot = canvas(page)
+    expected = srgb(exposure * stokes[..., 0, :])
+    assert shot.shape == expected.shape
+    value = psnr(shot[mask], expected[mask])
+    print(f"viewer vs renderer at {HELD_OUT}: PSNR {value:.1f} dB over {mask.sum()} object pixels")
+    assert mask.sum() > 10_000 and value >= 35.0
+    assert np.all(shot[~mask] < 2 / 255)  # background black: no extra geometry
+
+
+def test_free_unpolarized_light_matches_the_renderers_mueller_path(page, viewer, reference):
+    """A free point light, unpolarized: the page's Mueller block times (1, 0, 0) against the renderer's
+    full_mueller with Light(stokes=(1, 0, 0, 0)), at the same light position."""
+    from sellip.io import read_param_mesh
+    from sellip.render import Camera, Light, Renderer
+    from sellip.report.viewer import read_pose_table
+
+    results, _ = viewer
+    page.evaluate(f"window.sellipViewer.snapToView('{HELD_OUT}')")
+    page.evaluate("window.sellipViewer.set({mode: 'relight', light: 'free', freePolarized: false, "
+                  "free: {azimuth: 1.2, elevation: 0.6, distance: 0.5}, srgb: true, useAnalyzer: false})")
+    light = page.evaluate("window.sellipViewer.light()")
+    assert light["stokes"] == [1, 0, 0]
+    import zarr
+
+    k = zarr.open_group(str(results / "hdr.zarr"), mode="r").attrs["intrinsics"]
+    _, rotation, translation = next(c for c in read_pose_table(results / "cameras.csv") if c[0] == HELD_OUT)
+    camera = Camera(np.array([[k["fx"], 0, k["cx"]], [0, k["fy"], k["cy"]], [0, 0, 1]]), rotation, translation,
+                    int(k["width"]), int(k["height"]))
+    render = Renderer(read_param_mesh(results / "final" / "model.ply")).render(
+        camera, Light(np.array(light["position"]), np.array(light["axis"]), stokes=(1.0, 0.0, 0.0, 0.0)),
+        supersample=1, shadows=False)
+    mask = reference[1] > 0.5
+    s0 = render.stokes[..., 0, :].astype(np.float64)
+    exposure = 1.0 / np.percentile(s0[mask], 99)
+    page.evaluate(f"window.sellipViewer.set({{exposure: {exposure}}})")
+    value = psnr(canvas(page)[mask], srgb(exposure * s0)[mask])
+    print(f"free unpolarized light: PSNR {value:.1f} dB")
+    assert value >= 35.0
+    page.evaluate("window.sellipViewer.set({light: 'flash'})")
+
+
+def test_analyzer_0_minus_90_matches_the_renderers(page, reference):
+    stokes, coverage = reference
+    analyzers = 0.5 * (stokes[..., 0, :, None] + np.stack([stokes[..., 1, :], -stokes[..., 1, :]], -1))  # I0, I90
+    mask = coverage > 0.5
+    exposure = 0.8 / np.percentile(analyzers[mask], 99)
+    inside = mask & np.all(exposure * analyzers < 0.99, axis=(-2, -1))  # neither clipped
+    shots = []
+    for angle in (0, 90):
+        page.evaluate(f"window.sellipViewer.set({{mode: 'relight', exposure: {exposure}, srgb: false, "
+                      f"useAnalyzer: true, analyzer: {angle}}})")
+        shots.append(canvas(page))
+    difference = shots[0] - shots[1]
+    expected = exposure * (analyzers[..., 0] - analyzers[..., 1])
+    rmse = float(np.sqrt(np.mean((difference[inside] - expected[inside]) ** 2)))
+    correlation = float(np.corrcoef(difference[inside].ravel(), expected[inside].ravel())[0, 1])
+    print(f"I0 - I90: rmse {rmse * 255:.2f}/255, correlation {correlation:.4f}, over {inside.sum()} pixels")
+    assert rmse < 2 / 255 and correlation > 0.99
+    page.evaluate("window.sellipViewer.set({srgb: true, useAnalyzer: false})")
+
+
+@pytest.mark.parametrize("mode,map_name", [("aolp", None), ("dop", None), ("mueller", None)] +
+                         [("map", m) for m in ("eta", "rho_d", "rho_s", "sigma_s", "rho_ss", "sigma_ss", "normal",
+                                               "confidence", "model", "cluster")])
+def test_every_mode_draws_the_object(page, reference, mode, map_name):
+    _, coverage = reference
+    options = f"mode: '{mode}'" + (f", map: '{map_name}'" if map_name else "")
+    page.evaluate(f"window.sellipViewer.set({{{options}}})")
+    shot = canvas(page)
+    assert np.isfinite(shot).all() and shot.min() >= 0 and shot.max() <= 1
+    if mode == "mueller":  # nine tiles: each shows the object
+        h, w = shot.shape[0] // 3, shot.shape[1] // 3
+        for i in range(3):
+            for j in range(3):
+                assert shot[i * h:(i + 1) * h, j * w:(j + 1) * w].max() > 0.2, (i, j)
+        return
+    mask = coverage > 0.5
+    drawn = shot[mask].max(-1) > 0.02
+    # AoLP/DoP are blank where dark; rho_ss is 0 (black) on the glossy half of the tiny sphere
+    assert drawn.mean() > (0.3 if mode in ("aolp", "dop") or map_name == "rho_ss" else 0.99), drawn.mean()
+    if map_name == "eta":  # two materials: two colours, the low eta darker in viridis
+        colors = np.unique(np.round(shot[mask] * 255).astype(int), axis=0)
+        assert len(colors) >= 2
+    page.evaluate("window.sellipViewer.set({mode: 'relight'})")
+
+
+def test_value_under_the_cursor_names_the_vertex(page, reference):
+    _, coverage = reference
+    rows, cols = np.nonzero(coverage > 0.5)
+    y, x = int(np.median(rows)), int(np.median(cols))
+    page.evaluate(f"window.sellipViewer.snapToView('{HELD_OUT}')")
+    hit = page.evaluate(f"window.sellipViewer.pick({x}, {y})")
+    assert hit is not None and "η 1." in hit["text"] and "± 0.020" in hit["text"]
+    assert page.evaluate("window.sellipViewer.pick(2, 2)") is None  # background
