@@ -177,13 +177,15 @@ def payload(inputs: ViewerInputs) -> tuple[dict, bytes]:
     sources = {"position": ("x", "y", "z"), "normal": ("nx", "ny", "nz"), "eta": ("eta",),
                "rho_d": ("rho_d_r", "rho_d_g", "rho_d_b"), "rho_s": ("rho_s",), "sigma_s": ("sigma_s",),
                "rho_ss": ("rho_ss_r", "rho_ss_g", "rho_ss_b"), "sigma_ss": ("sigma_ss",),
-               "confidence": ("confidence",), "model": ("model",)}
+               "confidence": ("confidence",), "model": ("model",), "eta_source": ("eta_source",)}
     columns = {}
     for name, props in sources.items():
         if all(p in vertex for p in props):
             columns[name] = np.stack([vertex[p] for p in props], -1) if len(props) == 3 else vertex[props[0]]
     if "cluster" in maps:
         columns["cluster"] = maps["cluster"].values
+    if "eta_vertex" in store:  # each vertex's own eta (the model's may be its material's)
+        columns["eta_vertex"] = store["eta_vertex"]
     for name in ("eta_std", "sigma_s_std"):
         if name in store:
             columns[name] = np.where(np.isfinite(store[name]), store[name], np.nan)

@@ -285,10 +285,16 @@
     const std = (name) => arrays[name] && isFinite(arrays[name][i]) ? ` ± ${fmt(arrays[name][i])}` : "";
     const rgb = (name) => arrays[name] ? `${fmt(arrays[name][3 * i])}, ${fmt(arrays[name][3 * i + 1])}, ${fmt(arrays[name][3 * i + 2])}` : "–";
     const one = (name) => arrays[name] ? fmt(arrays[name][i]) : "–";
+    let eta = `η ${one("eta")}`;
+    if (arrays.eta_vertex) {
+      const own = arrays.eta_source ? arrays.eta_source[i] > 0.5 : null;
+      eta += own === null ? ` (own fit ${fmt(arrays.eta_vertex[i])}${std("eta_std")})`
+        : own ? ` (its own fit${std("eta_std")})` : ` (its material's; own fit ${fmt(arrays.eta_vertex[i])}${std("eta_std")})`;
+    } else eta += std("eta_std");
     const model = arrays.model ? (meta.model_names[String(Math.round(arrays.model[i]))] || arrays.model[i]) : "–";
-    return [`vertex ${i}`, `η ${one("eta")}${std("eta_std")}`, `ρ_d ${rgb("rho_d")}`, `ρ_s ${one("rho_s")}`,
+    return [`vertex ${i}`, eta, `ρ_d ${rgb("rho_d")}`, `ρ_s ${one("rho_s")}`,
             `σ_s ${one("sigma_s")}${std("sigma_s_std")}`, `ρ_ss ${rgb("rho_ss")}`, `σ_ss ${one("sigma_ss")}`,
-            `confidence ${one("confidence")}`, `model ${model}`,
+            `normal ${rgb("normal")}`, `confidence ${one("confidence")}`, `model ${model}`,
             `cluster ${arrays.cluster ? Math.round(arrays.cluster[i]) : "–"}`].join("\n");
   }
 
@@ -371,7 +377,21 @@
     }
   }
 
-  function updateAll() { buildLines(); drawColorBar(); requestRender(); }
+  function syncControls() {  // the page's controls show the state (also after the API changed it)
+    const $ = (id) => document.getElementById(id);
+    const radio = $("mode-" + state.mode); if (radio) radio.checked = true;
+    $("map-select").value = state.map;
+    $("frusta").checked = state.frusta;
+    $("analyzer-on").checked = state.useAnalyzer;
+    $("analyzer").value = String(state.analyzer); $("analyzer-value").textContent = `${state.analyzer}°`;
+    $("light-" + state.light).checked = true;
+    $("free-polarized").checked = state.freePolarized;
+    $("srgb").checked = state.srgb;
+    const ev = Math.log2(state.exposure / meta.exposure);
+    $("exposure").value = String(ev); $("exposure-value").textContent = `${ev.toFixed(2)} EV`;
+  }
+
+  function updateAll() { buildLines(); drawColorBar(); syncControls(); requestRender(); }
 
   function setupControls() {
     const $ = (id) => document.getElementById(id);
