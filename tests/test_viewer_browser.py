@@ -139,9 +139,10 @@ def test_analyzer_0_minus_90_matches_the_renderers(page, reference):
     mask = coverage > 0.5
     exposure = 0.8 / np.percentile(analyzers[mask], 99)
     inside = mask & np.all(exposure * analyzers < 0.99, axis=(-2, -1))  # neither clipped
+    page.evaluate(f"window.sellipViewer.snapToView('{HELD_OUT}')")
     shots = []
     for angle in (0, 90):
-        page.evaluate(f"window.sellipViewer.set({{mode: 'relight', exposure: {exposure}, srgb: false, "
+        page.evaluate(f"window.sellipViewer.set({{mode: 'relight', light: 'flash', exposure: {exposure}, srgb: false, "
                       f"useAnalyzer: true, analyzer: {angle}}})")
         shots.append(canvas(page))
     difference = shots[0] - shots[1]
@@ -150,6 +151,18 @@ def test_analyzer_0_minus_90_matches_the_renderers(page, reference):
     correlation = float(np.corrcoef(difference[inside].ravel(), expected[inside].ravel())[0, 1])
     print(f"I0 - I90: rmse {rmse * 255:.2f}/255, correlation {correlation:.4f}, over {inside.sum()} pixels")
     assert rmse < 2 / 255 and correlation > 0.99
+    # 45 and 135 degrees: I45 - I135 = s2 (the angle grows from image x towards image up, docs/conventions.md)
+    s2 = exposure * stokes[..., 2, :]
+    inside45 = mask & np.all(exposure * 0.5 * (stokes[..., 0, :, None] + np.stack([s2, -s2], -1) / exposure) < 0.99,
+                             axis=(-2, -1))
+    shots = []
+    for angle in (45, 135):
+        page.evaluate(f"window.sellipViewer.set({{analyzer: {angle}}})")
+        shots.append(canvas(page))
+    rmse45 = float(np.sqrt(np.mean(((shots[0] - shots[1]) - s2)[inside45] ** 2)))
+    d = (shots[0] - shots[1])[inside45]
+    print(f"I45 - I135: rmse {rmse45 * 255:.2f}/255, correlation {np.corrcoef(d.ravel(), s2[inside45].ravel())[0, 1]:.4f}")
+    assert rmse45 < 2 / 255 and np.abs(s2[inside45]).max() > 10 / 255  # a signal to compare (17/255 here)
     page.evaluate("window.sellipViewer.set({srgb: true, useAnalyzer: false})")
 
 
@@ -158,7 +171,8 @@ def test_analyzer_0_minus_90_matches_the_renderers(page, reference):
                                                "confidence", "model", "cluster")])
 def test_every_mode_draws_the_object(page, reference, mode, map_name):
     _, coverage = reference
-    options = f"mode: '{mode}'" + (f", map: '{map_name}'" if map_name else "")
+    page.evaluate(f"window.sellipViewer.snapToView('{HELD_OUT}')")
+    options = f"mode: '{mode}', light: 'flash'" + (f", map: '{map_name}'" if map_name else "")
     page.evaluate(f"window.sellipViewer.set({{{options}}})")
     shot = canvas(page)
     assert np.isfinite(shot).all() and shot.min() >= 0 and shot.max() <= 1
