@@ -181,6 +181,11 @@ def test_every_mode_draws_the_object(page, reference, mode, map_name):
         for i in range(3):
             for j in range(3):
                 assert shot[i * h:(i + 1) * h, j * w:(j + 1) * w].max() > 0.2, (i, j)
+        # mirror reflection at the highlight keeps s1 and flips s2: M11 / M00 ~ +1 (red), M22 / M00 ~ -1 (blue)
+        tile = lambda i, j: shot[i * h:(i + 1) * h, j * w:(j + 1) * w]  # noqa: E731
+        red = lambda t: (t[..., 0] > 0.8) & (t[..., 1] < 0.5) & (t[..., 2] < 0.5)  # noqa: E731
+        blue = lambda t: (t[..., 2] > 0.8) & (t[..., 0] < 0.5) & (t[..., 1] < 0.5)  # noqa: E731
+        assert red(tile(1, 1)).sum() > 0 and blue(tile(2, 2)).sum() > 0 and not blue(tile(1, 1)).any()
         return
     mask = coverage > 0.5
     drawn = shot[mask].max(-1) > 0.02
