@@ -21,7 +21,7 @@ SHOTS = (("relight", "{mode: 'relight', useAnalyzer: false}"),
          ("eta", "{mode: 'map', map: 'eta'}"), ("rho_d", "{mode: 'map', map: 'rho_d'}"),
          ("sigma_s", "{mode: 'map', map: 'sigma_s'}"), ("cluster", "{mode: 'map', map: 'cluster'}"),
          ("normal", "{mode: 'map', map: 'normal'}"),
-         ("free_light", "{mode: 'relight', light: 'free', free: {azimuth: 2.2, elevation: 0.7, distance: 0.4}}"))
+         ("free_light", None))
 
 
 def main(argv=None) -> int:
@@ -31,6 +31,8 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="prefix of the PNGs")
     parser.add_argument("--size", type=int, nargs=2, default=None, help="canvas pixels (default: the capture's x2)")
     parser.add_argument("--page", action="store_true", help="also the whole page, hovering the object's centre")
+    parser.add_argument("--zoom", type=float, default=1.0, help="move the camera this many times closer")
+    parser.add_argument("--dop-max", type=float, default=1.0, help="DoP shown full red at this value")
     args = parser.parse_args(argv)
     from playwright.sync_api import sync_playwright
 
@@ -49,19 +51,28 @@ def main(argv=None) -> int:
         page.evaluate(f"window.sellipViewer.setSize({width}, {height})")
         if args.view:
             page.evaluate(f"window.sellipViewer.snapToView('{args.view}')")
+        page.evaluate(f"window.sellipViewer.zoom({1 / args.zoom})")
+        page.evaluate(f"window.sellipViewer.set({{dopMax: {args.dop_max}}})")
+        exposure = page.evaluate("window.sellipViewer.meta.exposure") / args.zoom**2  # the flash came closer
+        page.evaluate(f"window.sellipViewer.set({{exposure: {exposure}}})")
         for name, options in SHOTS:
-            page.evaluate(f"window.sellipViewer.set({options})")
+            if options is None:  # the free light 50 degrees to the side of the camera and 20 above
+                page.evaluate("window.sellipViewer.set({mode: 'relight', useAnalyzer: false})")
+                page.evaluate("window.sellipViewer.freeLightFromCamera(0.9, 0.35)")
+            else:
+                page.evaluate(f"window.sellipViewer.set({options})")
             page.locator("#view").screenshot(path=f"{args.out}_{name}.png")
         page.evaluate("window.sellipViewer.set({mode: 'relight', light: 'flash', frusta: true})")
-        page.evaluate("window.sellipViewer.orbit(0, -120)")
-        page.evaluate("""(() => { const c = document.getElementById('view');
-            for (let i = 0; i < 8; i++) c.dispatchEvent(new WheelEvent('wheel', {deltaY: 230})); })()""")
-        page.evaluate("window.sellipViewer.set({})")
+        if args.view:
+            page.evaluate(f"window.sellipViewer.snapToView('{args.view}')")
+        page.evaluate("window.sellipViewer.orbit(0, -100)")
+        page.evaluate("window.sellipViewer.zoom(5)")
         page.locator("#view").screenshot(path=f"{args.out}_cameras.png")
         if args.page:
             page.evaluate("window.sellipViewer.set({frusta: false, mode: 'map', map: 'eta'})")
             if args.view:
                 page.evaluate(f"window.sellipViewer.snapToView('{args.view}')")
+            page.evaluate(f"window.sellipViewer.zoom({1 / args.zoom})")
             box = page.locator("#view").bounding_box()
             page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
             page.wait_for_timeout(300)

@@ -4,11 +4,18 @@ under the flash, and its canvas is compared with sellip's own renderer (:class:`
 per pixel centre, as the GPU rasterizes) at the same camera: PSNR over the object's pixels; the analyzer at 0 and
 90 degrees against the renderer's I0 - I90; every map, AoLP, DoP and Mueller mode non-empty and in range; the value
 under the cursor. Skipped when chromium or playwright is missing (``apt-get install chromium``; ``pip install
-playwright``: no browser download needed)."""
+playwright``: no browser download needed).
+
+By default on a results folder built from scene ``tiny`` (tests/viewer_helpers.py). On a finished run, e.g. the
+demo: ``SELLIP_VIEWER_RESULTS=results/demo SELLIP_VIEWER_VIEW=v004 pytest tests/test_viewer_browser.py -s``
+(its viewer/ is rewritten, with the capture that metrics.json names)."""
 
 from __future__ import annotations
 
+import os
+import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,7 +24,8 @@ from viewer_helpers import FLASH, write_results
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 BROWSER_ARGS = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"]
-HELD_OUT = "v005"
+RESULTS = os.environ.get("SELLIP_VIEWER_RESULTS")
+HELD_OUT = os.environ.get("SELLIP_VIEWER_VIEW", "v005")
 
 pytestmark = pytest.mark.skipif(not shutil.which("chromium"), reason="needs Debian's chromium (apt-get install chromium)")
 
@@ -33,12 +41,31 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 @pytest.fixture(scope="module")
 def viewer(tmp_path_factory):
+    """(results folder, index.html, the flash of its capture)."""
     from sellip.report.viewer import load_inputs, write_viewer
+    from sellip.stages.view import find_capture
 
-    results = write_results(tmp_path_factory.mktemp("browser"))
-    inputs = load_inputs(results)
-    inputs.light = dict(FLASH)
-    return results, write_viewer(results / "viewer", inputs)
+    if RESULTS:
+        results = Path(RESULTS)
+        inputs = load_inputs(results, find_capture(results))
+    else:
+        results = write_results(tmp_path_factory.mktemp("browser"))
+        inputs = load_inputs(results)
+        inputs.light = dict(FLASH)
+    return results, write_viewer(results / "viewer", inputs), inputs.light
+
+
+def camera_at(results: Path, view_id: str):
+    """The captured camera ``view_id`` at the HDR grid's intrinsics (as the page snaps to it)."""
+    import zarr
+
+    from sellip.render import Camera
+    from sellip.report.viewer import read_pose_table
+
+    k = zarr.open_group(str(results / "hdr.zarr"), mode="r").attrs["intrinsics"]
+    _, rotation, translation = next(c for c in read_pose_table(results / "cameras.csv") if c[0] == view_id)
+    return Camera(np.array([[k["fx"], 0, k["cx"]], [0, k["fy"], k["cy"]], [0, 0, 1]]), rotation, translation,
+                  int(k["width"]), int(k["height"]))
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +80,8 @@ def page(viewer):
         page.wait_for_function("window.sellipViewer && (window.sellipViewer.ready || window.sellipViewer.error)",
                                timeout=120_000)
         assert page.evaluate("window.sellipViewer.error || null") is None and not errors, errors
-        page.evaluate("window.sellipViewer.setSize(512, 416)")
+        k = page.evaluate("window.sellipViewer.meta.intrinsics")
+        page.evaluate(f"window.sellipViewer.setSize({int(k['width'])}, {int(k['height'])})")
         yield page
         browser.close()
 
@@ -69,18 +97,12 @@ def canvas(page) -> np.ndarray:
 def reference(viewer):
     """sellip's renderer at the held-out view under the flash: Stokes (H, W, 4, 3) and coverage."""
     from sellip.io import read_param_mesh
-    from sellip.render import Camera, Renderer, flash_light
-    from sellip.report.viewer import read_pose_table
+    from sellip.render import Renderer, flash_light
 
-    results, _ = viewer
+    results, _, light = viewer
     mesh = read_param_mesh(results / "final" / "model.ply")
-    import zarr
-
-    k = zarr.open_group(str(results / "hdr.zarr"), mode="r").attrs["intrinsics"]
-    view, rotation, translation = next(c for c in read_pose_table(results / "cameras.csv") if c[0] == HELD_OUT)
-    camera = Camera(np.array([[k["fx"], 0, k["cx"]], [0, k["fy"], k["cy"]], [0, 0, 1]]), rotation, translation,
-                    int(k["width"]), int(k["height"]))
-    render = Renderer(mesh).render(camera, flash_light(camera, FLASH["position_m"], FLASH["polarizer_deg"]),
+    camera = camera_at(results, HELD_OUT)
+    render = Renderer(mesh).render(camera, flash_light(camera, light["position_m"], light["polarizer_deg"]),
                                    supersample=1, shadows=False)
     return render.stokes.astype(np.float64), render.coverage
 
@@ -97,29 +119,24 @@ def test_flash_view_matches_sellips_renderer(page, reference):
     assert shot.shape == expected.shape
     value = psnr(shot[mask], expected[mask])
     print(f"viewer vs renderer at {HELD_OUT}: PSNR {value:.1f} dB over {mask.sum()} object pixels")
-    assert mask.sum() > 10_000 and value >= 35.0
-    assert np.all(shot[~mask] < 2 / 255)  # background black: no extra geometry
+    assert mask.sum() > 2_000 and value >= 35.0
+    # background black: no extra geometry (a few silhouette pixels may differ: float32 rasterization against ray casting)
+    assert (shot[~mask].max(-1) >= 2 / 255).sum() < 0.002 * mask.sum()
 
 
 def test_free_unpolarized_light_matches_the_renderers_mueller_path(page, viewer, reference):
     """A free point light, unpolarized: the page's Mueller block times (1, 0, 0) against the renderer's
     full_mueller with Light(stokes=(1, 0, 0, 0)), at the same light position."""
     from sellip.io import read_param_mesh
-    from sellip.render import Camera, Light, Renderer
-    from sellip.report.viewer import read_pose_table
+    from sellip.render import Light, Renderer
 
-    results, _ = viewer
+    results = viewer[0]
     page.evaluate(f"window.sellipViewer.snapToView('{HELD_OUT}')")
     page.evaluate("window.sellipViewer.set({mode: 'relight', light: 'free', freePolarized: false, "
                   "free: {azimuth: 1.2, elevation: 0.6, distance: 0.5}, srgb: true, useAnalyzer: false})")
     light = page.evaluate("window.sellipViewer.light()")
     assert light["stokes"] == [1, 0, 0]
-    import zarr
-
-    k = zarr.open_group(str(results / "hdr.zarr"), mode="r").attrs["intrinsics"]
-    _, rotation, translation = next(c for c in read_pose_table(results / "cameras.csv") if c[0] == HELD_OUT)
-    camera = Camera(np.array([[k["fx"], 0, k["cx"]], [0, k["fy"], k["cy"]], [0, 0, 1]]), rotation, translation,
-                    int(k["width"]), int(k["height"]))
+    camera = camera_at(results, HELD_OUT)
     render = Renderer(read_param_mesh(results / "final" / "model.ply")).render(
         camera, Light(np.array(light["position"]), np.array(light["axis"]), stokes=(1.0, 0.0, 0.0, 0.0)),
         supersample=1, shadows=False)
@@ -169,7 +186,7 @@ def test_analyzer_0_minus_90_matches_the_renderers(page, reference):
 @pytest.mark.parametrize("mode,map_name", [("aolp", None), ("dop", None), ("mueller", None)] +
                          [("map", m) for m in ("eta", "rho_d", "rho_s", "sigma_s", "rho_ss", "sigma_ss", "normal",
                                                "confidence", "model", "cluster")])
-def test_every_mode_draws_the_object(page, reference, mode, map_name):
+def test_every_mode_draws_the_object(page, viewer, reference, mode, map_name):
     _, coverage = reference
     page.evaluate(f"window.sellipViewer.snapToView('{HELD_OUT}')")
     options = f"mode: '{mode}', light: 'flash'" + (f", map: '{map_name}'" if map_name else "")
@@ -185,12 +202,19 @@ def test_every_mode_draws_the_object(page, reference, mode, map_name):
         tile = lambda i, j: shot[i * h:(i + 1) * h, j * w:(j + 1) * w]  # noqa: E731
         red = lambda t: (t[..., 0] > 0.8) & (t[..., 1] < 0.5) & (t[..., 2] < 0.5)  # noqa: E731
         blue = lambda t: (t[..., 2] > 0.8) & (t[..., 0] < 0.5) & (t[..., 1] < 0.5)  # noqa: E731
-        assert red(tile(1, 1)).sum() > 0 and blue(tile(2, 2)).sum() > 0 and not blue(tile(1, 1)).any()
+        if not RESULTS:  # the tiny sphere's glossy half has a highlight that the specular lobe dominates
+            assert red(tile(1, 1)).sum() > 0 and blue(tile(2, 2)).sum() > 0 and not blue(tile(1, 1)).any()
         return
     mask = coverage > 0.5
     drawn = shot[mask].max(-1) > 0.02
-    # AoLP/DoP are blank where dark; rho_ss is 0 (black) on the glossy half of the tiny sphere
-    assert drawn.mean() > (0.3 if mode in ("aolp", "dop") or map_name == "rho_ss" else 0.99), drawn.mean()
+    if map_name == "rho_ss":  # black where the model has no single scattering (the glossy half of the tiny sphere)
+        from sellip.io import read_ply
+
+        vertex, _ = read_ply(viewer[0] / "final" / "model.ply")
+        with_ss = float(np.mean(np.max([vertex[f"rho_ss_{c}"] for c in "rgb"], axis=0) > 0))
+        assert (drawn.mean() > 0.3) if with_ss > 0.3 else (drawn.mean() < 0.01), (drawn.mean(), with_ss)
+    else:  # AoLP/DoP are blank where dark
+        assert drawn.mean() > (0.3 if mode in ("aolp", "dop") else 0.99), drawn.mean()
     if map_name == "eta":  # two materials: two colours, the low eta darker in viridis
         colors = np.unique(np.round(shot[mask] * 255).astype(int), axis=0)
         assert len(colors) >= 2
@@ -203,5 +227,7 @@ def test_value_under_the_cursor_names_the_vertex(page, reference):
     y, x = int(np.median(rows)), int(np.median(cols))
     page.evaluate(f"window.sellipViewer.snapToView('{HELD_OUT}')")
     hit = page.evaluate(f"window.sellipViewer.pick({x}, {y})")
-    assert hit is not None and "η 1." in hit["text"] and "± 0.020" in hit["text"]
+    assert hit is not None and re.search(r"η 1\.\d{3} .*± 0\.\d{3}", hit["text"]), hit
+    if not RESULTS:
+        assert "± 0.020" in hit["text"]  # eta_std of tests/viewer_helpers.py
     assert page.evaluate("window.sellipViewer.pick(2, 2)") is None  # background

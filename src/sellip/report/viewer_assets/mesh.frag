@@ -29,6 +29,7 @@ uniform ivec2 u_element;      // Mueller (row, column)
 uniform int u_map;            // 0 eta 1 rho_d 2 rho_s 3 sigma_s 4 rho_ss 5 sigma_ss 6 normal 7 confidence 8 model 9 cluster
 uniform int u_mapKind;        // 0 scalar 1 rgb 2 normal 3 category
 uniform vec2 u_range;         // colour range of the map
+uniform float u_dopMax;       // DoP shown full red at this value (1: the scale of Wilkie & Weidlich)
 uniform float u_darkLevel;    // s0 below this (exposure-scaled) blanks AoLP, DoP and Mueller ratios
 out vec4 outColor;
 
@@ -91,7 +92,7 @@ void main() {
   }
   if (u_mode == 2) {  // DoP: black (0) to red (1) (Wilkie & Weidlich's linear polarization)
     if (dark) { outColor = vec4(0.0, 0.0, 0.0, 1.0); return; }
-    outColor = vec4(dopColor(sqrt(m1 * m1 + m2 * m2) / m0), 1.0);
+    outColor = vec4(dopColor(sqrt(m1 * m1 + m2 * m2) / m0 / u_dopMax), 1.0);
     return;
   }
   // Mueller element (i, j), colour-averaged: M00 tone-mapped, the others Mij / M00 in [-1, 1] (blue - white - red).

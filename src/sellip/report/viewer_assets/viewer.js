@@ -74,7 +74,7 @@
   }
 
   const state = {
-    mode: "relight", map: "eta", element: [0, 0], exposure: meta.exposure, srgb: true,
+    mode: "relight", map: "eta", element: [0, 0], exposure: meta.exposure, srgb: true, dopMax: 1,
     useAnalyzer: false, analyzer: 0, light: "flash", free: { azimuth: 0.6, elevation: 0.5, distance: meta.distance },
     freePolarized: true, frusta: false, view: null, size: [meta.intrinsics.width, meta.intrinsics.height],
     camera: null, target: meta.center.slice(), hover: null,
@@ -175,6 +175,14 @@
              stokes: state.freePolarized ? [1, 1, 0] : [1, 0, 0] };
   }
 
+  function freeLightFromCamera(dAzimuth, dElevation) {  // the free light where the camera is, turned by the offsets
+    const up = meta.up, e1 = unit(Math.abs(up[0]) < 0.9 ? cross(up, [1, 0, 0]) : cross(up, [0, 1, 0]));
+    const e2 = cross(up, e1), d = unit(sub(center(state.camera), state.target));
+    state.free.azimuth = Math.atan2(dot(d, e2), dot(d, e1)) + dAzimuth;
+    state.free.elevation = Math.max(-1.5, Math.min(1.5, Math.asin(Math.max(-1, Math.min(1, dot(d, up)))) + dElevation));
+    state.free.distance = norm(sub(center(state.camera), state.target));
+  }
+
   // ------------------------------------------------------------------ drawing
   function setCameraUniforms(uniforms, width, height) {
     const cam = state.camera, K = meta.intrinsics;
@@ -205,6 +213,7 @@
     gl.uniform1i(u.u_mapKind, KIND_INDEX[map.kind || "scalar"]);
     gl.uniform2f(u.u_range, map.low ?? 0, map.high ?? 1);
     gl.uniform1f(u.u_darkLevel, meta.dark_level);
+    gl.uniform1f(u.u_dopMax, state.dopMax);
     gl.bindVertexArray(mesh.vao);
     gl.drawElements(gl.TRIANGLES, mesh.count, gl.UNSIGNED_INT, 0);
   }
@@ -367,7 +376,7 @@
     } else if (state.mode === "aolp") {
       gradient((t) => { const h = t * 6, x = 1 - Math.abs(h % 2 - 1); const c = [[1, x, 0], [x, 1, 0], [0, 1, x], [0, x, 1], [x, 0, 1], [1, 0, x]][Math.min(5, Math.floor(h))]; return c; }, "0°", "180°", "AoLP (from image x towards image up)");
     } else if (state.mode === "dop") {
-      gradient((t) => [t, 0, 0], 0, 1, "DoP (linear)");
+      gradient((t) => [t, 0, 0], 0, state.dopMax, "DoP (linear)");
     } else if (state.mode === "mueller") {
       gradient((t) => { const v = 2 * t - 1; return v < 0 ? [1 + v, 1 + v, 1] : [1, 1 - v, 1 - v]; }, -1, 1,
                "Mueller: M00 tone-mapped (top left); Mij / M00 (rows: exitant s0 s1 s2, camera frame; columns: incident, light frame)");
@@ -387,6 +396,7 @@
     $("light-" + state.light).checked = true;
     $("free-polarized").checked = state.freePolarized;
     $("srgb").checked = state.srgb;
+    $("dop-max").value = String(state.dopMax);
     const ev = Math.log2(state.exposure / meta.exposure);
     $("exposure").value = String(ev); $("exposure-value").textContent = `${ev.toFixed(2)} EV`;
   }
@@ -422,9 +432,13 @@
     $("exposure").addEventListener("input", () => { state.exposure = meta.exposure * Math.pow(2, Number($("exposure").value)); $("exposure-value").textContent = `${$("exposure").value} EV`; updateAll(); });
     $("analyzer-on").addEventListener("change", () => { state.useAnalyzer = $("analyzer-on").checked; updateAll(); });
     $("analyzer").addEventListener("input", () => { state.analyzer = Number($("analyzer").value); $("analyzer-value").textContent = `${state.analyzer}°`; updateAll(); });
-    document.querySelectorAll("input[name=light]").forEach((el) => el.addEventListener("change", () => { state.light = el.value; updateAll(); }));
+    document.querySelectorAll("input[name=light]").forEach((el) => el.addEventListener("change", () => {
+      if (el.value === "free" && state.light !== "free") freeLightFromCamera(0.7, 0.3);  // start beside the camera
+      state.light = el.value; updateAll();
+    }));
     $("free-polarized").addEventListener("change", () => { state.freePolarized = $("free-polarized").checked; updateAll(); });
     $("srgb").addEventListener("change", () => { state.srgb = $("srgb").checked; updateAll(); });
+    $("dop-max").addEventListener("change", () => { state.dopMax = Number($("dop-max").value); updateAll(); });
 
     let drag = null;
     canvas.addEventListener("contextmenu", (e) => e.preventDefault());
@@ -511,6 +525,8 @@
     state: () => JSON.parse(JSON.stringify({ ...state, camera: state.camera })),
     light: () => lightSetup(),  // world position, polarizer axis and incident Stokes of the current light
     orbit(dx, dy) { orbit(dx, dy); render(); },
+    zoom(factor) { zoom(factor); render(); },
+    freeLightFromCamera(dAzimuth, dElevation) { freeLightFromCamera(dAzimuth, dElevation); state.light = "free"; updateAll(); render(); },
     pick(x, y) { const hit = pick(x, y); render(); return hit && { ...hit, text: describeVertex(hit.vertex) }; },
     benchmark(frames) {  // frames per second of full redraws (the pixel read waits for the GPU)
       const out = new Uint8Array(4);
