@@ -75,7 +75,7 @@ def main(argv=None) -> int:
             page.evaluate(f"window.sellipViewer.zoom({1 / args.zoom})")
             box = page.locator("#view").bounding_box()
             page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
-            page.wait_for_timeout(300)
+            page.wait_for_timeout(600)
             page.screenshot(path=f"{args.out}_page.png")
         browser.close()
     print(f"wrote {args.out}_*.png")

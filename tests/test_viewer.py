@@ -187,3 +187,31 @@ def test_an_older_model_without_some_properties_disables_those_maps(tmp_path):
     assert set(meta["missing"]) == {"confidence", "rho_ss", "model"}
     assert "rho_ss_r" in meta["missing"]["rho_ss"] and "eta" in meta["maps"] and "cluster" in meta["maps"]
     assert "rho_ss" not in meta["arrays"] and "eta" in meta["arrays"]
+
+
+def test_serve_answers_on_localhost(results, written):
+    import socket
+    import time
+    import urllib.request
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = subprocess.Popen([sys.executable, "-m", "sellip.cli", "view", str(results), "--serve", "--port", str(port)],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.time() + 120
+        while True:
+            try:
+                page = urllib.request.urlopen(f"http://127.0.0.1:{port}/index.html", timeout=5).read().decode()
+                break
+            except OSError:
+                if time.time() > deadline or server.poll() is not None:
+                    raise
+                time.sleep(0.5)
+        assert "sellip viewer" in page and '<script src="model.js">' in page
+        model = urllib.request.urlopen(f"http://127.0.0.1:{port}/model.js", timeout=5).read()
+        assert model.startswith(b"window.SELLIP_MODEL = {meta: ")
+    finally:
+        server.terminate()
+        server.wait(timeout=30)

@@ -231,3 +231,15 @@ def test_value_under_the_cursor_names_the_vertex(page, reference):
     if not RESULTS:
         assert "± 0.020" in hit["text"]  # eta_std of tests/viewer_helpers.py
     assert page.evaluate("window.sellipViewer.pick(2, 2)") is None  # background
+
+
+def test_hovering_with_the_mouse_shows_the_vertex(page, reference):
+    _, coverage = reference
+    rows, cols = np.nonzero(coverage > 0.5)
+    page.evaluate(f"window.sellipViewer.snapToView('{HELD_OUT}')")
+    page.evaluate("window.sellipViewer.set({mode: 'map', map: 'eta'})")
+    box = page.locator("#view").bounding_box()
+    page.mouse.move(box["x"] + float(np.median(cols)) + 0.5, box["y"] + float(np.median(rows)) + 0.5)
+    page.wait_for_function("document.getElementById('hover').textContent.startsWith('vertex ')", timeout=10_000)
+    assert "cluster" in page.evaluate("document.getElementById('hover').textContent")
+    assert page.evaluate("document.getElementById('mode-map').checked")  # the controls follow the state

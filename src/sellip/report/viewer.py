@@ -139,7 +139,8 @@ def load_inputs(results: str | Path, capture: str | Path | None = None) -> Viewe
     return inputs
 
 
-def _intrinsics(inputs: ViewerInputs, distance: float, radius: float) -> dict:
+def _intrinsics(inputs: ViewerInputs) -> dict:
+    """The virtual camera's intrinsics: hdr.zarr's, else the rig's 25 mm lens at DEFAULT_SIZE (noted)."""
     if inputs.intrinsics:
         return dict(inputs.intrinsics)
     from sellip.scenes import device_intrinsics
@@ -212,7 +213,7 @@ def payload(inputs: ViewerInputs) -> tuple[dict, bytes]:
         "model_names": {str(k): v for k, v in MODEL_NAMES.items()},
         "cameras": [{"id": v, "R": [float(x) for x in r.ravel()], "t": [float(x) for x in t]}
                     for v, r, t in inputs.cameras],
-        "intrinsics": _intrinsics(inputs, distance, radius), "light": inputs.light,
+        "intrinsics": _intrinsics(inputs), "light": inputs.light,
         "center": [float(x) for x in centre], "radius": radius, "distance": distance, "up": [float(x) for x in up],
         "exposure": default_exposure(vertex, distance), "dark_level": DARK_LEVEL, "notes": inputs.notes,
         "materials": None if inputs.materials is None else {

@@ -457,13 +457,16 @@
       state.view = null;
     });
     canvas.addEventListener("wheel", (e) => { e.preventDefault(); zoom(Math.exp(e.deltaY * 0.001)); }, { passive: false });
+    let hoverTimer = null;  // pick once the cursor rests (a pick pass draws the whole mesh: slow in software GL)
     canvas.addEventListener("mousemove", (e) => {
       if (drag) return;
       const rect = canvas.getBoundingClientRect();
       const x = (e.clientX - rect.left) * canvas.width / rect.width, y = (e.clientY - rect.top) * canvas.height / rect.height;
-      const hit = pick(x, y);
-      $("hover").textContent = hit ? describeVertex(hit.vertex) : "(no surface under the cursor)";
-      requestRender();
+      clearTimeout(hoverTimer);
+      hoverTimer = setTimeout(() => {
+        const hit = pick(x, y);
+        $("hover").textContent = hit ? describeVertex(hit.vertex) : "(no surface under the cursor)";
+      }, 60);
     });
   }
 
