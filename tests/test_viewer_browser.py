@@ -226,8 +226,14 @@ def test_value_under_the_cursor_names_the_vertex(page, reference):
     rows, cols = np.nonzero(coverage > 0.5)
     y, x = int(np.median(rows)), int(np.median(cols))
     page.evaluate(f"window.sellipViewer.snapToView('{HELD_OUT}')")
+    page.evaluate("window.sellipViewer.set({light: 'flash'})")
     hit = page.evaluate(f"window.sellipViewer.pick({x}, {y})")
     assert hit is not None and re.search(r"η 1\.\d{3} .*± 0\.\d{3}", hit["text"]), hit
+    # the pixel's Stokes vector: the renderer's, colour-averaged, at that pixel (float32 through the float target)
+    stokes, _ = reference
+    expected = stokes[y, x, :3, :].mean(-1)
+    assert np.allclose(hit["stokes"], expected, rtol=1e-3, atol=1e-6 * abs(expected[0])), (hit["stokes"], expected)
+    assert "DoP" in hit["text"] and "AoLP" in hit["text"]
     if not RESULTS:
         assert "± 0.020" in hit["text"]  # eta_std of tests/viewer_helpers.py
     assert page.evaluate("window.sellipViewer.pick(2, 2)") is None  # background
@@ -240,6 +246,6 @@ def test_hovering_with_the_mouse_shows_the_vertex(page, reference):
     page.evaluate("window.sellipViewer.set({mode: 'map', map: 'eta'})")
     box = page.locator("#view").bounding_box()
     page.mouse.move(box["x"] + float(np.median(cols)) + 0.5, box["y"] + float(np.median(rows)) + 0.5)
-    page.wait_for_function("document.getElementById('hover').textContent.startsWith('vertex ')", timeout=10_000)
+    page.wait_for_function("document.getElementById('hover').textContent.includes('vertex ')", timeout=10_000)
     assert "cluster" in page.evaluate("document.getElementById('hover').textContent")
     assert page.evaluate("document.getElementById('mode-map').checked")  # the controls follow the state

@@ -1,6 +1,6 @@
 #version 300 es
 // Modes: 0 relight (s0 or an analyzer at u_analyzer), 1 AoLP, 2 DoP, 3 one Mueller element (u_element),
-// 4 a parameter map (u_map), 5 world position (picking). Display values are exposure-scaled linear radiance,
+// 4 a parameter map (u_map), 5 world position and 6 the colour-averaged Stokes vector (picking). Display values are exposure-scaled linear radiance,
 // clipped to [0, 1] and sRGB-encoded when u_srgb (as sellip's tone mapping of its renders).
 precision highp float;
 in vec3 v_world;
@@ -83,6 +83,7 @@ void main() {
     return;
   }
   float m0 = (s0.r + s0.g + s0.b) / 3.0, m1 = (s1.r + s1.g + s1.b) / 3.0, m2 = (s2.r + s2.g + s2.b) / 3.0;
+  if (u_mode == 6) { outColor = vec4(m0, m1, m2, 1.0); return; }  // picking: the colour-averaged Stokes vector
   bool dark = u_exposure * m0 < u_darkLevel;
   if (u_mode == 1) {  // AoLP: hue over 0..180 degrees (Wilkie & Weidlich), black where too dark
     if (dark) { outColor = vec4(0.0, 0.0, 0.0, 1.0); return; }

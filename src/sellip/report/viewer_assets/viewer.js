@@ -267,18 +267,23 @@
       pickTarget = { fb, width, height };
     }
     const px = Math.floor(x), py = height - 1 - Math.floor(y);
-    gl.bindFramebuffer(gl.FRAMEBUFFER, pickTarget.fb);
-    gl.viewport(0, 0, width, height);
-    gl.enable(gl.SCISSOR_TEST);
-    gl.scissor(px, py, 1, 1);
-    gl.clearColor(0, 0, 0, 0);
-    gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
-    drawMesh(5, width, height, [0, 0]);
-    const out = new Float32Array(4);
-    gl.readPixels(px, py, 1, 1, gl.RGBA, gl.FLOAT, out);
-    gl.disable(gl.SCISSOR_TEST);
-    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    const pass = (mode) => {  // one pixel of a float pass: 5 world position, 6 Stokes
+      gl.bindFramebuffer(gl.FRAMEBUFFER, pickTarget.fb);
+      gl.viewport(0, 0, width, height);
+      gl.enable(gl.SCISSOR_TEST);
+      gl.scissor(px, py, 1, 1);
+      gl.clearColor(0, 0, 0, 0);
+      gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+      drawMesh(mode, width, height, [0, 0]);
+      const result = new Float32Array(4);
+      gl.readPixels(px, py, 1, 1, gl.RGBA, gl.FLOAT, result);
+      gl.disable(gl.SCISSOR_TEST);
+      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+      return result;
+    };
+    const out = pass(5);
     if (out[3] < 0.5) return null;
+    const stokes = pass(6);
     const p = arrays.position;
     let best = -1, bestDistance = Infinity;
     for (let i = 0; i < meta.vertices; i++) {
@@ -286,7 +291,15 @@
       const d = dx * dx + dy * dy + dz * dz;
       if (d < bestDistance) { bestDistance = d; best = i; }
     }
-    return { vertex: best, position: [out[0], out[1], out[2]] };
+    return { vertex: best, position: [out[0], out[1], out[2]], stokes: [stokes[0], stokes[1], stokes[2]] };
+  }
+
+  function describeStokes(st) {  // the light reaching the camera through this pixel (colour-averaged)
+    const [s0, s1, s2] = st, dop = s0 > 0 ? Math.hypot(s1, s2) / s0 : 0;
+    const aolp = (0.5 * Math.atan2(s2, s1) * 180 / Math.PI + 180) % 180, th = state.analyzer * Math.PI / 180;
+    const analyzer = 0.5 * (s0 + s1 * Math.cos(2 * th) + s2 * Math.sin(2 * th));
+    return `pixel: s0 ${s0.toPrecision(4)}, DoP ${dop.toFixed(3)}, AoLP ${aolp.toFixed(1)}°, ` +
+           `I(${state.analyzer}°) ${analyzer.toPrecision(4)} (relative, ${state.light} light)`;
   }
 
   function describeVertex(i) {
@@ -465,7 +478,7 @@
       clearTimeout(hoverTimer);
       hoverTimer = setTimeout(() => {
         const hit = pick(x, y);
-        $("hover").textContent = hit ? describeVertex(hit.vertex) : "(no surface under the cursor)";
+        $("hover").textContent = hit ? describeStokes(hit.stokes) + "\n" + describeVertex(hit.vertex) : "(no surface under the cursor)";
       }, 60);
     });
   }
@@ -530,7 +543,7 @@
     orbit(dx, dy) { orbit(dx, dy); render(); },
     zoom(factor) { zoom(factor); render(); },
     freeLightFromCamera(dAzimuth, dElevation) { freeLightFromCamera(dAzimuth, dElevation); state.light = "free"; updateAll(); render(); },
-    pick(x, y) { const hit = pick(x, y); render(); return hit && { ...hit, text: describeVertex(hit.vertex) }; },
+    pick(x, y) { const hit = pick(x, y); render(); return hit && { ...hit, text: describeStokes(hit.stokes) + "\n" + describeVertex(hit.vertex) }; },
     benchmark(frames) {  // frames per second of full redraws (the pixel read waits for the GPU)
       const out = new Uint8Array(4);
       render(); gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, out);
