@@ -215,3 +215,17 @@ def test_serve_answers_on_localhost(results, written):
     finally:
         server.terminate()
         server.wait(timeout=30)
+
+
+def test_a_store_without_clusters_or_stds_is_one_material(results):
+    from sellip.params import read_params
+    from sellip.report.materials import material_table
+    from sellip.scenes import build_scene
+
+    store = read_params(results / "final" / "params.zarr")
+    for name in ("cluster", "eta_vertex", "eta_std", "model", "eta_source", "lobe_source", "confidence"):
+        store.pop(name)
+    table = material_table(store, build_scene("tiny").mesh.faces)
+    assert len(table) == 1 and table.loc[0, "vertices"] == 2562 and table.loc[0, "area_share"] == pytest.approx(1.0)
+    assert table.loc[0, "eta"] == pytest.approx(1.5, abs=0.11) and np.isnan(table.loc[0, "eta_fit_std"])
+    assert table.loc[0, "model"] == 3  # the full model when the store has no model codes
