@@ -103,7 +103,7 @@ def reference(viewer):
     mesh = read_param_mesh(results / "final" / "model.ply")
     camera = camera_at(results, HELD_OUT)
     render = Renderer(mesh).render(camera, flash_light(camera, light["position_m"], light["polarizer_deg"]),
-                                   supersample=1, shadows=False)
+                                   supersample=1, shadows=True)
     return render.stokes.astype(np.float64), render.coverage
 
 
@@ -139,7 +139,7 @@ def test_free_unpolarized_light_matches_the_renderers_mueller_path(page, viewer,
     camera = camera_at(results, HELD_OUT)
     render = Renderer(read_param_mesh(results / "final" / "model.ply")).render(
         camera, Light(np.array(light["position"]), np.array(light["axis"]), stokes=(1.0, 0.0, 0.0, 0.0)),
-        supersample=1, shadows=False)
+        supersample=1, shadows=True)
     mask = reference[1] > 0.5
     s0 = render.stokes[..., 0, :].astype(np.float64)
     exposure = 1.0 / np.percentile(s0[mask], 99)

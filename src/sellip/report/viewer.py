@@ -36,7 +36,8 @@ import numpy as np
 from sellip.report.export import MAP_LABELS, MapData, model_maps
 
 ASSETS = ("index.html", "viewer.js")
-SHADERS = {"mesh_vert": "mesh.vert", "mesh_frag": "mesh.frag", "line_vert": "line.vert", "line_frag": "line.frag"}
+SHADERS = {"mesh_vert": "mesh.vert", "mesh_frag": "mesh.frag", "line_vert": "line.vert", "line_frag": "line.frag",
+           "shadow_vert": "shadow.vert", "shadow_frag": "shadow.frag"}
 DEFAULT_FLASH = {"position_m": [0.0, 0.05, 0.0], "polarizer_deg": 0.0}
 DARK_LEVEL = 0.01
 """AoLP, DoP and the Mueller ratios are blank where the exposure-scaled s0 is below this (docs/outputs.md: 1 %)."""

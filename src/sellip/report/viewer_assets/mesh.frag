@@ -31,10 +31,30 @@ uniform int u_mapKind;        // 0 scalar 1 rgb 2 normal 3 category
 uniform vec2 u_range;         // colour range of the map
 uniform float u_dopMax;       // DoP shown full red at this value (1: the scale of Wilkie & Weidlich)
 uniform float u_darkLevel;    // s0 below this (exposure-scaled) blanks AoLP, DoP and Mueller ratios
+uniform bool u_shadows;       // shadow test against u_shadowMap (distances from the light, shadow.frag)
+uniform sampler2D u_shadowMap;
+uniform mat3 u_shadowR;       // the shadow map's camera: cam_from_world rotation, translation, intrinsics, size
+uniform vec3 u_shadowT;
+uniform vec4 u_shadowK;
+uniform float u_shadowSize;
+uniform float u_shadowBias;   // metres per shadow-map texel at the object: scales the bias that keeps a surface from
+                              // shadowing itself (1.5 texels, more at grazing light, plus sellip.render's 0.1 mm)
 out vec4 outColor;
 
 #include "pbrdf.glsl"
 #include "colormaps.glsl"
+
+float lightVisibility(vec3 world, float distanceToLight, float cosI) {  // 1 lit, 0 in shadow (the renderer's shadow rays)
+  if (!u_shadows) return 1.0;
+  vec3 c = u_shadowR * world + u_shadowT;
+  if (c.z <= 0.0) return 1.0;
+  vec2 pixel = vec2(u_shadowK.x * c.x / c.z + u_shadowK.z, u_shadowK.y * c.y / c.z + u_shadowK.w);
+  vec2 uv = vec2((pixel.x + 0.5) / u_shadowSize, 1.0 - (pixel.y + 0.5) / u_shadowSize);
+  if (any(lessThan(uv, vec2(0.0))) || any(greaterThan(uv, vec2(1.0)))) return 1.0;
+  float nearest = texture(u_shadowMap, uv).r;
+  float bias = 1.5 * u_shadowBias * (1.0 + sqrt(max(1.0 - cosI * cosI, 0.0)) / max(cosI, 0.05)) + 1e-4;
+  return distanceToLight <= nearest + bias ? 1.0 : 0.0;
+}
 
 vec3 encode(vec3 linear) {
   vec3 c = clamp(linear, 0.0, 1.0);
@@ -70,6 +90,7 @@ void main() {
   float d = length(toLight);
   vec3 wi = toLight / d;
   Lobes L = pbrdfLobes(n, wi, wo, d, u_lightAxis, u_cameraUp, v_eta);
+  L.shading *= lightVisibility(v_world, d, L.cosI);
   vec3 w = lobeFactor(L, v_sigma_s) * v_rho_s + lobeFactor(L, v_sigma_ss) * v_rho_ss;  // reflection weight per colour
   vec3 sd = L.diffuse * u_lightStokes;
   vec3 sr = L.reflection * u_lightStokes;

@@ -74,13 +74,14 @@
   }
 
   const state = {
-    mode: "relight", map: "eta", element: [0, 0], exposure: meta.exposure, srgb: true, dopMax: 1,
+    mode: "relight", map: "eta", element: [0, 0], exposure: meta.exposure, srgb: true, dopMax: 1, shadows: true,
     useAnalyzer: false, analyzer: 0, light: "flash", free: { azimuth: 0.6, elevation: 0.5, distance: meta.distance },
     freePolarized: true, frusta: false, view: null, size: [meta.intrinsics.width, meta.intrinsics.height],
     camera: null, target: meta.center.slice(), hover: null,
   };
   let arrays = null, mesh = null, lines = null, meshProgram = null, lineProgram = null, lineCount = 0;
-  let pickTarget = null;
+  let pickTarget = null, positionBuffer = null, shadowProgram = null, shadow = null;
+  const SHADOW_SIZE = 2048;
 
   function capturedCamera(index) {
     const c = meta.cameras[index];
@@ -111,6 +112,7 @@
       if (location < 0) continue;
       if (arrays[name]) {
         const buffer = gl.createBuffer();
+        if (name === "position") positionBuffer = buffer;
         gl.bindBuffer(gl.ARRAY_BUFFER, buffer);
         gl.bufferData(gl.ARRAY_BUFFER, arrays[name], gl.STATIC_DRAW);
         gl.enableVertexAttribArray(location);
@@ -126,6 +128,31 @@
     gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, arrays.indices, gl.STATIC_DRAW);
     gl.bindVertexArray(null);
     mesh = { vao, count: arrays.indices.length };
+    if (floatTargets) {  // the shadow pass: positions only, the same triangles
+      shadowProgram = compile(SHADERS.shadow_vert, SHADERS.shadow_frag);
+      const shadowVao = gl.createVertexArray();
+      gl.bindVertexArray(shadowVao);
+      const location = gl.getAttribLocation(shadowProgram.program, "a_position");
+      gl.bindBuffer(gl.ARRAY_BUFFER, positionBuffer);
+      gl.enableVertexAttribArray(location);
+      gl.vertexAttribPointer(location, 3, gl.FLOAT, false, 0, 0);
+      gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, index);
+      gl.bindVertexArray(null);
+      const texture = gl.createTexture(), depth = gl.createRenderbuffer(), fb = gl.createFramebuffer();
+      gl.bindTexture(gl.TEXTURE_2D, texture);
+      gl.texStorage2D(gl.TEXTURE_2D, 1, gl.R32F, SHADOW_SIZE, SHADOW_SIZE);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+      gl.bindRenderbuffer(gl.RENDERBUFFER, depth);
+      gl.renderbufferStorage(gl.RENDERBUFFER, gl.DEPTH_COMPONENT24, SHADOW_SIZE, SHADOW_SIZE);
+      gl.bindFramebuffer(gl.FRAMEBUFFER, fb);
+      gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, texture, 0);
+      gl.framebufferRenderbuffer(gl.FRAMEBUFFER, gl.DEPTH_ATTACHMENT, gl.RENDERBUFFER, depth);
+      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+      shadow = { vao: shadowVao, fb, texture, key: null, camera: null };
+    }
     lines = { vao: gl.createVertexArray(), position: gl.createBuffer(), color: gl.createBuffer() };
   }
 
@@ -194,8 +221,46 @@
     gl.uniform2f(uniforms.u_depth, 0.01 * meta.distance, 100 * meta.distance);
   }
 
+  function shadowCamera(position) {  // a pinhole at the light aimed at the object, its bounding sphere in view
+    const forward = unit(sub(meta.center, position)), distance = norm(sub(meta.center, position));
+    const helper = Math.abs(forward[2]) < 0.9 ? [0, 0, 1] : [1, 0, 0];
+    const right = unit(cross(forward, helper)), down = cross(forward, right);
+    const R = [...right, ...down, ...forward];
+    const halfAngle = Math.asin(Math.min(0.99, 1.05 * meta.radius / distance));
+    const f = (SHADOW_SIZE / 2) / Math.tan(halfAngle);
+    return { R, t: scale(mul(R, position), -1), K: [f, f, SHADOW_SIZE / 2 - 0.5, SHADOW_SIZE / 2 - 0.5],
+             texel: distance / f,  // metres per shadow-map texel at the object
+             depth: [Math.max(1e-4, distance - 2 * meta.radius), distance + 2 * meta.radius] };
+  }
+
+  function updateShadowMap(light) {  // re-rendered only when the light moves
+    const key = light.position.join(",");
+    if (!shadow || shadow.key === key) return;
+    const cam = shadowCamera(light.position), u = shadowProgram.uniforms;
+    gl.bindFramebuffer(gl.FRAMEBUFFER, shadow.fb);
+    gl.viewport(0, 0, SHADOW_SIZE, SHADOW_SIZE);
+    gl.clearColor(1e30, 0, 0, 1);
+    gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+    gl.enable(gl.DEPTH_TEST);
+    gl.useProgram(shadowProgram.program);
+    gl.uniformMatrix3fv(u.u_R, true, new Float32Array(cam.R));
+    gl.uniform3fv(u.u_t, cam.t);
+    gl.uniform4fv(u.u_K, cam.K);
+    gl.uniform2f(u.u_size, SHADOW_SIZE, SHADOW_SIZE);
+    gl.uniform2fv(u.u_depth, cam.depth);
+    gl.uniform3fv(u.u_lightPosition, light.position);
+    gl.bindVertexArray(shadow.vao);
+    gl.drawElements(gl.TRIANGLES, mesh.count, gl.UNSIGNED_INT, 0);
+    gl.bindVertexArray(null);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    shadow.key = key;
+    shadow.camera = cam;
+  }
+
   function drawMesh(mode, width, height, element) {
     const u = meshProgram.uniforms, light = lightSetup(), map = meta.maps[state.map] || {};
+    const shadows = state.shadows && !!shadow && mode !== 4 && mode !== 5;
+    if (shadows) updateShadowMap(light);
     gl.useProgram(meshProgram.program);
     setCameraUniforms(u, width, height);
     gl.uniform1i(u.u_mode, mode);
@@ -214,6 +279,18 @@
     gl.uniform2f(u.u_range, map.low ?? 0, map.high ?? 1);
     gl.uniform1f(u.u_darkLevel, meta.dark_level);
     gl.uniform1f(u.u_dopMax, state.dopMax);
+    gl.uniform1i(u.u_shadows, shadows ? 1 : 0);
+    if (shadows) {
+      const cam = shadow.camera;
+      gl.activeTexture(gl.TEXTURE0);
+      gl.bindTexture(gl.TEXTURE_2D, shadow.texture);
+      gl.uniform1i(u.u_shadowMap, 0);
+      gl.uniformMatrix3fv(u.u_shadowR, true, new Float32Array(cam.R));
+      gl.uniform3fv(u.u_shadowT, cam.t);
+      gl.uniform4fv(u.u_shadowK, cam.K);
+      gl.uniform1f(u.u_shadowSize, SHADOW_SIZE);
+      gl.uniform1f(u.u_shadowBias, cam.texel);
+    }
     gl.bindVertexArray(mesh.vao);
     gl.drawElements(gl.TRIANGLES, mesh.count, gl.UNSIGNED_INT, 0);
   }
@@ -410,6 +487,7 @@
     $("free-polarized").checked = state.freePolarized;
     $("srgb").checked = state.srgb;
     $("dop-max").value = String(state.dopMax);
+    $("shadows").checked = state.shadows && floatTargets;
     const ev = Math.log2(state.exposure / meta.exposure);
     $("exposure").value = String(ev); $("exposure-value").textContent = `${ev.toFixed(2)} EV`;
   }
@@ -451,6 +529,8 @@
     }));
     $("free-polarized").addEventListener("change", () => { state.freePolarized = $("free-polarized").checked; updateAll(); });
     $("srgb").addEventListener("change", () => { state.srgb = $("srgb").checked; updateAll(); });
+    $("shadows").addEventListener("change", () => { state.shadows = $("shadows").checked; updateAll(); });
+    if (!floatTargets) { $("shadows").disabled = true; $("shadows").checked = false; }
     $("dop-max").addEventListener("change", () => { state.dopMax = Number($("dop-max").value); updateAll(); });
 
     let drag = null;
