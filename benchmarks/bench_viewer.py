@@ -29,8 +29,8 @@ BROWSER_ARGS = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-sw
 
 def bumpy_sphere(vertices: int, radius: float = 0.04):
     """(positions (V, 3), normals (V, 3), faces (F, 3)) of a bumpy lat-long sphere with about ``vertices`` vertices."""
-    rows = max(4, int(round(np.sqrt(vertices / 2))))
-    cols = max(8, int(round(vertices / rows)))
+    rows = max(4, round(np.sqrt(vertices / 2)))
+    cols = max(8, round(vertices / rows))
     theta = np.linspace(0.02, np.pi - 0.02, rows)
     phi = np.linspace(0, 2 * np.pi, cols, endpoint=False)
     t, p = np.meshgrid(theta, phi, indexing="ij")
@@ -128,7 +128,8 @@ def main(argv=None) -> int:
     parser.add_argument("--screenshots", type=Path, default=None)
     args = parser.parse_args(argv)
     root = args.out or Path(tempfile.mkdtemp(prefix="bench_viewer_"))
-    print("| model | vertices | triangles | viewer/ MB | page written s | load s | frames/s | frames/s, no shadows | renderer |")
+    print("| model | vertices | triangles | viewer/ MB | page written s | load s | frames/s | frames/s, no shadows "
+          "| renderer |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---|")
     for target in [*args.results, *args.vertices]:
         results = target if isinstance(target, Path) else synthetic_results(root, target)

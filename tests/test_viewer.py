@@ -12,9 +12,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
-
 from viewer_helpers import FLASH, write_results
 
 
@@ -175,7 +173,7 @@ def test_no_finished_model_is_a_clear_error(tmp_path):
     with pytest.raises(ViewerError, match=r"final/model.ply: missing: the run has no finished model"):
         load_inputs(tmp_path / "results" / "x")
     out = subprocess.run([sys.executable, "-m", "sellip.cli", "view", str(tmp_path / "results" / "x")],
-                         capture_output=True, text=True, timeout=120)
+                         capture_output=True, text=True, timeout=120, check=False)
     assert out.returncode == 1 and "no finished model" in out.stderr
 
 
@@ -197,8 +195,8 @@ def test_serve_answers_on_localhost(results, written):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    server = subprocess.Popen([sys.executable, "-m", "sellip.cli", "view", str(results), "--serve", "--port", str(port)],
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    command = [sys.executable, "-m", "sellip.cli", "view", str(results), "--serve", "--port", str(port)]
+    server = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         deadline = time.time() + 120
         while True:

@@ -19,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from viewer_helpers import FLASH, write_results
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -27,7 +26,8 @@ BROWSER_ARGS = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-sw
 RESULTS = os.environ.get("SELLIP_VIEWER_RESULTS")
 HELD_OUT = os.environ.get("SELLIP_VIEWER_VIEW", "v005")
 
-pytestmark = pytest.mark.skipif(not shutil.which("chromium"), reason="needs Debian's chromium (apt-get install chromium)")
+pytestmark = pytest.mark.skipif(not shutil.which("chromium"),
+                                reason="needs Debian's chromium (apt-get install chromium)")
 
 
 def srgb(linear: np.ndarray) -> np.ndarray:
@@ -120,7 +120,7 @@ def test_flash_view_matches_sellips_renderer(page, reference):
     value = psnr(shot[mask], expected[mask])
     print(f"viewer vs renderer at {HELD_OUT}: PSNR {value:.1f} dB over {mask.sum()} object pixels")
     assert mask.sum() > 2_000 and value >= 35.0
-    # background black: no extra geometry (a few silhouette pixels may differ: float32 rasterization against ray casting)
+    # background black: no extra geometry (a few silhouette pixels may differ: float32 rasterization, ray casting)
     assert (shot[~mask].max(-1) >= 2 / 255).sum() < 0.002 * mask.sum()
 
 
@@ -178,7 +178,8 @@ def test_analyzer_0_minus_90_matches_the_renderers(page, reference):
         shots.append(canvas(page))
     rmse45 = float(np.sqrt(np.mean(((shots[0] - shots[1]) - s2)[inside45] ** 2)))
     d = (shots[0] - shots[1])[inside45]
-    print(f"I45 - I135: rmse {rmse45 * 255:.2f}/255, correlation {np.corrcoef(d.ravel(), s2[inside45].ravel())[0, 1]:.4f}")
+    correlation45 = np.corrcoef(d.ravel(), s2[inside45].ravel())[0, 1]
+    print(f"I45 - I135: rmse {rmse45 * 255:.2f}/255, correlation {correlation45:.4f}")
     assert rmse45 < 2 / 255 and np.abs(s2[inside45]).max() > 10 / 255  # a signal to compare (17/255 here)
     page.evaluate("window.sellipViewer.set({srgb: true, useAnalyzer: false})")
 
@@ -199,9 +200,9 @@ def test_every_mode_draws_the_object(page, viewer, reference, mode, map_name):
             for j in range(3):
                 assert shot[i * h:(i + 1) * h, j * w:(j + 1) * w].max() > 0.2, (i, j)
         # mirror reflection at the highlight keeps s1 and flips s2: M11 / M00 ~ +1 (red), M22 / M00 ~ -1 (blue)
-        tile = lambda i, j: shot[i * h:(i + 1) * h, j * w:(j + 1) * w]  # noqa: E731
-        red = lambda t: (t[..., 0] > 0.8) & (t[..., 1] < 0.5) & (t[..., 2] < 0.5)  # noqa: E731
-        blue = lambda t: (t[..., 2] > 0.8) & (t[..., 0] < 0.5) & (t[..., 1] < 0.5)  # noqa: E731
+        tile = lambda i, j: shot[i * h:(i + 1) * h, j * w:(j + 1) * w]
+        red = lambda t: (t[..., 0] > 0.8) & (t[..., 1] < 0.5) & (t[..., 2] < 0.5)
+        blue = lambda t: (t[..., 2] > 0.8) & (t[..., 0] < 0.5) & (t[..., 1] < 0.5)
         if not RESULTS:  # the tiny sphere's glossy half has a highlight that the specular lobe dominates
             assert red(tile(1, 1)).sum() > 0 and blue(tile(2, 2)).sum() > 0 and not blue(tile(1, 1)).any()
         return

@@ -123,7 +123,8 @@ def model_maps(vertex: dict, store: dict | None = None) -> tuple[dict[str, MapDa
         values = np.stack([vertex[p] for p in props], -1) if len(props) == 3 else vertex[props[0]]
         add(name, kind, values, std_of(name))
     if "confidence" in maps:  # a fraction: its whole range
-        maps["confidence"] = MapData("confidence", "scalar", maps["confidence"].values, 0.0, 1.0, MAP_LABELS["confidence"])
+        maps["confidence"] = MapData("confidence", "scalar", maps["confidence"].values, 0.0, 1.0,
+                                     MAP_LABELS["confidence"])
     if "cluster" in vertex:
         add("cluster", "category", vertex["cluster"])
     elif "cluster" in store and len(store["cluster"]) == n:

@@ -26,7 +26,8 @@ confidence > 0, whose own eta is not pinned at a bound of the fit, :func:`sellip
   ``lobe_own_vertices``: how many keep their own eta / specular lobe (``eta_source``/``lobe_source`` = 1).
 - ``area_share``: the cluster's share of the surface, each vertex carrying a third of its triangles' area.
 - Ground truth (``gt_*``): each model vertex's nearest ground-truth vertex (same world: a run on known poses) votes;
-  ``gt_material`` is the most common true material label (-1: none), ``gt_eta`` etc. the medians of the true values there.
+  ``gt_material`` is the most common true material label (-1: none), ``gt_eta`` etc. the medians of the true values
+  there.
 """
 
 from __future__ import annotations
@@ -100,8 +101,9 @@ def validate_materials(table: pd.DataFrame, label: str = "materials.csv") -> pd.
         return schema.validate(table, lazy=True)
     except pa.errors.SchemaErrors as error:
         first = error.failure_cases.iloc[0]
-        raise MaterialsError(f"{label}: {len(error.failure_cases)} problem(s); first: row {first['index']}, column "
-                             f"{first['column']!r}, check {first['check']!r}, value {first['failure_case']!r}") from None
+        raise MaterialsError(f"{label}: {len(error.failure_cases)} problem(s); first: row {first['index']}, "
+                             f"column {first['column']!r}, check {first['check']!r}, "
+                             f"value {first['failure_case']!r}") from None
 
 
 def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

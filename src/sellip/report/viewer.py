@@ -208,7 +208,7 @@ def payload(inputs: ViewerInputs) -> tuple[dict, bytes]:
     from sellip.params import MODEL_NAMES
 
     meta = {
-        "name": inputs.name, "vertices": int(len(positions)), "faces": int(len(inputs.faces)), "arrays": arrays,
+        "name": inputs.name, "vertices": len(positions), "faces": len(inputs.faces), "arrays": arrays,
         "maps": {name: {"kind": m.kind, "low": m.low, "high": m.high, "label": m.label} for name, m in maps.items()},
         "missing": missing, "map_names": dict(MAP_LABELS),
         "model_names": {str(k): v for k, v in MODEL_NAMES.items()},

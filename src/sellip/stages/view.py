@@ -8,7 +8,8 @@ capture's ``capture.yaml`` (the flash; ``ground_truth/model.ply`` for the table'
 the capture's own, not SfM's); ``--capture`` defaults to the one metrics.json names. Writes, each atomically:
 
 - ``final/materials.csv``: one row per material cluster (:mod:`sellip.report.materials`);
-- ``final/model.glb``: glTF 2.0 binary with the parameters as ``_ETA``-style vertex attributes (:mod:`sellip.report.export`);
+- ``final/model.glb``: glTF 2.0 binary with the parameters as ``_ETA``-style vertex attributes
+  (:mod:`sellip.report.export`);
 - ``final/maps/map_<name>.ply``: the mesh coloured by each map (MeshLab, Blender);
 - ``viewer/``: the static page (``viewer/index.html``, :mod:`sellip.report.viewer`), then, with ``--serve``,
   serves it on http://127.0.0.1:PORT/ until interrupted.
