@@ -250,3 +250,55 @@ def test_hovering_with_the_mouse_shows_the_vertex(page, reference):
     page.wait_for_function("document.getElementById('hover').textContent.includes('vertex ')", timeout=10_000)
     assert "cluster" in page.evaluate("document.getElementById('hover').textContent")
     assert page.evaluate("document.getElementById('mode-map').checked")  # the controls follow the state
+
+
+def test_the_page_controls_drive_the_view(page):
+    """Clicks, drags and the wheel as a user would: each changes the view or the state, and nothing throws."""
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.evaluate(f"window.sellipViewer.snapToView('{HELD_OUT}')")
+    page.check("#mode-relight")
+    before = canvas(page)
+    box = page.locator("#view").bounding_box()
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(cx, cy)
+    page.mouse.down()
+    page.mouse.move(cx + 60, cy + 10, steps=4)
+    page.mouse.up()
+    page.evaluate("window.sellipViewer.set({})")
+    assert np.abs(canvas(page) - before).max() > 0.1  # orbited
+    assert page.evaluate("window.sellipViewer.state().view") is None
+    page.click("#reset")
+    page.select_option("#view-select", HELD_OUT)
+    page.evaluate("window.sellipViewer.set({})")  # draw now (the page itself draws at the next animation frame)
+    assert np.abs(canvas(page) - before).max() < 2 / 255  # back at the captured view
+    page.mouse.move(cx, cy)
+    page.mouse.wheel(0, 400)
+    page.wait_for_timeout(100)
+    page.evaluate("window.sellipViewer.set({})")
+    assert canvas(page).mean() < before.mean()  # zoomed out: the object covers fewer pixels
+    page.select_option("#view-select", HELD_OUT)
+    page.keyboard.down("Shift")
+    page.mouse.move(cx, cy)
+    page.mouse.down()
+    page.mouse.move(cx + 80, cy, steps=4)
+    page.mouse.up()
+    page.keyboard.up("Shift")
+    assert page.evaluate("window.sellipViewer.state().light") == "free" and page.is_checked("#light-free")
+    page.check("#light-flash")
+    page.check("#frusta")
+    page.select_option("#map-select", "sigma_s")
+    assert page.evaluate("window.sellipViewer.state().mode") == "map" and page.is_checked("#mode-map")
+    page.check("#mode-mueller")
+    page.check("#analyzer-on")
+    page.fill("#analyzer", "45")
+    page.dispatch_event("#analyzer", "input")
+    assert page.evaluate("window.sellipViewer.state().analyzer") == 45
+    page.fill("#exposure", "1")
+    page.dispatch_event("#exposure", "input")
+    ratio = page.evaluate("window.sellipViewer.state().exposure / window.sellipViewer.meta.exposure")
+    assert ratio == pytest.approx(2.0)
+    page.wait_for_timeout(100)
+    assert not errors, errors
+    page.evaluate("window.sellipViewer.set({mode: 'relight', frusta: false, useAnalyzer: false, analyzer: 0, "
+                  "light: 'flash'})")
