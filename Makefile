@@ -37,10 +37,10 @@ dry-run: $(STAMP)
 report: $(STAMP)
 	$(BIN)/snakemake --workflow-profile workflow/profiles/default --report results/report.html
 
-# The viewer, materials table and exports of a finished run (docs/viewer.md); NAME=demo by default, SERVE=1 serves it.
-NAME ?= demo
+# The viewer, materials table and exports of a finished run results/RUN (docs/viewer.md; RUN=demo by default), SERVE=1 serves it.
+RUN ?= demo
 view: $(STAMP)
-	$(BIN)/sellip view results/$(NAME) $(if $(SERVE),--serve)
+	$(BIN)/sellip view results/$(RUN) $(if $(SERVE),--serve)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest
