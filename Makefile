@@ -8,7 +8,7 @@ CORES ?= 2
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test dry-run report bench-sweep bench-stability clean-results
+.PHONY: install demo test dry-run report view bench-sweep bench-stability clean-results
 
 install: $(STAMP)
 
@@ -36,6 +36,11 @@ dry-run: $(STAMP)
 
 report: $(STAMP)
 	$(BIN)/snakemake --workflow-profile workflow/profiles/default --report results/report.html
+
+# The viewer, materials table and exports of a finished run results/RUN (docs/viewer.md; RUN=demo by default), SERVE=1 serves it.
+RUN ?= demo
+view: $(STAMP)
+	$(BIN)/sellip view results/$(RUN) $(if $(SERVE),--serve)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest

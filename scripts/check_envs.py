@@ -34,8 +34,8 @@ FAMILIES: dict[str, dict[str, list[str]]] = {
                  "modules": ["sfm", "init_mesh", "observe", "refine_geometry"]},
     "fit": {"rules": ["fit_pbrdf", "gather_fit", "cluster_lobes", "finalize_model"],
             "modules": ["fit", "gather_fit", "cluster_lobes", "finalize"]},
-    "report": {"rules": ["render_outputs", "evaluate_model"],
-               "modules": ["render_outputs", "evaluate"]},
+    "report": {"rules": ["render_outputs", "evaluate_model", "export_viewer"],
+               "modules": ["render_outputs", "evaluate", "view"]},
 }
 
 # Import name -> distribution name, for the libraries that a family may or may not install.

@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "finalize": ("finalize", "the final model: model.ply and params.zarr"),
     "render-outputs": ("render_outputs", "renders, Mueller images, AoLP/DoP and parameter maps of a model"),
     "evaluate": ("evaluate", "figures of merit against the ground truth (metrics.json)"),
+    "view": ("view", "materials table, glTF and map-PLY exports, and the offline browser viewer of a final model"),
     "bench-sweep": ("bench_sweep", "speed-accuracy sweep of the whole workflow: chart, CSV and tables"),
     "bench-stability": ("bench_stability", "the stability suite: failure-mode cases run end to end, one table"),
 }

@@ -110,6 +110,10 @@ def test_tiny_capture_reconstructs_close_to_the_ground_truth(tiny_run):
     for name in ("normals", "eta", "rho_d", "rho_s", "sigma_s", "rho_ss", "sigma_ss", "confidence"):
         assert np.all(np.isfinite(store[name])), name
     assert (results / "final" / "renders").is_dir() and any((results / "final" / "renders").glob("*.png"))
+    # The last rule (issue #40): the viewer, the materials table (with the truth beside it) and the exports.
+    assert (results / "viewer" / "index.html").is_file() and (results / "final" / "model.glb").is_file()
+    assert "gt_eta" in (results / "final" / "materials.csv").read_text().splitlines()[0]
+    assert (results / "final" / "maps" / "map_eta.ply").is_file()
     # Measured 2026-11-24 on this scene (24 views of 160x128 demosaiced pixels, a 4 cm sphere): one
     # iteration, normal median 3.2 deg, eta median 10.7 %, Chamfer 0.97 mm, held-out PSNR 23.8 dB (two
     # iterations: 2.9 deg, 10.3 %, 0.95 mm, 23.2 dB; one keeps the suite inside CI's time).

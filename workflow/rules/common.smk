@@ -184,4 +184,4 @@ def get_lobes(wildcards):
 def get_final_outputs():
     """What `rule all` builds: the reconstructed model, its renders and its metrics."""
     return [f"{RESULTS}/previews", f"{RESULTS}/final/model.ply", f"{RESULTS}/final/params.zarr",
-            f"{RESULTS}/final/renders", f"{RESULTS}/metrics.json"]
+            f"{RESULTS}/final/renders", f"{RESULTS}/metrics.json", f"{RESULTS}/viewer"]

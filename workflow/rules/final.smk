@@ -97,6 +97,34 @@ rule evaluate_model:
         " --logs {params.logs:q} > {log:q} 2>&1"
 
 
+rule export_viewer:
+    # The last rule (issue #40, docs/viewer.md): the per-material table, the glTF and map-PLY exports and the offline
+    # browser viewer of the final model. After evaluate_model, so that the page is the run's last word.
+    input:
+        model=f"{RESULTS}/final/model.ply",
+        params=f"{RESULTS}/final/params.zarr",
+        cameras=f"{RESULTS}/cameras.csv",
+        hdr=f"{RESULTS}/hdr.zarr",
+        capture=capture_file("capture.yaml"),
+        metrics=f"{RESULTS}/metrics.json",
+    output:
+        materials=report(f"{RESULTS}/final/materials.csv", caption="../report/materials.rst", category="Metrics"),
+        glb=f"{RESULTS}/final/model.glb",
+        maps=directory(f"{RESULTS}/final/maps"),
+        viewer=directory(f"{RESULTS}/viewer"),
+    params:
+        results=RESULTS,
+        capture=lambda wildcards, input: Path(input.capture).parent,
+    conda:
+        "../../envs/report.yaml"
+    log:
+        f"{RESULTS}/logs/export_viewer.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/export_viewer.tsv"
+    shell:
+        SELLIP + " view {params.results:q} --capture {params.capture:q} > {log:q} 2>&1"
+
+
 onsuccess:
     # The run's warnings (a frame left out, a view without a pose), from the jobs' logs (docs/reliability.md).
     if warnings := workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs")):
@@ -111,6 +139,8 @@ onsuccess:
         psnr = (metrics.get("psnr_held_out") or {}).get("mean_db")
         print(f"\nsellip: reconstruction of {capture_dir()} in {RESULTS}/", "  model:    final/model.ply (+ final/params.zarr)",
               "  renders:  final/renders/ (index.json lists them)", "  metrics:  metrics.json, final/timings.png",
+              f"  viewer:   open {Path(RESULTS).resolve()}/viewer/index.html in a browser (or: sellip view {RESULTS} --serve)",
+              "  exports:  final/materials.csv, final/model.glb, final/maps/map_*.ply",
               "  report:   make report (or snakemake --report results/report.html)", sep="\n")
         if normal:
             print(f"  normal error mean {normal['mean']:.2f} deg, eta error mean {eta.get('mean', float('nan')):.2f} %, "

@@ -9,6 +9,12 @@ Modules and what they export (each name is importable from here too)::
       timings
         PSNR_PEAK_PERCENTILE, PSNR_MAX_DB, FIT_RULE, transform_mesh, camera_alignment, eta_per_material,
         parameter_errors, geometry_errors, geometry_series, psnr, render_mask, stage_timings, vertex_errors
+    export: Exports of a final model that other tools open (issue #40): glTF 2.0 binary and per-map colour PLYs
+        GLTF_ATTRIBUTES, MAP_RANGE_PERCENTILES, CATEGORY_COLORS, MapData, MAP_LABELS, MAP_NAMES, model_maps,
+        viridis, map_colors, write_map_plys, up_rotation, base_color, write_glb
+    materials: The per-material table of a final model (``final/materials.csv``; issue #40)
+        BOOTSTRAP_ROUNDS, BOOTSTRAP_SEED, MAD_TO_SD, COLUMNS, GT_COLUMNS, MaterialsError, materials_schema,
+        validate_materials, vertex_areas, median_interval, material_table, write_materials, read_materials
     metrics: The figures of merit of a reconstruction (DESIGN §8; rule ``evaluate_model``): normals, η per material
       and per vertex, albedo, roughness, Chamfer and Hausdorff, held-out and new-light PSNR, the geometry's
       convergence over the iterations -> ``metrics.json`` (:func:`evaluate_model`)
@@ -23,6 +29,11 @@ Modules and what they export (each name is importable from here too)::
       out
         PREVIEW_KINDS, WHITE_PERCENTILE, srgb_encode, to_uint8, linear_stokes, dolp_aolp, aolp_colors,
         preview_images, write_previews
+    viewer: The interactive viewer of a final model: ``results/NAME/viewer/``, a static page that works offline
+      (issue #40)
+        ASSETS, SHADERS, DEFAULT_FLASH, DARK_LEVEL, DEFAULT_SIZE, ViewerError, ViewerInputs, read_light,
+        read_pose_table, load_inputs, default_exposure, payload, shader_sources, write_viewer, serve, maps_of,
+        find_capture, ground_truth_for, export_results
 
 See docs/architecture.md for what this package owns and what it may import.
 """
@@ -33,6 +44,11 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "evaluate": ("PSNR_PEAK_PERCENTILE", "PSNR_MAX_DB", "FIT_RULE", "transform_mesh", "camera_alignment",
            "eta_per_material", "parameter_errors", "geometry_errors", "geometry_series", "psnr", "render_mask",
            "stage_timings", "vertex_errors"),
+    "export": ("GLTF_ATTRIBUTES", "MAP_RANGE_PERCENTILES", "CATEGORY_COLORS", "MapData", "MAP_LABELS", "MAP_NAMES",
+           "model_maps", "viridis", "map_colors", "write_map_plys", "up_rotation", "base_color", "write_glb"),
+    "materials": ("BOOTSTRAP_ROUNDS", "BOOTSTRAP_SEED", "MAD_TO_SD", "COLUMNS", "GT_COLUMNS", "MaterialsError",
+           "materials_schema", "validate_materials", "vertex_areas", "median_interval", "material_table",
+           "write_materials", "read_materials"),
     "metrics": ("confident_vertices", "sfm_mode", "geometry_convergence", "view_psnr", "evaluate_model",
            "headline_figures"),
     "outputs": ("NEW_LIGHT_OFFSET_M", "NOVEL_ELEVATION_DEG", "MUELLER_BASIS", "DARK_FRACTION", "MAP_SPECS",
@@ -42,4 +58,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "DEFAULT_VIEWS", "OutputsError", "default_views", "model_confidence", "render_outputs"),
     "previews": ("PREVIEW_KINDS", "WHITE_PERCENTILE", "srgb_encode", "to_uint8", "linear_stokes", "dolp_aolp",
            "aolp_colors", "preview_images", "write_previews"),
+    "viewer": ("ASSETS", "SHADERS", "DEFAULT_FLASH", "DARK_LEVEL", "DEFAULT_SIZE", "ViewerError", "ViewerInputs",
+           "read_light", "read_pose_table", "load_inputs", "default_exposure", "payload", "shader_sources",
+           "write_viewer", "serve", "maps_of", "find_capture", "ground_truth_for", "export_results"),
 })

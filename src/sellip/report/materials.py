@@ -1,0 +1,234 @@
+"""The per-material table of a final model (``final/materials.csv``; issue #40).
+
+One row per material cluster of ``final/params.zarr`` (``cluster``; a store without one is one material):
+
+    cluster, vertices, area_share, confident_vertices,
+    eta, eta_ci_low, eta_ci_high, eta_spread, eta_fit_std, eta_own_vertices,
+    rho_d_r, rho_d_g, rho_d_b, rho_s, sigma_s, rho_ss_r, rho_ss_g, rho_ss_b, sigma_ss,
+    model, model_name, lobe_own_vertices
+    [+ with a ground truth: gt_material, gt_eta, gt_rho_d_r, gt_rho_d_g, gt_rho_d_b, gt_sigma_s, gt_sigma_ss]
+
+Definitions (the cluster's vertices are those with its label; "estimating" vertices are the confident ones,
+confidence > 0, whose own eta is not pinned at a bound of the fit, :func:`sellip.fit.eta_at_bound`):
+
+- ``eta``: the median of the estimating vertices' own eta (``eta_vertex``, the per-vertex fit): the material's
+  eta as ``sellip finalize`` sets it (:func:`sellip.augment.cluster_medians`); the median of the model's eta where
+  no vertex estimates it.
+- ``eta_ci_low``/``eta_ci_high``: a 95 % confidence interval of that median **from the spread of its vertices**: the
+  2.5 / 97.5 percentiles of the median over :data:`BOOTSTRAP_ROUNDS` bootstrap resamples of the estimating vertices
+  (seeded: the same store gives the same table). It treats vertices as independent samples; neighbours share views,
+  so it is optimistic by the square root of the number of vertices per independent patch.
+  ``eta_spread`` = 1.4826 MAD of their own eta (how much vertices differ), ``eta_fit_std`` = the median of their
+  Gauss-Newton std ``eta_std`` (the fit's own uncertainty per vertex; NaN where the store has none).
+- ``rho_d_*``, ``rho_ss_*``: the mean over the cluster's vertices (relative: one global scale is free, DESIGN §4);
+  ``rho_s``, ``sigma_s``, ``sigma_ss``: the median over them.
+- ``model``: the most common per-vertex ``model`` code (:data:`sellip.params.MODEL_NAMES`); ``eta_own_vertices``,
+  ``lobe_own_vertices``: how many keep their own eta / specular lobe (``eta_source``/``lobe_source`` = 1).
+- ``area_share``: the cluster's share of the surface, each vertex carrying a third of its triangles' area.
+- Ground truth (``gt_*``): each model vertex's nearest ground-truth vertex (same world: a run on known poses) votes;
+  ``gt_material`` is the most common true material label (-1: none), ``gt_eta`` etc. the medians of the true values
+  there.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from sellip.model.params import MODEL_NAMES
+
+BOOTSTRAP_ROUNDS = 1000
+BOOTSTRAP_SEED = 0
+MAD_TO_SD = 1.4826
+
+COLUMNS = ("cluster", "vertices", "area_share", "confident_vertices", "eta", "eta_ci_low", "eta_ci_high",
+           "eta_spread", "eta_fit_std", "eta_own_vertices", "rho_d_r", "rho_d_g", "rho_d_b", "rho_s", "sigma_s",
+           "rho_ss_r", "rho_ss_g", "rho_ss_b", "sigma_ss", "model", "model_name", "lobe_own_vertices")
+GT_COLUMNS = ("gt_material", "gt_eta", "gt_rho_d_r", "gt_rho_d_g", "gt_rho_d_b", "gt_sigma_s", "gt_sigma_ss")
+
+
+class MaterialsError(ValueError):
+    """A model or table that cannot make a materials table (the message names the file)."""
+
+
+def materials_schema(ground_truth: bool = False):
+    """pandera schema of materials.csv (with the ``gt_*`` columns when ``ground_truth``)."""
+    import pandera.pandas as pa
+
+    finite = pa.Check(np.isfinite, element_wise=True)
+    nonnegative = [pa.Check.ge(0), finite]
+    count = pa.Column(int, pa.Check.ge(0), coerce=True)
+    eta = pa.Column(float, [pa.Check.ge(1.0), pa.Check.le(3.0)], coerce=True)
+    columns = {
+        "cluster": pa.Column(int, pa.Check.ge(0), unique=True, coerce=True),
+        "vertices": pa.Column(int, pa.Check.gt(0), coerce=True),
+        "area_share": pa.Column(float, [pa.Check.ge(0), pa.Check.le(1)], coerce=True),
+        "confident_vertices": count,
+        "eta": eta, "eta_ci_low": eta, "eta_ci_high": eta,
+        "eta_spread": pa.Column(float, nonnegative, coerce=True),
+        "eta_fit_std": pa.Column(float, pa.Check.ge(0), nullable=True, coerce=True),
+        "eta_own_vertices": count,
+        **{f"rho_d_{c}": pa.Column(float, nonnegative, coerce=True) for c in "rgb"},
+        "rho_s": pa.Column(float, nonnegative, coerce=True),
+        "sigma_s": pa.Column(float, [pa.Check.gt(0), finite], coerce=True),
+        **{f"rho_ss_{c}": pa.Column(float, nonnegative, coerce=True) for c in "rgb"},
+        "sigma_ss": pa.Column(float, [pa.Check.gt(0), finite], coerce=True),
+        "model": pa.Column(int, pa.Check.isin(sorted(MODEL_NAMES)), coerce=True),
+        "model_name": pa.Column(str, pa.Check.isin(list(MODEL_NAMES.values()))),
+        "lobe_own_vertices": count,
+    }
+    if ground_truth:
+        columns.update({
+            "gt_material": pa.Column(int, pa.Check.ge(-1), coerce=True),  # -1: the truth has no labels
+            "gt_eta": pa.Column(float, [pa.Check.ge(1.0), pa.Check.le(3.0)], coerce=True),
+            **{f"gt_rho_d_{c}": pa.Column(float, nonnegative, coerce=True) for c in "rgb"},
+            "gt_sigma_s": pa.Column(float, pa.Check.ge(0), coerce=True),
+            "gt_sigma_ss": pa.Column(float, pa.Check.ge(0), coerce=True),
+        })
+    checks = [pa.Check(lambda t: (t["eta_ci_low"] <= t["eta"] + 1e-9) & (t["eta"] <= t["eta_ci_high"] + 1e-9),
+                       name="eta_ci_low <= eta <= eta_ci_high")]
+    return pa.DataFrameSchema(columns, checks=checks, strict=True, ordered=True, name="materials.csv")
+
+
+def validate_materials(table: pd.DataFrame, label: str = "materials.csv") -> pd.DataFrame:
+    """The table checked by :func:`materials_schema`; MaterialsError naming ``label``, the row and the column."""
+    import pandera.pandas as pa
+
+    schema = materials_schema(ground_truth="gt_eta" in table.columns)
+    try:
+        return schema.validate(table, lazy=True)
+    except pa.errors.SchemaErrors as error:
+        first = error.failure_cases.iloc[0]
+        raise MaterialsError(f"{label}: {len(error.failure_cases)} problem(s); first: row {first['index']}, "
+                             f"column {first['column']!r}, check {first['check']!r}, "
+                             f"value {first['failure_case']!r}") from None
+
+
+def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V,) a third of the area of every triangle around each vertex (m^2). vertices (V, 3), faces (F, 3)."""
+    vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces, np.intp)
+    area = 0.5 * np.linalg.norm(np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
+                                         vertices[faces[:, 2]] - vertices[faces[:, 0]]), axis=1)
+    return np.bincount(faces.ravel(), weights=np.repeat(area / 3, 3), minlength=len(vertices))
+
+
+def median_interval(values: np.ndarray, rounds: int = BOOTSTRAP_ROUNDS, seed: int = BOOTSTRAP_SEED,
+                    level: float = 0.95) -> tuple[float, float]:
+    """The bootstrap percentile interval (low, high) of the median of ``values`` (n,), n >= 1; seeded."""
+    values = np.asarray(values, np.float64)
+    if values.size < 2:
+        return float(values[0]), float(values[0])
+    rng = np.random.default_rng(seed)
+    medians = np.empty(rounds)
+    for start in range(0, rounds, 100):  # bounded memory for large clusters
+        stop = min(start + 100, rounds)
+        medians[start:stop] = np.median(values[rng.integers(0, values.size, (stop - start, values.size))], axis=1)
+    tail = 100 * (1 - level) / 2
+    low, high = np.percentile(medians, [tail, 100 - tail])
+    return float(low), float(high)
+
+
+def _mode(values: np.ndarray) -> int:
+    codes, counts = np.unique(np.asarray(values, np.int64), return_counts=True)
+    return int(codes[np.argmax(counts)])
+
+
+def material_table(arrays: dict, faces: np.ndarray, ground_truth=None) -> pd.DataFrame:
+    """The materials table (module docstring) of a final parameter store.
+
+    arrays: name -> (N, ...) arrays of final/params.zarr (:func:`sellip.params.read_params`); needs
+    ``vertices`` and the pBRDF fields; uses ``cluster``, ``confidence``, ``eta_vertex``, ``eta_std``, ``model``,
+    ``eta_source``, ``lobe_source`` where present. faces (F, 3) of the model (for the area shares).
+    ground_truth: a :class:`sellip.render.ParamMesh` in the same world (its ``material`` labels used if present).
+    """
+    from sellip.fit.parameterization import eta_at_bound
+
+    vertices = np.asarray(arrays["vertices"], np.float64)
+    n = len(vertices)
+    if n == 0:
+        raise MaterialsError("the model has no vertex")
+
+    def column(name, default):
+        return np.asarray(arrays[name]) if name in arrays else np.full(n, default)
+
+    cluster = column("cluster", 0).astype(np.int64)
+    confidence = column("confidence", 1.0).astype(np.float64)
+    eta_final = np.asarray(arrays["eta"], np.float64)
+    eta_own = np.asarray(arrays.get("eta_vertex", eta_final), np.float64)
+    eta_std = column("eta_std", np.nan).astype(np.float64)
+    models = column("model", 3).astype(np.int64)
+    estimating = (confidence > 0) & ~eta_at_bound(eta_own) & np.isfinite(eta_own)
+    area = vertex_areas(vertices, faces)
+    total_area = area.sum() or 1.0
+    truth = _truth_per_vertex(vertices, ground_truth) if ground_truth is not None else None
+    rows = []
+    for k in np.unique(cluster):
+        member = cluster == k
+        use = member & estimating
+        if use.any():
+            eta = float(np.median(eta_own[use]))
+            low, high = median_interval(eta_own[use], seed=BOOTSTRAP_SEED + int(k))
+            spread = MAD_TO_SD * float(np.median(np.abs(eta_own[use] - eta)))
+            finite_std = eta_std[use][np.isfinite(eta_std[use])]
+            fit_std = float(np.median(finite_std)) if finite_std.size else np.nan
+        else:
+            eta = low = high = float(np.median(eta_final[member]))
+            spread, fit_std = 0.0, np.nan
+        rho_d = np.asarray(arrays["rho_d"], np.float64)[member].mean(0)
+        rho_ss = np.asarray(arrays["rho_ss"], np.float64)[member].mean(0)
+        model = _mode(models[member])
+        row = {"cluster": int(k), "vertices": int(member.sum()), "area_share": float(area[member].sum() / total_area),
+               "confident_vertices": int(use.sum()), "eta": eta, "eta_ci_low": low, "eta_ci_high": high,
+               "eta_spread": spread, "eta_fit_std": fit_std,
+               "eta_own_vertices": int(column("eta_source", 0)[member].astype(np.int64).sum()),
+               "rho_d_r": rho_d[0], "rho_d_g": rho_d[1], "rho_d_b": rho_d[2],
+               "rho_s": float(np.median(np.asarray(arrays["rho_s"], np.float64)[member])),
+               "sigma_s": float(np.median(np.asarray(arrays["sigma_s"], np.float64)[member])),
+               "rho_ss_r": rho_ss[0], "rho_ss_g": rho_ss[1], "rho_ss_b": rho_ss[2],
+               "sigma_ss": float(np.median(np.asarray(arrays["sigma_ss"], np.float64)[member])),
+               "model": model, "model_name": MODEL_NAMES[model],
+               "lobe_own_vertices": int(column("lobe_source", 0)[member].astype(np.int64).sum())}
+        if truth is not None:
+            row.update(_truth_row(truth, member))
+        rows.append(row)
+    return validate_materials(pd.DataFrame(rows, columns=list(COLUMNS + (GT_COLUMNS if truth is not None else ()))))
+
+
+def _truth_per_vertex(vertices: np.ndarray, truth) -> dict:
+    """The ground truth's values at each model vertex's nearest ground-truth vertex."""
+    from scipy.spatial import cKDTree
+
+    nearest = cKDTree(np.asarray(truth.vertices, np.float64)).query(vertices, k=1)[1]
+    p = truth.params
+    return {"material": None if truth.material is None else np.asarray(truth.material)[nearest],
+            "eta": np.asarray(p.eta)[nearest], "rho_d": np.asarray(p.rho_d)[nearest],
+            "sigma_s": np.asarray(p.sigma_s)[nearest], "sigma_ss": np.asarray(p.sigma_ss)[nearest]}
+
+
+def _truth_row(truth: dict, member: np.ndarray) -> dict:
+    rho_d = np.median(truth["rho_d"][member], axis=0)
+    return {"gt_material": -1 if truth["material"] is None else _mode(truth["material"][member]),
+            "gt_eta": float(np.median(truth["eta"][member])),
+            "gt_rho_d_r": rho_d[0], "gt_rho_d_g": rho_d[1], "gt_rho_d_b": rho_d[2],
+            "gt_sigma_s": float(np.median(truth["sigma_s"][member])),
+            "gt_sigma_ss": float(np.median(truth["sigma_ss"][member]))}
+
+
+def write_materials(path: str | Path, table: pd.DataFrame) -> Path:
+    """Write the table as CSV atomically (temporary name, then rename), after checking it."""
+    path = Path(path)
+    validate_materials(table, str(path))
+    tmp = path.with_name(path.name + ".tmp")
+    table.to_csv(tmp, index=False, float_format="%.6g")
+    tmp.replace(path)
+    return path
+
+
+def read_materials(path: str | Path) -> pd.DataFrame:
+    """A materials.csv, checked (MaterialsError naming the file, row and column)."""
+    path = Path(path)
+    if not path.is_file():
+        raise MaterialsError(f"{path}: missing; run `sellip view` first")
+    return validate_materials(pd.read_csv(path), str(path))
