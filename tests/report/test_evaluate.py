@@ -267,3 +267,18 @@ def test_evaluate_aligns_an_sfm_world_model_and_reports_nulls_without_ground_tru
         assert written[key] is None and "no ground truth" in written["reasons"][key]
     assert written["psnr_held_out"]["views"][view_ids[0]]["psnr_db"] > 40
     assert written["timings"]["rules"]["merge_hdr"]["s"] == 3.5
+
+
+def test_the_runs_warnings_are_in_metrics_json(tmp_path_factory):
+    """`sellip evaluate --logs` (rule evaluate_model) writes the run's warnings into metrics.json (the report)."""
+    from sellip.report.metrics import evaluate_model
+
+    tiny = make_tiny_run(tmp_path_factory.mktemp("warnings"), views=3)
+    logs = tiny["results"] / "logs"
+    (logs / "sub").mkdir(parents=True, exist_ok=True)
+    (logs / "sub" / "observe.log").write_text(
+        "2026-01-01 10:00:00,000 WARNING sellip.stages.observe: poses.csv has no pose for 1 view(s): ['v002']\n")
+    metrics = evaluate_model(tiny["model"], tiny["cameras"], tiny["hdr"], tiny["capture"],
+                             tiny["results"] / "metrics.json", geometry_samples=500, supersample=1, logs=logs)
+    assert metrics["warnings"] == [{"log": "sub/observe.log",
+                                    "message": "poses.csv has no pose for 1 view(s): ['v002']"}]

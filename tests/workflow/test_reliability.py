@@ -263,22 +263,16 @@ def test_failed_job_logs_and_their_error_lines(tmp_path):
     assert workflow_support.error_lines(job_log)[-1] == "ValueError: bad"
 
 
-def test_the_runs_warnings_are_in_metrics_json(tmp_path_factory):
-    """`sellip evaluate --logs` (rule evaluate_model) writes the run's warnings into metrics.json (the report)."""
-    from test_outputs import make_tiny_run
+def test_camera_distances_are_those_to_the_point_the_cameras_look_at():
+    import numpy as np
 
-    from sellip.report.metrics import evaluate_model
+    from sellip.capture.checks import camera_distances
 
-    tiny = make_tiny_run(tmp_path_factory.mktemp("warnings"), views=3)
-    logs = tiny["results"] / "logs"
-    (logs / "sub").mkdir(parents=True, exist_ok=True)
-    (logs / "sub" / "observe.log").write_text(
-        "2026-01-01 10:00:00,000 WARNING sellip.stages.observe: poses.csv has no pose for 1 view(s): ['v002']\n")
-    metrics = evaluate_model(tiny["model"], tiny["cameras"], tiny["hdr"], tiny["capture"],
-                                       tiny["results"] / "metrics.json", geometry_samples=500, supersample=1,
-                                       logs=logs)
-    assert metrics["warnings"] == [{"log": "sub/observe.log",
-                                    "message": "poses.csv has no pose for 1 view(s): ['v002']"}]
+    rotations, translations = orbit(0.9)
+    distances = camera_distances(rotations, translations)
+    assert np.median(distances) == pytest.approx(0.9, rel=0.05)
+    # The same poses in millimetres: the same distances, times 1000.
+    np.testing.assert_allclose(camera_distances(rotations, 1000 * translations), 1000 * distances, rtol=1e-9)
 
 
 # --------------------------------------------------------------------------- units (item 4)
@@ -292,18 +286,6 @@ def orbit(distance_m: float = 0.9, views: int = 12, seed: int = 0):
     cameras = handheld_orbit(views, 256, 208, np.random.default_rng(seed), distance_m=(distance_m * 0.9,
                                                                                         distance_m * 1.1))
     return np.stack([c.rotation for c in cameras]), np.stack([c.translation for c in cameras])
-
-
-def test_camera_distances_are_those_to_the_point_the_cameras_look_at():
-    import numpy as np
-
-    from sellip.capture.checks import camera_distances
-
-    rotations, translations = orbit(0.9)
-    distances = camera_distances(rotations, translations)
-    assert np.median(distances) == pytest.approx(0.9, rel=0.05)
-    # The same poses in millimetres: the same distances, times 1000.
-    np.testing.assert_allclose(camera_distances(rotations, 1000 * translations), 1000 * distances, rtol=1e-9)
 
 
 @pytest.mark.parametrize("scale, distance, expected", [
