@@ -221,7 +221,7 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     # At most model 1 (--set lobes=specular): the scattering cluster may not keep its lobe.
     assert cli.main(["cluster-lobes", *stores, "--output", str(tmp_path / "clusters"), *small,
                      "--set", "lobes=specular"]) == 0
-    labels, vertex_models = np.load(tmp_path / "clusters" / "labels.npy"), np.load(tmp_path / "clusters" / "fit_selection.npy")
+    labels, vertex_models = np.load(tmp_path / "clusters" / "labels.npy"), np.load(tmp_path / "clusters" / "models.npy")
     info = json.loads((tmp_path / "clusters" / "clusters.json").read_text())["model_selection"]
     assert vertex_models.dtype == np.uint8 and info["allowed"] == [0, 1] and info["enabled"]
     np.testing.assert_array_equal(vertex_models, np.asarray(info["models"])[labels])
@@ -252,7 +252,7 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
                          "--set", "lobes=specular", *extra, "--inherit-models"]) == 0
         inherited = json.loads((tmp_path / "inherited" / "clusters.json").read_text())["model_selection"]
         assert inherited["inherited"] and all(c["inherited"] and not c["candidates"] for c in inherited["clusters"])
-        np.testing.assert_array_equal(np.load(tmp_path / "inherited" / "fit_selection.npy"), np.minimum(vertex_models, top))
+        np.testing.assert_array_equal(np.load(tmp_path / "inherited" / "models.npy"), np.minimum(vertex_models, top))
     # The final model carries the store's models (not a constant).
     n = len(vertex_models)
     write_ply(tmp_path / "mesh.ply", {**{k: scene["positions"][:, i] for i, k in enumerate("xyz")},
@@ -290,12 +290,12 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     # Without model selection: every cluster gets the fit settings' model.
     assert cli.main(["cluster-lobes", *stores, "--output", str(tmp_path / "plain"), *small, "--set", "lobes=specular",
                      "--no-model-selection"]) == 0
-    assert np.all(np.load(tmp_path / "plain" / "fit_selection.npy") == 1)
+    assert np.all(np.load(tmp_path / "plain" / "models.npy") == 1)
     assert json.loads((tmp_path / "plain" / "clusters.json").read_text())["model_selection"]["clusters"] == []
 
-    # A bad fit_selection.npy is refused, naming the file; nothing is written.
-    np.save(tmp_path / "clusters" / "fit_selection.npy", np.full(n, 7, np.uint8))
+    # A bad models.npy is refused, naming the file; nothing is written.
+    np.save(tmp_path / "clusters" / "models.npy", np.full(n, 7, np.uint8))
     caplog.clear()
     assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--lobes", str(tmp_path / "clusters"),
                      "--output", str(tmp_path / "bad.npz")]) == 1
-    assert "fit_selection.npy" in caplog.text and not (tmp_path / "bad.npz").exists()
+    assert "models.npy" in caplog.text and not (tmp_path / "bad.npz").exists()
