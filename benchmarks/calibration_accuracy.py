@@ -39,7 +39,7 @@ def main() -> None:
     truth = yaml.safe_load((args.folder / "truth.yaml").read_text())
     true = truth["device"]
     sensor = true["sensor"]
-    frames = lambda sub: {p.name: io.read_raw_file(p, sensor) for p in sorted((args.folder / sub).iterdir())}  # noqa: E731
+    frames = lambda sub: {p.name: io.read_raw_file(p, sensor) for p in sorted((args.folder / sub).iterdir())}
     summary = {}
 
     board = truth["board"]

@@ -40,7 +40,7 @@ narrow lens, 6 well-spread tilted views are the least that meets 0.1 % on fx (do
 
 MAX_EDGE_WIDTH_PX = 2.5
 """A board whose edges are wider than this (OpenCV's estimateChessboardSharpness, intensity-image pixels, the
-10-90 % rise) is blurred: its corners are left out (a sharp print at focus measures 1.2-1.6)."""
+10-90 % rise) is blurred: its corners are left out (a sharp board measures about 2 at 2448x2048)."""
 
 MAX_FRAME_RMS_PX = 1.0
 """A frame whose corners reproject worse than this (raw pixels RMS) after the fit is left out and the fit redone."""

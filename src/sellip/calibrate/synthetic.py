@@ -5,7 +5,7 @@ Public API::
 
     DEVICE_DISTORTION                                  # the lens distortion the synthetic device has
     true_device(width=2448, height=2048) -> dict       # device.yaml of the synthetic device (the truth)
-    BoardSpec(cols=14, rows=10, square_m=0.010)          # inner corners, square side
+    BoardSpec(cols=14, rows=10, square_m=0.010)        # inner corners, square side
     board_poses(spec, device, count, rng) -> list[(R (3, 3), t (3,))]   # board -> camera, board fully in view
     render_board(device, spec, rotation, translation, supersample=3, blur_px=0) -> analyzers (H, W, 4, 3)
     render_spheres(device, spheres, supersample=2, panel=0.5) -> analyzers (H, W, 4, 3)
@@ -14,11 +14,12 @@ Public API::
     synthesize_calibration(out, width=2448, height=2048, seed=0, ...) -> Path   # folder, see below
 
 Everything is rendered analytically in camera coordinates (OpenCV axes, metres): every sub-pixel sample's
-ray (the lens distortion of the device applied exactly, :func:`sellip.render.undistort_normalized` on a
-grid, cubic interpolation between), its hit on a plane or a sphere, and the full three-lobe pBRDF of the
+ray (the lens distortion of the device applied exactly at pixel centres, :func:`sellip.render.undistort_normalized`,
+and by the local Jacobian within a pixel), its hit on a plane or a sphere, and the full three-lobe pBRDF of the
 project (:func:`sellip.pbrdf.full_stokes`) under the flash at ``light.position_m`` polarized at
 ``light.polarizer_deg``. A plane's shading is smooth and is evaluated on a grid of every 4th pixel
-(interpolated), its printed texture (checkers, patches) per sample; spheres are shaded per sample. The
+(interpolated bilinearly), its printed texture (checkers, patches) per sample (3x3 per pixel); spheres are
+shaded per sample (2x2). The
 light panel behind the spheres is an unpolarized emitter (a backlit outline is what locates a sphere).
 Shadows are not traced (the board and chart are alone in their frames; spheres are placed apart).
 The analyzer images go through :func:`sellip.sensor.simulate_raw` (mosaic, colour, shot and read noise,

@@ -73,7 +73,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     p.add_argument("frame", type=Path, help="raw frame of the chart")
     p.add_argument("--corners", required=True, type=_point, nargs=4, metavar="X,Y",
                    help="the patch area's corners in raw pixels: dark skin's outer corner first, then clockwise "
-                        "(along the brown row, down to white... black)")
+                        "(bluish green's, black's, white's)")
 
 
 def _intrinsics(args, device) -> int:
