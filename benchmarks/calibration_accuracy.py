@@ -1,0 +1,85 @@
+"""Calibration accuracy on synthetic frames with known truth, at the device's size (2448x2048, real sensor noise).
+
+    python benchmarks/calibration_accuracy.py [--folder DIR] [--width 2448 --height 2048 --seed 0]
+
+Writes the calibration folder with ``sellip synth-calibration`` (unless ``--folder`` already holds one: 24
+board frames of a 14x10-corner, 10 mm board; 6 frames of 3 glossy 40 mm spheres before a light panel; a
+ColorChecker), then runs each step of ``sellip calibrate`` as a library call, the flash and the polarization
+check with the CALIBRATED intrinsics, and prints the error of each against truth.yaml, one line each, and a
+JSON summary on the last line (docs/calibration.md records the figures).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from sellip.capture import reader
+from sellip.calibrate import color, flash, intrinsics, polarization
+from sellip.calibrate.synthetic import BoardSpec, synthesize_calibration
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--folder", type=Path, default=Path("results/calibration_synthetic"))
+    parser.add_argument("--width", type=int, default=2448)
+    parser.add_argument("--height", type=int, default=2048)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    if not (args.folder / "truth.yaml").is_file():
+        started = time.perf_counter()
+        synthesize_calibration(args.folder, args.width, args.height, seed=args.seed)
+        print(f"synthesized {args.folder} in {time.perf_counter() - started:.0f} s", flush=True)
+    truth = yaml.safe_load((args.folder / "truth.yaml").read_text())
+    true = truth["device"]
+    sensor = true["sensor"]
+    frames = lambda sub: {p.name: reader.read_raw_file(p, sensor) for p in sorted((args.folder / sub).iterdir())}
+    summary = {}
+
+    board = truth["board"]
+    spec = BoardSpec(board["cols"], board["rows"], board["square_m"])
+    started = time.perf_counter()
+    k = intrinsics.calibrate_intrinsics(frames("board"), sensor, spec.cols, spec.rows, spec.square_m)
+    cam = true["camera"]
+    summary["intrinsics"] = {
+        "frames": len(k.per_frame), "fx_rel": k.fx / cam["fx"] - 1, "fy_rel": k.fy / cam["fy"] - 1,
+        "cx_px": k.cx - cam["cx"], "cy_px": k.cy - cam["cy"], "std_px": k.std, "rms_px": k.rms_px,
+        "distortion": k.distortion, "distortion_true": cam["distortion"], "seconds": time.perf_counter() - started}
+    print("intrinsics:", json.dumps(summary["intrinsics"]), flush=True)
+
+    device = copy.deepcopy(true)
+    device["camera"].update(k.camera())
+    radius = truth["spheres"]["radius_m"]
+    started = time.perf_counter()
+    f = flash.calibrate_flash(frames("spheres"), device, radius)
+    error = f.position_m - np.asarray(true["light"]["position_m"])
+    summary["flash"] = {"highlights": len(f.highlights), "error_mm": (error * 1e3).tolist(),
+                        "error_norm_mm": float(np.linalg.norm(error) * 1e3), "std_mm": (f.std_m * 1e3).tolist(),
+                        "rms_mm": f.rms_mm, "seconds": time.perf_counter() - started}
+    print("flash:", json.dumps(summary["flash"]), flush=True)
+
+    device["light"]["position_m"] = f.position_m.tolist()
+    report = polarization.check_polarization(frames("spheres"), device, radius)
+    summary["polarization"] = {"layout_ok": report.layout_ok, "score": report.best_score,
+                               "next_score": report.second_score,
+                               "polarizer_error_deg": report.polarizer_error_deg,
+                               "polarizer_std_deg": report.polarizer_std_deg}
+    print("polarization:", json.dumps(summary["polarization"]), flush=True)
+
+    raw = reader.read_raw_file(args.folder / "chart" / truth["chart"]["file"], sensor)
+    c = color.calibrate_color(raw, device, np.asarray(truth["chart"]["corners_px"]))
+    m_true = np.asarray(cam["color_matrix"])
+    summary["color"] = {"delta_e2000_mean": float(np.nanmean(c.delta_e)), "delta_e2000_max": float(np.nanmax(c.delta_e)),
+                        "matrix_max_rel_error": float(np.abs(c.matrix - m_true).max() / np.abs(m_true).max())}
+    print("color:", json.dumps(summary["color"]), flush=True)
+    print(json.dumps(summary))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,18 @@
+"""Calibration of a real device (DESIGN §3, paper §6): what ``sellip calibrate`` computes.
+
+Public API (raw frames are (H, W) uint16 mosaics; a device is device.yaml's mapping)::
+
+    intrinsics.calibrate_intrinsics(frames, sensor, cols, rows, square_m) -> IntrinsicsResult  # OpenCV Zhang
+    intrinsics.intensity_image(raw, sensor) -> (H/2, W/2)      # s0 per polarizer cell
+    intrinsics.half_to_raw(p) = 2 p + 0.5                       # half-resolution -> raw pixel centres
+    flash.calibrate_flash(frames, device, radius_m) -> FlashResult   # spheres -> mirror rays -> nearest point
+    polarization.check_polarization(frames, device, radius_m) -> PolarizationReport   # layout, flash polarizer
+    color.calibrate_color(raw, device, corners_px (4, 2)) -> ColorResult   # 3x3 camera RGB -> linear sRGB, dE2000
+    device.read_device / write_device / update_device            # device.yaml, validated, atomic
+    synthetic.synthesize_calibration(out, width, height, seed)   # frames with known truth
+    CalibrationError                                              # names the frames and what is wrong
+"""
+
+from sellip.calibrate.intrinsics import CalibrationError
+
+__all__ = ["CalibrationError"]

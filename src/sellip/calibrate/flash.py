@@ -1,0 +1,274 @@
+"""The flash position from mirror highlights on spheres of known radius (Lensch et al. 2003; paper §6).
+
+Public API::
+
+    develop_frame(raw, device) -> (analyzers (H', W', 4, C), intrinsics)   # the ingest chain, undistorted
+    find_spheres(s0, intrinsics, radius_m) -> list[Sphere]                  # outlines -> centres, or problems
+    mirror_ray(sphere, highlight_px, intrinsics) -> (point (3,), direction (3,))
+    nearest_point(points (N, 3), directions (N, 3), scale_m=0.001) -> (X (3,), distances (N,), weights (N,))
+    calibrate_flash(frames: {name: raw}, device, radius_m) -> FlashResult
+    MIN_HIGHLIGHTS
+
+Geometry (camera coordinates, metres; the images are the ingest chain's undistorted half-resolution grid,
+:func:`sellip.ingest.output_intrinsics`, so a pixel's ray is K'^-1 (x, y, 1)):
+
+1. A sphere is photographed in front of a bright background (a light panel or a lit wall): its outline is
+   where the intensity s0 crosses half the background's. The outline is sampled along 360 rays from the
+   blob's centroid with sub-pixel interpolation.
+2. The rays r_i through the outline are tangent to the sphere: they make one angle alpha with the axis a
+   through the sphere's centre, r_i . a = cos(alpha). Linear least squares on a / cos(alpha) (twice, the
+   second time without outliers beyond 3 MADs) gives a and alpha; the centre is a R / sin(alpha).
+3. The highlight is the flash's mirror image: its intensity-weighted centroid (s0 above the sphere's own
+   median, pixels above half the peak) gives a ray d; it meets the sphere at P with normal n; the flash lies
+   on P + t (d - 2 (d . n) n), t > 0.
+4. The flash is the point nearest all those lines: iteratively reweighted least squares with Huber weights
+   (scale 1 mm), so one bad highlight cannot pull it; the residual of each highlight is its line's distance.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from sellip.capture import ingest
+from sellip.calibrate.intrinsics import CalibrationError
+from sellip.capture.mosaic import mosaic_layout
+
+MIN_HIGHLIGHTS = 6
+"""Highlights needed: 2 determine a point; 6 from spheres spread over the field make its depth trustworthy."""
+
+OUTLINE_SAMPLES = 360
+MIN_RADIUS_PX = 15.0
+"""A dark blob smaller than this radius (output pixels) is not a sphere (dust, a screw)."""
+
+MAX_OUTLINE_RMS_PX = 0.5
+"""An outline farther than this (RMS, output pixels) from a sphere's silhouette: not a sphere, or occluded."""
+
+
+@dataclass
+class Sphere:
+    """One sphere in a frame: centre (3,) camera coordinates (m), radius_px (output pixels), centroid_px (x, y),
+    outline_rms_px (how well the outline fits a sphere), problem (None or why it is left out)."""
+
+    centre: np.ndarray | None
+    radius_px: float
+    centroid_px: np.ndarray
+    outline_rms_px: float = float("nan")
+    problem: str | None = None
+
+
+def develop_frame(raw: np.ndarray, device: Mapping) -> tuple[np.ndarray, dict]:
+    """The ingest chain (:func:`sellip.ingest.process_frame`) with the device's sensor and camera: linear,
+    demosaiced, colour-corrected, undistorted analyzer images (H/2, W/2, 4, C), NaN where saturated; and the
+    output grid's intrinsics."""
+    sensor, camera = device["sensor"], device["camera"]
+    layout = mosaic_layout(sensor["polarizer_layout"], sensor["color_layout"])
+    plan = ingest.make_ingest_plan(sensor, camera, layout)
+    return ingest.process_frame(raw, plan), plan.intrinsics
+
+
+def pixel_rays(px: np.ndarray, intrinsics: Mapping) -> np.ndarray:
+    """Unit rays (..., 3) through output-grid positions (..., 2) (x, y)."""
+    px = np.asarray(px, np.float64)
+    rays = np.stack([(px[..., 0] - intrinsics["cx"]) / intrinsics["fx"],
+                     (px[..., 1] - intrinsics["cy"]) / intrinsics["fy"], np.ones(px.shape[:-1])], axis=-1)
+    return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+
+
+def _outline(s0: np.ndarray, centroid: np.ndarray, radius: float, level: float) -> np.ndarray:
+    """(K, 2) sub-pixel points where s0 first falls below ``level`` coming in from outside, along rays from the centroid."""
+    angles = np.linspace(0, 2 * np.pi, OUTLINE_SAMPLES, endpoint=False)
+    radii = np.arange(1.4 * radius, 0.6 * radius, -0.25)
+    dirs = np.stack([np.cos(angles), np.sin(angles)], axis=-1)
+    pts = centroid + radii[None, :, None] * dirs[:, None, :]  # (A, R, 2) x, y
+    filled = np.where(np.isfinite(s0), s0, np.nanmax(s0))
+    values = ndimage.map_coordinates(filled, [pts[..., 1].ravel(), pts[..., 0].ravel()], order=1,
+                                     mode="nearest").reshape(pts.shape[:2])
+    below = values < level
+    out = []
+    for a in range(len(angles)):
+        k = int(np.argmax(below[a]))
+        if not below[a, k] or k == 0:
+            continue
+        v0, v1 = values[a, k - 1], values[a, k]
+        frac = (v0 - level) / (v0 - v1)
+        r = radii[k - 1] + frac * (radii[k] - radii[k - 1])
+        out.append(centroid + r * dirs[a])
+    return np.asarray(out)
+
+
+def _fit_cone(rays: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """Axis a (3,), cos(alpha) and angular residuals (rad) of rays (N, 3) tangent to a sphere: r . a = cos(alpha)."""
+    keep = np.ones(len(rays), bool)
+    for _ in range(2):
+        solution, *_ = np.linalg.lstsq(rays[keep], np.ones(keep.sum()), rcond=None)
+        cos_alpha = 1.0 / np.linalg.norm(solution)
+        axis = solution * cos_alpha
+        residual = np.arccos(np.clip(rays @ axis, -1, 1)) - np.arccos(cos_alpha)
+        mad = np.median(np.abs(residual[keep] - np.median(residual[keep])))
+        keep = np.abs(residual - np.median(residual[keep])) <= max(3 * 1.4826 * mad, 1e-9)
+    return axis, cos_alpha, residual
+
+
+def find_spheres(s0: np.ndarray, intrinsics: Mapping, radius_m: float) -> list[Sphere]:
+    """Spheres in an intensity image (H', W') on the undistorted output grid: dark discs on a bright background.
+    A disc touching the image border is returned with a problem (clipped), as is one whose outline is not a
+    sphere's."""
+    finite = np.isfinite(s0)
+    background = float(np.median(s0[finite]))
+    level = background / 2
+    dark = ndimage.binary_fill_holes(np.where(finite, s0 < level, False))
+    labels, _count = ndimage.label(dark)
+    spheres = []
+    height, width = s0.shape
+    pixel_scale = 1.0 / np.sqrt(intrinsics["fx"] * intrinsics["fy"])
+    for index, box in enumerate(ndimage.find_objects(labels), start=1):
+        blob = labels[box] == index
+        area = float(blob.sum())
+        radius = np.sqrt(area / np.pi)
+        if radius < MIN_RADIUS_PX:
+            continue
+        ys, xs = np.nonzero(blob)
+        centroid = np.array([xs.mean() + box[1].start, ys.mean() + box[0].start])
+        clipped = box[0].start == 0 or box[1].start == 0 or box[0].stop == height or box[1].stop == width
+        if clipped:
+            spheres.append(Sphere(None, radius, centroid, problem="sphere clipped by the frame edge: its outline is "
+                                                                  "not whole; expected every sphere wholly in view"))
+            continue
+        outline = _outline(s0, centroid, radius, level)
+        if len(outline) < OUTLINE_SAMPLES // 2:
+            spheres.append(Sphere(None, radius, centroid, problem="outline not found against the background"))
+            continue
+        axis, cos_alpha, residual = _fit_cone(pixel_rays(outline, intrinsics))
+        rms = float(np.sqrt(np.mean(residual ** 2)) / pixel_scale)
+        sin_alpha = np.sqrt(1 - cos_alpha ** 2)
+        sphere = Sphere(axis * radius_m / sin_alpha, radius, centroid, rms)
+        if rms > MAX_OUTLINE_RMS_PX:
+            sphere.problem = (f"outline is {rms:.2f} px RMS from a sphere's silhouette (at most {MAX_OUTLINE_RMS_PX}"
+                              " expected): occluded, touching another object, or not a sphere")
+        spheres.append(sphere)
+    return spheres
+
+
+def find_highlight(s0: np.ndarray, sphere: Sphere) -> tuple[np.ndarray | None, str | None]:
+    """The mirror highlight's intensity-weighted centroid (x, y) inside a sphere's disc, or (None, why)."""
+    height, width = s0.shape
+    yy, xx = np.mgrid[0:height, 0:width]
+    r = np.hypot(xx - sphere.centroid_px[0], yy - sphere.centroid_px[1])
+    inside = r < 0.9 * sphere.radius_px
+    if np.isnan(s0[inside]).any():
+        count = int(np.isnan(s0[inside]).sum())
+        return None, (f"highlight saturated ({count} pixels at the white level): its centre is unknown; "
+                      "expected a highlight below the white level (lower the flash or the exposure)")
+    values = s0[inside]
+    base = float(np.median(values))
+    noise = 1.4826 * float(np.median(np.abs(values - base)))
+    peak = float(values.max()) - base
+    if peak < 20 * max(noise, 1e-6):
+        return None, f"no mirror highlight (peak {peak:.3g} over the sphere's {base:.3g}); expected a glossy sphere"
+    excess = np.where(inside, s0 - base, 0.0)
+    core = excess > 0.5 * peak
+    labels, _ = ndimage.label(core)
+    top = labels.flat[int(np.argmax(np.where(inside, excess, -np.inf)))]
+    weights = np.where(labels == top, excess, 0.0)
+    return np.array([np.sum(weights * xx), np.sum(weights * yy)]) / np.sum(weights), None
+
+
+def mirror_ray(centre: np.ndarray, radius_m: float, highlight_px: np.ndarray, intrinsics: Mapping
+               ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The line the flash lies on: the highlight's ray meets the sphere at P (3,); returns (P, unit reflected
+    direction (3,)), or None if the ray misses the sphere."""
+    d = pixel_rays(highlight_px, intrinsics)
+    b = d @ centre
+    disc = b * b - (centre @ centre - radius_m ** 2)
+    if disc < 0:
+        return None
+    point = d * (b - np.sqrt(disc))
+    normal = (point - centre) / radius_m
+    reflected = d - 2 * (d @ normal) * normal
+    return point, reflected / np.linalg.norm(reflected)
+
+
+def nearest_point(points: np.ndarray, directions: np.ndarray, scale_m: float = 1e-3, iterations: int = 50
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The point X (3,) nearest lines P_i + t d_i (points, unit directions (N, 3)) in the Huber sense (scale
+    ``scale_m``): IRLS on sum_i w_i |(I - d_i d_i^T)(X - P_i)|^2. Returns (X, distances (N,), final weights (N,))."""
+    projectors = np.eye(3) - directions[:, :, None] * directions[:, None, :]
+    weights = np.ones(len(points))
+    x = np.zeros(3)
+    for _ in range(iterations):
+        a = np.einsum("n,nij->ij", weights, projectors)
+        b = np.einsum("n,nij,nj->i", weights, projectors, points)
+        x = np.linalg.solve(a, b)
+        distances = np.linalg.norm(np.einsum("nij,nj->ni", projectors, x - points), axis=-1)
+        weights = np.where(distances <= scale_m, 1.0, scale_m / np.maximum(distances, 1e-15))
+    return x, distances, weights
+
+
+@dataclass
+class FlashResult:
+    """position_m (3,) camera coordinates; std_m (3,) one-sigma from the lines' spread; highlights: one record per
+    used highlight (frame, sphere index, centre, residual_mm); left_out: {"frame[#k]": why}."""
+
+    position_m: np.ndarray
+    std_m: np.ndarray
+    rms_mm: float
+    highlights: list[dict]
+    left_out: dict[str, str] = field(default_factory=dict)
+
+
+def intensity(analyzers: np.ndarray) -> np.ndarray:
+    """s0 averaged over colour channels (H, W) from analyzer images (H, W, 4, C): (I0 + I45 + I90 + I135) / 2."""
+    return analyzers.sum(axis=-2).mean(axis=-1) / 2
+
+
+def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m: float,
+                    min_highlights: int = MIN_HIGHLIGHTS, scale_m: float = 1e-3, log=None) -> FlashResult:
+    """The flash position from raw frames {name: (H, W)} of glossy spheres of radius ``radius_m`` (module
+    docstring). ``device`` needs sensor and camera (intrinsics calibrated). Every sphere left out is named with
+    why; fewer than ``min_highlights`` usable highlights raise CalibrationError saying how many more are needed."""
+    points, directions, records, left_out = [], [], [], {}
+    for name, raw in frames.items():
+        analyzers, intrinsics = develop_frame(raw, device)
+        s0 = intensity(analyzers)
+        spheres = find_spheres(s0, intrinsics, radius_m)
+        if not spheres:
+            left_out[name] = "no sphere found (expected dark spheres in front of a bright background)"
+        for k, sphere in enumerate(spheres):
+            label = f"{name}#{k} at ({sphere.centroid_px[0]:.0f}, {sphere.centroid_px[1]:.0f})"
+            problem = sphere.problem
+            highlight = None
+            if problem is None:
+                highlight, problem = find_highlight(s0, sphere)
+            line = None
+            if problem is None:
+                line = mirror_ray(sphere.centre, radius_m, highlight, intrinsics)
+                if line is None:
+                    problem = "the highlight's ray misses the fitted sphere (wrong --sphere-radius-mm?)"
+            if problem is not None:
+                left_out[label] = problem
+                if log:
+                    log(f"{label}: {problem}")
+                continue
+            points.append(line[0])
+            directions.append(line[1])
+            records.append({"frame": name, "sphere": k, "centre_m": sphere.centre.tolist(),
+                            "outline_rms_px": sphere.outline_rms_px, "highlight_px": highlight.tolist()})
+    if len(points) < min_highlights:
+        lines = "".join(f"\n  {k}: {v}" for k, v in left_out.items())
+        raise CalibrationError(f"{len(points)} usable sphere highlight(s), at least {min_highlights} needed: take "
+                               f"{min_highlights - len(points)} more (spheres wholly in view, over the whole field, "
+                               f"highlights below the white level).{lines}")
+    points, directions = np.asarray(points), np.asarray(directions)
+    position, distances, weights = nearest_point(points, directions, scale_m)
+    for record, distance in zip(records, distances):
+        record["residual_mm"] = float(distance * 1e3)
+    projectors = np.eye(3) - directions[:, :, None] * directions[:, None, :]
+    dof = max(len(points) * 2 - 3, 1)
+    sigma2 = float(np.sum(weights * distances ** 2) / dof)
+    cov = sigma2 * np.linalg.inv(np.einsum("n,nij->ij", weights, projectors))
+    return FlashResult(position_m=position, std_m=np.sqrt(np.diag(cov)),
+                       rms_mm=float(np.sqrt(np.mean(distances ** 2)) * 1e3), highlights=records, left_out=left_out)

@@ -1,0 +1,194 @@
+"""Camera intrinsics from checkerboard frames: Zhang's method (OpenCV) on the polarization mosaic's intensity image.
+
+Public API::
+
+    intensity_image(raw, sensor) -> (H/2, W/2) float32      # s0 per polarizer cell, 1 = full scale
+    half_to_raw(points) / raw_to_half(points)                # the half-resolution <-> raw pixel mapping
+    detect_board(image, cols, rows, max_edge_px=...) -> BoardDetection   # corners in raw pixels, or why not
+    calibrate_intrinsics(frames: {name: raw}, sensor, cols, rows, square_m, ...) -> IntrinsicsResult
+    MIN_BOARD_FRAMES
+
+The intensity image
+    Every 2x2 polarizer cell holds the four analyzers 0/45/90/135; their sum is 2 s0 whatever the
+    polarization, so the cell-grid image of s0 sees a board's edges without the polarization's pattern. It is
+    made with the ingest chain (:func:`sellip.ingest.linearize`, :func:`sellip.ingest.demosaic`: every analyzer
+    and colour on the cell grid), averaged over the four analyzers and the colour channels (camera RGB; a grey
+    board needs no colour matrix). It is NOT undistorted: the lens is what is calibrated.
+
+Half-resolution pixel centres (stated once, tested in tests/test_calibrate.py)
+    The demosaiced analyzer k sits at raw (2j + dx_k, 2i + dy_k) for cell (i, j); the four analyzers' mean
+    sits at the cell's centre, raw (x, y) = (2j + 0.5, 2i + 0.5), with pixel centres at integer coordinates
+    (OpenCV). So a position (x', y') on the intensity image is raw (2x' + 0.5, 2y' + 0.5) (:func:`half_to_raw`),
+    the inverse of :func:`sellip.ingest.output_intrinsics` (f' = f / 2, c' = (c - 0.5) / 2). Corners are mapped
+    to raw pixels before OpenCV calibrates, so fx, fy, cx, cy come out in raw-pixel units (DESIGN §3) and
+    the distortion coefficients (normalized coordinates) need no conversion.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sellip.capture import ingest
+from sellip.capture.mosaic import mosaic_layout
+
+MIN_BOARD_FRAMES = 6
+"""Usable board frames needed: Zhang's method needs 3 for a solution; with five distortion coefficients and a
+narrow lens, 6 well-spread tilted views are the least that meets 0.1 % on fx (docs/calibration.md)."""
+
+MAX_EDGE_WIDTH_PX = 2.5
+"""A board whose edges are wider than this (OpenCV's estimateChessboardSharpness, intensity-image pixels, the
+10-90 % rise) is blurred: its corners are left out (a sharp board measures about 2 at 2448x2048)."""
+
+MAX_FRAME_RMS_PX = 1.0
+"""A frame whose corners reproject worse than this (raw pixels RMS) after the fit is left out and the fit redone."""
+
+
+class CalibrationError(ValueError):
+    """Calibration inputs that cannot give a trustworthy result; the message names the frames and what is wrong."""
+
+
+def intensity_image(raw: np.ndarray, sensor: Mapping) -> np.ndarray:
+    """s0 / 2 per polarizer cell (H/2, W/2) float32 from a raw mosaic (H, W): linear (1 = full scale), the
+    mean over the four analyzers and the colour channels; saturated samples are NaN (see module docstring
+    for where each pixel sits on the raw grid)."""
+    layout = mosaic_layout(sensor["polarizer_layout"], sensor["color_layout"])
+    height, width = raw.shape
+    black = ingest.black_level_map(sensor["black_level"], height, width)
+    linear, invalid = ingest.linearize(raw, black, float(sensor["white_level"]))
+    linear[invalid] = np.nan
+    plan = ingest.make_demosaic_plan(layout, height, width)
+    images = ingest.demosaic(linear, plan)  # (4, Hc, Wc, C)
+    return images.mean(axis=(0, 3)).astype(np.float32)
+
+
+def half_to_raw(points: np.ndarray) -> np.ndarray:
+    """Raw-pixel positions (..., 2) of intensity-image (half-resolution) positions (..., 2): 2 p + 0.5."""
+    return 2.0 * np.asarray(points, np.float64) + 0.5
+
+
+def raw_to_half(points: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`half_to_raw`: (p - 0.5) / 2."""
+    return (np.asarray(points, np.float64) - 0.5) / 2.0
+
+
+@dataclass
+class BoardDetection:
+    """One frame's board: ``corners`` (rows * cols, 2) raw pixels (None if not usable), ``edge_width_px``
+    (OpenCV's sharpness, intensity-image pixels; NaN if not found) and ``problem`` (None, or what is wrong)."""
+
+    corners: np.ndarray | None
+    edge_width_px: float = float("nan")
+    problem: str | None = None
+
+
+def _to_uint8(image: np.ndarray) -> np.ndarray:
+    """Intensity image -> 8-bit, stretched between its 0.5th and 99.5th percentiles (NaN = saturated = white)."""
+    finite = np.isfinite(image)
+    lo, hi = np.percentile(image[finite], [0.5, 99.5]) if finite.any() else (0.0, 1.0)
+    scaled = np.where(finite, (image - lo) / max(hi - lo, 1e-9), 1.0)
+    return np.clip(np.rint(scaled * 255), 0, 255).astype(np.uint8)
+
+
+def detect_board(image: np.ndarray, cols: int, rows: int, max_edge_px: float = MAX_EDGE_WIDTH_PX) -> BoardDetection:
+    """Find the cols x rows inner corners on an intensity image (H/2, W/2) with OpenCV's sector-based detector
+    (findChessboardCornersSB, accuracy mode); return them in raw pixels (:func:`half_to_raw`)."""
+    import cv2
+
+    gray = _to_uint8(image)
+    if np.mean(np.isnan(image)) > 0.01:
+        return BoardDetection(None, problem=f"{100 * np.mean(np.isnan(image)):.1f} % of the image is saturated; "
+                                            "expected a board exposed below the white level (lower the flash)")
+    found, corners = cv2.findChessboardCornersSB(gray, (cols, rows),
+                                                 flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
+    if not found:
+        return BoardDetection(None, problem=f"board not found: all {cols}x{rows} inner corners must be visible "
+                                            "(is the whole board in the frame, in focus, and --board right?)")
+    corners = corners.reshape(-1, 2).astype(np.float64)
+    sharpness = cv2.estimateChessboardSharpness(gray, (cols, rows), corners.reshape(-1, 1, 2).astype(np.float32))
+    width = float(sharpness[0][0])
+    if width > max_edge_px:
+        return BoardDetection(None, width, f"board blurred: edges {width:.2f} px wide on the intensity image, "
+                                           f"expected at most {max_edge_px} (focus, or hold still)")
+    return BoardDetection(half_to_raw(corners), width)
+
+
+@dataclass
+class IntrinsicsResult:
+    """fx, fy, cx, cy (raw pixels), distortion (k1, k2, p1, p2, k3); rms_px: the fit's RMS reprojection error
+    (raw pixels); per_frame: {name: RMS px} of the frames used; left_out: {name: why};
+    std: one-sigma uncertainties of fx, fy, cx, cy from OpenCV's covariance (raw pixels)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: list[float]
+    rms_px: float
+    per_frame: dict[str, float]
+    left_out: dict[str, str] = field(default_factory=dict)
+    std: dict[str, float] = field(default_factory=dict)
+
+    def camera(self) -> dict:
+        """The intrinsics part of capture.yaml's ``camera`` section."""
+        return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "distortion": list(self.distortion)}
+
+
+def _too_few(usable: int, needed: int, left_out: Mapping[str, str]) -> CalibrationError:
+    lines = "".join(f"\n  {name}: {why}" for name, why in left_out.items())
+    return CalibrationError(f"{usable} usable board frame(s), at least {needed} needed: take {needed - usable} more "
+                            f"(the board tilted 15-40 deg, over the whole field).{lines}")
+
+
+def calibrate_intrinsics(frames: Mapping[str, np.ndarray], sensor: Mapping, cols: int, rows: int, square_m: float,
+                         fix_k3: bool = True, min_frames: int = MIN_BOARD_FRAMES,
+                         max_edge_px: float = MAX_EDGE_WIDTH_PX, max_frame_rms_px: float = MAX_FRAME_RMS_PX,
+                         log=None) -> IntrinsicsResult:
+    """Zhang's calibration (cv2.calibrateCameraExtended) from raw board frames {name: (H, W) raw}.
+
+    A frame whose board is not found, blurred or saturated is left out and named in ``left_out``; so is a frame
+    that reprojects worse than ``max_frame_rms_px`` (then the fit is redone without it). Raises
+    CalibrationError when fewer than ``min_frames`` frames remain, saying how many more are needed.
+    ``fix_k3``: keep k3 = 0 (a narrow lens cannot separate it from k1, k2).
+    """
+    import cv2
+
+    height, width = int(sensor["height"]), int(sensor["width"])
+    objp = np.zeros((rows * cols, 3), np.float32)
+    objp[:, :2] = np.mgrid[0:cols, 0:rows].T.reshape(-1, 2) * square_m
+    corners, left_out = {}, {}
+    for name, raw in frames.items():
+        if raw.shape != (height, width):
+            left_out[name] = f"size {raw.shape[1]}x{raw.shape[0]}, expected the sensor's {width}x{height}"
+            continue
+        found = detect_board(intensity_image(raw, sensor), cols, rows, max_edge_px)
+        if found.problem:
+            left_out[name] = found.problem
+        else:
+            corners[name] = found.corners
+        if log:
+            log(f"{name}: {found.problem or f'{rows * cols} corners, edge width {found.edge_width_px:.2f} px'}")
+    flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    while True:
+        if len(corners) < min_frames:
+            raise _too_few(len(corners), min_frames, left_out)
+        names = list(corners)
+        rms, k, dist, _, _, std, _, per_view = cv2.calibrateCameraExtended(
+            [objp] * len(names), [corners[n].astype(np.float32).reshape(-1, 1, 2) for n in names], (width, height),
+            None, None, flags=flags, criteria=criteria)
+        per_view = per_view.ravel()
+        worst = int(np.argmax(per_view))
+        if per_view[worst] <= max_frame_rms_px:
+            break
+        left_out[names[worst]] = (f"corners reproject at {per_view[worst]:.2f} px RMS, expected at most "
+                                  f"{max_frame_rms_px} (board bent or moved during the exposure?)")
+        del corners[names[worst]]
+    dist = dist.ravel().tolist() + [0.0] * (5 - dist.size)
+    std = std.ravel()
+    return IntrinsicsResult(fx=float(k[0, 0]), fy=float(k[1, 1]), cx=float(k[0, 2]), cy=float(k[1, 2]),
+                            distortion=[float(c) for c in dist[:5]], rms_px=float(rms),
+                            per_frame={n: float(e) for n, e in zip(names, per_view)}, left_out=left_out,
+                            std={"fx": float(std[0]), "fy": float(std[1]), "cx": float(std[2]), "cy": float(std[3])})

@@ -1,0 +1,233 @@
+"""The polarizer layout and the flash polarizer, checked on the sphere frames of the flash calibration.
+
+Public API::
+
+    candidate_layouts() -> list of 2x2 layouts     # all 24 arrangements of 0/45/90/135
+    permutation(claimed, candidate) -> (4,) int    # analyzer axis of images developed with ``claimed`` -> candidate
+    limb_samples(analyzers, sphere, radius_m, intrinsics) -> (stokes (N, 3), azimuth (N,), zenith (N,))
+    check_polarization(frames, device, radius_m) -> PolarizationReport
+
+Two physical facts, on glossy dielectric spheres (camera-frame Stokes, sellip.conventions):
+
+* Diffuse light leaves a dielectric polarized in its plane of exitance: on the limb (normal zenith 60-85 deg
+  from the view ray) its AoLP is the normal's azimuth phi in the ray's Stokes frame (x image right, y image
+  up), known on a sphere, and its DoP grows with the Fresnel transmission. The score of a layout is
+  sum_w cos 2 (AoLP - phi) / sum_w (w = the polarized intensity): about +1 for the right layout, -1 when 0/90
+  (and 45/135) are exchanged (AoLP turned by 90 deg), about 0 for a mirrored (45 <-> 135) or rotated layout.
+  Before that, the pairing: orthogonal analyzers sum to s0 (I0 + I90 = I45 + I135), which only one of the
+  three ways to pair the cell's four positions satisfies; the 8 layouts with that pairing are scored.
+  All 24 arrangements are scored from ONE development of each frame: a layout only says which of the four
+  cell positions is which angle, so another layout is a permutation of the developed analyzer axis.
+* A mirror highlight keeps the flash's linear polarization (at 3.5 deg from normal incidence the Fresnel
+  coefficients of s and p agree to 1e-3): under the right layout the highlight's AoLP is ``light.polarizer_deg``.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sellip.calibrate.flash import develop_frame, find_highlight, find_spheres, intensity, pixel_rays
+from sellip.calibrate.intrinsics import CalibrationError
+from sellip.model.conventions import ANALYZER_ANGLES_DEG
+
+POLARIZER_TOLERANCE_DEG = 2.0
+"""A flash polarizer this far from capture.yaml's ``light.polarizer_deg`` is reported."""
+
+LIMB_ZENITH_DEG = (60.0, 85.0)
+"""Normal zenith angles (from the view ray) whose diffuse polarization is scored."""
+
+MIN_SCORE_MARGIN = 0.3
+"""The best layout must beat the second by this much in score, or the frames cannot decide."""
+
+
+def candidate_layouts() -> list[list[list[int]]]:
+    """Every 2x2 arrangement of the four analyzer angles (row-major), 24 in all."""
+    return [[[a, b], [c, d]] for a, b, c, d in itertools.permutations(ANALYZER_ANGLES_DEG)]
+
+
+def permutation(claimed, candidate) -> np.ndarray:
+    """(4,) index: ``developed[..., perm, :]`` are the analyzer images in ANALYZER_ANGLES_DEG order if the sensor
+    really has ``candidate`` where the images were developed with ``claimed``."""
+    claimed, candidate = np.asarray(claimed).ravel(), np.asarray(candidate).ravel()
+    order = list(ANALYZER_ANGLES_DEG)
+    return np.array([order.index(int(claimed[list(candidate).index(angle)])) for angle in ANALYZER_ANGLES_DEG])
+
+
+def _stokes(analyzers: np.ndarray) -> np.ndarray:
+    """(..., 3) linear Stokes (s0, s1, s2) from analyzers (..., 4) in ANALYZER_ANGLES_DEG order."""
+    i0, i45, i90, i135 = np.moveaxis(analyzers, -1, 0)
+    return np.stack([(i0 + i45 + i90 + i135) / 2, i0 - i90, i45 - i135], axis=-1)
+
+
+def limb_samples(analyzers: np.ndarray, centre: np.ndarray, radius_m: float, intrinsics: Mapping,
+                 zenith_deg: tuple[float, float] = LIMB_ZENITH_DEG) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The limb's pixels of one sphere: analyzers (N, 4) (colour-averaged), the normal's azimuth phi (N,) in each
+    ray's Stokes frame and its zenith (N,) (radians), from the sphere's centre (3,) and radius."""
+    height, width = analyzers.shape[:2]
+    f = float(np.sqrt(intrinsics["fx"] * intrinsics["fy"]))
+    u0 = intrinsics["fx"] * centre[0] / centre[2] + intrinsics["cx"]
+    v0 = intrinsics["fy"] * centre[1] / centre[2] + intrinsics["cy"]
+    r_px = f * radius_m / np.sqrt(max(centre @ centre - radius_m ** 2, 1e-12)) * 1.1 + 2
+    top, bottom = max(int(v0 - r_px), 0), min(int(v0 + r_px) + 1, height)
+    left, right = max(int(u0 - r_px), 0), min(int(u0 + r_px) + 1, width)
+    yy, xx = np.mgrid[top:bottom, left:right]
+    d = pixel_rays(np.stack([xx, yy], axis=-1).astype(np.float64), intrinsics)
+    b = d @ centre
+    disc = b * b - (centre @ centre - radius_m ** 2)
+    hit = disc > 0
+    point = d * (b - np.sqrt(np.maximum(disc, 0)))[..., None]
+    normal = (point - centre) / radius_m
+    z = -d  # towards the camera
+    up = np.array([0.0, -1.0, 0.0])
+    y_axis = up - (z @ up)[..., None] * z
+    y_axis /= np.linalg.norm(y_axis, axis=-1, keepdims=True)
+    x_axis = np.cross(y_axis, z)
+    zenith = np.arccos(np.clip(np.sum(normal * z, -1), -1, 1))
+    azimuth = np.arctan2(np.sum(normal * y_axis, -1), np.sum(normal * x_axis, -1))
+    lo, hi = np.radians(zenith_deg)
+    block = analyzers[top:bottom, left:right].mean(axis=-1)  # (h, w, 4)
+    use = hit & (zenith >= lo) & (zenith <= hi) & np.all(np.isfinite(block), axis=-1)
+    return block[use], azimuth[use], zenith[use]
+
+
+@dataclass
+class PolarizationReport:
+    """claimed / best layout with their limb scores (+1: diffuse AoLP radial as it must be), scores of all 24;
+    polarizer_deg measured on the highlights (under the best layout) and its spread; claimed_polarizer_deg."""
+
+    claimed_layout: list
+    best_layout: list
+    claimed_score: float
+    best_score: float
+    second_score: float
+    polarizer_deg: float
+    polarizer_std_deg: float
+    claimed_polarizer_deg: float
+    limb_pixels: int
+    highlights: int
+    scores: dict = field(default_factory=dict)
+    left_out: dict = field(default_factory=dict)
+
+    @property
+    def layout_ok(self) -> bool:
+        return np.array_equal(self.claimed_layout, self.best_layout)
+
+    @property
+    def polarizer_error_deg(self) -> float:
+        return float((self.polarizer_deg - self.claimed_polarizer_deg + 90) % 180 - 90)
+
+    @property
+    def polarizer_ok(self) -> bool:
+        return abs(self.polarizer_error_deg) <= POLARIZER_TOLERANCE_DEG
+
+    @property
+    def ok(self) -> bool:
+        return self.layout_ok and self.polarizer_ok
+
+    def messages(self) -> list[str]:
+        out = []
+        if self.layout_ok:
+            out.append(f"polarizer_layout {self.claimed_layout} fits: limb score {self.claimed_score:+.3f} "
+                       f"(next best layout {self.second_score:+.3f}) over {self.limb_pixels} limb pixels")
+        else:
+            out.append(f"polarizer_layout {self.claimed_layout} does NOT fit: limb score {self.claimed_score:+.3f} "
+                       f"({_describe(self.claimed_layout, self.best_layout)}); the layout that fits is "
+                       f"{self.best_layout} (score {self.best_score:+.3f})")
+        verdict = "fits" if self.polarizer_ok else f"is off by more than {POLARIZER_TOLERANCE_DEG} deg"
+        out.append(f"light.polarizer_deg {self.claimed_polarizer_deg:g} {verdict}: measured "
+                   f"{self.polarizer_deg:.2f} +- {self.polarizer_std_deg:.2f} deg on {self.highlights} highlights")
+        return out
+
+    def record(self) -> dict:
+        return {"ok": self.ok, "claimed_layout": self.claimed_layout, "best_layout": self.best_layout,
+                "claimed_score": self.claimed_score, "best_score": self.best_score, "second_score": self.second_score,
+                "limb_pixels": self.limb_pixels, "polarizer_deg_measured": self.polarizer_deg,
+                "polarizer_std_deg": self.polarizer_std_deg, "polarizer_deg_claimed": self.claimed_polarizer_deg,
+                "highlights": self.highlights, "messages": self.messages(), "left_out": self.left_out}
+
+
+def _describe(claimed, best) -> str:
+    c, b = np.asarray(claimed), np.asarray(best)
+    if np.array_equal(np.where(c == 45, 135, np.where(c == 135, 45, c)), b):
+        return "45 and 135 swapped"
+    if np.array_equal((c + 90) % 180, b):
+        return "turned by 90 deg (0 <-> 90, 45 <-> 135)"
+    if np.array_equal(c[:, ::-1], b) or np.array_equal(c[::-1, :], b):
+        return "mirrored"
+    if np.array_equal(np.rot90(c), b) or np.array_equal(np.rot90(c, -1), b) or np.array_equal(np.rot90(c, 2), b):
+        return "rotated"
+    return "another arrangement"
+
+
+def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius_m: float,
+                       log=None) -> PolarizationReport:
+    """Score every polarizer layout on the spheres' limbs and measure the flash polarizer on their highlights
+    (module docstring). Raises CalibrationError if no sphere gives a limb."""
+    claimed = [list(map(int, row)) for row in device["sensor"]["polarizer_layout"]]
+    layouts = candidate_layouts()
+    perms = [permutation(claimed, layout) for layout in layouts]
+    limb_stokes, limb_phi, highlight_pixels, left_out = [], [], [], {}
+    for name, raw in frames.items():
+        analyzers, intrinsics = develop_frame(raw, device)
+        s0 = intensity(analyzers)
+        for k, sphere in enumerate(find_spheres(s0, intrinsics, radius_m)):
+            label = f"{name}#{k}"
+            if sphere.problem:
+                left_out[label] = sphere.problem
+                continue
+            values, phi, _ = limb_samples(analyzers, sphere.centre, radius_m, intrinsics)
+            limb_stokes.append(values)
+            limb_phi.append(phi)
+            highlight, problem = find_highlight(s0, sphere)
+            if problem:
+                left_out[label] = problem
+                continue
+            # the highlight's pixels: the 5x5 around its centroid, analyzers averaged over colour
+            x, y = np.rint(highlight).astype(int)
+            highlight_pixels.append(analyzers[y - 2:y + 3, x - 2:x + 3].mean(axis=-1).reshape(-1, 4))
+    if not limb_stokes:
+        raise CalibrationError("no sphere gave a limb to check the polarizer layout on:" +
+                               "".join(f"\n  {k}: {v}" for k, v in left_out.items()))
+    values, phi = np.concatenate(limb_stokes), np.concatenate(limb_phi)
+    scores, consistency = [], []
+    for perm in perms:
+        a = values[:, perm]
+        s = _stokes(a)
+        aolp = 0.5 * np.arctan2(s[:, 2], s[:, 1])
+        weight = np.hypot(s[:, 1], s[:, 2])
+        scores.append(float(np.sum(weight * np.cos(2 * (aolp - phi))) / max(np.sum(weight), 1e-12)))
+        consistency.append(float(np.sum(np.abs(a[:, 0] + a[:, 2] - a[:, 1] - a[:, 3])) / np.sum(s[:, 0])))
+    # Orthogonal analyzers sum to s0: only the right pairing of the cell's positions into (0, 90) and
+    # (45, 135) is consistent; among the 8 layouts with that pairing the radial diffuse AoLP decides.
+    paired = np.isclose(consistency, min(consistency), rtol=1e-6)
+    ranked = np.where(paired, scores, -np.inf)
+    order = np.argsort(ranked)[::-1]
+    best = int(order[0])
+    claimed_index = next(i for i, layout in enumerate(layouts) if layout == claimed)
+    if highlight_pixels:
+        h = _stokes(np.concatenate(highlight_pixels)[:, perms[best]])
+        angles = 0.5 * np.arctan2(h[:, 2], h[:, 1])
+        weight = np.hypot(h[:, 1], h[:, 2])
+        mean = 0.5 * np.arctan2(np.sum(weight * np.sin(2 * angles)), np.sum(weight * np.cos(2 * angles)))
+        spread = np.sqrt(np.sum(weight * ((angles - mean + np.pi / 2) % np.pi - np.pi / 2) ** 2) / np.sum(weight))
+        polarizer, polarizer_std = float(np.degrees(mean) % 180), float(np.degrees(spread) / np.sqrt(len(highlight_pixels)))
+    else:
+        polarizer, polarizer_std = float("nan"), float("nan")
+    report = PolarizationReport(
+        claimed_layout=claimed, best_layout=layouts[best], claimed_score=scores[claimed_index],
+        best_score=scores[best], second_score=float(ranked[order[1]]), polarizer_deg=polarizer,
+        polarizer_std_deg=polarizer_std, claimed_polarizer_deg=float(device.get("light", {}).get("polarizer_deg", 0.0)),
+        limb_pixels=len(values), highlights=len(highlight_pixels),
+        scores={str(layouts[i]): scores[i] for i in np.argsort(scores)[::-1]}, left_out=left_out)
+    if scores[best] - ranked[order[1]] < MIN_SCORE_MARGIN:
+        raise CalibrationError(f"the sphere limbs cannot tell the polarizer layouts apart (best {layouts[best]} "
+                               f"{scores[best]:+.3f}, next {layouts[order[1]]} {scores[order[1]]:+.3f}): expected "
+                               "dielectric spheres whose limbs are lit and below the white level")
+    if log:
+        for line in report.messages():
+            log(line)
+    return report

@@ -1,0 +1,154 @@
+"""``sellip calibrate``: describe a real device once (DESIGN §3), step by step, into device.yaml.
+
+    sellip calibrate intrinsics FRAME... --device device.yaml --board 9x7 --square-mm 15 [--k3]
+    sellip calibrate flash FRAME... --device device.yaml --sphere-radius-mm 20
+    sellip calibrate polarization FRAME... --device device.yaml --sphere-radius-mm 20 [--write]
+    sellip calibrate color FRAME --device device.yaml --corners X,Y X,Y X,Y X,Y
+
+device.yaml must exist with at least its ``sensor`` section (docs/calibration.md); each step reads raw frames
+(DNG / 16-bit TIFF / PNG, checked against the sensor), logs every frame it leaves out with why, and writes its
+result and residuals into device.yaml (:mod:`sellip.calibrate.device`). The library is
+:mod:`sellip.calibrate`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from sellip.capture import files
+from sellip.capture import reader
+from sellip.calibrate import device as devices
+from sellip.calibrate.intrinsics import CalibrationError
+
+log = logging.getLogger(__name__)
+
+
+def _frames(paths: list[Path], sensor: dict) -> dict[str, np.ndarray]:
+    out = {}
+    for path in paths:
+        out[path.name] = reader.read_raw_file(path, sensor)
+    return out
+
+
+def _board(text: str) -> tuple[int, int]:
+    try:
+        cols, rows = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected COLSxROWS inner corners (e.g. 9x7), got {text!r}") from None
+    if cols < 3 or rows < 3:
+        raise argparse.ArgumentTypeError(f"a board needs at least 3x3 inner corners, got {text!r}")
+    return cols, rows
+
+
+def _point(text: str) -> tuple[float, float]:
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y in raw pixels, got {text!r}") from None
+    return x, y
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="step", required=True, metavar="STEP")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--device", required=True, type=Path,
+                        help="device.yaml to read and update (at least its sensor section)")
+    p = sub.add_parser("intrinsics", parents=[common], help="fx, fy, cx, cy and distortion from checkerboard frames")
+    p.add_argument("frames", nargs="+", type=Path, help="raw frames of the board")
+    p.add_argument("--board", required=True, type=_board, help="inner corners COLSxROWS, e.g. 9x7")
+    p.add_argument("--square-mm", required=True, type=float, help="side of a square (mm)")
+    p.add_argument("--k3", action="store_true", help="also fit k3 (wide-angle lenses; default: k3 = 0)")
+    p = sub.add_parser("flash", parents=[common], help="the flash position from mirror highlights on spheres")
+    p.add_argument("frames", nargs="+", type=Path, help="raw frames of glossy spheres before a bright background")
+    p.add_argument("--sphere-radius-mm", required=True, type=float, help="the spheres' radius (mm)")
+    p = sub.add_parser("polarization", parents=[common],
+                       help="check the polarizer layout and the flash polarizer on the sphere frames")
+    p.add_argument("frames", nargs="+", type=Path, help="raw frames of glossy dielectric spheres")
+    p.add_argument("--sphere-radius-mm", required=True, type=float, help="the spheres' radius (mm)")
+    p.add_argument("--write", action="store_true", help="write the layout and polarizer angle that fit")
+    p = sub.add_parser("color", parents=[common], help="3x3 colour matrix from a ColorChecker under the flash")
+    p.add_argument("frame", type=Path, help="raw frame of the chart")
+    p.add_argument("--corners", required=True, type=_point, nargs=4, metavar="X,Y",
+                   help="the patch area's corners in raw pixels: dark skin's outer corner first, then clockwise "
+                        "(bluish green's, black's, white's)")
+
+
+def _intrinsics(args, device) -> int:
+    from sellip.calibrate.intrinsics import calibrate_intrinsics
+
+    cols, rows = args.board
+    frames = _frames(args.frames, device["sensor"])
+    result = calibrate_intrinsics(frames, device["sensor"], cols, rows, args.square_mm / 1000, fix_k3=not args.k3,
+                                  log=log.info)
+    for name, why in result.left_out.items():
+        log.warning("left out %s: %s", name, why)
+    log.info("fx %.2f fy %.2f cx %.2f cy %.2f (1-sigma %.2f %.2f %.2f %.2f px) distortion %s; RMS %.3f px over %d "
+             "frames", result.fx, result.fy, result.cx, result.cy, *result.std.values(),
+             np.round(result.distortion, 5).tolist(), result.rms_px, len(result.per_frame))
+    devices.update_device(args.device, {"camera": result.camera()}, "intrinsics", {
+        "board": f"{cols}x{rows}", "square_mm": args.square_mm, "rms_px": result.rms_px, "std_px": result.std,
+        "per_frame_rms_px": result.per_frame, "left_out": result.left_out})
+    return 0
+
+
+def _flash(args, device) -> int:
+    from sellip.calibrate.flash import calibrate_flash
+
+    frames = _frames(args.frames, device["sensor"])
+    result = calibrate_flash(frames, device, args.sphere_radius_mm / 1000, log=log.info)
+    for name, why in result.left_out.items():
+        log.warning("left out %s: %s", name, why)
+    for h in result.highlights:
+        log.info("%s sphere %d: highlight residual %.3f mm", h["frame"], h["sphere"], h["residual_mm"])
+    log.info("flash at %s mm (1-sigma %s mm), RMS residual %.3f mm over %d highlights",
+             np.round(result.position_m * 1e3, 2).tolist(), np.round(result.std_m * 1e3, 2).tolist(), result.rms_mm,
+             len(result.highlights))
+    light = dict(device.get("light", {"polarizer_deg": 0.0}))
+    light["position_m"] = result.position_m.tolist()
+    devices.update_device(args.device, {"light": light}, "flash", {
+        "sphere_radius_mm": args.sphere_radius_mm, "std_mm": (result.std_m * 1e3).tolist(), "rms_mm": result.rms_mm,
+        "highlights": result.highlights, "left_out": result.left_out})
+    return 0
+
+
+def _polarization(args, device) -> int:
+    from sellip.calibrate.polarization import check_polarization
+
+    frames = _frames(args.frames, device["sensor"])
+    report = check_polarization(frames, device, args.sphere_radius_mm / 1000, log=log.info)
+    for line in report.messages():
+        (log.info if report.ok else log.warning)(line)
+    sections = {}
+    if args.write:
+        sections = {"sensor": {"polarizer_layout": report.best_layout},
+                    "light": {**device.get("light", {}), "polarizer_deg": report.polarizer_deg}}
+    devices.update_device(args.device, sections, "polarization", report.record())
+    return 0 if report.ok or args.write else 3
+
+
+def _color(args, device) -> int:
+    from sellip.calibrate.color import calibrate_color
+
+    raw = reader.read_raw_file(args.frame, device["sensor"])
+    result = calibrate_color(raw, device, np.asarray(args.corners, np.float64))
+    log.info("colour matrix %s; dE2000 mean %.2f, max %.2f (patch %s)", np.round(result.matrix, 4).tolist(),
+             result.delta_e.mean(), result.delta_e.max(), result.patch_names[int(np.argmax(result.delta_e))])
+    devices.update_device(args.device, {"camera": {"color_matrix": result.matrix.tolist()}}, "color", result.record())
+    return 0
+
+
+def main(args: argparse.Namespace) -> int:
+    logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
+    try:
+        device = devices.read_device(args.device)
+        if args.step != "intrinsics" and "camera" not in device:
+            raise devices.DeviceError(str(args.device), "key 'camera'",
+                                      "missing; run `sellip calibrate intrinsics` first")
+        step = {"intrinsics": _intrinsics, "flash": _flash, "polarization": _polarization, "color": _color}
+        return step[args.step](args, device)
+    except (CalibrationError, files.CaptureError) as exc:
+        raise SystemExit(f"sellip calibrate {args.step}: {exc}") from None

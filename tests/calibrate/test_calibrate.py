@@ -1,0 +1,348 @@
+"""sellip calibrate and sellip capture new: on synthetic calibration frames with known truth (quarter of the
+device's size, 612x512; the full-size targets are measured by benchmarks/calibration_accuracy.py), the
+half-resolution pixel-centre mapping, device.yaml, and every bad input named."""
+
+from __future__ import annotations
+
+import copy
+import subprocess
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from sellip.capture import ingest
+from sellip.capture import writer
+from sellip.capture import reader
+from sellip.capture import files
+from sellip.calibrate import color, flash, intrinsics, polarization, synthetic
+from sellip.calibrate import device as devices
+from sellip.calibrate.intrinsics import CalibrationError
+from sellip.capture import assemble
+
+W, H = 612, 512
+SPEC = synthetic.BoardSpec()
+
+
+@pytest.fixture(scope="module")
+def calib(tmp_path_factory):
+    """A synthetic calibration folder at 612x512: 24 board frames, 6 sphere frames of 3 spheres, a chart."""
+    out = tmp_path_factory.mktemp("calib") / "calib"
+    synthetic.synthesize_calibration(out, W, H, seed=0, raw_format="tiff")
+    return out, yaml.safe_load((out / "truth.yaml").read_text())
+
+
+def _frames(folder, sensor):
+    return {p.name: reader.read_raw_file(p, sensor) for p in sorted(folder.iterdir())}
+
+
+# --------------------------------------------------------------------------- the half-resolution grid
+
+
+def test_half_resolution_centres_are_raw_cell_centres():
+    """A corner found on the intensity image at (x', y') is raw (2x' + 0.5, 2y' + 0.5): against the true
+    projection the corners agree to a few hundredths of a raw pixel; 2x' (no + 0.5) would be half a pixel off."""
+    device = synthetic.true_device(W, H)
+    (rotation, translation), = synthetic.board_poses(SPEC, device, 1, np.random.default_rng(5))
+    analyzers = synthetic.render_board(device, SPEC, rotation, translation)
+    raw = synthetic.expose(analyzers, device, 2800, np.random.default_rng(6))
+    found = intrinsics.detect_board(intrinsics.intensity_image(raw, device["sensor"]), SPEC.cols, SPEC.rows)
+    assert found.problem is None
+    truth = synthetic._project(device, SPEC.corners() @ rotation.T + translation)
+    error = min((found.corners - truth, found.corners[::-1] - truth), key=lambda e: np.abs(e).max())
+    assert np.all(np.abs(error.mean(axis=0)) < 0.05), error.mean(axis=0)
+    assert np.sqrt(np.mean(error ** 2)) < 0.15
+    half = intrinsics.raw_to_half(found.corners)
+    assert np.allclose(intrinsics.half_to_raw(half), found.corners)
+    # the same mapping as the ingest chain's output grid: c' = (c - 0.5) / 2
+    grid = ingest.output_intrinsics(device["camera"], H, W)
+    assert np.isclose(intrinsics.half_to_raw(np.array([grid["cx"], grid["cy"]]))[0], device["camera"]["cx"])
+
+
+# --------------------------------------------------------------------------- intrinsics
+
+
+def test_intrinsics_recover_the_truth(calib):
+    folder, truth = calib
+    device = truth["device"]
+    result = intrinsics.calibrate_intrinsics(_frames(folder / "board", device["sensor"]), device["sensor"],
+                                             SPEC.cols, SPEC.rows, SPEC.square_m)
+    cam = device["camera"]
+    assert not result.left_out and len(result.per_frame) == 24
+    # At a quarter of the device's size the squares are 8-15 intensity-image pixels wide and the corners carry
+    # a bias beyond OpenCV's sigma: measured fx +0.37 %, cx +3.6 px, cy +2.3 px (at full size: fx 2e-5,
+    # benchmarks/calibration_accuracy.py). The test holds those figures.
+    assert abs(result.fx / cam["fx"] - 1) < 5e-3 and abs(result.fy / cam["fy"] - 1) < 5e-3
+    assert abs(result.cx - cam["cx"]) < 5.0 and abs(result.cy - cam["cy"]) < 5.0
+    assert abs(result.distortion[0] - cam["distortion"][0]) < 0.03
+    assert result.rms_px < 0.2
+
+
+def test_bad_board_frames_are_named_and_too_few_is_an_error():
+    device = synthetic.true_device(W, H)
+    poses = synthetic.board_poses(SPEC, device, 3, np.random.default_rng(7))
+    frames = {}
+    for k, (rotation, translation) in enumerate(poses):
+        frames[f"good_{k}.tiff"] = synthetic.expose(synthetic.render_board(device, SPEC, rotation, translation),
+                                                   device, 2800, np.random.default_rng(k))
+    rotation, translation = poses[0]
+    blurred = synthetic.render_board(device, SPEC, rotation, translation, blur_px=3.0)
+    frames["blurred.tiff"] = synthetic.expose(blurred, device, 2800, np.random.default_rng(10))
+    partial = synthetic.render_board(device, SPEC, rotation, translation + np.array([0.08, 0.0, 0.0]))
+    frames["partial.tiff"] = synthetic.expose(partial, device, 2800, np.random.default_rng(11))
+    with pytest.raises(CalibrationError) as error:
+        intrinsics.calibrate_intrinsics(frames, device["sensor"], SPEC.cols, SPEC.rows, SPEC.square_m)
+    message = str(error.value)
+    assert "3 usable board frame(s), at least 6 needed: take 3 more" in message
+    assert "blurred.tiff:" in message and "partial.tiff: board not found" in message
+    assert "good_0" not in message
+
+
+# --------------------------------------------------------------------------- flash
+
+
+def _calibrated(truth):
+    return copy.deepcopy(truth["device"])
+
+
+def test_flash_position_from_sphere_highlights(calib):
+    folder, truth = calib
+    device = _calibrated(truth)
+    radius = truth["spheres"]["radius_m"]
+    result = flash.calibrate_flash(_frames(folder / "spheres", device["sensor"]), device, radius)
+    error = result.position_m - np.asarray(device["light"]["position_m"])
+    assert len(result.highlights) == 18 and not result.left_out
+    # quarter size: about 1 mm across the image, several in depth (the full-size target is in the benchmark)
+    assert np.all(np.abs(error[:2]) < 2e-3), error
+    assert abs(error[2]) < max(4 * result.std_m[2], 5e-3), (error, result.std_m)
+    # each sphere's centre from its outline
+    for record in result.highlights:
+        centres = np.asarray(truth["spheres"]["centres_m"][record["frame"]])
+        nearest = np.min(np.linalg.norm(centres - np.asarray(record["centre_m"]), axis=1))
+        assert nearest < 2e-3
+    assert all(np.isfinite(h["residual_mm"]) for h in result.highlights)
+
+
+def test_nearest_point_ignores_one_bad_line():
+    rng = np.random.default_rng(0)
+    target = np.array([0.0, 0.05, 0.0])
+    points = rng.normal(size=(8, 3)) * 0.1 + [0, 0, 0.5]
+    directions = target - points
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    points[0] += [0.02, 0.0, 0.0]  # one highlight 20 mm off
+    x, distances, weights = flash.nearest_point(points, directions)
+    assert np.linalg.norm(x - target) < 5e-4 and weights[0] < 0.2 and distances[0] > 0.01
+
+
+def test_clipped_sphere_and_saturated_highlight_are_named():
+    device = synthetic.true_device(W, H)
+    radius = 0.012
+    centres = synthetic.sphere_layouts(device, 2, np.random.default_rng(3), radius=radius)
+    edge = np.array([(0 - device["camera"]["cx"]) / device["camera"]["fx"] * 0.45, 0.0, 0.45])  # on the left edge
+    frames = {}
+    analyzers = synthetic.render_spheres(device, [(c, radius) for c in centres[0][:2]] + [(edge, radius)])
+    frames["clipped.tiff"] = synthetic.expose(analyzers, device, 3000, np.random.default_rng(1),
+                                              reference=float(analyzers.max()))
+    analyzers = synthetic.render_spheres(device, [(c, radius) for c in centres[1]])
+    frames["bright.tiff"] = synthetic.expose(analyzers, device, 3000, np.random.default_rng(2),
+                                             reference=float(analyzers.max()) / 6)
+    with pytest.raises(CalibrationError) as error:
+        flash.calibrate_flash(frames, device, radius)
+    message = str(error.value)
+    assert "2 usable sphere highlight(s), at least 6 needed: take 4 more" in message
+    assert "clipped.tiff#" in message and "sphere clipped by the frame edge" in message
+    assert message.count("bright.tiff#") == 3 and "highlight saturated" in message
+
+
+# --------------------------------------------------------------------------- polarization
+
+
+@pytest.mark.parametrize("claimed, polarizer, layout_ok, polarizer_ok, what", [
+    ([[90, 45], [135, 0]], 0.0, True, True, None),
+    ([[90, 135], [45, 0]], 0.0, False, True, "45 and 135 swapped"),
+    ([[0, 135], [45, 90]], 0.0, False, True, "turned by 90 deg"),
+    ([[45, 90], [0, 135]], 0.0, False, True, "mirrored"),
+    ([[90, 45], [135, 0]], 3.0, True, False, "off by more than 2.0 deg"),
+])
+def test_polarization_layout_and_flash_polarizer_checked(calib, claimed, polarizer, layout_ok, polarizer_ok, what):
+    folder, truth = calib
+    device = _calibrated(truth)
+    frames = _frames(folder / "spheres", device["sensor"])
+    device["sensor"]["polarizer_layout"] = claimed
+    device["light"]["polarizer_deg"] = polarizer
+    report = polarization.check_polarization(frames, device, truth["spheres"]["radius_m"])
+    assert report.best_layout == truth["device"]["sensor"]["polarizer_layout"]
+    assert report.layout_ok == layout_ok and report.polarizer_ok == polarizer_ok
+    assert abs(report.polarizer_deg - truth["device"]["light"]["polarizer_deg"] + 90) % 180 - 90 < 1.0
+    if what:
+        assert what in " ".join(report.messages())
+
+
+def test_permutation_relabels_the_analyzer_axis():
+    claimed, true = [[90, 45], [135, 0]], [[90, 135], [45, 0]]
+    images = np.array([10.0, 45.0, 90.0, 135.0])  # developed with `claimed`: analyzer k holds "claimed angle k"
+    # the pixel called 45 under `claimed` really is 135, so true analyzer 45 is the developed 135 image
+    assert images[polarization.permutation(claimed, true)].tolist() == [10.0, 135.0, 90.0, 45.0]
+    assert len(polarization.candidate_layouts()) == 24
+
+
+# --------------------------------------------------------------------------- colour
+
+
+def test_color_matrix_from_the_chart(calib):
+    folder, truth = calib
+    device = _calibrated(truth)
+    raw = reader.read_raw_file(folder / "chart" / truth["chart"]["file"], device["sensor"])
+    result = color.calibrate_color(raw, device, np.asarray(truth["chart"]["corners_px"]))
+    assert np.nanmean(result.delta_e) <= 1.0 and not result.left_out
+    true_matrix = np.asarray(device["camera"]["color_matrix"])
+    assert np.abs(result.matrix - true_matrix).max() / np.abs(true_matrix).max() < 0.05
+
+
+def test_chart_in_shadow_names_the_patches():
+    device = synthetic.true_device(W, H)
+    rotation = np.eye(3)
+    translation = np.array([-0.12, -0.08, 1.0])
+    lit = synthetic.render_chart(device, rotation, translation)
+    dark = synthetic.render_chart(device, rotation, translation, shadow=0.02)
+    raw = synthetic.expose(dark, device, 2400, np.random.default_rng(0), reference=float(np.percentile(lit, 99.9)))
+    corners = synthetic._project(device, synthetic.chart_corners_board() @ rotation.T + translation)
+    with pytest.raises(CalibrationError, match=r"usable ColorChecker patches, at least 12 needed") as error:
+        color.calibrate_color(raw, device, corners)
+    assert "dark skin: too dark" in str(error.value)
+
+
+def test_delta_e_2000_on_published_pairs():
+    """Sharma, Wu & Dalal (2005) test data, pairs 1, 7 and 17: Lab pairs -> linear sRGB -> our wrapper."""
+    import colour
+
+    d65 = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"]
+    pairs = [((50.0, 2.6772, -79.7751), (50.0, 0.0, -82.7485), 2.0425),
+             ((50.0, 0.0, 0.0), (50.0, -1.0, 2.0), 2.3669),
+             ((50.0, 2.5, 0.0), (73.0, 25.0, -18.0), 27.1492)]
+
+    def srgb(lab):
+        xyz = colour.Lab_to_XYZ(np.array(lab), d65)
+        return colour.XYZ_to_RGB(xyz, colour.RGB_COLOURSPACES["sRGB"], apply_cctf_encoding=False)
+
+    got = color.delta_e_2000(np.array([srgb(a) for a, _, _ in pairs]), np.array([srgb(b) for _, b, _ in pairs]))
+    assert np.allclose(got, [e for _, _, e in pairs], atol=1e-3)
+
+
+# --------------------------------------------------------------------------- device.yaml and capture new
+
+
+def test_device_yaml_round_trip_and_errors(tmp_path):
+    device = synthetic.true_device(64, 48)
+    path = devices.write_device(tmp_path / "device.yaml", {"sensor": device["sensor"]})
+    assert devices.read_device(path) == {"sensor": devices.read_device(path)["sensor"]}
+    with pytest.raises(devices.DeviceError, match="key 'camera': missing; run `sellip calibrate intrinsics` first"):
+        devices.read_device(path, complete=True)
+    updated = devices.update_device(path, {"camera": {"fx": 100.0, "fy": 100.0, "cx": 32.0, "cy": 24.0}},
+                                    "intrinsics", {"rms_px": 0.1})
+    assert updated["calibration"]["intrinsics"]["rms_px"] == 0.1 and "date" in updated["calibration"]["intrinsics"]
+    bad = yaml.safe_load(path.read_text())
+    bad["sensor"]["polarizer_layout"] = [[0, 0], [90, 135]]
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(bad))
+    with pytest.raises(devices.DeviceError, match="key 'sensor.polarizer_layout'"):
+        devices.read_device(tmp_path / "bad.yaml")
+    bad = yaml.safe_load(path.read_text())
+    bad["camera"]["fx"] = -1
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(bad))
+    with pytest.raises(devices.DeviceError, match=r"bad.yaml: key 'camera.fx': expected > 0"):
+        devices.read_device(tmp_path / "bad.yaml")
+
+
+def _frame_folder(tmp_path, names, width=64, height=48):
+    device = synthetic.true_device(width, height)
+    raw_dir = tmp_path / "owl" / "raw"
+    raw_dir.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for name in names:
+        writer.write_raw_file(raw_dir / name, rng.integers(64, 4000, (height, width)).astype(np.uint16), device["sensor"])
+    path = devices.write_device(tmp_path / "device.yaml", device)
+    return raw_dir, devices.read_device(path, complete=True), path
+
+
+def test_capture_new_from_a_pattern(tmp_path):
+    names = [f"v{v:03d}_f{level}.dng" for v in range(3) for level in (4, 8, 16)]
+    raw_dir, device, device_path = _frame_folder(tmp_path, names)
+    out = assemble.assemble_capture(raw_dir, device, 0.9, pattern="{view}_f{level}.dng", exposure_s=0.005)
+    capture = reader.read_capture(out, check_raw=True)
+    assert out == raw_dir.parent and capture.view_ids == ["v000", "v001", "v002"]
+    assert sorted(capture.frames["flash_level"].unique()) == [0.0625, 0.125, 0.25]
+    assert capture.frames["file"].iloc[0] == "raw/v000_f16.dng"
+    assert capture.config["camera"]["fx"] == device["camera"]["fx"] and capture.config["scene"]["distance_m"] == 0.9
+    # the command line, into another folder
+    other = tmp_path / "elsewhere"
+    subprocess.run([sys.executable, "-m", "sellip.cli", "capture", "new", str(raw_dir), "--device", str(device_path),
+                    "--distance-m", "0.8", "--pattern", "{view}_f{level}.dng", "--exposure-s", "0.01",
+                    "--out", str(other)], check=True)
+    assert reader.read_capture(other, check_raw=True).frames["file"].iloc[0] == "../owl/raw/v000_f16.dng"
+
+
+def test_capture_new_from_a_csv(tmp_path):
+    raw_dir, device, _ = _frame_folder(tmp_path, ["a.tiff", "b.tiff"])
+    table = tmp_path / "frames_in.csv"
+    pd.DataFrame({"file": ["a.tiff", "b.tiff"], "view_id": ["front", "front"], "flash_level": [0.25, 0.125],
+                  "exposure_s": [0.005, 0.005]}).to_csv(table, index=False)
+    out = assemble.assemble_capture(raw_dir, device, 0.9, out=tmp_path / "cap", csv=table)
+    assert reader.read_capture(out).frames["frame_id"].tolist() == ["a", "b"]
+
+
+def test_capture_new_says_what_it_cannot_infer(tmp_path):
+    raw_dir, device, _ = _frame_folder(tmp_path, ["v000_f4.dng", "notes_view1.dng"])
+    with pytest.raises(files.CaptureError, match=r"notes_view1.dng: does not match --pattern"):
+        assemble.assemble_capture(raw_dir, device, 0.9, pattern="{view}_f{level}.dng", exposure_s=0.005)
+    with pytest.raises(files.CaptureError, match=r"--exposure-s: missing"):
+        assemble.assemble_capture(raw_dir, device, 0.9, pattern="{view}_f{level}.dng")
+    with pytest.raises(files.CaptureError, match=r"\{level\} must appear exactly once"):
+        assemble.parse_pattern("{view}.dng")
+    assert not (raw_dir.parent / files.CAPTURE_YAML).exists() and not (raw_dir.parent / files.FRAMES_CSV).exists()
+    # a frame of the wrong size is named, and nothing is written
+    writer.write_raw_file(raw_dir / "v001_f4.dng", np.full((52, 64), 100, np.uint16),
+                      {**device["sensor"], "height": 52})
+    (raw_dir / "notes_view1.dng").unlink()
+    with pytest.raises(files.RawFrameError, match="v001_f4.dng"):
+        assemble.assemble_capture(raw_dir, device, 0.9, pattern="{view}_f{level}.dng", exposure_s=0.005)
+    assert not (raw_dir.parent / files.CAPTURE_YAML).exists()
+
+
+def test_flash_level_from_file_names():
+    assert assemble.flash_level("0.25", "x") == 0.25
+    assert assemble.flash_level("16", "x") == 0.0625
+    assert assemble.flash_level("1", "x") == 1.0
+
+
+# --------------------------------------------------------------------------- the commands end to end
+
+
+def test_calibrate_commands_write_device_yaml(calib, tmp_path):
+    folder, truth = calib
+    device_path = tmp_path / "device.yaml"
+    device_path.write_text((folder / "sensor.yaml").read_text())
+    run = [sys.executable, "-m", "sellip.cli", "calibrate"]
+    boards = sorted(str(p) for p in (folder / "board").iterdir())
+    spheres = sorted(str(p) for p in (folder / "spheres").iterdir())
+    subprocess.run(run + ["intrinsics", *boards, "--device", str(device_path), "--board", f"{SPEC.cols}x{SPEC.rows}",
+                          "--square-mm", str(SPEC.square_m * 1000)], check=True)
+    radius_mm = str(truth["spheres"]["radius_m"] * 1000)
+    subprocess.run(run + ["flash", *spheres, "--device", str(device_path), "--sphere-radius-mm", radius_mm], check=True)
+    subprocess.run(run + ["polarization", *spheres, "--device", str(device_path), "--sphere-radius-mm", radius_mm],
+                   check=True)
+    corners = [f"{x},{y}" for x, y in truth["chart"]["corners_px"]]
+    subprocess.run(run + ["color", str(folder / "chart" / truth["chart"]["file"]), "--device", str(device_path),
+                          "--corners", *corners], check=True)
+    device = devices.read_device(device_path, complete=True)
+    assert set(device["calibration"]) == {"intrinsics", "flash", "polarization", "color"}
+    assert abs(device["camera"]["fx"] / truth["device"]["camera"]["fx"] - 1) < 5e-3
+    assert np.linalg.norm(np.subtract(device["light"]["position_m"], truth["device"]["light"]["position_m"])) < 6e-3
+    assert device["calibration"]["polarization"]["ok"]
+    assert device["calibration"]["color"]["delta_e2000_mean"] <= 1.0
+    # too few frames: a clear error, exit status not 0
+    failed = subprocess.run(run + ["intrinsics", *boards[:2], "--device", str(device_path), "--board",
+                                   f"{SPEC.cols}x{SPEC.rows}", "--square-mm", "10"], check=False,
+                            capture_output=True, text=True)
+    assert failed.returncode != 0 and "take 4 more" in failed.stderr
