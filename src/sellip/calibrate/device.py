@@ -24,11 +24,11 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import jsonschema
-import numpy as np
 import yaml
 
 from sellip.capture import capture_yaml
 from sellip.capture import files
+from sellip.capture.writer import yaml_safe
 
 DEVICE_SECTIONS = ("sensor", "camera", "light")
 STEPS = ("intrinsics", "flash", "polarization", "color")
@@ -36,16 +36,6 @@ STEPS = ("intrinsics", "flash", "polarization", "color")
 
 class DeviceError(files.ConfigError):
     """device.yaml that is not valid: the message names the file, the key and what was expected."""
-
-
-def _plain(value):
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [_plain(v) for v in (value.tolist() if isinstance(value, np.ndarray) else value)]
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
 
 
 def validate_device(device: Mapping, file_label: str = "device.yaml", complete: bool = False) -> dict:
@@ -116,7 +106,7 @@ def write_device(path: str | Path, device: Mapping) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
         with open(tmp, "w") as f:
-            yaml.safe_dump(_plain(ordered), f, sort_keys=False, default_flow_style=None)
+            yaml.safe_dump(yaml_safe(ordered), f, sort_keys=False, default_flow_style=None)
         tmp.replace(path)
     finally:
         tmp.unlink(missing_ok=True)
@@ -130,9 +120,9 @@ def update_device(path: str | Path, sections: Mapping[str, Mapping], step: str, 
         raise ValueError(f"step must be one of {STEPS}, got {step!r}")
     device = read_device(path)
     for section, values in sections.items():
-        device.setdefault(section, {}).update(_plain(dict(values)))
+        device.setdefault(section, {}).update(yaml_safe(dict(values)))
     calibration = device.setdefault("calibration", {})
     calibration[step] = {"date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-                         **_plain(dict(record))}
+                         **yaml_safe(dict(record))}
     write_device(path, device)
     return device

@@ -6,6 +6,10 @@ synthetic scenes and synthetic captures with known truth.
 
 Modules and what they export (each name is importable from here too)::
 
+    assemble: A capture folder (DESIGN §3) from a folder of raw frames and a calibrated device.yaml (``sellip
+      capture new``)
+        RAW_SUFFIXES, FIELDS, AssembleError, parse_pattern, flash_level, frames_from_pattern, frames_from_csv,
+        assemble_capture
     capture_yaml: capture.yaml (DESIGN §3): its JSON schema and :func:`validate_config`, which names the key, what
       was expected and what was found
         CONFIG_SCHEMA, validate_config
@@ -54,7 +58,7 @@ Modules and what they export (each name is importable from here too)::
         FRAMES_SCHEMA, POSES_SCHEMA, validate_frames, validate_poses
     writer: Writing a capture folder (synthetic captures, tests): raw frames as DNG/TIFF/PNG, frames.csv,
       capture.yaml, poses.csv, under a temporary name and then renamed
-        write_raw_file, RAW_FORMATS, DNG_MIN_SIZE, CaptureWriter, write_capture
+        write_raw_file, RAW_FORMATS, DNG_MIN_SIZE, CaptureWriter, yaml_safe, write_capture
 
 See docs/architecture.md for what this package owns and what it may import.
 """
@@ -62,6 +66,8 @@ See docs/architecture.md for what this package owns and what it may import.
 from sellip._exports import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
+    "assemble": ("RAW_SUFFIXES", "FIELDS", "AssembleError", "parse_pattern", "flash_level", "frames_from_pattern",
+           "frames_from_csv", "assemble_capture"),
     "capture_yaml": ("CONFIG_SCHEMA", "validate_config"),
     "checks": ("DISTANCE_TOLERANCE", "UNIT_MATCH", "PoseUnitsError", "camera_distances", "likely_unit",
            "check_pose_units"),
@@ -88,5 +94,5 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "camera_rgb_from_srgb", "mosaic_sample", "sensor_mosaic", "sensor_colors", "simulate_raw"),
     "synthetic": ("FLASH_LEVELS", "FLASH_POSITION_CAM", "EXPOSURE_S", "synthesize_capture"),
     "tables": ("FRAMES_SCHEMA", "POSES_SCHEMA", "validate_frames", "validate_poses"),
-    "writer": ("write_raw_file", "RAW_FORMATS", "DNG_MIN_SIZE", "CaptureWriter", "write_capture"),
+    "writer": ("write_raw_file", "RAW_FORMATS", "DNG_MIN_SIZE", "CaptureWriter", "yaml_safe", "write_capture"),
 })

@@ -160,7 +160,7 @@ class CaptureWriter:
                                              "this view has no frame; expected every view to have frames")
             poses.to_csv(self._tmp / POSES_CSV, index=False, float_format="%.17g")
         with open(self._tmp / CAPTURE_YAML, "w") as f:
-            yaml.safe_dump(_plain(self.config), f, sort_keys=False, default_flow_style=None)
+            yaml.safe_dump(yaml_safe(self.config), f, sort_keys=False, default_flow_style=None)
         if self.path.exists():
             old = self.path.parent / f".{self.path.name}.old-{os.getpid()}"
             self.path.rename(old)
@@ -173,12 +173,12 @@ class CaptureWriter:
         return self.path
 
 
-def _plain(value):
-    """YAML-safe copy: numpy scalars and arrays to Python numbers and lists."""
+def yaml_safe(value):
+    """YAML-safe copy: numpy scalars and arrays to Python numbers and lists, keys to strings."""
     if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
+        return {str(k): yaml_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple, np.ndarray)):
-        return [_plain(v) for v in (value.tolist() if isinstance(value, np.ndarray) else value)]
+        return [yaml_safe(v) for v in (value.tolist() if isinstance(value, np.ndarray) else value)]
     if isinstance(value, np.generic):
         return value.item()
     return value
