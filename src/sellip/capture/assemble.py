@@ -149,7 +149,7 @@ def assemble_capture(frames_dir: str | Path, device: Mapping, distance_m: float,
     written = []
     try:
         for name, write in ((capture_files.FRAMES_CSV, lambda f: frames.to_csv(f, index=False, float_format="%.10g")),
-                            (capture_files.CAPTURE_YAML, lambda f: yaml.safe_dump(writer._plain(checked), f, sort_keys=False,
+                            (capture_files.CAPTURE_YAML, lambda f: yaml.safe_dump(writer.yaml_safe(checked), f, sort_keys=False,
                                                                        default_flow_style=None))):
             tmp = out / f".{name}.tmp-{os.getpid()}"
             written.append(tmp)
