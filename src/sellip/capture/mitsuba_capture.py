@@ -274,12 +274,13 @@ def _mesh_shape(name: str, vertices, faces, normals=None, albedo=None, bsdf=None
         props["bsdf"] = bsdf
     shape = mi.Mesh(name, len(vertices), len(faces), props=props, has_vertex_normals=normals is not None)
     params = mi.traverse(shape)
-    params["vertex_positions"] = mi.Float(np.asarray(vertices, np.float32).ravel())
-    params["faces"] = mi.UInt32(np.asarray(faces, np.uint32).ravel())
+    floats, indices = type(params["vertex_positions"]), type(params["faces"])  # dynamic arrays, also in scalar variants
+    params["vertex_positions"] = floats(np.asarray(vertices, np.float32).ravel())
+    params["faces"] = indices(np.asarray(faces, np.uint32).ravel())
     if normals is not None:
-        params["vertex_normals"] = mi.Float(np.asarray(normals, np.float32).ravel())
+        params["vertex_normals"] = floats(np.asarray(normals, np.float32).ravel())
     if albedo is not None:
-        shape.add_attribute(ALBEDO_ATTRIBUTE, 1, mi.Float(np.asarray(albedo, np.float32).ravel()))
+        shape.add_attribute(ALBEDO_ATTRIBUTE, 1, floats(np.asarray(albedo, np.float32).ravel()))
     params.update()
     return shape
 
