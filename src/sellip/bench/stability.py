@@ -123,6 +123,10 @@ CASES: tuple[Case, ...] = (
          config={"demo": {"scene": "pplastic_set", "renderer": "mitsuba"}}, needs=("mitsuba",)),
     Case("mitsuba_uniform_bright", "renderer", "uniform_bright rendered by Mitsuba 3",
          config={"demo": {"scene": "uniform_bright", "renderer": "mitsuba"}}, needs=("mitsuba",)),
+    Case("mitsuba_uniform_dark", "renderer", "uniform_dark (rho_d 0.04, one material) rendered by Mitsuba 3",
+         config={"demo": {"scene": "uniform_dark", "renderer": "mitsuba"}}, needs=("mitsuba",)),
+    Case("mitsuba_cow", "renderer", "the cow (flat black and white patches, concavities) rendered by Mitsuba 3",
+         config={"demo": {"scene": "cow", "renderer": "mitsuba"}}, needs=("mitsuba",)),
 )
 CASE_NAMES = tuple(case.name for case in CASES)
 
