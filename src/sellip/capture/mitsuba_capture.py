@@ -115,6 +115,9 @@ def choose_variant(requested: str | None = None) -> str:
         os.environ.setdefault("DRJIT_LIBLLVM_PATH", library)  # read when Dr.Jit starts its LLVM back end
     if requested is None:
         requested = MITSUBA_VARIANTS[0] if library else MITSUBA_VARIANTS[1]
+    elif requested.startswith("llvm") and library is None:
+        log.warning("Mitsuba variant %s without DRJIT_LIBLLVM_PATH or the karellen-llvm-core wheel: Dr.Jit uses the "
+                    "system's libLLVM, which may be too old (Debian 12's 15 aborts the process)", requested)
     import mitsuba as mi
 
     if requested not in MITSUBA_VARIANTS:
