@@ -42,7 +42,9 @@ def test_a_mitsuba_capture_runs_to_the_end(tmp_path):
     metrics = json.loads((tmp_path / "results" / "mitsuba_tiny" / "metrics.json").read_text())
     print("mitsuba capture metrics:", json.dumps(metrics, indent=1)[:3000])
     # Bounds of the own-renderer run of tests/workflow/test_workflow.py (the same size, one iteration): regressions
-    # and gross convention errors (a flipped Stokes axis, a missing 1/pi) fail them, noise does not.
+    # and gross convention errors (a flipped Stokes axis, a missing 1/pi) fail them, noise does not. Measured
+    # 2026-11-26 (1,663 s on a shared machine): normal median 2.17 deg, eta median 6.7 %, Chamfer 0.14 mm,
+    # held-out PSNR 27.1 dB (v005).
     assert metrics["normal_error_deg"]["all"]["median"] < 4.0
     assert metrics["eta_relative_error_pct"]["median"] < 14.0
     assert metrics["geometry"]["chamfer_mm"] < 1.2
