@@ -128,8 +128,8 @@ def choose_variant(requested: str | None = None) -> str:
     if requested.startswith("llvm"):
         import drjit as dr
 
-        # Start the LLVM back end now, before another library (Mesa's llvmpipe under open3d) loads an older
-        # libLLVM into the process, whose symbols Dr.Jit's would then resolve to.
+        # Start the LLVM back end now: once open3d has built a ray-casting scene in this process, Dr.Jit's code
+        # generation aborts it (measured with open3d 0.19 and libLLVM 23; the cause was not found).
         dr.eval(mi.Float([1.0]) + 1.0)
     return requested
 

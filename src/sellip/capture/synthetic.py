@@ -60,7 +60,7 @@ def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width:
     if renderer not in RENDERERS:
         raise ValueError(f"renderer must be one of {list(RENDERERS)}, got {renderer!r}")
     if renderer == "mitsuba":
-        # Chosen first: Dr.Jit's LLVM back end must start before open3d loads another libLLVM.
+        # Chosen first: Dr.Jit's LLVM back end must start before open3d builds a ray-casting scene (mitsuba_capture).
         from sellip.capture.mitsuba_capture import choose_variant
 
         mitsuba_variant = choose_variant(mitsuba_variant)
