@@ -412,3 +412,24 @@ def test_cli_lists_the_cases():
     out = subprocess.run([sys.executable, "-m", "sellip.cli", "bench-stability", "--help"], capture_output=True,
                          text=True, check=True).stdout
     assert "init_perturbed" in out and "--cores" in out
+
+
+def test_suite_skips_a_case_whose_package_is_missing(tmp_path, caplog):
+    from sellip.bench.stability_table import Case
+
+    calls = []
+
+    def fake_runner(case, workdir, snakefile, cores, iterations, jax_cache):
+        calls.append(case.name)
+        workdir.mkdir(parents=True, exist_ok=True)
+        _fake_run(workdir, case)
+        return stability_table.case_row(case, workdir, 5.0)
+
+    needy = Case("needs_nothing_installed", "renderer", "a case that needs a package that is not there",
+                 needs=("sellip_no_such_package_36",))
+    assert stability.missing_packages(needy) == ["sellip_no_such_package_36"]
+    assert all(stability.missing_packages(c) == [] for c in stability.CASES if "mitsuba" not in c.needs)
+    with caplog.at_level("WARNING"):
+        table = stability.run_suite([stability.CASES[0], needy], tmp_path, REPO / "Snakefile", runner=fake_runner)
+    assert calls == ["baseline"] and list(table["case"]) == ["baseline"]
+    assert "needs_nothing_installed: skipped, it needs sellip_no_such_package_36" in caplog.text

@@ -13,6 +13,7 @@ rule synth_capture:
         height=config["demo"]["height"],
         seed=config["demo"]["seed"],
         noise_scale=config["demo"].get("noise_scale", 1.0),
+        renderer=config["demo"].get("renderer", "sellip"),
     conda:
         "../../envs/ingest.yaml"
     log:
@@ -22,4 +23,5 @@ rule synth_capture:
     shell:
         SELLIP + " synth --scene {wildcards.scene} --out captures/{wildcards.scene}"
         " --views {params.views:q} --width {params.width} --height {params.height}"
-        " --seed {params.seed} --noise-scale {params.noise_scale} --no-progress > {log:q} 2>&1"
+        " --seed {params.seed} --noise-scale {params.noise_scale} --renderer {params.renderer:q}"
+        " --no-progress > {log:q} 2>&1"

@@ -7,6 +7,10 @@ Modules and what they export (each name is importable from here too)::
 
     ladder: The accuracy ladder (docs/accuracy.md): where the error of a reconstruction enters, rung by rung
         render_hdr, fit_true_mesh, figures, resampled_truth, psnr_ceiling
+    renderers: Both renderers side by side (issue #36): the figures of runs on captures of the same scenes rendered
+      by sellip and by Mitsuba 3 (stability-suite cases, :mod:`sellip.bench.stability`), with the share of vertices
+      that got a single-scattering lobe their ground truth does not have
+        false_single_scattering, renderer_row, renderer_markdown, main
     scale: How each stage's cost grows with the capture (issue #20): per-job costs of measured workflow runs, a cost
       model fitted to them, and the time it predicts for a capture that was not run (docs/speed.md, "Scale")
         RULE_TERMS, ITERATED_RULES, SHARDED_RULES, CaptureSize, size_terms, job_costs, rule_costs, fit_cost_model,
@@ -14,7 +18,7 @@ Modules and what they export (each name is importable from here too)::
     stability: The stability suite (issue #9): small reconstructions built to hit the known failure modes
         BASE_VIEWS, BASE_SEED, PERTURB_SEED, StabilityError, CASES, CASE_NAMES, held_out_views, base_config,
         case_config, perturb_along_normals, perturb_mesh_file, miscalibrate_flash, damage_frames, snakemake_command,
-        failure_reason, run_case, write_tables, run_suite
+        failure_reason, run_case, missing_packages, write_tables, run_suite
     stability_table: The stability suite's measurements: one row per case from its results folder (figures of merit,
       non-finite outputs, how well confidence flags bad vertices), the table's schema, and the markdown tables of
       docs/benchmarks.md
@@ -47,11 +51,13 @@ from sellip._exports import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "ladder": ("render_hdr", "fit_true_mesh", "figures", "resampled_truth", "psnr_ceiling"),
+    "renderers": ("false_single_scattering", "renderer_row", "renderer_markdown", "main"),
     "scale": ("RULE_TERMS", "ITERATED_RULES", "SHARDED_RULES", "CaptureSize", "size_terms", "job_costs", "rule_costs",
            "fit_cost_model", "predict"),
     "stability": ("BASE_VIEWS", "BASE_SEED", "PERTURB_SEED", "StabilityError", "CASES", "CASE_NAMES", "held_out_views",
            "base_config", "case_config", "perturb_along_normals", "perturb_mesh_file", "miscalibrate_flash",
-           "damage_frames", "snakemake_command", "failure_reason", "run_case", "write_tables", "run_suite"),
+           "damage_frames", "snakemake_command", "failure_reason", "run_case", "missing_packages", "write_tables",
+           "run_suite"),
     "stability_table": ("Case", "BAD_NORMAL_DEG", "BAD_ETA_PCT", "LOW_CONFIDENCE", "rank_auc", "confidence_flagging",
            "INFINITE_WHEN_UNKNOWN", "nonfinite_outputs", "COLUMNS", "empty_row", "case_row", "validate_table",
            "stability_markdown"),

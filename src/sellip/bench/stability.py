@@ -25,6 +25,7 @@ Public API::
     STABILITY_SCHEMA, validate_table(rows) -> DataFrame
     stability_markdown(table) -> str
     run_case(case, workdir, snakefile, cores=2, ...) -> dict
+    missing_packages(case) -> list[str]                  # the packages of case.needs not installed (case skipped)
     run_suite(cases, out, snakefile, cores=2, ...) -> DataFrame       # writes stability.csv / .md
 
 Confidence flagging (per case, over every vertex of final/model.ply): a vertex is *bad* when its normal
@@ -112,6 +113,20 @@ CASES: tuple[Case, ...] = (
          "edges, one material (scene cow)", config={"demo": {"scene": "cow"}}),
     Case("cow_sfm", "degenerate", "the cow without poses (SfM)",
          config={"demo": {"scene": "cow"}, "sfm": {"mode": "sfm"}}),
+    Case("tiny_plain", "renderer", "tiny without single scattering (scene tiny_plain), sellip's renderer: the "
+         "reference of mitsuba_tiny", config={"demo": {"scene": "tiny_plain"}}),
+    Case("mitsuba_tiny", "renderer", "tiny_plain rendered by Mitsuba 3 (pplastic): a renderer sellip was not tuned "
+         "on", config={"demo": {"scene": "tiny_plain", "renderer": "mitsuba"}}, needs=("mitsuba",)),
+    Case("pplastic_set", "renderer", "four pplastic materials, eta 1.33-2.0 (scene pplastic_set), sellip's "
+         "renderer", config={"demo": {"scene": "pplastic_set"}}),
+    Case("mitsuba_set", "renderer", "pplastic_set rendered by Mitsuba 3",
+         config={"demo": {"scene": "pplastic_set", "renderer": "mitsuba"}}, needs=("mitsuba",)),
+    Case("mitsuba_uniform_bright", "renderer", "uniform_bright rendered by Mitsuba 3",
+         config={"demo": {"scene": "uniform_bright", "renderer": "mitsuba"}}, needs=("mitsuba",)),
+    Case("mitsuba_uniform_dark", "renderer", "uniform_dark (rho_d 0.04, one material) rendered by Mitsuba 3",
+         config={"demo": {"scene": "uniform_dark", "renderer": "mitsuba"}}, needs=("mitsuba",)),
+    Case("mitsuba_cow", "renderer", "the cow (flat black and white patches, concavities) rendered by Mitsuba 3",
+         config={"demo": {"scene": "cow", "renderer": "mitsuba"}}, needs=("mitsuba",)),
 )
 CASE_NAMES = tuple(case.name for case in CASES)
 
@@ -342,6 +357,13 @@ def run_case(case: Case, workdir: str | Path, snakefile: str | Path, cores: int 
     return row
 
 
+def missing_packages(case: Case) -> list[str]:
+    """The packages of ``case.needs`` that cannot be imported here."""
+    import importlib.util
+
+    return [name for name in case.needs if importlib.util.find_spec(name) is None]
+
+
 def write_tables(rows: Sequence[Mapping], out: str | Path) -> Path:
     """Validate the rows and write ``out/stability.csv`` and ``out/stability.md`` (each atomically); returns
     the CSV path."""
@@ -364,6 +386,11 @@ def run_suite(cases: Sequence[Case], out: str | Path, snakefile: str | Path, cor
     began = time.perf_counter()
     for index, case in enumerate(cases, 1):
         workdir = out / "runs" / case.name
+        missing = missing_packages(case)
+        if missing:
+            log.warning("[%d/%d] %s: skipped, it needs %s (pip install 'sellip[test]')", index, len(cases), case.name,
+                        ", ".join(missing))
+            continue
         previous = workdir / "row.json"
         if keep and previous.is_file():
             kept = json.loads(previous.read_text())

@@ -26,7 +26,8 @@ class Case:
     after synthesis (the capture keeps the true flash; the reconstruction believes the declared one);
     missing / corrupt / truncated: frame ids deleted, overwritten with random bytes, cut to a third
     after synthesis (the run uses ``ingest.bad_frames: skip``); perturb_m: standard deviation of the
-    seeded displacement of the initial mesh's vertices along their normals.
+    seeded displacement of the initial mesh's vertices along their normals; needs: optional packages the case
+    needs (e.g. "mitsuba"); the suite skips the case, with a warning, where one is missing.
     """
 
     name: str
@@ -39,6 +40,7 @@ class Case:
     corrupt: tuple[str, ...] = ()
     truncated: tuple[str, ...] = ()
     perturb_m: float = 0.0
+    needs: tuple[str, ...] = ()
 
     @property
     def edits_capture(self) -> bool:

@@ -35,6 +35,11 @@ Modules and what they export (each name is importable from here too)::
       saturation mask, demosaic into the four analyzer images, colour matrix, undistortion, one store for all frames
       (:func:`linearize_capture`); a bad frame stops with its file and row, or is left out with ``bad_frames: skip``
         BLACK_LEVEL_SOURCES, BAD_FRAME_POLICIES, linearize_capture
+    mitsuba_capture: An independent renderer for synthetic captures: Mitsuba 3's ``pplastic`` under the rig's
+      polarized flash
+        MITSUBA_VARIANTS, POLARIZER_OFFSET_M, POLARIZER_HALF_SIZE_M, MAX_DEPTH, ALBEDO_ATTRIBUTE, PPlasticError,
+        mitsuba_available, choose_variant, PPlasticMaterial, pplastic_materials, mitsuba_camera, MitsubaResult,
+        MitsubaRenderer, render_in_subprocess
     mosaic: The sensor mosaic: which analyzer angle and which colour each raw pixel sees
         COLOR_LAYOUTS, MosaicError, MosaicLayout, mosaic_layout
     reader: Reading a capture folder (:func:`read_capture` -> :class:`Capture`) and its raw frames (DNG and camera
@@ -43,8 +48,8 @@ Modules and what they export (each name is importable from here too)::
     scenes: Procedural test scenes with known ground truth (no downloads) and handheld camera orbits
         SCENES, DEVICE_WIDTH_PX, DEVICE_FX_PX, SPHERE_IOR_ETAS, Material, DEMO_MATERIALS, DEMO_FINE_MATERIALS,
         Scene, icosphere, random_unit_vectors, cellular, bump, FEATHER_RELIEF_M, feather_relief, TINY_FLASH_POWER,
-        TINY_BUMPS, TINY_BUMP_WIDTH_RAD, TINY_MATERIALS, COW_PATCH_ALBEDO, build_scene, device_intrinsics,
-        look_at_rotation, handheld_orbit
+        TINY_BUMPS, TINY_BUMP_WIDTH_RAD, TINY_MATERIALS, COW_PATCH_ALBEDO, PPLASTIC_SET_MATERIALS, build_scene,
+        device_intrinsics, look_at_rotation, handheld_orbit
     sensor: Sensor simulation: the IMX250MYR colour-polarization mosaic (DESIGN §3) from rendered analyzer images
         IMX250_POLARIZER_LAYOUT, DEFAULT_COLOR_MATRIX, SRGB_LUMINANCE, SensorModel, camera_rgb_from_srgb,
         mosaic_sample, sensor_mosaic, sensor_colors, simulate_raw
@@ -52,7 +57,7 @@ Modules and what they export (each name is importable from here too)::
       the full pBRDF under the polarized flash on a handheld orbit, through the sensor simulator (mosaic, noise,
       quantization) into raw files, frames.csv, capture.yaml, poses.csv and the ground-truth model
       (:func:`synthesize_capture`)
-        FLASH_LEVELS, FLASH_POSITION_CAM, EXPOSURE_S, synthesize_capture
+        FLASH_LEVELS, FLASH_POSITION_CAM, RENDERERS, EXPOSURE_S, synthesize_capture
     tables: frames.csv and poses.csv (DESIGN §3): pandera schemas and validation that names the file, row and column
       of every problem
         FRAMES_SCHEMA, POSES_SCHEMA, validate_frames, validate_poses
@@ -83,16 +88,19 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "source_positions", "RemapTable", "make_remap", "remap", "IngestPlan", "make_ingest_plan",
            "process_frame", "analyzer_plan", "develop", "hdr_weight", "merge_hdr"),
     "linearize": ("BLACK_LEVEL_SOURCES", "BAD_FRAME_POLICIES", "linearize_capture"),
+    "mitsuba_capture": ("MITSUBA_VARIANTS", "POLARIZER_OFFSET_M", "POLARIZER_HALF_SIZE_M", "MAX_DEPTH", "ALBEDO_ATTRIBUTE",
+           "PPlasticError", "mitsuba_available", "choose_variant", "PPlasticMaterial", "pplastic_materials",
+           "mitsuba_camera", "MitsubaResult", "MitsubaRenderer", "render_in_subprocess"),
     "mosaic": ("COLOR_LAYOUTS", "MosaicError", "MosaicLayout", "mosaic_layout"),
     "reader": ("Capture", "read_capture", "read_raw_file", "read_raw_frame"),
     "scenes": ("SCENES", "DEVICE_WIDTH_PX", "DEVICE_FX_PX", "SPHERE_IOR_ETAS", "Material", "DEMO_MATERIALS",
            "DEMO_FINE_MATERIALS", "Scene", "icosphere", "random_unit_vectors", "cellular", "bump",
            "FEATHER_RELIEF_M", "feather_relief", "TINY_FLASH_POWER", "TINY_BUMPS", "TINY_BUMP_WIDTH_RAD",
-           "TINY_MATERIALS", "COW_PATCH_ALBEDO", "build_scene", "device_intrinsics", "look_at_rotation",
-           "handheld_orbit"),
+           "TINY_MATERIALS", "COW_PATCH_ALBEDO", "PPLASTIC_SET_MATERIALS", "build_scene", "device_intrinsics",
+           "look_at_rotation", "handheld_orbit"),
     "sensor": ("IMX250_POLARIZER_LAYOUT", "DEFAULT_COLOR_MATRIX", "SRGB_LUMINANCE", "SensorModel",
            "camera_rgb_from_srgb", "mosaic_sample", "sensor_mosaic", "sensor_colors", "simulate_raw"),
-    "synthetic": ("FLASH_LEVELS", "FLASH_POSITION_CAM", "EXPOSURE_S", "synthesize_capture"),
+    "synthetic": ("FLASH_LEVELS", "FLASH_POSITION_CAM", "RENDERERS", "EXPOSURE_S", "synthesize_capture"),
     "tables": ("FRAMES_SCHEMA", "POSES_SCHEMA", "validate_frames", "validate_poses"),
     "writer": ("write_raw_file", "RAW_FORMATS", "DNG_MIN_SIZE", "CaptureWriter", "yaml_safe", "write_capture"),
 })

@@ -4,7 +4,7 @@ Public API::
 
     SCENES: tuple of scene names ("demo", "demo_fine", "demo_feathers", "sphere_ior", "tiny", "tiny_dark",
             "tiny_white", "tiny_mirror", "tiny_bumpy", "tiny_relief", "tiny_speckle", "uniform_dark",
-            "uniform_bright", "cow")
+            "uniform_bright", "cow", "tiny_plain", "pplastic_set")
     build_scene(name) -> Scene                       # mesh with per-vertex pBRDF parameters, fixed per name
     handheld_orbit(views, width, height, rng, ...) -> list[Camera]
     device_intrinsics(width, height) -> (3, 3) K    # the 25 mm lens on the IMX250 scaled to width
@@ -44,6 +44,10 @@ Scenes:
   rho_d 0.7): degenerate statistics (every albedo one value) for the stability suite.
 - ``cow``: a cow-like figure (body, head, four legs, concavities) in one material painted with flat black
   and white patches with sharp edges: many identical albedo rows, for the stability suite.
+- ``tiny_plain``: ``tiny`` without its single scattering (the rough half's ρ_ss is 0), and ``pplastic_set``: a
+  4 cm sphere with four wedges of PPLASTIC_SET_MATERIALS (η 1.33-2.0, σ_s 0.1-0.4, among them the η 1.663 / α 0.25
+  material that gained a false single-scattering lobe in issue #36): scenes both renderers draw (Mitsuba's pplastic
+  has no single scattering; sellip.capture.mitsuba_capture), so any fitted ρ_ss is a false positive.
 """
 
 from __future__ import annotations
@@ -58,7 +62,8 @@ from sellip.model.pbrdf import PBRDFParams
 from sellip.model.render import Camera, ParamMesh
 
 SCENES = ("demo", "demo_fine", "demo_feathers", "sphere_ior", "tiny", "tiny_dark", "tiny_white", "tiny_mirror",
-          "tiny_bumpy", "tiny_relief", "tiny_speckle", "uniform_dark", "uniform_bright", "cow")
+          "tiny_bumpy", "tiny_relief", "tiny_speckle", "uniform_dark", "uniform_bright", "cow", "tiny_plain",
+          "pplastic_set")
 
 DEVICE_WIDTH_PX = 2448
 DEVICE_FX_PX = 7246.0
@@ -443,11 +448,40 @@ def _cow() -> Scene:
     return Scene("cow", mesh, (material,), flash_power=TINY_FLASH_POWER)
 
 
+PPLASTIC_SET_MATERIALS = (
+    Material("polypropylene", eta=1.49, rho_d=(0.25, 0.1, 0.05), rho_s=1.0, sigma_s=0.1),
+    Material("issue36_1663", eta=1.663, rho_d=(0.08, 0.15, 0.25), rho_s=1.0, sigma_s=0.25),
+    Material("water_rough", eta=1.33, rho_d=(0.3, 0.3, 0.25), rho_s=0.8, sigma_s=0.4),
+    Material("high_index", eta=2.0, rho_d=(0.05, 0.2, 0.1), rho_s=1.0, sigma_s=0.15),
+)
+"""pplastic_set's materials: no single scattering (what Mitsuba's pplastic can render)."""
+
+
+def _tiny_plain() -> Scene:
+    """The tiny sphere with no single scattering: both renderers can draw it."""
+    plain = tuple(Material(m.name, eta=m.eta, rho_d=m.rho_d, rho_s=m.rho_s, sigma_s=m.sigma_s) for m in TINY_MATERIALS)
+    return _two_material_sphere("tiny_plain", plain, (0.6, 1.2))
+
+
+def _pplastic_set() -> Scene:
+    """A 4 cm sphere (2562 vertices) in four azimuth wedges of PPLASTIC_SET_MATERIALS, each with the tiny sphere's
+    checker texture (gain 0.6 / 1.2)."""
+    d, faces = icosphere(4)
+    azimuth = np.mod(np.arctan2(d[:, 1], d[:, 0]), 2 * np.pi)
+    count = len(PPLASTIC_SET_MATERIALS)
+    region = np.minimum((azimuth / (2 * np.pi) * count).astype(np.int64), count - 1)
+    checker = ((np.floor(azimuth / (np.pi / 6)) + np.floor(d[:, 2] / 0.25)) % 2).astype(np.int64)
+    albedo = np.array([m.rho_d for m in PPLASTIC_SET_MATERIALS])[region] * np.array([0.6, 1.2])[checker][:, None]
+    mesh = ParamMesh(vertices=0.04 * d, faces=faces, normals=d.copy(),
+                     params=_params_from_regions(PPLASTIC_SET_MATERIALS, region, albedo), material=region)
+    return Scene("pplastic_set", mesh, PPLASTIC_SET_MATERIALS, flash_power=TINY_FLASH_POWER)
+
+
 _BUILDERS = {"demo": _demo, "demo_fine": _demo_fine, "demo_feathers": _demo_feathers, "sphere_ior": _sphere_ior,
              "tiny": _tiny,
              "tiny_dark": _tiny_dark, "tiny_white": _tiny_white, "tiny_mirror": _tiny_mirror, "tiny_bumpy": _tiny_bumpy,
              "tiny_relief": _tiny_relief, "tiny_speckle": _tiny_speckle, "uniform_dark": _uniform_dark,
-             "uniform_bright": _uniform_bright, "cow": _cow}
+             "uniform_bright": _uniform_bright, "cow": _cow, "tiny_plain": _tiny_plain, "pplastic_set": _pplastic_set}
 
 
 def build_scene(name: str) -> Scene:

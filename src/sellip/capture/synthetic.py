@@ -32,6 +32,11 @@ FLASH_POSITION_CAM = (0.0, 0.05, 0.0)
 
 
 
+RENDERERS = ("sellip", "mitsuba")
+"""Who renders a synthetic capture: sellip's pBRDF renderer, or Mitsuba 3's pplastic (docs/synthetic.md)."""
+
+
+
 EXPOSURE_S = 0.005
 """Nominal shutter time written to frames.csv; the flash dominates, so it does not scale the signal."""
 
@@ -39,16 +44,26 @@ EXPOSURE_S = 0.005
 
 def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width: int = 612, height: int = 512,
                        seed: int = 0, supersample: int = 2, raw_format: str = "dng", distortion=None,
-                       flash_levels=FLASH_LEVELS, progress: bool = True, noise_scale: float = 1.0) -> Path:
+                       flash_levels=FLASH_LEVELS, progress: bool = True, noise_scale: float = 1.0,
+                       renderer: str = "sellip", mitsuba_variant: str | None = None) -> Path:
     """Render and write a synthetic capture of ``scene_name`` to ``out``; returns the folder.
 
     width, height: raw mosaic size (multiples of 4); distortion: OpenCV (k1, k2, p1, p2, k3) or None;
     noise_scale: sensor noise standard deviations x this at the same signal
-    (:meth:`sellip.capture.sensor.SensorModel.with_noise_scale`; 1 is the real device).
+    (:meth:`sellip.capture.sensor.SensorModel.with_noise_scale`; 1 is the real device); renderer: "sellip"
+    (:class:`sellip.model.render.Renderer`) or "mitsuba" (Mitsuba 3's pplastic,
+    :class:`sellip.capture.mitsuba_capture.MitsubaRenderer` with ``mitsuba_variant``; the rest is the same).
     """
     from tqdm import tqdm
 
     started = time.perf_counter()
+    if renderer not in RENDERERS:
+        raise ValueError(f"renderer must be one of {list(RENDERERS)}, got {renderer!r}")
+    if renderer == "mitsuba":
+        # Chosen first: Dr.Jit's LLVM back end must start before open3d builds a ray-casting scene (mitsuba_capture).
+        from sellip.capture.mitsuba_capture import choose_variant
+
+        mitsuba_variant = choose_variant(mitsuba_variant)
     scene = build_scene(scene_name)
     cameras = handheld_orbit(views, width, height, np.random.default_rng([seed, 1]),
                              distance_m=scene.distance_m, elevation_deg=scene.elevation_deg,
@@ -67,13 +82,19 @@ def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width:
                       "read_noise_e": sensor.read_noise_e, "noise_scale": float(noise_scale),
                       "ground_truth": GROUND_TRUTH_MESH},
     }
-    renderer = Renderer(scene.mesh)
+    if renderer == "mitsuba":
+        from sellip.capture.mitsuba_capture import MitsubaRenderer
+
+        view_renderer = MitsubaRenderer(scene.mesh, variant=mitsuba_variant, seed=seed)
+        config["synthetic"]["renderer"] = view_renderer.description
+    else:
+        view_renderer = Renderer(scene.mesh)
     saturated = []
     with CaptureWriter(out, config, raw_format=raw_format) as writer:
         for index, camera in enumerate(tqdm(cameras, desc=f"synth {scene_name}", unit="view", disable=not progress)):
             view_id = f"v{index:03d}"
             light = flash_light(camera, FLASH_POSITION_CAM, polarizer_deg=0.0)
-            analyzers = renderer.render(camera, light, supersample=supersample).analyzers
+            analyzers = view_renderer.render(camera, light, supersample=supersample).analyzers
             for level_index, level in enumerate(flash_levels):
                 rng = np.random.default_rng([seed, 2, index, level_index])
                 raw = simulate_raw(analyzers, sensor, scene.flash_power * level, rng)
@@ -83,6 +104,7 @@ def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width:
         write_param_mesh(writer.path_in_capture(GROUND_TRUTH_MESH), scene.mesh)
         path = writer.finish()
     strongest = np.asarray(saturated).reshape(views, len(flash_levels))[:, 0]
+    log.info("rendered by %s", config["synthetic"].get("renderer", "sellip"))
     log.info("wrote %s: %d views x %d frames at %dx%d in %.1f s; views with saturated pixels at flash %.3g: %d",
              path, views, len(flash_levels), width, height, time.perf_counter() - started, flash_levels[0],
              int(np.sum(strongest > 0)))

@@ -1,13 +1,16 @@
 """``sellip synth``: generate a synthetic capture folder (DESIGN §3) with ground truth.
 
     sellip synth --scene demo --out captures/demo [--views N --width W --height H --seed S] [--noise-scale K]
+                 [--renderer sellip|mitsuba] [--mitsuba-variant V]
 
 For each view of a handheld orbit (:func:`sellip.capture.scenes.handheld_orbit`) the
 scene is rendered once with the full pBRDF (:mod:`sellip.model.render`) under the
 rig's polarized flash, then exposed at each flash level through the sensor
 model (:mod:`sellip.capture.sensor`) with independent noise. Written: capture.yaml,
 frames.csv, poses.csv, raw/ frames, ground_truth/model.ply. The same seed
-gives byte-identical files; the folder appears only when complete.
+gives byte-identical files; the folder appears only when complete. ``--renderer mitsuba`` renders the
+views with Mitsuba 3's pplastic instead (:mod:`sellip.capture.mitsuba_capture`; the ``test`` extra), the rest
+unchanged: an independent renderer for the validation set (docs/synthetic.md).
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import logging
 from pathlib import Path
 
 from sellip.capture.scenes import SCENES
-from sellip.capture.synthetic import synthesize_capture
+from sellip.capture.synthetic import RENDERERS, synthesize_capture
 from sellip.capture.writer import RAW_FORMATS
 
 log = logging.getLogger(__name__)
@@ -38,6 +41,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--noise-scale", type=float, default=1.0,
                         help="sensor noise standard deviations x this at the same signal, as with 1/k^2 of the "
                              "photons at k^2 the gain (default: 1, the real device)")
+    parser.add_argument("--renderer", choices=RENDERERS, default="sellip",
+                        help="who renders the views: sellip's pBRDF or Mitsuba 3's pplastic (default: sellip)")
+    parser.add_argument("--mitsuba-variant", default=None,
+                        help="Mitsuba variant (default: llvm_ad_mono_polarized when a new enough libLLVM is found, "
+                             "else scalar_spectral_polarized)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -48,9 +56,15 @@ def main(args: argparse.Namespace) -> int:
                          f"got {args.width}x{args.height}")
     if args.views < 1 or args.supersample < 1:
         raise SystemExit("--views and --supersample must be at least 1")
+    if args.renderer == "mitsuba":
+        from sellip.capture.mitsuba_capture import mitsuba_available
+
+        if not mitsuba_available():
+            raise SystemExit("--renderer mitsuba needs the mitsuba package (pip install 'sellip[test]')")
     if not args.noise_scale > 0:
         raise SystemExit(f"--noise-scale must be positive, got {args.noise_scale}")
     synthesize_capture(args.scene, args.out, views=args.views, width=args.width, height=args.height, seed=args.seed,
                        supersample=args.supersample, raw_format=args.raw_format, distortion=args.distortion,
-                       progress=not args.no_progress, noise_scale=args.noise_scale)
+                       progress=not args.no_progress, noise_scale=args.noise_scale, renderer=args.renderer,
+                       mitsuba_variant=args.mitsuba_variant)
     return 0
