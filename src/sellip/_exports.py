@@ -9,7 +9,10 @@ import importlib
 def lazy_exports(package: str, namespace: dict, modules: dict[str, tuple[str, ...]]):
     """(``__getattr__``, ``__dir__``, ``__all__``) of ``package`` re-exporting ``modules`` {module: names}; a
     name resolved once is kept in ``namespace`` (the package's globals)."""
-    home = {name: module for module, names in modules.items() for name in names}
+    # A name that is also a module of the package (fit.observe_mesh the module and the function) stays the module:
+    # otherwise `from sellip.fit import observe_mesh` would give the function before the module was imported and
+    # the module after.
+    home = {name: module for module, names in modules.items() for name in names if name not in modules}
 
     def __getattr__(name: str):
         if name not in home:

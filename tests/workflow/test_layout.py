@@ -41,3 +41,14 @@ def test_the_checker_finds_a_cycle_a_floor_violation_a_stage_import_and_a_long_f
     assert not any("_shared" in p for p in found)
     assert [p for p in found if "long.py" in p] == [f"{src / 'fit' / 'long.py'}:1: f is 92 lines (> 80) and its "
                                                     "docstring does not say why (Long: ...)"]
+
+
+def test_a_package_name_that_is_also_a_module_is_always_the_module():
+    """sellip.fit.observe_mesh is a module and a function in it: the package gives the module, whatever was
+    imported before (a fresh interpreter, so nothing is)."""
+    import subprocess
+
+    code = ("import types\nfrom sellip.fit import observe_mesh\nassert isinstance(observe_mesh, types.ModuleType)\n"
+            "from sellip.fit import fit_vertices\nassert callable(fit_vertices)\n")
+    subprocess.run([sys.executable, "-c", code], check=True, env={**__import__("os").environ,
+                                                                  "PYTHONPATH": str(REPO / "src")})
