@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from sellip.geometry.cameras import write_cameras
 
 BROWSER_ARGS = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"]
 
@@ -46,10 +47,8 @@ def bumpy_sphere(vertices: int, radius: float = 0.04):
 
 
 def synthetic_results(root: Path, vertices: int) -> Path:
-    import pandas as pd
     import zarr
 
-    from sellip.model.conventions import rotation_to_quaternion
     from sellip.model.ply import write_ply
     from sellip.capture.scenes import handheld_orbit
 
@@ -66,12 +65,8 @@ def synthetic_results(root: Path, vertices: int) -> Path:
     (results / "final").mkdir(parents=True, exist_ok=True)
     write_ply(results / "final" / "model.ply", vertex, faces)
     cameras = handheld_orbit(36, 612, 512, np.random.default_rng(0))
-    rows = []
-    for i, camera in enumerate(cameras):
-        q = rotation_to_quaternion(camera.rotation)
-        rows.append({"view_id": f"v{i:03d}", "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3],
-                     "tx": camera.translation[0], "ty": camera.translation[1], "tz": camera.translation[2]})
-    pd.DataFrame(rows).to_csv(results / "cameras.csv", index=False)
+    write_cameras(results / "cameras.csv", [f"v{i:03d}" for i in range(len(cameras))],
+                  np.stack([c.rotation for c in cameras]), np.stack([c.translation for c in cameras]))
     k = cameras[0].intrinsics
     zarr.open_group(str(results / "hdr.zarr"), mode="w").attrs["intrinsics"] = {
         "fx": float(k[0, 0]), "fy": float(k[1, 1]), "cx": float(k[0, 2]), "cy": float(k[1, 2]), "width": 612,

@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from sellip.geometry.cameras import write_cameras
 
 VIEWS = 12
 WIDTH, HEIGHT = 512, 416
@@ -15,10 +16,8 @@ FLASH = {"position_m": [0.0, 0.05, 0.0], "polarizer_deg": 0.0}
 
 def write_results(root: Path, scene: str = "tiny", seed: int = 0, drop: tuple[str, ...] = ()) -> Path:
     """results/NAME under ``root`` for ``scene``; ``drop``: model.ply properties to leave out (an older run)."""
-    import pandas as pd
     import zarr
 
-    from sellip.model.conventions import rotation_to_quaternion
     from sellip.model.ply import write_ply
     from sellip.model.params import write_params
     from sellip.capture.scenes import build_scene, handheld_orbit
@@ -52,12 +51,8 @@ def write_results(root: Path, scene: str = "tiny", seed: int = 0, drop: tuple[st
         "eta_std": np.full(n, 0.02), "sigma_s_std": np.full(n, 0.01), "model": np.where(cluster == 0, 1, 3),
         "eta_source": np.zeros(n), "lobe_source": np.zeros(n)})
     cameras = handheld_orbit(VIEWS, WIDTH, HEIGHT, rng, distance_m=built.distance_m, elevation_deg=built.elevation_deg)
-    rows = []
-    for i, camera in enumerate(cameras):
-        q = rotation_to_quaternion(camera.rotation)
-        rows.append({"view_id": f"v{i:03d}", "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3],
-                     "tx": camera.translation[0], "ty": camera.translation[1], "tz": camera.translation[2]})
-    pd.DataFrame(rows).to_csv(results / "cameras.csv", index=False)
+    write_cameras(results / "cameras.csv", [f"v{i:03d}" for i in range(len(cameras))],
+                  np.stack([c.rotation for c in cameras]), np.stack([c.translation for c in cameras]))
     k = cameras[0].intrinsics
     group = zarr.open_group(str(results / "hdr.zarr"), mode="w")
     group.attrs["intrinsics"] = {"fx": float(k[0, 0]), "fy": float(k[1, 1]), "cx": float(k[0, 2]),
