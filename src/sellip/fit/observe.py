@@ -57,6 +57,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from sellip.geometry.silhouettes import DEFAULT_SILHOUETTE
 from sellip.model.conventions import camera_forward, observations_from_analyzers
 
 PER_VIEW_ARRAYS: dict[str, tuple[tuple[int, ...], str]] = {
@@ -106,7 +107,7 @@ class ObserveSettings:
     shadow_offset: float = 0.5
     min_cos: float = 0.0
     edge_margin: float = 0.0
-    mask_threshold: float = 0.03
+    mask_threshold: float = DEFAULT_SILHOUETTE.threshold
     max_slope: float = 0.0
     threads: int = 0
 
@@ -281,7 +282,8 @@ def bilinear_sample(image: np.ndarray, valid: np.ndarray | None, pixels: np.ndar
     return values, ok
 
 
-def silhouette_distance(analyzers: np.ndarray, valid: np.ndarray | None, threshold: float = 0.03) -> np.ndarray:
+def silhouette_distance(analyzers: np.ndarray, valid: np.ndarray | None,
+                        threshold: float = DEFAULT_SILHOUETTE.threshold) -> np.ndarray:
     """(H, W) float32: each pixel's distance (pixels) to the nearest pixel outside the object's silhouette.
 
     The silhouette is that of :func:`sellip.geometry.silhouettes.silhouette_masks` on I_d = 2 I90 of ``analyzers``
