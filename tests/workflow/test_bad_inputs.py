@@ -99,6 +99,8 @@ CASES = {
                                            ["key 'sensor.width'", "multiple of the mosaic period"]),
     "singular colour matrix": (edit_yaml(lambda c: c["camera"].update(color_matrix=[[1, 0, 0]] * 3)),
                                ["key 'camera.color_matrix'", "invertible"]),
+    "focal length in millimetres": (edit_yaml(lambda c: c["camera"].update(fx=2.0)),  # 176 deg over 64 px
+                                    ["key 'camera.fx'", "field of view", "wrong units?", "not millimetres"]),
     "non-positive scene distance": (edit_yaml(lambda c: c["scene"].update(distance_m=0)),
                                     ["key 'scene.distance_m'", "> 0"]),
     "duplicate frame_id": (set_cell("frames.csv", 4, "frame_id", "v000_f0"), ["frames.csv", "duplicate frame_id"]),

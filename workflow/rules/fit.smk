@@ -71,7 +71,8 @@ rule fit_pbrdf:
     shell:
         SELLIP + " fit --observations {input.observations:q} --shard {wildcards.scatteritem}"
         " --output {output:q} {params.prior} {params.lobes} --dtype {params.dtype} {params.settings}"
-        " --fixed-sigma-ss {params.fixed_sigma_ss} --compilation-cache {params.cache:q} > {log:q} 2>&1"
+        " --fixed-sigma-ss {params.fixed_sigma_ss} --compilation-cache {params.cache:q} --mem-mb {resources.mem_mb}"
+        " > {log:q} 2>&1"
 
 
 rule gather_fit:

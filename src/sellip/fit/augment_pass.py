@@ -8,13 +8,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import shutil
 import time
 from pathlib import Path
 
 import numpy as np
 
 from sellip.fit.lobe_store import LOBE_COLUMNS, load_rows, lobes_schema, plot_lobes
+from sellip.jobs import atomic_directory
 
 log = logging.getLogger(__name__)
 
@@ -63,17 +63,13 @@ def _choose_model(cluster: int, obs, store: dict, rows, eta0: float, clustering,
 
 def _write_directory(output: Path, labels, vertex_models, table, lobes, colors, models, summary: dict) -> None:
     """The cluster-lobes directory (:mod:`sellip.fit.lobe_store`), built under a temporary name, then renamed."""
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(output.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    np.save(tmp / "labels.npy", labels.astype(np.int32))
-    np.save(tmp / "models.npy", vertex_models)
-    table.to_csv(tmp / "lobes.csv", index=False)
-    plot_lobes(tmp / "lobes.png", lobes, lambda i: colors[i], models)
-    (tmp / "clusters.json").write_text(json.dumps(summary, indent=2))
-    shutil.rmtree(output, ignore_errors=True)
-    tmp.rename(output)
+    with atomic_directory(output) as tmp:
+        tmp.mkdir()
+        np.save(tmp / "labels.npy", labels.astype(np.int32))
+        np.save(tmp / "models.npy", vertex_models)
+        table.to_csv(tmp / "lobes.csv", index=False)
+        plot_lobes(tmp / "lobes.png", lobes, lambda i: colors[i], models)
+        (tmp / "clusters.json").write_text(json.dumps(summary, indent=2))
 
 
 def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: int = 0, settings=None,
@@ -100,7 +96,11 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
     from sellip.fit.lobes import fit_cluster_lobe
     from sellip.fit.observe import ObserveError, open_observations
     from sellip.fit.records import FitSettings
-    from sellip.fit.selection import SelectionSettings, allowed_models, settings_for_model
+    from sellip.fit.selection import (
+        SelectionSettings,
+        allowed_models,
+        settings_for_model,
+    )
     from sellip.model.params import MODEL_NAMES, read_params, same_vertices
 
     settings = settings or AugmentSettings()

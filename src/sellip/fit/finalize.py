@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sellip.jobs import atomic_file
+
 log = logging.getLogger(__name__)
 
 
@@ -94,13 +96,10 @@ def finalize_model(params_path: Path, mesh_path: Path, output_model: Path, outpu
         log.info("%s has no model array: every vertex gets model %d", params_path, model)
     params = params_from(store, np.float64)._replace(eta=eta, sigma_s=sigma_s, rho_s=rho_s)
     confidence = np.asarray(store.get("confidence", np.zeros(n)), np.float32)
-    output_model = Path(output_model)
-    output_model.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output_model.with_name(output_model.name + ".tmp.ply")
-    write_param_mesh(tmp, ParamMesh(vertices, mesh.faces, store["normals"], params),
-                     extra={"confidence": confidence, "model": models, "eta_source": eta_source,
-                            "lobe_source": lobe_source})
-    tmp.replace(output_model)
+    with atomic_file(output_model) as tmp:
+        write_param_mesh(tmp, ParamMesh(vertices, mesh.faces, store["normals"], params),
+                         extra={"confidence": confidence, "model": models, "eta_source": eta_source,
+                                "lobe_source": lobe_source})
     arrays = {name: store[name] for name in store if name != "attrs"}
     arrays.update(model=models, cluster=cluster, eta=eta.astype(np.float32), eta_source=eta_source,
                   eta_vertex=np.asarray(store["eta"], np.float32), sigma_s=sigma_s.astype(np.float32),

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from sellip.jobs import atomic_file
 from sellip.model.params import MODEL_NAMES
 
 BOOTSTRAP_ROUNDS = 1000
@@ -220,9 +221,8 @@ def write_materials(path: str | Path, table: pd.DataFrame) -> Path:
     """Write the table as CSV atomically (temporary name, then rename), after checking it."""
     path = Path(path)
     validate_materials(table, str(path))
-    tmp = path.with_name(path.name + ".tmp")
-    table.to_csv(tmp, index=False, float_format="%.6g")
-    tmp.replace(path)
+    with atomic_file(path) as tmp:
+        table.to_csv(tmp, index=False, float_format="%.6g")
     return path
 
 
