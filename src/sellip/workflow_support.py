@@ -220,15 +220,17 @@ def error_lines(log: str | Path, limit: int = 8) -> list[str]:
 
 
 def killed_from_outside(log: str | Path) -> list[str]:
-    """For a job log that ends without an error (no ERROR line, no traceback): what that means, and the log's
-    memory estimates (a fit job's ``memory:`` line, :func:`sellip.fit.shard.fit_shard`). Empty otherwise."""
+    """For a job log that ends mid-run (its last line one of sellip's INFO/DEBUG/WARNING lines; no ERROR line, no
+    traceback): what that means, and the log's memory estimates (a fit job's ``memory:`` line, :func:`sellip.fit.shard.fit_shard`). Empty otherwise."""
     try:
         lines = Path(log).read_text(encoding="utf-8", errors="replace").splitlines()
     except OSError:
         return []
     levels = [m.group(1) for m in map(_LEVEL.match, lines) if m]
-    if not lines or "ERROR" in levels or "CRITICAL" in levels or any(line.startswith("Traceback") for line in lines):
-        return []
+    last = next((line for line in reversed(lines) if line.strip()), "")
+    if ("ERROR" in levels or "CRITICAL" in levels or any(line.startswith("Traceback") for line in lines)
+            or not re.match(r"^\S+ \S+ (DEBUG|INFO|WARNING) \S+: ", last)):
+        return []  # an error of its own, or not a sellip log that stops mid-run (e.g. "sellip: command not found")
     memory = [line.split(": ", 1)[1] for line in lines if " memory: about " in line]
     return (["it stopped without an error message: it was killed from outside (the system's out-of-memory "
              "killer, a time limit, or by hand)"] + [f"its {line}" for line in memory[-1:]])

@@ -145,3 +145,10 @@ def test_shards_are_whole_store_chunks():
     assert MODEL.shards_for(600, views, chunk, budget, vertex_chunk=256) == 3
     sizes = [stop - start for start, stop in (fit_shard_module.shard_rows(600, 256, k, 2) for k in range(2))]
     assert max(sizes) == 344
+
+
+def test_a_log_that_is_not_sellips_is_not_called_killed(tmp_path):
+    (tmp_path / "shell.log").write_text("bash: line 1: sellip: command not found\n")
+    (tmp_path / "empty.log").write_text("")
+    assert workflow_support.killed_from_outside(tmp_path / "shell.log") == []
+    assert workflow_support.killed_from_outside(tmp_path / "empty.log") == []
