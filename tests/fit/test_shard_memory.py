@@ -143,8 +143,10 @@ def test_shards_are_whole_store_chunks():
     budget = MODEL.bytes(320, views, chunk)
     assert MODEL.shards_for(600, views, chunk, budget) == 2  # by vertices alone, 300 would fit
     assert MODEL.shards_for(600, views, chunk, budget, vertex_chunk=256) == 3
-    sizes = [stop - start for start, stop in (fit_shard_module.shard_rows(600, 256, k, 2) for k in range(2))]
-    assert max(sizes) == 344
+    assert fit_shard_module.largest_shard(600, 256, 2) == 344
+    # 591 vertices: the last chunk holds 79, so two shards are 256 + 335.
+    assert fit_shard_module.largest_shard(591, 256, 2) == 335
+    assert MODEL.shards_for(591, views, chunk, MODEL.bytes(335, views, chunk), vertex_chunk=256) == 2
 
 
 def test_a_log_that_is_not_sellips_is_not_called_killed(tmp_path):

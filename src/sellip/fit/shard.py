@@ -94,6 +94,11 @@ def enable_compilation_cache(directory: str | Path | None) -> None:
 
 
 
+def largest_shard(num_vertices: int, chunk: int, total: int) -> int:
+    """Vertices of the largest of ``total`` shards (:func:`shard_rows`)."""
+    return max(stop - start for start, stop in (shard_rows(num_vertices, chunk, k, total) for k in range(total)))
+
+
 @dataclasses.dataclass(frozen=True)
 class ShardMemory:
     """Peak resident memory of one ``sellip fit`` job, in bytes: ``base`` (Python, JAX, the compiled kernels) +
@@ -111,11 +116,11 @@ class ShardMemory:
     def shards_for(self, total_vertices: int, views: int, chunk_size: int, budget: float,
                    vertex_chunk: int = 1) -> int | None:
         """The fewest shards of ``total_vertices`` whose largest job fits in ``budget`` bytes; None if none does.
-        Shards are whole store chunks of ``vertex_chunk`` vertices (:func:`shard_rows`)."""
+        Shards are whole store chunks of ``vertex_chunk`` vertices (:func:`largest_shard`)."""
         blocks = max(-(-total_vertices // vertex_chunk), 1)
 
         def fits(shards: int) -> bool:
-            return self.bytes(min(-(-blocks // shards) * vertex_chunk, total_vertices), views, chunk_size) <= budget
+            return self.bytes(largest_shard(total_vertices, vertex_chunk, shards), views, chunk_size) <= budget
 
         low, high = 1, blocks
         if not fits(high):
@@ -186,8 +191,7 @@ def shard_memory_message(shard: tuple[int, int], vertices: int, total: int, view
         return text + (f": no shard count fits (one vertex needs {model.bytes(1, views, chunk_size) / 1e9:.2f} GB); "
                        "raise fit.mem_mb or run on a machine with more memory (docs/reliability.md)")
     shards = max(shards, shard[1] + 1)  # the job did not fit: at least one more
-    blocks = -(-total // vertex_chunk)
-    per_shard = model.bytes(min(-(-blocks // shards) * vertex_chunk, total), views, chunk_size)
+    per_shard = model.bytes(largest_shard(total, vertex_chunk, shards), views, chunk_size)
     return text + (f": run with fit.shards: {shards} (--config 'fit={{shards: {shards}}}'; each job then needs "
                    f"about {per_shard / 1e9:.2f} GB) or raise fit.mem_mb to {math.ceil(need / 1e6 / 100) * 100:,} "
                    "(docs/reliability.md)")
