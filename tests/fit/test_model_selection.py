@@ -71,8 +71,10 @@ def test_every_candidate_model_runs_one_compiled_program(scene):
     """The model is data to the cluster kernels, not a static argument: the four candidates of three
     clusters (twelve lobe fits and held-out scorings) compile each kernel once."""
     assert all(len(s.candidates) == 4 for s in scene["selection"].values())
-    # _delta_step_jit has two forms whatever the model: albedos solved (the fit) or given (the scoring).
-    assert scene["compiled"] == {name: 2 if name == "_delta_step_jit" else 1 for name in CLUSTER_KERNELS}
+    # The candidates have no Delta theta_h (SelectionSettings.max_theta_error_deg 0): its step never runs. With
+    # one, _delta_step_jit has two forms whatever the model: albedos solved (the fit) or given (the scoring).
+    assert SELECTION.max_theta_error_deg == 0
+    assert scene["compiled"] == {name: 0 if name == "_delta_step_jit" else 1 for name in CLUSTER_KERNELS}
 
 
 def test_model_codes_settings_and_caps():
@@ -116,6 +118,37 @@ def test_the_rule_takes_the_simplest_model_within_the_tolerance():
     chosen, best, table = fit_selection.choose({1: flat * (1.03 + spread), 3: flat}, tolerance=0.01, standard_errors=1.0)
     assert best == 3 and chosen == 1 and table[1]["excess"] == pytest.approx(0.03 * table[3]["held_out_loss"])
     assert fit_selection.choose({1: flat * (1.03 + spread), 3: flat}, tolerance=0.0, standard_errors=0.0)[0] == 3
+
+
+def test_the_margin_says_how_near_a_choice_is_to_the_rules_boundary():
+    def row(excess, allowed):
+        return {"held_out_loss": 100.0 + excess, "excess": excess, "standard_error": 0.0, "allowed": allowed}
+
+    # Model 3 best; model 1 rejected by 1.2 x its allowance (0.2 past it), model 0 far away: margin 0.2, runner-up 1.
+    table = {0: row(500.0, 10.0), 1: row(2.4, 2.0), 3: row(0.0, 1.0)}
+    assert fit_selection.decision_margin(table, 3) == (pytest.approx(0.2), 1)
+    # Model 1 chosen within its allowance although model 3 is best: its unused allowance, 3 the runner-up.
+    table = {0: row(500.0, 10.0), 1: row(1.5, 2.0), 3: row(0.0, 1.0)}
+    assert fit_selection.decision_margin(table, 1) == (pytest.approx(0.25), 3)
+    # Chosen and best, every simpler model far off: 1 (capped), the runner-up the next lowest loss.
+    table = {0: row(500.0, 10.0), 1: row(0.0, 1.0), 2: row(0.3, 1.0), 3: row(0.1, 1.0)}
+    assert fit_selection.decision_margin(table, 1) == (1.0, 3)
+    # On the boundary: 0; nothing scored: NaN.
+    assert fit_selection.decision_margin({1: row(2.0, 2.0), 3: row(0.0, 1.0)}, 3)[0] == 0.0
+    margin, runner_up = fit_selection.decision_margin({}, 1)
+    assert np.isnan(margin) and runner_up is None
+
+
+def test_the_candidate_fits_have_no_half_angle_error_unless_asked():
+    augment = fit_clusters.AugmentSettings()
+    assert augment.max_theta_error_deg > 0 and augment.alternations > 0  # the chosen lobe's fit keeps it
+    plain = fit_selection.SelectionSettings().lobe_settings(augment)
+    assert (plain.max_theta_error_deg, plain.alternations, plain.max_samples) == (0.0, 0, 4096)
+    assert plain.lambda_theta == augment.lambda_theta and plain.k_max == augment.k_max
+    old = fit_selection.SelectionSettings(max_theta_error_deg=5.0).lobe_settings(augment)
+    assert (old.max_theta_error_deg, old.alternations) == (5.0, augment.alternations)
+    with pytest.raises(ValueError, match="max_theta_error_deg"):
+        fit_selection.SelectionSettings(max_theta_error_deg=-1.0)
 
 
 def test_selection_drops_the_lobes_a_cluster_does_not_need_and_keeps_those_it_needs(scene):
