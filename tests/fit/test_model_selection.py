@@ -139,6 +139,20 @@ def test_the_margin_says_how_near_a_choice_is_to_the_rules_boundary():
     assert np.isnan(margin) and runner_up is None
 
 
+def test_a_small_margin_lowers_the_confidence_and_clusters_json_gives_it_back():
+    factor = fit_selection.margin_confidence(np.array([0.0, 0.1, 0.5, 1.0, np.nan]))
+    np.testing.assert_allclose(factor, [0.5, 0.6, 1.0, 1.0, 1.0])
+    summary = {"model_selection": {"clusters": [
+        {"cluster": 0, "model": 3, "margin": 0.04, "runner_up": 2},
+        {"cluster": 2, "model": 1, "inherited": True, "candidates": {}},   # inherited: no margin
+        {"cluster": 1, "model": 1, "margin": 1.0, "runner_up": None}]}}
+    margins, runner_up = fit_selection.cluster_margins(summary, 3)
+    np.testing.assert_allclose(margins, [0.04, 1.0, np.nan])
+    np.testing.assert_array_equal(runner_up, [2, -1, -1])
+    margins, runner_up = fit_selection.cluster_margins({}, 2)  # selection off or an older clusters.json
+    assert np.isnan(margins).all() and (runner_up == -1).all()
+
+
 def test_the_candidate_fits_have_no_half_angle_error_unless_asked():
     augment = fit_clusters.AugmentSettings()
     assert augment.max_theta_error_deg > 0 and augment.alternations > 0  # the chosen lobe's fit keeps it
@@ -295,6 +309,16 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
                                  tmp_path / "final.zarr", tmp_path / "clusters")
     vertex, _ = read_ply(tmp_path / "model.ply")
     np.testing.assert_array_equal(vertex["model"], vertex_models)
+    # ... and its cluster's selection margin, which lowers the confidence where it is small.
+    margins, runner_up = fit_selection.cluster_margins(json.loads((tmp_path / "clusters" / "clusters.json").read_text()),
+                                                       int(labels.max()) + 1)
+    assert np.isfinite(margins).all()
+    final = read_params(tmp_path / "final.zarr")
+    np.testing.assert_allclose(final["selection_margin"], margins[labels], rtol=1e-6)
+    np.testing.assert_array_equal(final["selection_runner_up"], runner_up[labels])
+    np.testing.assert_allclose(final["confidence"], final["confidence_fit"] * fit_selection.margin_confidence(
+        margins[labels]), rtol=1e-6)
+    np.testing.assert_allclose(vertex["confidence"], final["confidence"])
     assert summary["vertices_per_model"]["0"] == np.sum(vertex_models == 0) and sum(
         summary["vertices_per_model"].values()) == n
 

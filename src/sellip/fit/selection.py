@@ -27,7 +27,9 @@ On the stability suite's rough material (sigma_s 0.35, no single scattering) mod
 0.17 with it and 0.33 without, and model 3 (sigma_s 0.09 + sigma_ss 0.49) won by 8 %; without it, by
 0.03 %, within the tolerance (docs/model_selection.md, "Why no Delta theta_h").
 
-:func:`decision_margin` says how far a choice is from the rule's boundary (materials.csv, the confidence).
+:func:`decision_margin` says how far a choice is from the rule's boundary; :func:`cluster_margins` reads it back
+from clusters.json and :func:`margin_confidence` turns it into the final model's confidence factor (materials.csv
+reports it per material).
 
 :func:`fit_by_model` fits N vertices with per-vertex models: one :func:`sellip.fit.vertex_fit.fit_vertices`
 call, the models being data to its compiled kernels (one compilation for every mix of models).
@@ -187,6 +189,34 @@ def decision_margin(table: dict, chosen: int) -> tuple[float, int | None]:
         others = sorted((m for m in table if m != chosen), key=lambda m: (table[m]["excess"], m))
         runner_up = others[0] if others else None
     return float(np.clip(terms[nearest], 0.0, 1.0)), runner_up
+
+
+MARGIN_FULL_CONFIDENCE = 0.5
+"""A cluster whose :func:`decision_margin` is below this has its vertices' confidence lowered in the final model
+(:func:`margin_confidence`): at 0 (the choice on the rule's boundary) by half."""
+
+
+def margin_confidence(margin) -> np.ndarray:
+    """The factor (...,) in [0.5, 1] on a vertex's confidence from its cluster's selection margin (...,):
+    0.5 + min(margin, :data:`MARGIN_FULL_CONFIDENCE`) / (2 MARGIN_FULL_CONFIDENCE): 0.5 on the boundary, 1 at
+    and above MARGIN_FULL_CONFIDENCE; 1 where no choice was scored (NaN: one candidate, too few vertices)."""
+    margin = np.asarray(margin, np.float64)
+    factor = 0.5 + 0.5 * np.clip(margin, 0.0, MARGIN_FULL_CONFIDENCE) / MARGIN_FULL_CONFIDENCE
+    return np.where(np.isfinite(margin), factor, 1.0)
+
+
+def cluster_margins(summary: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per cluster of a ``cluster-lobes`` summary (clusters.json), (margin (k,) float, runner_up (k,) int): the
+    recorded :func:`decision_margin` and runner-up of each cluster's choice; NaN and -1 where the pass scored no
+    candidates for it (inherited models, one candidate, too few vertices, no usable sample, selection off, or a
+    clusters.json written before margins were recorded)."""
+    margins, runner_up = np.full(k, np.nan), np.full(k, -1, np.int64)
+    for choice in (summary.get("model_selection") or {}).get("clusters") or []:
+        cluster = int(choice.get("cluster", -1))
+        if 0 <= cluster < k and choice.get("margin") is not None:
+            margins[cluster] = float(choice["margin"])
+            runner_up[cluster] = -1 if choice.get("runner_up") is None else int(choice["runner_up"])
+    return margins, runner_up
 
 
 def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: FitSettings | None = None,
