@@ -71,10 +71,10 @@ def test_every_candidate_model_runs_one_compiled_program(scene):
     """The model is data to the cluster kernels, not a static argument: the four candidates of three
     clusters (twelve lobe fits and held-out scorings) compile each kernel once."""
     assert all(len(s.candidates) == 4 for s in scene["selection"].values())
-    # The candidates have no Delta theta_h (SelectionSettings.max_theta_error_deg 0): its step never runs. With
-    # one, _delta_step_jit has two forms whatever the model: albedos solved (the fit) or given (the scoring).
+    # _delta_step_jit has two forms whatever the model: albedos solved (the fit) or given (the scoring); it runs
+    # in the lobe-or-none question (the lobe fit's Delta theta_h), not in the which-lobes one (none).
     assert SELECTION.max_theta_error_deg == 0
-    assert scene["compiled"] == {name: 0 if name == "_delta_step_jit" else 1 for name in CLUSTER_KERNELS}
+    assert scene["compiled"] == {name: 2 if name == "_delta_step_jit" else 1 for name in CLUSTER_KERNELS}
 
 
 def test_model_codes_settings_and_caps():

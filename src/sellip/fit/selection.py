@@ -17,10 +17,14 @@ vertex) into a training and a held-out part; every candidate's cluster lobe
 (:func:`sellip.fit.lobes.fit_cluster_lobe`) is fitted on the training part and scored by the
 cluster loss on the held-out samples (:func:`sellip.fit.lobes.lobe_sample_losses`). The simplest
 candidate whose held-out loss exceeds the best one's by at most ``tolerance`` (relative) plus
-``standard_errors`` standard errors of the paired per-vertex difference is chosen.
+``standard_errors`` standard errors of the paired per-vertex difference is chosen (:func:`choose`), in two
+questions: a reflection lobe or not, then which lobes.
 
-The candidate fits and their held-out scores have no per-sample half-angle error Delta theta_h
-(``max_theta_error_deg`` 0; the chosen model's lobe is then fitted with it, as before). That nuisance, one
+The candidate fits and their held-out scores that decide which lobes a cluster has (models 1, 2, 3) have no
+per-sample half-angle error Delta theta_h (``max_theta_error_deg`` 0; the chosen model's lobe is then fitted with
+it, as before); whether it has a reflection lobe at all (model 0 against the simplest with one) is decided
+first, with it, as before 2026-11-26 (without it, a weak rough lobe such as pplastic_set's eta 1.33, sigma_s 0.4
+was dropped altogether). That nuisance, one
 per sample and re-fitted on the held-out samples too, rewards a lobe that is steep in theta_h: a narrow
 specular lobe moves each sample onto its flank, and a broad single-scattering lobe fills in what is left.
 On the stability suite's rough material (sigma_s 0.35, no single scattering) model 1 came out at sigma_s
@@ -65,8 +69,9 @@ class SelectionSettings:
     sigma_ss_fixed: float = 0.9  # sigma_ss of model 2 when the fit settings do not fix it (paper §6)
     max_samples: int = 4096  # training (and at most as many held-out) samples per candidate fit
     min_held_out_vertices: int = 8  # fewer in either part: no selection, the most complex candidate
-    # |Delta theta_h| bound of the candidate fits and of their held-out scores (degrees; 0: no per-sample
-    # half-angle error, see the module docstring; AugmentSettings.max_theta_error_deg is the lobe fit's)
+    # |Delta theta_h| bound of the candidate fits and of their held-out scores among the models with a lobe
+    # (1, 2, 3; degrees; 0: no per-sample half-angle error, see the module docstring). Model 0 against a lobe
+    # keeps the cluster lobe fit's (AugmentSettings.max_theta_error_deg).
     max_theta_error_deg: float = 0.0
 
     def __post_init__(self):
@@ -219,6 +224,37 @@ def cluster_margins(summary: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
     return margins, runner_up
 
 
+def _held_out_losses(models, pools, eta0: float, fit_settings: FitSettings, selection: SelectionSettings,
+                     lobe_settings: clusters.AugmentSettings) -> dict:
+    """{model: (held-out vertices,) summed held-out loss} of each model's lobe fitted on the training pool and
+    scored on the held-out pool (``pools``: (train, held, held-out vertex count)), with the Delta theta_h bound
+    of ``lobe_settings`` (0: none, and no Delta theta_h fitted on the held-out samples either)."""
+    train_pool, held_pool, held = pools
+    delta_rounds = 2 if lobe_settings.max_theta_error_deg > 0 else 0
+    losses = {}
+    for m in models:
+        settings = settings_for_model(fit_settings, m, selection.sigma_ss_fixed)
+        lobe = fit_lobes._fit_pool(train_pool, eta0, settings, lobe_settings)
+        per_sample = fit_lobes.lobe_sample_losses(lobe, held_pool, settings, lobe_settings, delta_rounds)
+        losses[m] = np.bincount(held_pool.vertex, weights=per_sample, minlength=held)
+    return losses
+
+
+def _describe(chosen: int, best: int, table: dict, question: str) -> str:
+    """The sentence of one comparison of :func:`select_model`."""
+    def percent(x):
+        return 100 * x / max(table[best]["held_out_loss"], 1e-300)
+
+    reason = (f"{question}: model {chosen}, held-out loss {table[chosen]['held_out_loss']:.4g}, "
+              f"{percent(table[chosen]['excess']):+.2f} % over the best (model {best}), "
+              f"allowed {percent(table[chosen]['allowed']):.2f} %")
+    simpler = [m for m in sorted(table) if m < chosen]
+    if simpler:
+        reason += "; simpler: " + ", ".join(f"model {m} {percent(table[m]['excess']):+.2f} % "
+                                            f"(allowed {percent(table[m]['allowed']):.2f} %)" for m in simpler)
+    return reason
+
+
 def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: FitSettings | None = None,
                  selection: SelectionSettings = SelectionSettings(),
                  augment_settings: clusters.AugmentSettings = clusters.AugmentSettings(), seed: int = 0) -> Selection:
@@ -228,8 +264,13 @@ def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: F
     fitted normals and albedos (held, as in :func:`sellip.fit.lobes.fit_cluster_lobe`); eta0: the
     start of eta. The candidates are ``selection.candidates`` allowed by ``fit_settings``
     (:func:`allowed_models`). Each candidate's lobe is fitted on the training vertices (at most
-    ``selection.max_samples`` samples) and scored on the same held-out samples; the rule is
-    :func:`choose`. Deterministic for a seed.
+    ``selection.max_samples`` samples) and scored on the same held-out samples, by :func:`choose`, in two
+    questions: a reflection lobe or none (model 0 against the simplest model with one), with the cluster lobe
+    fit's Delta theta_h (``augment_settings``), as before 2026-11-26; then, if a lobe, which (the models from 1
+    up) with ``selection.max_theta_error_deg`` (0: none; the module docstring says why). The table holds model
+    0's row of the first question and the rows of the second (fitted and recorded even when the first says
+    none); the margin is the smaller of the questions' that decided (:func:`decision_margin`). Deterministic
+    for a seed.
     """
     fit_settings = fit_settings or FitSettings()
     candidates = allowed_models(fit_settings, selection.candidates)
@@ -242,8 +283,6 @@ def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: F
         top = candidates[-1]
         return Selection(top, {}, None, f"{n} vertices: too few to hold {selection.min_held_out_vertices} out "
                                         f"(kept the most complex candidate, {top})", len(train), len(held), 0)
-    lobe_settings = selection.lobe_settings(augment_settings)
-    delta_rounds = 2 if selection.max_theta_error_deg > 0 else 0
     take = lambda rows: Observations(*[np.asarray(x)[rows] for x in obs])  # noqa: E731
     normals, rho_d = np.asarray(normals), np.asarray(rho_d)
     train_pool = fit_lobes._pool_samples(take(train), normals[train], rho_d[train], fit_settings,
@@ -254,23 +293,29 @@ def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: F
         top = candidates[-1]
         return Selection(top, {}, None, f"no usable samples in the training or held-out part (kept {top})",
                          len(train), len(held), held_pool.count)
-    losses = {}
-    for m in candidates:
-        settings = settings_for_model(fit_settings, m, selection.sigma_ss_fixed)
-        lobe = fit_lobes._fit_pool(train_pool, eta0, settings, lobe_settings)
-        per_sample = fit_lobes.lobe_sample_losses(lobe, held_pool, settings, lobe_settings, delta_rounds)
-        losses[m] = np.bincount(held_pool.vertex, weights=per_sample, minlength=len(held))
-    chosen, best, table = choose(losses, selection.tolerance, selection.standard_errors)
-    percent = lambda x: 100 * x / max(table[best]["held_out_loss"], 1e-300)  # noqa: E731
-    reason = (f"model {chosen}: held-out loss {table[chosen]['held_out_loss']:.4g}, "
-              f"{percent(table[chosen]['excess']):+.2f} % over the best (model {best}), "
-              f"allowed {percent(table[chosen]['allowed']):.2f} %")
-    if chosen > candidates[0]:
-        reason += "; simpler: " + ", ".join(f"model {m} {percent(table[m]['excess']):+.2f} % "
-                                            f"(allowed {percent(table[m]['allowed']):.2f} %)"
-                                            for m in candidates if m < chosen)
-    margin, runner_up = decision_margin(table, chosen)
-    reason += f"; margin {margin:.2f}" + (f" (model {runner_up})" if runner_up is not None else "")
+    pools = (train_pool, held_pool, len(held))
+    lobed = [m for m in candidates if m >= 1]
+    reasons, margins, table, chosen, best = [], [], {}, None, None
+    if 0 in candidates and lobed:  # a reflection lobe at all: the lobe fit's own Delta theta_h
+        lobe_fit = dataclasses.replace(augment_settings, max_samples=selection.max_samples)
+        losses = _held_out_losses([0, lobed[0]], pools, eta0, fit_settings, selection, lobe_fit)
+        chosen, best, first = choose(losses, selection.tolerance, selection.standard_errors)
+        reasons.append(_describe(chosen, best, first, "a lobe"))
+        margins.append(decision_margin(first, chosen))
+        table.update(first)  # model 1's row is the which-lobes question's where that is asked
+    if len(lobed) > 1:  # which lobes: no Delta theta_h (selection.max_theta_error_deg); recorded after a "none" too
+        losses = _held_out_losses(lobed, pools, eta0, fit_settings, selection, selection.lobe_settings(augment_settings))
+        which, which_best, second = choose(losses, selection.tolerance, selection.standard_errors)
+        table.update(second)
+        if chosen != 0:
+            chosen, best = which, which_best
+            reasons.append(_describe(chosen, best, second, "which lobes"))
+            margins.append(decision_margin(second, chosen))
+    elif chosen is None:  # no model 0 to compare and one lobed candidate cannot happen (len(candidates) > 1)
+        chosen = lobed[0]
+    margin, runner_up = min(margins, key=lambda pair: pair[0]) if margins else (float("nan"), None)
+    reason = f"model {chosen} ({'; '.join(reasons)}); margin {margin:.2f}"
+    reason += f" (model {runner_up})" if runner_up is not None else ""
     return Selection(chosen, table, best, reason, len(train), len(held), held_pool.count, margin, runner_up)
 
 
