@@ -81,7 +81,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--selection-max-samples", type=int, default=selection.max_samples,
                         help="training samples per candidate fit")
     parser.add_argument("--selection-max-theta-error-deg", type=float, default=selection.max_theta_error_deg,
-                        help="|Delta theta_h| bound of the candidate fits and their held-out scores (0: none)")
+                        help="|Delta theta_h| bound of the candidate fits and their held-out scores among models 1-3 "
+                             "(0: none; model 0 against a lobe keeps the lobe fit's)")
 
 
 def main(args: argparse.Namespace) -> int:
