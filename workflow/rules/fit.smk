@@ -42,7 +42,8 @@ def model_selection_args(wildcards):
             f" --candidates {' '.join(str(m) for m in selection['candidates'])}"
             f" --held-out-fraction {selection['held_out_fraction']} --selection-tolerance {selection['tolerance']}"
             f" --selection-standard-errors {selection['standard_errors']}"
-            f" --fixed-sigma-ss {selection['sigma_ss_fixed']} --selection-max-samples {selection['max_samples']}")
+            f" --fixed-sigma-ss {selection['sigma_ss_fixed']} --selection-max-samples {selection['max_samples']}"
+            f" --selection-max-theta-error-deg {selection['max_theta_error_deg']}")
 
 
 rule fit_pbrdf:

@@ -54,11 +54,33 @@ def _choose_model(cluster: int, obs, store: dict, rows, eta0: float, clustering,
         choice = {"cluster": cluster, "model": model, "name": MODEL_NAMES[model], "reason": picked.reason,
                   "best": picked.best, "train_vertices": picked.train_vertices,
                   "held_out_vertices": picked.held_out_vertices, "held_out_samples": picked.held_out_samples,
+                  "margin": None if np.isnan(picked.margin) else picked.margin, "runner_up": picked.runner_up,
                   "candidates": {str(m): row for m, row in picked.candidates.items()},
                   "seconds": time.perf_counter() - began}
     else:
         model = model_of(fit_settings)
     return model, lobe, choice
+
+
+def cluster_rows(clustering, settings, seed: int, notes: list | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per cluster of ``clustering`` (:func:`sellip.fit.clusters.cluster_materials`), (members, rows): its
+    confidently fitted vertices (all its vertices where it has none; said in ``notes``) and the seeded subset of
+    them whose observations its lobe fit and model selection read (enough for ``settings.max_samples`` samples at
+    8 usable views each). The same ``seed`` gives the same rows (``benchmarks/replay_selection.py`` replays them)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for cluster in range(len(clustering.centres)):
+        members = np.flatnonzero((clustering.labels == cluster) & clustering.used)
+        if members.size == 0:  # its lobe comes from what its vertices have: lower confidence, said so
+            members = np.flatnonzero(clustering.labels == cluster)
+            if notes is not None:
+                notes.append(f"cluster {cluster} has no confidently fitted vertex: its lobe is fitted on all its "
+                             f"{members.size} vertices")
+                log.warning("%s", notes[-1])
+        limit = max(64, settings.max_samples // 8)
+        rows = np.sort(rng.choice(members, limit, replace=False)) if members.size > limit else members
+        out.append((members, rows))
+    return out
 
 
 def _write_directory(output: Path, labels, vertex_models, table, lobes, colors, models, summary: dict) -> None:
@@ -132,19 +154,9 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
             log.info("models inherited from %s (no candidate fits this iteration)", params)
         else:
             log.warning("%s has no models to inherit: selecting", params)
-    rng = np.random.default_rng(seed)
     lobes, rows_out, colors, models, choices = [], [], [], [], []
     notes = list(clustering.notes)
-    for cluster in range(k):
-        members = np.flatnonzero((clustering.labels == cluster) & clustering.used)
-        if members.size == 0:  # its lobe comes from what its vertices have: lower confidence, said so
-            members = np.flatnonzero(clustering.labels == cluster)
-            notes.append(f"cluster {cluster} has no confidently fitted vertex: its lobe is fitted on all its "
-                         f"{members.size} vertices")
-            log.warning("%s", notes[-1])
-        # Enough vertices for max_samples samples at >= 8 usable views each, a seeded subset.
-        limit = max(64, settings.max_samples // 8)
-        rows = np.sort(rng.choice(members, limit, replace=False)) if members.size > limit else members
+    for cluster, (members, rows) in enumerate(cluster_rows(clustering, settings, seed, notes)):
         mark("read")
         obs = load_rows(group, rows)
         mark("select")
