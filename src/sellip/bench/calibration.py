@@ -7,7 +7,7 @@ a synthetic calibration set of the same device (docs/calibration.md, "How carefu
 Public API::
 
     Perturbation(label, change)                       # one row: a change of the capture.yaml description
-    PERTURBATIONS                                     # the rows of the table, in the order they run
+    PERTURBATIONS                                     # the rows of the table, in the order they run (most telling first)
     FULL_SIZE_ERRORS                                  # what the calibration got wrong at 2448x2048, seed 1
     perturb_description(config, change, width=None) -> dict       # capture.yaml's dict with ``change`` applied
     perturbed_capture(capture, out, change) -> Path   # a capture sharing the frames, capture.yaml changed
@@ -66,14 +66,14 @@ PERTURBATIONS: tuple[Perturbation, ...] = (
     Perturbation("true description, noise seed 1", {}, noise_seed=1),
     Perturbation("calibrated at 612x512 (sellip calibrate)", kind="calibrated"),
     Perturbation("full-size calibration's errors (seed 1)", FULL_SIZE_ERRORS),
-    Perturbation("flash 2 mm off (x)", {"flash_mm": (2.0, 0.0, 0.0)}),
-    Perturbation("flash 5 mm off (x)", {"flash_mm": (5.0, 0.0, 0.0)}),
     Perturbation("flash 10 mm off (x)", {"flash_mm": (10.0, 0.0, 0.0)}),
-    Perturbation("polarizer 1 deg off", {"polarizer_deg": 1.0}),
     Perturbation("polarizer 3 deg off", {"polarizer_deg": 3.0}),
-    Perturbation("fx 0.5 % off", {"fx_rel": 0.005}),
     Perturbation("fx 2 % off", {"fx_rel": 0.02}),
     Perturbation("colour matrix from a noisy chart", kind="chart"),
+    Perturbation("fx 0.5 % off", {"fx_rel": 0.005}),
+    Perturbation("flash 5 mm off (x)", {"flash_mm": (5.0, 0.0, 0.0)}),
+    Perturbation("polarizer 1 deg off", {"polarizer_deg": 1.0}),
+    Perturbation("flash 2 mm off (x)", {"flash_mm": (2.0, 0.0, 0.0)}),
     Perturbation("flash 5 mm off (z)", {"flash_mm": (0.0, 0.0, 5.0)}),
 )
 
@@ -254,7 +254,8 @@ def _true_capture(work: Path, scene: str, views: int, device: Mapping, noise_see
     if not (capture / "capture.yaml").is_file():
         synthesize_capture(scene, capture, views=views, device=device, noise_seed=noise_seed, progress=False)
         config = yaml.safe_load((capture / "capture.yaml").read_text())
-        config["synthetic"]["true_description"] = {k: config[k] for k in ("sensor", "camera", "light")}
+        # copies: the same objects would be written as YAML aliases, read back as one dict, and perturbed together
+        config["synthetic"]["true_description"] = copy.deepcopy({k: config[k] for k in ("sensor", "camera", "light")})
         (capture / "capture.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
     return capture
 
@@ -279,8 +280,10 @@ def run_sensitivity(work: str | Path, scene: str = "sphere_ior", views: int = 36
     for k, row in enumerate(rows):
         folder = work / "rows" / f"{k:02d}"
         if (folder / "row.json").is_file():
-            done.append(json.loads((folder / "row.json").read_text()))
-            continue
+            kept = json.loads((folder / "row.json").read_text())
+            if kept["label"] == row.label:
+                done.append(kept)
+                continue
         try:
             done.append(_run_row(work, folder, row, f"[{k + 1}/{len(rows)}]", scene, views, max_vertices, iterations,
                                  cores, device, calibration_seed))
