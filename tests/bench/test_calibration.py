@@ -80,8 +80,8 @@ def test_a_noisy_chart_gives_a_worse_matrix():
 def test_markdown_has_a_line_per_row():
     row = {"label": "true description", "eta_per_material_mean_pct": 0.5, "eta_per_material_max_pct": 1.2,
            "eta_vertex_median_pct": 1.0, "normal_median_deg": 0.8, "held_out_psnr_db": 26.1,
-           "rho_d_relative_rmse": {"relative_rmse": 0.05}, "wall_s": 300.0}
+           "rho_d_relative_rmse": {"relative_rmse": 0.05}, "chamfer_mm": 0.031, "wall_s": 300.0}
     text = calibration.sensitivity_markdown([row, {**row, "label": "fx 2 % off", "held_out_psnr_db": None}])
     lines = text.splitlines()
-    assert len(lines) == 4 and "| true description | 0.50 / 1.20 | 1.00 | 0.80 | 26.10 | 0.050 | 5.0 |" == lines[2]
+    assert len(lines) == 4 and lines[2] == "| true description | 0.50 / 1.20 | 1.00 | 0.80 | 26.10 | 0.050 | 0.031 | 5.0 |"
     assert "| – |" in lines[3]

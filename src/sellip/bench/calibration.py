@@ -210,7 +210,8 @@ def sensitivity_config(capture: str | Path, views: int, max_vertices: int, itera
 def sensitivity_row(label: str, results: str | Path, capture: str | Path, wall_s: float, cpu_s: float) -> dict:
     """One row from a finished run (results/NAME with metrics.json): η per material (mean and worst error of the
     per-material medians, %), η per vertex median (%), normal median (deg), held-out PSNR (dB), ρd relative RMSE,
-    and the description's errors against the capture's true one (``synthetic.true_description``)."""
+    Chamfer distance (mm), and the description's errors against the capture's true one
+    (``synthetic.true_description``)."""
     import yaml
 
     from sellip.report.metrics import headline_figures
@@ -223,6 +224,7 @@ def sensitivity_row(label: str, results: str | Path, capture: str | Path, wall_s
             "eta_per_material": {k: v["error_pct"] for k, v in
                                  ((figures["eta_per_material"] or {}).get("materials") or {}).items()},
             "rho_d_relative_rmse": metrics.get("rho_d_relative_rmse"),
+            "chamfer_mm": (metrics.get("geometry") or {}).get("chamfer_mm"),
             "vertices": (metrics.get("vertices") or {}).get("model"),
             "errors": description_errors(config, truth) if truth else None, "wall_s": wall_s, "cpu_s": cpu_s}
 
@@ -234,14 +236,15 @@ def _fmt(value, spec: str = ".2f") -> str:
 def sensitivity_markdown(rows: list[Mapping]) -> str:
     """The table of docs/calibration.md: one line per row."""
     header = ("| description | η per material: mean / worst error % | η per vertex median % | normal median ° | "
-              "held-out PSNR dB | ρd rel. RMSE | wall min |")
-    lines = [header, "|---|---|---|---|---|---|---|"]
+              "held-out PSNR dB | ρd rel. RMSE | Chamfer mm | wall min |")
+    lines = [header, "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         rho = r.get("rho_d_relative_rmse")
         rho = rho.get("relative_rmse") if isinstance(rho, Mapping) else rho
         lines.append(f"| {r['label']} | {_fmt(r['eta_per_material_mean_pct'])} / {_fmt(r['eta_per_material_max_pct'])}"
                      f" | {_fmt(r['eta_vertex_median_pct'])} | {_fmt(r['normal_median_deg'])} | "
-                     f"{_fmt(r['held_out_psnr_db'])} | {_fmt(rho, '.3f')} | {_fmt(r['wall_s'] / 60, '.1f')} |")
+                     f"{_fmt(r['held_out_psnr_db'])} | {_fmt(rho, '.3f')} | {_fmt(r.get('chamfer_mm'), '.3f')} | "
+                     f"{_fmt(r['wall_s'] / 60, '.1f')} |")
     return "\n".join(lines) + "\n"
 
 
@@ -281,8 +284,11 @@ def run_sensitivity(work: str | Path, scene: str = "sphere_ior", views: int = 36
         folder = work / "rows" / f"{k:02d}"
         if (folder / "row.json").is_file():
             kept = json.loads((folder / "row.json").read_text())
-            if kept["label"] == row.label:
-                done.append(kept)
+            if kept["label"] == row.label:  # its figures read again from its run (columns added since get filled)
+                fresh = sensitivity_row(row.label, folder / "results" / "run", folder / "capture", kept["wall_s"],
+                                        kept["cpu_s"])
+                done.append({**kept, **fresh})
+                (folder / "row.json").write_text(json.dumps(done[-1], indent=1))
                 continue
         try:
             done.append(_run_row(work, folder, row, f"[{k + 1}/{len(rows)}]", scene, views, max_vertices, iterations,
