@@ -13,14 +13,10 @@ import pandas as pd
 import pytest
 import yaml
 
-from sellip.capture import ingest
-from sellip.capture import writer
-from sellip.capture import reader
-from sellip.capture import files
 from sellip.calibrate import color, flash, intrinsics, polarization, synthetic
 from sellip.calibrate import device as devices
 from sellip.calibrate.intrinsics import CalibrationError
-from sellip.capture import assemble
+from sellip.capture import assemble, files, ingest, reader, writer
 
 W, H = 612, 512
 SPEC = synthetic.BoardSpec()

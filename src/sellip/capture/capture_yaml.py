@@ -10,7 +10,12 @@ from collections.abc import Mapping
 import jsonschema
 import numpy as np
 
-from sellip.capture.files import CAPTURE_YAML, ConfigError, UnknownLayoutError, more_problems
+from sellip.capture.files import (
+    CAPTURE_YAML,
+    ConfigError,
+    UnknownLayoutError,
+    more_problems,
+)
 from sellip.capture.mosaic import MosaicError, mosaic_layout
 
 # --------------------------------------------------------------------------- capture.yaml
