@@ -1,6 +1,7 @@
-"""How a stage writes its outputs (every stage family uses it; it imports nothing of sellip): a directory built
-under a temporary name and renamed when complete (:func:`atomic_directory`), progress lines for long loops
-(:func:`progress_logger`), and an ordered thread map (:func:`map_in_threads`).
+"""How a stage writes its outputs (every stage family uses it; it imports nothing of sellip): a file or a directory
+built under a temporary name and renamed when complete (:func:`atomic_file`, :func:`atomic_directory`; every writer
+of an output uses one of them, so a job killed mid-write leaves nothing at the output's path: docs/reliability.md),
+progress lines for long loops (:func:`progress_logger`), and an ordered thread map (:func:`map_in_threads`).
 """
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ import logging
 import os
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
@@ -19,9 +20,36 @@ log = logging.getLogger(__name__)
 
 
 
+def _temporary_sibling(output: Path) -> Path:
+    """A hidden sibling of ``output`` named for this process, with the same suffix (writers that go by it work)."""
+    return output.with_name(f".{output.stem}.tmp-{os.getpid()}{output.suffix}")
+
+
 @contextmanager
-def atomic_directory(output: str | Path):
-    """Yield a temporary sibling of ``output`` to write into; rename it to ``output`` on success, delete it on error."""
+def atomic_file(output: str | Path) -> Iterator[Path]:
+    """Yield a temporary sibling path of the file ``output`` to write; on success it replaces ``output`` in one
+    rename (a reader sees the old file or the new one, never a part), on error it is deleted. Creates the parent."""
+    output = Path(output)
+    tmp = _temporary_sibling(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        yield tmp
+        os.replace(tmp, output)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_text(text: str, output: str | Path) -> Path:
+    """Write ``text`` (UTF-8) to the file ``output`` atomically (:func:`atomic_file`). Returns ``output``."""
+    with atomic_file(output) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(output)
+
+
+@contextmanager
+def atomic_directory(output: str | Path) -> Iterator[Path]:
+    """Yield a temporary sibling of the directory ``output`` to write into (not yet created); rename it to
+    ``output`` on success (replacing an old one), delete it on error. Creates the parent."""
     output = Path(output)
     tmp = output.parent / f".{output.name}.tmp-{os.getpid()}"
     if tmp.exists():

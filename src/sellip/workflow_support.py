@@ -219,14 +219,33 @@ def error_lines(log: str | Path, limit: int = 8) -> list[str]:
     return lines[-limit:]
 
 
+def killed_from_outside(log: str | Path) -> list[str]:
+    """For a job log that ends mid-run (its last line one of sellip's INFO/DEBUG/WARNING lines; no ERROR line, no
+    traceback): what that means, and the log's memory estimates (a fit job's ``memory:`` line, :func:`sellip.fit.shard.fit_shard`). Empty otherwise."""
+    try:
+        lines = Path(log).read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        return []
+    levels = [m.group(1) for m in map(_LEVEL.match, lines) if m]
+    last = next((line for line in reversed(lines) if line.strip()), "")
+    if ("ERROR" in levels or "CRITICAL" in levels or any(line.startswith("Traceback") for line in lines)
+            or not re.match(r"^\S+ \S+ (DEBUG|INFO|WARNING) \S+: ", last)):
+        return []  # an error of its own, or not a sellip log that stops mid-run (e.g. "sellip: command not found")
+    memory = [line.split(": ", 1)[1] for line in lines if " memory: about " in line]
+    return (["it stopped without an error message: it was killed from outside (the system's out-of-memory "
+             "killer, a time limit, or by hand)"] + [f"its {line}" for line in memory[-1:]])
+
+
 def format_failures(snakemake_log, root: str | Path = ".") -> str:
-    """What failed and why, for the console: for each failed rule, its log's error lines and where the log is."""
+    """What failed and why, for the console: for each failed rule, its log's error lines and where the log is;
+    for a job killed from outside (:func:`killed_from_outside`), that, and its memory estimate."""
     out = []
     for rule, logs in failed_job_logs(snakemake_log):
         for log in logs or [None]:
             out.append(f"sellip: rule {rule} failed" + (f" (full log: {log})" if log else ""))
             if log:
                 out += [f"  {line}" for line in error_lines(Path(root) / log)]
+                out += [f"  {line}" for line in killed_from_outside(Path(root) / log)]
     if out:
         out.append("sellip: fix that and run the same command again: finished jobs are kept (docs/reliability.md)")
     return "\n".join(out)

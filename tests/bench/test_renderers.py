@@ -6,7 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sellip.bench.renderers import false_single_scattering, renderer_markdown
+from sellip.bench.renderers import (
+    false_single_scattering,
+    renderer_markdown,
+    single_scattering_shares,
+)
 from sellip.capture.scenes import build_scene
 from sellip.model.ply import write_param_mesh
 from sellip.model.render import ParamMesh
@@ -43,3 +47,16 @@ def test_a_truth_with_single_scattering_has_no_false_positives_there(tmp_path):
     found = false_single_scattering(tmp_path / "model.ply", tmp_path / "truth.ply")
     has_ss = np.asarray(truth.params.rho_ss).max(axis=1) > 0
     assert found["vertices"] == int((~has_ss).sum()) and found["share"] == 1.0 and list(found["per_material"]) == ["0"]
+    assert found["recall"] == 1.0 and found["recall_vertices"] == int(has_ss.sum())
+    assert list(found["recall_per_material"]) == ["1"]
+
+
+def test_single_scattering_shares_count_false_lobes_and_recall_apart():
+    truth_ss = np.array([False, False, False, False, True, True, True, True])
+    has_ss = np.array([True, False, False, False, True, True, False, False])
+    label = np.array([0, 0, 1, 1, 2, 2, 2, 2])
+    found = single_scattering_shares(has_ss, truth_ss, label)
+    assert found["share"] == 0.25 and found["vertices"] == 4 and found["per_material"] == {"0": 0.5, "1": 0.0}
+    assert found["recall"] == 0.5 and found["recall_vertices"] == 4 and found["recall_per_material"] == {"2": 0.5}
+    none = single_scattering_shares(has_ss[:4], truth_ss[:4])
+    assert none["recall"] is None and none["recall_per_material"] == {} and none["per_material"] == {}

@@ -16,11 +16,12 @@ import pandas as pd
 import pytest
 import yaml
 
-from sellip.bench import sweep, sweep_plan, sweep_tables
+from sellip.bench import sweep, sweep_plan, sweep_report, sweep_tables
 from sellip.capture.scenes import SPHERE_IOR_ETAS
 from sellip.fit.observe_mesh import spread_subset
 from sellip.model.pbrdf import PBRDFParams
 from sellip.model.render import ParamMesh
+from sellip.report.outputs import save_figure
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -253,9 +254,9 @@ def test_front_marks_and_chart(tmp_path):
                     ("demo", "iterations", 4, 200.0, 11.0, 16.0, 19.0, 80.0),  # dominated by the base in all
                     ("sphere_ior", "base", None, 90.0, 5.0, 5.0, 25.0, 40.0)])
     assert sweep_tables.front_marks(table) == ["1 3", "1 2 3", "", "1 2 3"]
-    path = sweep_tables.save_figure_atomic(sweep_tables.sweep_figure(table), tmp_path / "img" / "sweep.png")
+    path = save_figure(sweep_tables.sweep_figure(table), tmp_path / "img" / "sweep.png")
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not list(path.parent.glob(".*tmp*"))
-    csv = sweep_tables.write_csv_atomic(table, tmp_path / "sweep.csv")
+    csv = sweep_report.write_csv(table, tmp_path / "sweep.csv")
     back = sweep_tables.sweep_table(pd.read_csv(csv, dtype={"value": str}).to_dict("records"))
     assert back["name"].tolist() == table["name"].tolist() and back["total_s"].tolist() == table["total_s"].tolist()
 

@@ -72,6 +72,6 @@ def test_capture_sensor_section_is_valid_capture_yaml():
     from sellip.capture.capture_yaml import validate_config
 
     sensor = SensorModel(width=64, height=48)
-    config = {"sensor": sensor.capture_sensor(), "camera": {"fx": 1.0, "fy": 1.0, "cx": 0.0, "cy": 0.0},
+    config = {"sensor": sensor.capture_sensor(), "camera": {"fx": 60.0, "fy": 60.0, "cx": 32.0, "cy": 24.0},
               "light": {"position_m": [0, 0.05, 0], "polarizer_deg": 0}, "scene": {"distance_m": 0.9}}
     assert validate_config(config)["sensor"]["polarizer_layout"] == [[90, 45], [135, 0]]

@@ -71,7 +71,9 @@ def test_every_candidate_model_runs_one_compiled_program(scene):
     """The model is data to the cluster kernels, not a static argument: the four candidates of three
     clusters (twelve lobe fits and held-out scorings) compile each kernel once."""
     assert all(len(s.candidates) == 4 for s in scene["selection"].values())
-    # _delta_step_jit has two forms whatever the model: albedos solved (the fit) or given (the scoring).
+    # _delta_step_jit has two forms whatever the model: albedos solved (the fit) or given (the scoring); it runs
+    # in the lobe-or-none question (the lobe fit's Delta theta_h), not in the which-lobes one (none).
+    assert SELECTION.max_theta_error_deg == 0
     assert scene["compiled"] == {name: 2 if name == "_delta_step_jit" else 1 for name in CLUSTER_KERNELS}
 
 
@@ -116,6 +118,51 @@ def test_the_rule_takes_the_simplest_model_within_the_tolerance():
     chosen, best, table = fit_selection.choose({1: flat * (1.03 + spread), 3: flat}, tolerance=0.01, standard_errors=1.0)
     assert best == 3 and chosen == 1 and table[1]["excess"] == pytest.approx(0.03 * table[3]["held_out_loss"])
     assert fit_selection.choose({1: flat * (1.03 + spread), 3: flat}, tolerance=0.0, standard_errors=0.0)[0] == 3
+
+
+def test_the_margin_says_how_near_a_choice_is_to_the_rules_boundary():
+    def row(excess, allowed):
+        return {"held_out_loss": 100.0 + excess, "excess": excess, "standard_error": 0.0, "allowed": allowed}
+
+    # Model 3 best; model 1 rejected by 1.2 x its allowance (0.2 past it), model 0 far away: margin 0.2, runner-up 1.
+    table = {0: row(500.0, 10.0), 1: row(2.4, 2.0), 3: row(0.0, 1.0)}
+    assert fit_selection.decision_margin(table, 3) == (pytest.approx(0.2), 1)
+    # Model 1 chosen within its allowance although model 3 is best: its unused allowance, 3 the runner-up.
+    table = {0: row(500.0, 10.0), 1: row(1.5, 2.0), 3: row(0.0, 1.0)}
+    assert fit_selection.decision_margin(table, 1) == (pytest.approx(0.25), 3)
+    # Chosen and best, every simpler model far off: 1 (capped), the runner-up the next lowest loss.
+    table = {0: row(500.0, 10.0), 1: row(0.0, 1.0), 2: row(0.3, 1.0), 3: row(0.1, 1.0)}
+    assert fit_selection.decision_margin(table, 1) == (1.0, 3)
+    # On the boundary: 0; nothing scored: NaN.
+    assert fit_selection.decision_margin({1: row(2.0, 2.0), 3: row(0.0, 1.0)}, 3)[0] == 0.0
+    margin, runner_up = fit_selection.decision_margin({}, 1)
+    assert np.isnan(margin) and runner_up is None
+
+
+def test_a_small_margin_lowers_the_confidence_and_clusters_json_gives_it_back():
+    factor = fit_selection.margin_confidence(np.array([0.0, 0.1, 0.5, 1.0, np.nan]))
+    np.testing.assert_allclose(factor, [0.5, 0.6, 1.0, 1.0, 1.0])
+    summary = {"model_selection": {"clusters": [
+        {"cluster": 0, "model": 3, "margin": 0.04, "runner_up": 2},
+        {"cluster": 2, "model": 1, "inherited": True, "candidates": {}},   # inherited: no margin
+        {"cluster": 1, "model": 1, "margin": 1.0, "runner_up": None}]}}
+    margins, runner_up = fit_selection.cluster_margins(summary, 3)
+    np.testing.assert_allclose(margins, [0.04, 1.0, np.nan])
+    np.testing.assert_array_equal(runner_up, [2, -1, -1])
+    margins, runner_up = fit_selection.cluster_margins({}, 2)  # selection off or an older clusters.json
+    assert np.isnan(margins).all() and (runner_up == -1).all()
+
+
+def test_the_candidate_fits_have_no_half_angle_error_unless_asked():
+    augment = fit_clusters.AugmentSettings()
+    assert augment.max_theta_error_deg > 0 and augment.alternations > 0  # the chosen lobe's fit keeps it
+    plain = fit_selection.SelectionSettings().lobe_settings(augment)
+    assert (plain.max_theta_error_deg, plain.alternations, plain.max_samples) == (0.0, 0, 4096)
+    assert plain.lambda_theta == augment.lambda_theta and plain.k_max == augment.k_max
+    old = fit_selection.SelectionSettings(max_theta_error_deg=5.0).lobe_settings(augment)
+    assert (old.max_theta_error_deg, old.alternations) == (5.0, augment.alternations)
+    with pytest.raises(ValueError, match="max_theta_error_deg"):
+        fit_selection.SelectionSettings(max_theta_error_deg=-1.0)
 
 
 def test_selection_drops_the_lobes_a_cluster_does_not_need_and_keeps_those_it_needs(scene):
@@ -262,6 +309,16 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
                                  tmp_path / "final.zarr", tmp_path / "clusters")
     vertex, _ = read_ply(tmp_path / "model.ply")
     np.testing.assert_array_equal(vertex["model"], vertex_models)
+    # ... and its cluster's selection margin, which lowers the confidence where it is small.
+    margins, runner_up = fit_selection.cluster_margins(json.loads((tmp_path / "clusters" / "clusters.json").read_text()),
+                                                       int(labels.max()) + 1)
+    assert np.isfinite(margins).all()
+    final = read_params(tmp_path / "final.zarr")
+    np.testing.assert_allclose(final["selection_margin"], margins[labels], rtol=1e-6)
+    np.testing.assert_array_equal(final["selection_runner_up"], runner_up[labels])
+    np.testing.assert_allclose(final["confidence"], final["confidence_fit"] * fit_selection.margin_confidence(
+        margins[labels]), rtol=1e-6)
+    np.testing.assert_allclose(vertex["confidence"], final["confidence"])
     assert summary["vertices_per_model"]["0"] == np.sum(vertex_models == 0) and sum(
         summary["vertices_per_model"].values()) == n
 

@@ -209,3 +209,28 @@ def test_the_rule_passes_the_mesh_and_lists_it_as_an_input(capture, tmp_path):
 
     unset = _dry_run(tmp_path, folder, {"mode": "mesh"})
     assert unset.returncode != 0 and "init.mode 'mesh' needs init.mesh_path" in unset.stdout + unset.stderr
+
+
+def test_cameras_that_disagree_with_the_silhouettes_stop_the_stage(capture, tmp_path):
+    """The silhouettes against the hull: cameras.csv with every camera moved 3 cm sideways (0.75 sphere radii at
+    0.9 m) is not this capture's; the hull (what all cones share) covers a fraction of each silhouette, and the
+    stage stops naming what to check, writing nothing. The true cameras' hull covers all of it."""
+    import pandas as pd
+
+    table = pd.read_csv(capture["root"] / "cameras.csv", dtype={"view_id": str})
+    angle = np.random.default_rng(1).uniform(0, 2 * np.pi, len(table))
+    table["tx"] += 0.03 * np.cos(angle)
+    table["ty"] += 0.03 * np.sin(angle)
+    bad = tmp_path / "cameras.csv"
+    table.to_csv(bad, index=False)
+    options = geometry_hull.InitMeshOptions(max_vertices=2000)
+    with pytest.raises(InitMeshError) as error:
+        geometry_initial.make_initial_mesh(capture["hdr"], bad, capture["root"] / "sfm", tmp_path / "out" / "init.ply",
+                                           options=options)
+    message = str(error.value)
+    assert str(bad) in message and "covers a median" in message and "do not describe these photographs" in message
+    assert "cam_from_world" in message and "camera.fx, fy, cx, cy" in message
+    assert not (tmp_path / "out").exists()
+    report = geometry_initial.make_initial_mesh(capture["hdr"], capture["root"] / "cameras.csv", capture["root"] / "sfm",
+                                                tmp_path / "good" / "init.ply", options=options)
+    assert min(report["silhouette_coverage"].values()) > 0.95

@@ -227,3 +227,21 @@ def test_a_store_without_clusters_or_stds_is_one_material(results):
     assert len(table) == 1 and table.loc[0, "vertices"] == 2562 and table.loc[0, "area_share"] == pytest.approx(1.0)
     assert table.loc[0, "eta"] == pytest.approx(1.5, abs=0.11) and np.isnan(table.loc[0, "eta_fit_std"])
     assert table.loc[0, "model"] == 3  # the full model when the store has no model codes
+    assert np.isnan(table.loc[0, "selection_margin"]) and table.loc[0, "runner_up_model"] == -1  # no selection
+
+
+def test_materials_table_reports_each_materials_selection_margin(results):
+    from sellip.capture.scenes import build_scene
+    from sellip.model.params import read_params
+    from sellip.report import materials
+
+    store = read_params(results / "final" / "params.zarr")
+    cluster = np.asarray(store["cluster"])
+    store["selection_margin"] = np.where(cluster == 0, 0.05, 1.0).astype(np.float32)  # a fragile choice, a clear one
+    store["selection_runner_up"] = np.where(cluster == 0, 2, 3).astype(np.int8)
+    table = materials.material_table(store, build_scene("tiny").mesh.faces)
+    assert list(table["selection_margin"]) == pytest.approx([0.05, 1.0]) and list(table["runner_up_model"]) == [2, 3]
+    bad = table.copy()
+    bad.loc[1, "selection_margin"] = 1.5
+    with pytest.raises(materials.MaterialsError, match=r"row 1, column 'selection_margin'"):
+        materials.validate_materials(bad)

@@ -99,6 +99,8 @@ CASES = {
                                            ["key 'sensor.width'", "multiple of the mosaic period"]),
     "singular colour matrix": (edit_yaml(lambda c: c["camera"].update(color_matrix=[[1, 0, 0]] * 3)),
                                ["key 'camera.color_matrix'", "invertible"]),
+    "focal length in millimetres": (edit_yaml(lambda c: c["camera"].update(fx=2.0)),  # 176 deg over 64 px
+                                    ["key 'camera.fx'", "field of view", "wrong units?", "not millimetres"]),
     "non-positive scene distance": (edit_yaml(lambda c: c["scene"].update(distance_m=0)),
                                     ["key 'scene.distance_m'", "> 0"]),
     "duplicate frame_id": (set_cell("frames.csv", 4, "frame_id", "v000_f0"), ["frames.csv", "duplicate frame_id"]),
@@ -216,3 +218,39 @@ def test_no_room_to_write_is_a_clear_error_and_leaves_nothing(pristine, tmp_path
     assert "ERROR sellip: no room to write" in result.stderr and "File too large" in result.stderr
     assert "run the same command again" in result.stderr and "Traceback" not in result.stderr
     assert list(out.iterdir()) == []
+
+
+@pytest.fixture
+def full_disk(tmp_path):
+    """A real file system of 256 kB (tmpfs), where the machine lets this process mount one (root, not in a
+    container without CAP_SYS_ADMIN); skipped elsewhere (the file-size limit above stands in for it)."""
+    import subprocess
+
+    mount = tmp_path / "small disk"
+    mount.mkdir()
+    made = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mount)], capture_output=True,
+                          text=True, check=False)
+    if made.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {made.stderr.strip()}")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", str(mount)], check=False)
+
+
+def test_a_full_file_system_is_a_clear_error_and_leaves_nothing(pristine, full_disk):
+    """`sellip linearize` writing its store onto a real 256 kB file system, which its 12 frames overflow: exit 1,
+    ENOSPC said in words, and nothing on that file system afterwards, whole or partial."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(Path(__file__).parents[2] / "src"),
+                                                                     os.environ.get("PYTHONPATH")]))}
+    result = subprocess.run([sys.executable, "-m", "sellip.cli", "linearize", "--capture", str(pristine),
+                             "--output", str(full_disk / "linear.zarr")], capture_output=True, text=True, env=env,
+                            timeout=300, check=False)
+    assert result.returncode == 1, result.stderr[-3000:]
+    assert "ERROR sellip: no room to write" in result.stderr and "No space left on device" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert list(full_disk.iterdir()) == []

@@ -42,7 +42,8 @@ def model_selection_args(wildcards):
             f" --candidates {' '.join(str(m) for m in selection['candidates'])}"
             f" --held-out-fraction {selection['held_out_fraction']} --selection-tolerance {selection['tolerance']}"
             f" --selection-standard-errors {selection['standard_errors']}"
-            f" --fixed-sigma-ss {selection['sigma_ss_fixed']} --selection-max-samples {selection['max_samples']}")
+            f" --fixed-sigma-ss {selection['sigma_ss_fixed']} --selection-max-samples {selection['max_samples']}"
+            f" --selection-max-theta-error-deg {selection['max_theta_error_deg']}")
 
 
 rule fit_pbrdf:
@@ -71,7 +72,8 @@ rule fit_pbrdf:
     shell:
         SELLIP + " fit --observations {input.observations:q} --shard {wildcards.scatteritem}"
         " --output {output:q} {params.prior} {params.lobes} --dtype {params.dtype} {params.settings}"
-        " --fixed-sigma-ss {params.fixed_sigma_ss} --compilation-cache {params.cache:q} > {log:q} 2>&1"
+        " --fixed-sigma-ss {params.fixed_sigma_ss} --compilation-cache {params.cache:q} --mem-mb {resources.mem_mb}"
+        " > {log:q} 2>&1"
 
 
 rule gather_fit:

@@ -40,15 +40,15 @@ Modules and what they export (each name is importable from here too)::
         value_label, Variant, plan_variants, variant_overrides
     sweep_report: The sweep's report (``sellip bench-sweep``): η per material of a run's results against the truth,
       the vertices per model, and the markdown tables and files the sweep writes (:func:`write_outputs`)
-        ior_of_results, SWEEP_MD, IOR_MD, AUG_MD, SIGMA_MD, MODEL_MD, vertex_models, tables_markdown, write_outputs
+        ior_of_results, SWEEP_MD, IOR_MD, AUG_MD, SIGMA_MD, MODEL_MD, vertex_models, tables_markdown, write_outputs,
+        write_csv
     sweep_tables: The sweep's results: Pareto front, the table (one row per run, pandera-checked), the speed-
       accuracy chart, the paper's comparisons (Table 1 eta, augmentation, sigma_ss, model selection) and markdown
       tables; atomic writers of the figures and tables
         pareto_front, TIME_RULES, FIGURES, SWEEP_COLUMNS, TIME_AXIS, job_cpu_seconds, sweep_row, sweep_schema,
-        sweep_table, CHART_FIGURES, sweep_figure, front_marks, save_figure_atomic, write_csv_atomic,
-        write_text_atomic, PAPER_TABLE1, PAPER_TABLE1_AVERAGE_PCT, PAPER_AUGMENTATION_PSNR_DB,
-        PAPER_SIGMA_SS_PSNR_DB, PAPER_SIGMA_SS_SAVING_PCT, ior_table, augmentation_table, sigma_ss_table,
-        model_selection_table, markdown_table
+        sweep_table, CHART_FIGURES, sweep_figure, front_marks, PAPER_TABLE1, PAPER_TABLE1_AVERAGE_PCT,
+        PAPER_AUGMENTATION_PSNR_DB, PAPER_SIGMA_SS_PSNR_DB, PAPER_SIGMA_SS_SAVING_PCT, ior_table,
+        augmentation_table, sigma_ss_table, model_selection_table, markdown_table
 
 See docs/architecture.md for what this package owns and what it may import.
 """
@@ -76,10 +76,10 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "sweep_plan": ("REPO", "SweepError", "Factor", "FACTORS", "SCENE_FACTORS", "PRESETS", "get_key", "set_key", "merge",
            "load_defaults", "value_label", "Variant", "plan_variants", "variant_overrides"),
     "sweep_report": ("ior_of_results", "SWEEP_MD", "IOR_MD", "AUG_MD", "SIGMA_MD", "MODEL_MD", "vertex_models",
-           "tables_markdown", "write_outputs"),
+           "tables_markdown", "write_outputs", "write_csv"),
     "sweep_tables": ("pareto_front", "TIME_RULES", "FIGURES", "SWEEP_COLUMNS", "TIME_AXIS", "job_cpu_seconds", "sweep_row",
-           "sweep_schema", "sweep_table", "CHART_FIGURES", "sweep_figure", "front_marks", "save_figure_atomic",
-           "write_csv_atomic", "write_text_atomic", "PAPER_TABLE1", "PAPER_TABLE1_AVERAGE_PCT",
-           "PAPER_AUGMENTATION_PSNR_DB", "PAPER_SIGMA_SS_PSNR_DB", "PAPER_SIGMA_SS_SAVING_PCT", "ior_table",
-           "augmentation_table", "sigma_ss_table", "model_selection_table", "markdown_table"),
+           "sweep_schema", "sweep_table", "CHART_FIGURES", "sweep_figure", "front_marks", "PAPER_TABLE1",
+           "PAPER_TABLE1_AVERAGE_PCT", "PAPER_AUGMENTATION_PSNR_DB", "PAPER_SIGMA_SS_PSNR_DB",
+           "PAPER_SIGMA_SS_SAVING_PCT", "ior_table", "augmentation_table", "sigma_ss_table",
+           "model_selection_table", "markdown_table"),
 })

@@ -62,7 +62,8 @@ from sellip.bench.sweep_plan import (
     value_label,
     variant_overrides,
 )
-from sellip.bench.sweep_tables import FIGURES, _dig, write_text_atomic
+from sellip.bench.sweep_tables import FIGURES, _dig
+from sellip.jobs import write_text
 
 log = logging.getLogger(__name__)
 
@@ -227,7 +228,7 @@ def _read_record(folder: Path, config: dict, needs: str | None = "metrics.json",
 
 
 def _write_record(folder: Path, record: dict) -> None:
-    write_text_atomic(json.dumps(record, indent=2), folder / RECORD)
+    write_text(json.dumps(record, indent=2), folder / RECORD)
 
 
 def prepare_scene(scene: str, preset: str, paths: SweepPaths, runner: Callable) -> dict:

@@ -11,6 +11,8 @@ import numpy as np
 
 from sellip.bench import sweep
 from sellip.bench import sweep_tables as bench_sweep_tables
+from sellip.jobs import atomic_file, write_text
+from sellip.report.outputs import save_figure
 
 
 def ior_of_results(results: Path, capture: Path):
@@ -139,9 +141,16 @@ def write_outputs(variants, records, preset: str, out: Path, workdir: Path) -> d
     base_ior = None if ior_all is None else ior_all[ior_all["name"] == "sphere_ior__base"].drop(columns="name")
     models = {v.name: vertex_models(paths.results / v.name) for v in variants
               if v.factor in ("base", "model_selection")}
-    written = {"csv": bench_sweep_tables.write_csv_atomic(table, out / "sweep.csv"),
-               "png": bench_sweep_tables.save_figure_atomic(bench_sweep_tables.sweep_figure(table), out / "sweep.png"),
-               "md": bench_sweep_tables.write_text_atomic(tables_markdown(table, base_ior, preset, models), out / "tables.md")}
+    written = {"csv": write_csv(table, out / "sweep.csv"),
+               "png": save_figure(bench_sweep_tables.sweep_figure(table), out / "sweep.png"),
+               "md": write_text(tables_markdown(table, base_ior, preset, models), out / "tables.md")}
     if ior_all is not None:
-        written["ior"] = bench_sweep_tables.write_csv_atomic(ior_all, out / "ior.csv")
+        written["ior"] = write_csv(ior_all, out / "ior.csv")
     return written
+
+
+def write_csv(frame, path: str | Path) -> Path:
+    """Write a DataFrame as CSV atomically (:func:`sellip.jobs.atomic_file`). Returns ``path``."""
+    with atomic_file(path) as tmp:
+        frame.to_csv(tmp, index=False)
+    return Path(path)

@@ -1,12 +1,11 @@
 """The sweep's results: Pareto front, the table (one row per run, pandera-checked), the
 speed-accuracy chart, the paper's comparisons (Table 1 eta, augmentation, sigma_ss, model selection) and
-markdown tables; atomic writers of the figures and tables.
+markdown tables.
 """
 
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
 
 import numpy as np
@@ -236,45 +235,6 @@ def front_marks(table, figures: tuple[str, ...] = CHART_FIGURES):
             for row in rows[front]:
                 marks[row].append(str(k))
     return [" ".join(m) for m in marks]
-
-
-def save_figure_atomic(fig, path: str | Path) -> Path:
-    """Write a figure as PNG under a temporary name, then rename it to ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        fig.savefig(tmp, format="png")
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
-
-
-def write_csv_atomic(frame, path: str | Path) -> Path:
-    """Write a DataFrame as CSV under a temporary name, then rename it to ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        frame.to_csv(tmp, index=False)
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
-
-
-def write_text_atomic(text: str, path: str | Path) -> Path:
-    """Write text under a temporary name, then rename it to ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        tmp.write_text(text)
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
 
 
 # --------------------------------------------------------------------------- the paper's comparisons

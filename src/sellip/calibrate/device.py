@@ -67,7 +67,8 @@ def validate_device(device: Mapping, file_label: str = "device.yaml", complete: 
     # The sensor and camera checks of capture.yaml (layouts, levels, an invertible colour matrix), with
     # stand-ins for what a partial device does not have yet.
     stand_in = {"sensor": device["sensor"],
-                "camera": device.get("camera", {"fx": 1.0, "fy": 1.0, "cx": 0.0, "cy": 0.0}),
+                "camera": device.get("camera", {"fx": float(device["sensor"].get("width", 1)),  # a 53 deg stand-in
+                                                "fy": float(device["sensor"].get("width", 1)), "cx": 0.0, "cy": 0.0}),
                 "light": device.get("light", {"position_m": [0.0, 0.0, 0.0], "polarizer_deg": 0.0}),
                 "scene": {"distance_m": 1.0}}
     try:

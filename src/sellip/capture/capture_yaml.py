@@ -88,6 +88,11 @@ as they are;
 another top-level key is an error, as inside the sections."""
 
 
+MAX_FIELD_DEG = 150.0
+"""A camera.fx (fy) whose field of view over the sensor's width (height) is wider than this is not in raw pixels
+(a focal length in millimetres gives ~170 deg); the method's lenses see 10-60 deg."""
+
+
 def _key_path(parts) -> str:
     return ".".join(str(p) for p in parts) or "(top level)"
 
@@ -159,6 +164,13 @@ def validate_config(config: Mapping, file_label: str = CAPTURE_YAML) -> dict:
     if np.any(black >= sensor["white_level"]):
         raise ConfigError(file_label, "key 'sensor.black_level'",
                           f"expected below white_level {sensor['white_level']}, got {sensor['black_level']}")
+    for key, size in (("fx", sensor["width"]), ("fy", sensor["height"])):
+        field_deg = 2 * np.degrees(np.arctan(size / 2 / float(camera[key])))
+        if field_deg > MAX_FIELD_DEG:
+            raise ConfigError(file_label, f"key 'camera.{key}'",
+                              f"{camera[key]} gives a {field_deg:.0f} deg field of view over the {size} raw pixels: "
+                              f"wrong units? It is in raw pixels: the focal length over the pixel pitch (e.g. 25 mm / "
+                              f"3.45 um = 7246), not millimetres")
     camera.setdefault("distortion", [0.0] * 5)
     camera.setdefault("color_matrix", np.eye(3).tolist())
     if abs(np.linalg.det(np.asarray(camera["color_matrix"], dtype=np.float64))) < 1e-9:

@@ -60,7 +60,7 @@ Modules and what they export (each name is importable from here too)::
         solve_spd, measured_dop, DIFFERENCE_STEPS, per_view_error
     selection: Model selection (DESIGN §7): which lobes a material cluster needs, and fitting vertices by model
         SelectionSettings, settings_for_model, allowed_models, cap_models, Selection, split_vertices, choose,
-        select_model, fit_by_model
+        decision_margin, MARGIN_FULL_CONFIDENCE, margin_confidence, cluster_margins, select_model, fit_by_model
     shard: One fit shard (rule ``fit_pbrdf``) and the gather of an iteration's shards into ``fit.zarr`` (rule
       ``gather_fit``): the shard's vertex rows, the fit settings from ``--set KEY=VALUE`` pairs, XLA's persistent
       compilation cache, :func:`fit_shard` and :func:`gather_shards`
@@ -107,7 +107,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "refine": ("raw_camera", "predicted_diffuse", "measure_silhouettes", "refine_geometry"),
     "residuals": ("solve_spd", "measured_dop", "DIFFERENCE_STEPS", "per_view_error"),
     "selection": ("SelectionSettings", "settings_for_model", "allowed_models", "cap_models", "Selection",
-           "split_vertices", "choose", "select_model", "fit_by_model"),
+           "split_vertices", "choose", "decision_margin", "MARGIN_FULL_CONFIDENCE", "margin_confidence",
+           "cluster_margins", "select_model", "fit_by_model"),
     "shard": ("parse_shard", "shard_rows", "settings_from_pairs", "overrides_from_pairs", "enable_compilation_cache",
            "fit_shard", "gather_shards"),
     "simulate": ("vertex_observations",),

@@ -8,13 +8,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import shutil
 import time
 from pathlib import Path
 
 import numpy as np
 
 from sellip.fit.lobe_store import LOBE_COLUMNS, load_rows, lobes_schema, plot_lobes
+from sellip.jobs import atomic_directory
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +54,7 @@ def _choose_model(cluster: int, obs, store: dict, rows, eta0: float, clustering,
         choice = {"cluster": cluster, "model": model, "name": MODEL_NAMES[model], "reason": picked.reason,
                   "best": picked.best, "train_vertices": picked.train_vertices,
                   "held_out_vertices": picked.held_out_vertices, "held_out_samples": picked.held_out_samples,
+                  "margin": None if np.isnan(picked.margin) else picked.margin, "runner_up": picked.runner_up,
                   "candidates": {str(m): row for m, row in picked.candidates.items()},
                   "seconds": time.perf_counter() - began}
     else:
@@ -61,19 +62,36 @@ def _choose_model(cluster: int, obs, store: dict, rows, eta0: float, clustering,
     return model, lobe, choice
 
 
+def cluster_rows(clustering, settings, seed: int, notes: list | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per cluster of ``clustering`` (:func:`sellip.fit.clusters.cluster_materials`), (members, rows): its
+    confidently fitted vertices (all its vertices where it has none; said in ``notes``) and the seeded subset of
+    them whose observations its lobe fit and model selection read (enough for ``settings.max_samples`` samples at
+    8 usable views each). The same ``seed`` gives the same rows (``benchmarks/replay_selection.py`` replays them)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for cluster in range(len(clustering.centres)):
+        members = np.flatnonzero((clustering.labels == cluster) & clustering.used)
+        if members.size == 0:  # its lobe comes from what its vertices have: lower confidence, said so
+            members = np.flatnonzero(clustering.labels == cluster)
+            if notes is not None:
+                notes.append(f"cluster {cluster} has no confidently fitted vertex: its lobe is fitted on all its "
+                             f"{members.size} vertices")
+                log.warning("%s", notes[-1])
+        limit = max(64, settings.max_samples // 8)
+        rows = np.sort(rng.choice(members, limit, replace=False)) if members.size > limit else members
+        out.append((members, rows))
+    return out
+
+
 def _write_directory(output: Path, labels, vertex_models, table, lobes, colors, models, summary: dict) -> None:
     """The cluster-lobes directory (:mod:`sellip.fit.lobe_store`), built under a temporary name, then renamed."""
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(output.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    np.save(tmp / "labels.npy", labels.astype(np.int32))
-    np.save(tmp / "models.npy", vertex_models)
-    table.to_csv(tmp / "lobes.csv", index=False)
-    plot_lobes(tmp / "lobes.png", lobes, lambda i: colors[i], models)
-    (tmp / "clusters.json").write_text(json.dumps(summary, indent=2))
-    shutil.rmtree(output, ignore_errors=True)
-    tmp.rename(output)
+    with atomic_directory(output) as tmp:
+        tmp.mkdir()
+        np.save(tmp / "labels.npy", labels.astype(np.int32))
+        np.save(tmp / "models.npy", vertex_models)
+        table.to_csv(tmp / "lobes.csv", index=False)
+        plot_lobes(tmp / "lobes.png", lobes, lambda i: colors[i], models)
+        (tmp / "clusters.json").write_text(json.dumps(summary, indent=2))
 
 
 def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: int = 0, settings=None,
@@ -100,7 +118,11 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
     from sellip.fit.lobes import fit_cluster_lobe
     from sellip.fit.observe import ObserveError, open_observations
     from sellip.fit.records import FitSettings
-    from sellip.fit.selection import SelectionSettings, allowed_models, settings_for_model
+    from sellip.fit.selection import (
+        SelectionSettings,
+        allowed_models,
+        settings_for_model,
+    )
     from sellip.model.params import MODEL_NAMES, read_params, same_vertices
 
     settings = settings or AugmentSettings()
@@ -132,19 +154,9 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
             log.info("models inherited from %s (no candidate fits this iteration)", params)
         else:
             log.warning("%s has no models to inherit: selecting", params)
-    rng = np.random.default_rng(seed)
     lobes, rows_out, colors, models, choices = [], [], [], [], []
     notes = list(clustering.notes)
-    for cluster in range(k):
-        members = np.flatnonzero((clustering.labels == cluster) & clustering.used)
-        if members.size == 0:  # its lobe comes from what its vertices have: lower confidence, said so
-            members = np.flatnonzero(clustering.labels == cluster)
-            notes.append(f"cluster {cluster} has no confidently fitted vertex: its lobe is fitted on all its "
-                         f"{members.size} vertices")
-            log.warning("%s", notes[-1])
-        # Enough vertices for max_samples samples at >= 8 usable views each, a seeded subset.
-        limit = max(64, settings.max_samples // 8)
-        rows = np.sort(rng.choice(members, limit, replace=False)) if members.size > limit else members
+    for cluster, (members, rows) in enumerate(cluster_rows(clustering, settings, seed, notes)):
         mark("read")
         obs = load_rows(group, rows)
         mark("select")

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sellip.jobs import atomic_file
+
 log = logging.getLogger(__name__)
 
 
@@ -25,6 +27,10 @@ def finalize_model(params_path: Path, mesh_path: Path, output_model: Path, outpu
     least 0.01, the rule's floor), and either way only where at least ``deviation_support`` of its 6 nearest vertices
     deviate the same way (:func:`sellip.fit.lobes.material_or_own`; <= 0: every vertex's own). An eta pinned at a bound
     (:func:`sellip.fit.parameterization.eta_at_bound`) is no estimate: the vertex takes its material's, and is not in its median.
+    With ``clusters``, each vertex also carries its cluster's model-selection margin and runner-up
+    (``selection_margin``, ``selection_runner_up``; :func:`sellip.fit.selection.cluster_margins`), and its confidence
+    is multiplied by :func:`sellip.fit.selection.margin_confidence` (halved where the lobe choice sat on the rule's
+    boundary).
 
     Long: one job's steps in order (read, per-material values, fill, confidence, write), each a call."""
     from sellip.fit.clusters import AugmentSettings, nearest_vertices
@@ -32,6 +38,7 @@ def finalize_model(params_path: Path, mesh_path: Path, output_model: Path, outpu
     from sellip.fit.lobes import cluster_medians, material_or_own
     from sellip.fit.observe import read_mesh
     from sellip.fit.parameterization import eta_at_bound
+    from sellip.fit.selection import margin_confidence
     from sellip.model.params import (
         MODEL_NAMES,
         PARAM_FIELDS,
@@ -57,6 +64,7 @@ def finalize_model(params_path: Path, mesh_path: Path, output_model: Path, outpu
     eta, eta_source = np.asarray(store["eta"], np.float64), np.ones(n, np.uint8)
     sigma_s, rho_s = np.asarray(store["sigma_s"], np.float64), np.asarray(store["rho_s"], np.float64)
     lobe_source = np.ones(n, np.uint8)
+    margin, runner_up = np.full(n, np.nan), np.full(n, -1, np.int64)
     if clusters is not None:
         try:
             labels, lobes = read_lobes(clusters)
@@ -84,6 +92,7 @@ def finalize_model(params_path: Path, mesh_path: Path, output_model: Path, outpu
         log.info("specular lobe per material: %d of %d vertices keep their own (sigma_s more than %g std from their "
                  "cluster's %s, with %d of their %d neighbours)", int(lobe_source.sum()), n, lobe_deviation_sigmas,
                  np.round([lobe.sigma_s for lobe in lobes], 3).tolist(), deviation_support, neighbours)
+        margin, runner_up = _selection_margins(Path(clusters), cluster, len(lobes))
     if "model" in store:
         models = np.asarray(store["model"], np.uint8)
         if not np.isin(models, sorted(MODEL_NAMES)).all():
@@ -93,20 +102,20 @@ def finalize_model(params_path: Path, mesh_path: Path, output_model: Path, outpu
         models = np.full(n, model, np.uint8)
         log.info("%s has no model array: every vertex gets model %d", params_path, model)
     params = params_from(store, np.float64)._replace(eta=eta, sigma_s=sigma_s, rho_s=rho_s)
-    confidence = np.asarray(store.get("confidence", np.zeros(n)), np.float32)
-    output_model = Path(output_model)
-    output_model.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output_model.with_name(output_model.name + ".tmp.ply")
-    write_param_mesh(tmp, ParamMesh(vertices, mesh.faces, store["normals"], params),
-                     extra={"confidence": confidence, "model": models, "eta_source": eta_source,
-                            "lobe_source": lobe_source})
-    tmp.replace(output_model)
+    confidence_fit = np.asarray(store.get("confidence", np.zeros(n)), np.float64)
+    confidence = (confidence_fit * margin_confidence(margin)).astype(np.float32)
+    with atomic_file(output_model) as tmp:
+        write_param_mesh(tmp, ParamMesh(vertices, mesh.faces, store["normals"], params),
+                         extra={"confidence": confidence, "model": models, "eta_source": eta_source,
+                                "lobe_source": lobe_source})
     arrays = {name: store[name] for name in store if name != "attrs"}
     arrays.update(model=models, cluster=cluster, eta=eta.astype(np.float32), eta_source=eta_source,
                   eta_vertex=np.asarray(store["eta"], np.float32), sigma_s=sigma_s.astype(np.float32),
                   rho_s=rho_s.astype(np.float32), lobe_source=lobe_source,
                   sigma_s_vertex=np.asarray(store["sigma_s"], np.float32),
-                  rho_s_vertex=np.asarray(store["rho_s"], np.float32))
+                  rho_s_vertex=np.asarray(store["rho_s"], np.float32), confidence=confidence,
+                  confidence_fit=confidence_fit.astype(np.float32),
+                  selection_margin=margin.astype(np.float32), selection_runner_up=runner_up)
     write_params(output_params, arrays, attrs={**store["attrs"], "model_names": {str(k): v for k, v in
                                                                                   MODEL_NAMES.items()}})
     summary = {"vertices": n, "faces": len(mesh.faces), "confidence_median": float(np.median(confidence)),
@@ -118,3 +127,21 @@ def finalize_model(params_path: Path, mesh_path: Path, output_model: Path, outpu
              output_model, output_params, n, len(mesh.faces), summary["confidence_median"], summary["eta_median"],
              summary["vertices_per_model"])
     return summary
+
+
+def _selection_margins(clusters: Path, cluster: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per vertex, its cluster's selection margin and runner-up (NaN, -1: none) from ``clusters/clusters.json``
+    (:func:`sellip.fit.selection.cluster_margins`); none at all where the file is missing (a directory written
+    without it)."""
+    import json
+
+    from sellip.fit.selection import MARGIN_FULL_CONFIDENCE, cluster_margins
+
+    path = clusters / "clusters.json"
+    if not path.is_file():
+        log.warning("%s is missing: no model-selection margins (confidence not lowered by them)", path)
+        return np.full(len(cluster), np.nan), np.full(len(cluster), -1, np.int64)
+    margins, runner_up = cluster_margins(json.loads(path.read_text()), k)
+    log.info("model-selection margin per cluster: %s (runner-up %s; below %s the confidence is lowered)",
+             np.round(margins, 2).tolist(), runner_up.tolist(), MARGIN_FULL_CONFIDENCE)
+    return margins[cluster], runner_up[cluster]

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sellip.jobs import atomic_file, write_text
+
 log = logging.getLogger(__name__)
 
 
@@ -125,9 +127,20 @@ def refine_geometry(params_path: Path, mesh_path: Path, output: Path, smoothness
     Long: one job's steps in order (read, blend, silhouettes, integrate, carry parameters, write), each a call."""
     from sellip.fit.observe import read_mesh
     from sellip.fit.vertex_fit import confidence_from_uncertainty
-    from sellip.geometry.meshes import angular_error_deg, blend_normals, mesh_distances, vertex_normals
+    from sellip.geometry.meshes import (
+        angular_error_deg,
+        blend_normals,
+        mesh_distances,
+        vertex_normals,
+    )
     from sellip.geometry.update import refine_from_normals
-    from sellip.model.params import PARAM_FIELDS, ParamsError, params_from, read_params, same_vertices
+    from sellip.model.params import (
+        PARAM_FIELDS,
+        ParamsError,
+        params_from,
+        read_params,
+        same_vertices,
+    )
     from sellip.model.ply import write_param_mesh
     from sellip.model.render import ParamMesh
 
@@ -172,10 +185,6 @@ def refine_geometry(params_path: Path, mesh_path: Path, output: Path, smoothness
                                        reference=reference, silhouettes=silhouettes, silhouette_weight=silhouette)
     new_normals = vertex_normals(new_vertices, mesh.faces)
     output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(output.name + ".tmp.ply")
-    write_param_mesh(tmp, ParamMesh(new_vertices, mesh.faces, new_normals, params),
-                     extra={"confidence": np.asarray(confidence, np.float32)})
     moved = mesh_distances(new_vertices, mesh.faces, mesh.vertices, mesh.faces, count=20000)
     offsets = np.linalg.norm(new_vertices - mesh.vertices, axis=1)
 
@@ -191,8 +200,10 @@ def refine_geometry(params_path: Path, mesh_path: Path, output: Path, smoothness
                "silhouette_constraints": 0 if silhouettes is None else len(silhouettes),
                "silhouette_offset_px": per_view,
                "seconds": time.perf_counter() - started}
-    tmp.replace(output)
-    Path(f"{output}.json").write_text(json.dumps(summary, indent=1))
+    write_text(json.dumps(summary, indent=1), f"{output}.json")
+    with atomic_file(output) as tmp:
+        write_param_mesh(tmp, ParamMesh(new_vertices, mesh.faces, new_normals, params),
+                         extra={"confidence": np.asarray(confidence, np.float32)})
     log.info("wrote %s in %.1f s: the surface moved %.3f mm (Chamfer; Hausdorff %.3f mm, vertex offsets median "
              "%.3f mm); fitted vs mesh normals (median, confident vertices) %.2f -> %.2f deg", output,
              summary["seconds"], summary["moved_chamfer_mm"], summary["moved_hausdorff_mm"],

@@ -17,7 +17,23 @@ vertex) into a training and a held-out part; every candidate's cluster lobe
 (:func:`sellip.fit.lobes.fit_cluster_lobe`) is fitted on the training part and scored by the
 cluster loss on the held-out samples (:func:`sellip.fit.lobes.lobe_sample_losses`). The simplest
 candidate whose held-out loss exceeds the best one's by at most ``tolerance`` (relative) plus
-``standard_errors`` standard errors of the paired per-vertex difference is chosen.
+``standard_errors`` standard errors of the paired per-vertex difference is chosen (:func:`choose`), in two
+questions: a reflection lobe or not, then which lobes.
+
+The candidate fits and their held-out scores that decide which lobes a cluster has (models 1, 2, 3) have no
+per-sample half-angle error Delta theta_h (``max_theta_error_deg`` 0; the chosen model's lobe is then fitted with
+it, as before); whether it has a reflection lobe at all (model 0 against the simplest with one) is decided
+first, with it, as before 2026-11-26 (without it, a weak rough lobe such as pplastic_set's eta 1.33, sigma_s 0.4
+was dropped altogether). That nuisance, one
+per sample and re-fitted on the held-out samples too, rewards a lobe that is steep in theta_h: a narrow
+specular lobe moves each sample onto its flank, and a broad single-scattering lobe fills in what is left.
+On the stability suite's rough material (sigma_s 0.35, no single scattering) model 1 came out at sigma_s
+0.17 with it and 0.33 without, and model 3 (sigma_s 0.09 + sigma_ss 0.49) won by 8 %; without it, by
+0.03 %, within the tolerance (docs/model_selection.md, "Why no Delta theta_h").
+
+:func:`decision_margin` says how far a choice is from the rule's boundary; :func:`cluster_margins` reads it back
+from clusters.json and :func:`margin_confidence` turns it into the final model's confidence factor (materials.csv
+reports it per material).
 
 :func:`fit_by_model` fits N vertices with per-vertex models: one :func:`sellip.fit.vertex_fit.fit_vertices`
 call, the models being data to its compiled kernels (one compilation for every mix of models).
@@ -53,6 +69,10 @@ class SelectionSettings:
     sigma_ss_fixed: float = 0.9  # sigma_ss of model 2 when the fit settings do not fix it (paper §6)
     max_samples: int = 4096  # training (and at most as many held-out) samples per candidate fit
     min_held_out_vertices: int = 8  # fewer in either part: no selection, the most complex candidate
+    # |Delta theta_h| bound of the candidate fits and of their held-out scores among the models with a lobe
+    # (1, 2, 3; degrees; 0: no per-sample half-angle error, see the module docstring). Model 0 against a lobe
+    # keeps the cluster lobe fit's (AugmentSettings.max_theta_error_deg).
+    max_theta_error_deg: float = 0.0
 
     def __post_init__(self):
         if not self.candidates or any(m not in MODELS for m in self.candidates):
@@ -64,6 +84,15 @@ class SelectionSettings:
             raise ValueError("model_selection tolerance and standard_errors must be >= 0")
         if not 0.02 <= self.sigma_ss_fixed <= 1:
             raise ValueError(f"model_selection sigma_ss_fixed must be in [0.02, 1], got {self.sigma_ss_fixed}")
+        if self.max_theta_error_deg < 0:
+            raise ValueError(f"model_selection max_theta_error_deg must be >= 0, got {self.max_theta_error_deg}")
+
+    def lobe_settings(self, augment_settings: clusters.AugmentSettings) -> clusters.AugmentSettings:
+        """The lobe-fit settings of the candidate fits: ``augment_settings`` with ``max_samples`` and the
+        Delta theta_h bound of these settings (no alternations without a Delta theta_h to alternate with)."""
+        return dataclasses.replace(augment_settings, max_samples=self.max_samples,
+                                   max_theta_error_deg=self.max_theta_error_deg,
+                                   alternations=augment_settings.alternations if self.max_theta_error_deg > 0 else 0)
 
 
 def settings_for_model(settings: FitSettings, model: int, sigma_ss_fixed: float = 0.9) -> FitSettings:
@@ -98,7 +127,8 @@ class Selection(NamedTuple):
     held_out_loss (the cluster loss summed over the held-out samples), excess (over the best),
     standard_error (of that excess, from the per-vertex paired differences) and allowed (the rule's
     bound). best: the code of the lowest held-out loss. reason: a sentence. train_vertices,
-    held_out_vertices, held_out_samples: the split."""
+    held_out_vertices, held_out_samples: the split. margin, runner_up: :func:`decision_margin` (NaN and
+    None where no candidates were scored)."""
 
     model: int
     candidates: dict
@@ -107,6 +137,8 @@ class Selection(NamedTuple):
     train_vertices: int
     held_out_vertices: int
     held_out_samples: int
+    margin: float = float("nan")
+    runner_up: int | None = None
 
 
 def split_vertices(n: int, fraction: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -135,6 +167,94 @@ def choose(losses: dict, tolerance: float, standard_errors: float) -> tuple[int,
     return chosen, best, table
 
 
+def decision_margin(table: dict, chosen: int) -> tuple[float, int | None]:
+    """How far the choice of :func:`choose` is from the rule's boundary, in units of the allowance, and the
+    model nearest to taking its place: (margin in [0, 1], runner_up).
+
+    For the chosen model its unused allowance, (allowed - excess) / allowed (1 when it is the best); for each
+    simpler model how far its excess went past its allowance, (excess - allowed) / allowed. The margin is the
+    smallest of these, capped at 1: 0 is a choice on the boundary (a little more noise or another split would
+    flip it), 1 a choice no candidate came near. The runner-up is the model of the smallest term (a simpler
+    model, or the best one when the chosen is not the best); where that is the chosen model's own slack as the
+    best, the model of the next lowest held-out loss. ``table``: ``choose``'s ({} gives (NaN, None))."""
+    if not table or chosen not in table:
+        return float("nan"), None
+    def unit(row):
+        return max(row["allowed"], 1e-12 * max(row["held_out_loss"], 1e-300))
+
+    row = table[chosen]
+    best = min(table, key=lambda m: (table[m]["excess"], m))
+    terms = {(best if best != chosen else None): (row["allowed"] - row["excess"]) / unit(row)}
+    for m, other in table.items():
+        if m < chosen:
+            terms[m] = (other["excess"] - other["allowed"]) / unit(other)
+    nearest = min(terms, key=lambda m: terms[m])
+    runner_up = nearest
+    if nearest is None:
+        others = sorted((m for m in table if m != chosen), key=lambda m: (table[m]["excess"], m))
+        runner_up = others[0] if others else None
+    return float(np.clip(terms[nearest], 0.0, 1.0)), runner_up
+
+
+MARGIN_FULL_CONFIDENCE = 0.5
+"""A cluster whose :func:`decision_margin` is below this has its vertices' confidence lowered in the final model
+(:func:`margin_confidence`): at 0 (the choice on the rule's boundary) by half."""
+
+
+def margin_confidence(margin) -> np.ndarray:
+    """The factor (...,) in [0.5, 1] on a vertex's confidence from its cluster's selection margin (...,):
+    0.5 + min(margin, :data:`MARGIN_FULL_CONFIDENCE`) / (2 MARGIN_FULL_CONFIDENCE): 0.5 on the boundary, 1 at
+    and above MARGIN_FULL_CONFIDENCE; 1 where no choice was scored (NaN: one candidate, too few vertices)."""
+    margin = np.asarray(margin, np.float64)
+    factor = 0.5 + 0.5 * np.clip(margin, 0.0, MARGIN_FULL_CONFIDENCE) / MARGIN_FULL_CONFIDENCE
+    return np.where(np.isfinite(margin), factor, 1.0)
+
+
+def cluster_margins(summary: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per cluster of a ``cluster-lobes`` summary (clusters.json), (margin (k,) float, runner_up (k,) int): the
+    recorded :func:`decision_margin` and runner-up of each cluster's choice; NaN and -1 where the pass scored no
+    candidates for it (inherited models, one candidate, too few vertices, no usable sample, selection off, or a
+    clusters.json written before margins were recorded)."""
+    margins, runner_up = np.full(k, np.nan), np.full(k, -1, np.int64)
+    for choice in (summary.get("model_selection") or {}).get("clusters") or []:
+        cluster = int(choice.get("cluster", -1))
+        if 0 <= cluster < k and choice.get("margin") is not None:
+            margins[cluster] = float(choice["margin"])
+            runner_up[cluster] = -1 if choice.get("runner_up") is None else int(choice["runner_up"])
+    return margins, runner_up
+
+
+def _held_out_losses(models, pools, eta0: float, fit_settings: FitSettings, selection: SelectionSettings,
+                     lobe_settings: clusters.AugmentSettings) -> dict:
+    """{model: (held-out vertices,) summed held-out loss} of each model's lobe fitted on the training pool and
+    scored on the held-out pool (``pools``: (train, held, held-out vertex count)), with the Delta theta_h bound
+    of ``lobe_settings`` (0: none, and no Delta theta_h fitted on the held-out samples either)."""
+    train_pool, held_pool, held = pools
+    delta_rounds = 2 if lobe_settings.max_theta_error_deg > 0 else 0
+    losses = {}
+    for m in models:
+        settings = settings_for_model(fit_settings, m, selection.sigma_ss_fixed)
+        lobe = fit_lobes._fit_pool(train_pool, eta0, settings, lobe_settings)
+        per_sample = fit_lobes.lobe_sample_losses(lobe, held_pool, settings, lobe_settings, delta_rounds)
+        losses[m] = np.bincount(held_pool.vertex, weights=per_sample, minlength=held)
+    return losses
+
+
+def _describe(chosen: int, best: int, table: dict, question: str) -> str:
+    """The sentence of one comparison of :func:`select_model`."""
+    def percent(x):
+        return 100 * x / max(table[best]["held_out_loss"], 1e-300)
+
+    reason = (f"{question}: model {chosen}, held-out loss {table[chosen]['held_out_loss']:.4g}, "
+              f"{percent(table[chosen]['excess']):+.2f} % over the best (model {best}), "
+              f"allowed {percent(table[chosen]['allowed']):.2f} %")
+    simpler = [m for m in sorted(table) if m < chosen]
+    if simpler:
+        reason += "; simpler: " + ", ".join(f"model {m} {percent(table[m]['excess']):+.2f} % "
+                                            f"(allowed {percent(table[m]['allowed']):.2f} %)" for m in simpler)
+    return reason
+
+
 def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: FitSettings | None = None,
                  selection: SelectionSettings = SelectionSettings(),
                  augment_settings: clusters.AugmentSettings = clusters.AugmentSettings(), seed: int = 0) -> Selection:
@@ -144,8 +264,13 @@ def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: F
     fitted normals and albedos (held, as in :func:`sellip.fit.lobes.fit_cluster_lobe`); eta0: the
     start of eta. The candidates are ``selection.candidates`` allowed by ``fit_settings``
     (:func:`allowed_models`). Each candidate's lobe is fitted on the training vertices (at most
-    ``selection.max_samples`` samples) and scored on the same held-out samples; the rule is
-    :func:`choose`. Deterministic for a seed.
+    ``selection.max_samples`` samples) and scored on the same held-out samples, by :func:`choose`, in two
+    questions: a reflection lobe or none (model 0 against the simplest model with one), with the cluster lobe
+    fit's Delta theta_h (``augment_settings``), as before 2026-11-26; then, if a lobe, which (the models from 1
+    up) with ``selection.max_theta_error_deg`` (0: none; the module docstring says why). The table holds model
+    0's row of the first question and the rows of the second (fitted and recorded even when the first says
+    none); the margin is the smaller of the questions' that decided (:func:`decision_margin`). Deterministic
+    for a seed.
     """
     fit_settings = fit_settings or FitSettings()
     candidates = allowed_models(fit_settings, selection.candidates)
@@ -158,7 +283,6 @@ def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: F
         top = candidates[-1]
         return Selection(top, {}, None, f"{n} vertices: too few to hold {selection.min_held_out_vertices} out "
                                         f"(kept the most complex candidate, {top})", len(train), len(held), 0)
-    lobe_settings = dataclasses.replace(augment_settings, max_samples=selection.max_samples)
     take = lambda rows: Observations(*[np.asarray(x)[rows] for x in obs])  # noqa: E731
     normals, rho_d = np.asarray(normals), np.asarray(rho_d)
     train_pool = fit_lobes._pool_samples(take(train), normals[train], rho_d[train], fit_settings,
@@ -169,22 +293,30 @@ def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: F
         top = candidates[-1]
         return Selection(top, {}, None, f"no usable samples in the training or held-out part (kept {top})",
                          len(train), len(held), held_pool.count)
-    losses = {}
-    for m in candidates:
-        settings = settings_for_model(fit_settings, m, selection.sigma_ss_fixed)
-        lobe = fit_lobes._fit_pool(train_pool, eta0, settings, lobe_settings)
-        per_sample = fit_lobes.lobe_sample_losses(lobe, held_pool, settings, lobe_settings)
-        losses[m] = np.bincount(held_pool.vertex, weights=per_sample, minlength=len(held))
-    chosen, best, table = choose(losses, selection.tolerance, selection.standard_errors)
-    percent = lambda x: 100 * x / max(table[best]["held_out_loss"], 1e-300)  # noqa: E731
-    reason = (f"model {chosen}: held-out loss {table[chosen]['held_out_loss']:.4g}, "
-              f"{percent(table[chosen]['excess']):+.2f} % over the best (model {best}), "
-              f"allowed {percent(table[chosen]['allowed']):.2f} %")
-    if chosen > candidates[0]:
-        reason += "; simpler: " + ", ".join(f"model {m} {percent(table[m]['excess']):+.2f} % "
-                                            f"(allowed {percent(table[m]['allowed']):.2f} %)"
-                                            for m in candidates if m < chosen)
-    return Selection(chosen, table, best, reason, len(train), len(held), held_pool.count)
+    pools = (train_pool, held_pool, len(held))
+    lobed = [m for m in candidates if m >= 1]
+    reasons, margins, table, chosen, best = [], [], {}, None, None
+    if 0 in candidates and lobed:  # a reflection lobe at all: the lobe fit's own Delta theta_h
+        lobe_fit = dataclasses.replace(augment_settings, max_samples=selection.max_samples)
+        losses = _held_out_losses([0, lobed[0]], pools, eta0, fit_settings, selection, lobe_fit)
+        chosen, best, first = choose(losses, selection.tolerance, selection.standard_errors)
+        reasons.append(_describe(chosen, best, first, "a lobe"))
+        margins.append(decision_margin(first, chosen))
+        table.update(first)  # model 1's row is the which-lobes question's where that is asked
+    if len(lobed) > 1:  # which lobes: no Delta theta_h (selection.max_theta_error_deg); recorded after a "none" too
+        losses = _held_out_losses(lobed, pools, eta0, fit_settings, selection, selection.lobe_settings(augment_settings))
+        which, which_best, second = choose(losses, selection.tolerance, selection.standard_errors)
+        table.update(second)
+        if chosen != 0:
+            chosen, best = which, which_best
+            reasons.append(_describe(chosen, best, second, "which lobes"))
+            margins.append(decision_margin(second, chosen))
+    elif chosen is None:  # no model 0 to compare and one lobed candidate cannot happen (len(candidates) > 1)
+        chosen = lobed[0]
+    margin, runner_up = min(margins, key=lambda pair: pair[0]) if margins else (float("nan"), None)
+    reason = f"model {chosen} ({'; '.join(reasons)}); margin {margin:.2f}"
+    reason += f" (model {runner_up})" if runner_up is not None else ""
+    return Selection(chosen, table, best, reason, len(train), len(held), held_pool.count, margin, runner_up)
 
 
 def fit_by_model(obs: Observations, normal0, prior: PBRDFParams, models, settings: FitSettings = FitSettings(),

@@ -1,6 +1,8 @@
 """One fit shard (rule ``fit_pbrdf``) and the gather of an iteration's shards into ``fit.zarr`` (rule
 ``gather_fit``): the shard's vertex rows, the fit settings from ``--set KEY=VALUE`` pairs, XLA's persistent
-compilation cache, :func:`fit_shard` and :func:`gather_shards`.
+compilation cache, :func:`fit_shard` and :func:`gather_shards`; the memory a shard needs (:data:`SHARD_MEMORY`),
+what the job may use (:func:`memory_budget`) and the error that names the shard count that fits
+(:class:`ShardMemoryError`).
 """
 
 from __future__ import annotations
@@ -8,10 +10,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import math
 import time
 from pathlib import Path
 
 import numpy as np
+
+from sellip.jobs import atomic_file
 
 log = logging.getLogger(__name__)
 
@@ -89,14 +94,119 @@ def enable_compilation_cache(directory: str | Path | None) -> None:
 
 
 
+def largest_shard(num_vertices: int, chunk: int, total: int) -> int:
+    """Vertices of the largest of ``total`` shards (:func:`shard_rows`)."""
+    return max(stop - start for start, stop in (shard_rows(num_vertices, chunk, k, total) for k in range(total)))
+
+
+@dataclasses.dataclass(frozen=True)
+class ShardMemory:
+    """Peak resident memory of one ``sellip fit`` job, in bytes: ``base`` (Python, JAX, the compiled kernels) +
+    ``loaded`` per (vertex, view) of the shard (its observations, read whole) + ``working`` per (vertex, view) of
+    one chunk of ``FitSettings.chunk_size`` vertices (the fit's arrays)."""
+
+    base: float
+    loaded: float
+    working: float
+
+    def bytes(self, vertices: int, views: int, chunk_size: int) -> float:
+        """Bytes a job fitting ``vertices`` vertices of ``views`` views needs."""
+        return self.base + views * (self.loaded * vertices + self.working * min(vertices, chunk_size))
+
+    def shards_for(self, total_vertices: int, views: int, chunk_size: int, budget: float,
+                   vertex_chunk: int = 1) -> int | None:
+        """The fewest shards of ``total_vertices`` whose largest job fits in ``budget`` bytes; None if none does.
+        Shards are whole store chunks of ``vertex_chunk`` vertices (:func:`largest_shard`)."""
+        blocks = max(-(-total_vertices // vertex_chunk), 1)
+
+        def fits(shards: int) -> bool:
+            return self.bytes(largest_shard(total_vertices, vertex_chunk, shards), views, chunk_size) <= budget
+
+        low, high = 1, blocks
+        if not fits(high):
+            return None
+        while low < high:  # the bytes fall as the shards grow: the first count that fits
+            middle = (low + high) // 2
+            low, high = (low, middle) if fits(middle) else (middle + 1, high)
+        return low
+
+
+SHARD_MEMORY = ShardMemory(base=0.5e9, loaded=40.0, working=3600.0)
+"""Measured with benchmarks/shard_memory.py at 36 views (docs/reliability.md, "Memory of a fit shard"): peaks of
+0.70, 1.25 and 1.36 GB at 4k, 33k and 131k vertices (0.96 GB for a first job, which compiles), fitted by a base of
+0.17 GB, 31 B per loaded and 3,541 B per chunk vertex-view; the base here includes compiling and the rest is
+rounded up: the model predicts 1.29x what was measured above one chunk."""
+
+
+class ShardMemoryError(MemoryError):
+    """A fit shard that does not fit in the memory its job may use; the message says how many shards would."""
+
+
+def available_memory(root: str | Path = "/") -> int | None:
+    """Bytes this process may still allocate: the smaller of the system's MemAvailable (``/proc/meminfo``) and the
+    room left under its cgroup's limit (v2 ``memory.max`` - ``memory.current``, or v1's; a SLURM job's ``--mem``);
+    None where neither can be read. ``root``: where /proc and /sys are (tests)."""
+    root = Path(root)
+    candidates = []
+    try:
+        for line in (root / "proc" / "meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                candidates.append(int(line.split()[1]) * 1024)
+    except (OSError, ValueError, IndexError):
+        pass
+    for limit_file, usage_file in (("sys/fs/cgroup/memory.max", "sys/fs/cgroup/memory.current"),
+                                   ("sys/fs/cgroup/memory/memory.limit_in_bytes",
+                                    "sys/fs/cgroup/memory/memory.usage_in_bytes")):
+        try:
+            limit = (root / limit_file).read_text().strip()
+            if limit != "max" and int(limit) < 1 << 60:
+                candidates.append(max(int(limit) - int((root / usage_file).read_text().strip()), 0))
+                break
+        except (OSError, ValueError):
+            continue
+    return min(candidates) if candidates else None
+
+
+def memory_budget(mem_mb: float | None, root: str | Path = "/") -> tuple[float | None, str]:
+    """(bytes a fit job may use, where that number comes from): the job's ``mem_mb`` (the rule's resource,
+    config ``fit.mem_mb``) or what the machine has available now (:func:`available_memory`), the smaller."""
+    options = []
+    if mem_mb:
+        options.append((mem_mb * 1e6, f"the job's {mem_mb:,.0f} MB (its mem_mb resource: config fit.mem_mb)"))
+    available = available_memory(root)
+    if available is not None:
+        options.append((float(available), f"the {available / 1e9:.1f} GB this machine has available"))
+    return min(options) if options else (None, "no limit known")
+
+
+def shard_memory_message(shard: tuple[int, int], vertices: int, total: int, views: int, chunk_size: int,
+                         budget: float, source: str, vertex_chunk: int = 1, model: ShardMemory = SHARD_MEMORY) -> str:
+    """What to do when shard ``shard`` (0-based index, count) of ``total`` vertices (store chunks of
+    ``vertex_chunk``) does not fit in ``budget`` bytes."""
+    need = model.bytes(vertices, views, chunk_size)
+    shards = model.shards_for(total, views, chunk_size, budget, vertex_chunk)
+    text = (f"fit shard {shard[0] + 1} of {shard[1]} needs about {need / 1e9:.2f} GB for its {vertices:,} vertices "
+            f"of {views} views, more than {source}")
+    if shards is None:
+        return text + (f": no shard count fits (one vertex needs {model.bytes(1, views, chunk_size) / 1e9:.2f} GB); "
+                       "raise fit.mem_mb or run on a machine with more memory (docs/reliability.md)")
+    shards = max(shards, shard[1] + 1)  # the job did not fit: at least one more
+    per_shard = model.bytes(largest_shard(total, vertex_chunk, shards), views, chunk_size)
+    return text + (f": run with fit.shards: {shards} (--config 'fit={{shards: {shards}}}'; each job then needs "
+                   f"about {per_shard / 1e9:.2f} GB) or raise fit.mem_mb to {math.ceil(need / 1e6 / 100) * 100:,} "
+                   "(docs/reliability.md)")
+
+
 def fit_shard(observations: Path, shard: tuple[int, int], output: Path, prior: Path | None = None,
               dtype: str = "float32", settings=None, compilation_cache: str | None = None,
-              lobes: Path | None = None, fixed_sigma_ss: float = 0.9) -> dict:
+              lobes: Path | None = None, fixed_sigma_ss: float = 0.9, mem_mb: float | None = None) -> dict:
     """Fit one shard and write ``output`` (.npz, atomically); with ``lobes`` the augmented refit.
     Every vertex is fitted with its model (module docstring); ``fixed_sigma_ss`` is model 2's
-    sigma_ss when ``settings.sigma_ss_fixed`` is None. Returns a summary dict.
+    sigma_ss when ``settings.sigma_ss_fixed`` is None. Returns a summary dict. Before reading the observations,
+    the memory the shard needs (:data:`SHARD_MEMORY`) is checked against :func:`memory_budget` (``mem_mb``: the
+    job's limit); :class:`ShardMemoryError` names the shard count that fits, then and when an allocation fails.
 
-    Long: one job's steps in order (read, prior, virtual samples, fit by model, write), each a call."""
+    """
     from sellip.timing import mark
 
     mark("imports")
@@ -105,11 +215,8 @@ def fit_shard(observations: Path, shard: tuple[int, int], output: Path, prior: P
     if dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     enable_compilation_cache(compilation_cache)
-    from sellip.fit.observe import load_observations, open_observations
-    from sellip.fit.records import STATUS_NAMES, FitSettings, model_of
-    from sellip.fit.selection import cap_models, fit_by_model
-    from sellip.fit.vertex_fit import default_prior
-    from sellip.model.params import PARAM_FIELDS, params_from, read_params, same_vertices, transfer_nearest
+    from sellip.fit.observe import open_observations
+    from sellip.fit.records import FitSettings
 
     mark("read")
     settings = settings or FitSettings()
@@ -118,6 +225,42 @@ def fit_shard(observations: Path, shard: tuple[int, int], output: Path, prior: P
     chunk = int(group["diffuse"].chunks[0])
     start, stop = shard_rows(total, chunk, *shard)
     log.info("shard %d of %d: vertices [%d, %d) of %d", shard[0] + 1, shard[1], start, stop, total)
+    views = int(group["diffuse"].shape[1])
+    budget, source = memory_budget(mem_mb)
+    need = SHARD_MEMORY.bytes(stop - start, views, settings.chunk_size)
+    halved = SHARD_MEMORY.shards_for(total, views, settings.chunk_size, (need + SHARD_MEMORY.base) / 2, chunk)
+    log.info("memory: about %.2f GB for %d vertices of %d views; may use %s%s", need / 1e9, stop - start, views,
+             source, f" (fit.shards: {halved} would halve the part that grows with the vertices)" if halved else "")
+    if budget is not None and need > budget:
+        raise ShardMemoryError(shard_memory_message(shard, stop - start, total, views, settings.chunk_size, budget,
+                                                    source, chunk))
+    try:
+        return _fit_rows(observations, group, total, start, stop, output, prior, dtype, settings, lobes,
+                         fixed_sigma_ss)
+    except Exception as error:
+        # numpy raises MemoryError when an allocation fails, XLA an XlaRuntimeError "RESOURCE_EXHAUSTED: Out of
+        # memory". (The kernel's OOM killer sends SIGKILL, which no handler sees: the "memory:" line above is
+        # then the log's last word, and the console says so: workflow_support.format_failures.)
+        if not isinstance(error, MemoryError) and "RESOURCE_EXHAUSTED" not in str(error):
+            raise
+        # It did not fit in what the job had: at most ~99 % of the estimate, whatever the budget said.
+        budget, source = memory_budget(mem_mb)
+        raise ShardMemoryError(f"out of memory ({type(error).__name__}): " + shard_memory_message(
+            shard, stop - start, total, views, settings.chunk_size, min(budget or need, 0.99 * need),
+            source, chunk)) from error
+
+
+def _fit_rows(observations, group, total, start, stop, output, prior, dtype, settings, lobes, fixed_sigma_ss) -> dict:
+    """:func:`fit_shard` after the memory check: read the rows, start values, virtual samples, fit by model, write.
+
+    Long: one job's steps in order (read, prior, virtual samples, fit by model, write), each a call."""
+    from sellip.fit.observe import load_observations
+    from sellip.fit.records import STATUS_NAMES, model_of
+    from sellip.fit.selection import cap_models, fit_by_model
+    from sellip.fit.vertex_fit import default_prior
+    from sellip.model.params import PARAM_FIELDS, params_from, read_params, same_vertices, transfer_nearest
+    from sellip.timing import mark
+
     data = load_observations(observations, start, stop)
     float_type = np.dtype(dtype)
     obs = type(data.observations)(*[np.asarray(x, float_type) if np.asarray(x).dtype.kind == "f" else np.asarray(x)
@@ -172,11 +315,8 @@ def fit_shard(observations: Path, shard: tuple[int, int], output: Path, prior: P
                       normal_std_deg=result.normal_std_deg, eta_std=result.eta_std,
                       sigma_s_std=result.sigma_s_std, model=models,
                       **{name: getattr(result.params, name) for name in result.params._fields})
-    output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(output.name + ".tmp.npz")
-    np.savez(tmp, **arrays)
-    tmp.replace(output)
+    with atomic_file(output) as tmp:
+        np.savez(tmp, **arrays)
     counts = {STATUS_NAMES[s]: int(np.sum(result.status == s)) for s in STATUS_NAMES} if n else {}
     summary = {"vertices": n, "seconds": seconds, "vertex_fits_per_second": n / seconds if seconds > 0 else 0.0,
                "status": counts, "models": per_model}
@@ -188,7 +328,12 @@ def fit_shard(observations: Path, shard: tuple[int, int], output: Path, prior: P
 def gather_shards(observations: Path, shards: list[Path], output: Path) -> dict:
     from sellip.fit.observe import open_observations
     from sellip.fit.records import STATUS_FITTED, STATUS_NAMES
-    from sellip.model.params import PARAM_FIELDS, ParamsError, fill_from_neighbours, write_params
+    from sellip.model.params import (
+        PARAM_FIELDS,
+        ParamsError,
+        fill_from_neighbours,
+        write_params,
+    )
 
     group = open_observations(observations)
     total = int(group.attrs["num_vertices"])

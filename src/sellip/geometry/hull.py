@@ -87,6 +87,10 @@ class VoxelGrid:
         return lo, hi
 
 
+class EmptyHullError(ValueError):
+    """The silhouettes leave no voxel: they and the cameras disagree about where the object is."""
+
+
 def view_volume_bounds(intrinsics: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
                        width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """A box (lo, hi) that contains what all cameras look at.
@@ -115,6 +119,32 @@ def _project(points: np.ndarray, intrinsics: np.ndarray, rotation: np.ndarray, t
     u = k[0, 0] * cam[:, 0] / safe + k[0, 1] * cam[:, 1] / safe + k[0, 2]
     v = k[1, 1] * cam[:, 1] / safe + k[1, 2]
     return np.stack([u, v], axis=-1), depth
+
+
+def silhouette_coverage(vertices: np.ndarray, faces: np.ndarray, masks: np.ndarray, intrinsics: np.ndarray,
+                        rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+    """(V,) per view the fraction of the silhouette's pixels that the mesh's projection covers: near 1 where the
+    cameras describe the photographs; a hull carved by cameras that are not the capture's shrinks to the part that
+    every cone shares, and covers less. vertices (N, 3) world metres, faces (F, 3), masks (V, H, W) bool,
+    intrinsics (3, 3) in the masks' pixels, rotations (V, 3, 3) and translations (V, 3) cam_from_world. The
+    projection is the vertices' pixels grown by the longest projected edge and filled (a coarse footprint)."""
+    coverage = np.ones(len(masks))
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    for view, mask in enumerate(masks):
+        if not mask.any():
+            continue
+        pixels, depth = _project(vertices, intrinsics, rotations[view], translations[view])
+        ahead = depth > 0
+        lengths = np.linalg.norm(pixels[edges[:, 0]] - pixels[edges[:, 1]], axis=1)[ahead[edges].all(1)]
+        reach = int(np.ceil(np.percentile(lengths, 99))) if len(lengths) else 1
+        footprint = np.zeros(mask.shape, bool)
+        inside = ahead & (pixels[:, 0] >= 0) & (pixels[:, 1] >= 0) & (pixels[:, 0] < mask.shape[1] - 0.5) \
+            & (pixels[:, 1] < mask.shape[0] - 0.5)
+        rows, cols = np.rint(pixels[inside, 1]).astype(int), np.rint(pixels[inside, 0]).astype(int)
+        footprint[rows, cols] = True
+        footprint = ndimage.binary_fill_holes(ndimage.binary_dilation(footprint, iterations=max(reach, 1)))
+        coverage[view] = float((footprint & mask).sum() / mask.sum())
+    return coverage
 
 
 @dataclass(frozen=True)
@@ -179,7 +209,7 @@ def visual_hull(masks: np.ndarray, intrinsics: np.ndarray, rotations: np.ndarray
     coarse = carve(masks, intrinsics, rotations, translations, VoxelGrid.from_bounds(lo, hi, coarse_resolution),
                    min_inside_fraction, min_views)
     if not coarse.occupancy.any():
-        raise ValueError("silhouette carving removed every voxel: the masks and the poses disagree")
+        raise EmptyHullError("silhouette carving removed every voxel: the masks and the poses disagree")
     lo, hi = coarse.grid.bounds_of(coarse.occupancy, margin_voxels)
     return carve(masks, intrinsics, rotations, translations, VoxelGrid.from_bounds(lo, hi, resolution),
                  min_inside_fraction, min_views)

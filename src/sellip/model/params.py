@@ -17,19 +17,19 @@ confidence 0 (DESIGN §7): never NaN, never another vertex's stale values.
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import numpy as np
 import zarr
 from scipy.spatial import cKDTree
 
+from sellip.jobs import atomic_directory
 from sellip.model.pbrdf import PBRDFParams
 
 PARAM_FIELDS = ("eta", "rho_d", "rho_s", "sigma_s", "rho_ss", "sigma_ss")
 EXTRA_FIELDS = {"confidence": np.float32, "status": np.int8, "loss": np.float32, "views_used": np.int16,
                 "iterations": np.int16, "model": np.uint8, "cluster": np.int32, "eta_source": np.uint8,
-                "lobe_source": np.uint8}
+                "lobe_source": np.uint8, "selection_runner_up": np.int8}
 
 MODEL_NAMES = {0: "diffuse", 1: "diffuse + specular", 2: "diffuse + specular + single scattering (sigma_ss fixed)",
                3: "diffuse + specular + single scattering"}
@@ -79,18 +79,16 @@ def write_params(path: str | Path, arrays: dict, chunk: int = 65536, attrs: dict
     if missing:
         raise ParamsError(f"{path}: cannot write a parameter store without {missing}")
     n = len(arrays["vertices"])
-    tmp = path.with_name(path.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    group = zarr.open_group(str(tmp), mode="w")
     for name, value in arrays.items():
-        value = np.asarray(value)
         if len(value) != n:
             raise ParamsError(f"{path}: array {name!r} has {len(value)} rows, expected {n}")
-        dtype = EXTRA_FIELDS.get(name, np.float32)
-        group.create_array(name, data=value.astype(dtype), chunks=(min(chunk, max(n, 1)),) + value.shape[1:])
-    group.attrs.update({"num_vertices": n, **(attrs or {})})
-    shutil.rmtree(path, ignore_errors=True)
-    tmp.rename(path)
+    with atomic_directory(path) as tmp:
+        group = zarr.open_group(str(tmp), mode="w")
+        for name, value in arrays.items():
+            dtype = EXTRA_FIELDS.get(name, np.float32)
+            group.create_array(name, data=np.asarray(value).astype(dtype),
+                               chunks=(min(chunk, max(n, 1)),) + np.shape(value)[1:])
+        group.attrs.update({"num_vertices": n, **(attrs or {})})
     return path
 
 

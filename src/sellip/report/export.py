@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sellip.jobs import atomic_file
+
 GLTF_ATTRIBUTES = (("_ETA", ("eta",)), ("_RHO_D", ("rho_d_r", "rho_d_g", "rho_d_b")), ("_RHO_S", ("rho_s",)),
                    ("_SIGMA_S", ("sigma_s",)), ("_RHO_SS", ("rho_ss_r", "rho_ss_g", "rho_ss_b")),
                    ("_SIGMA_SS", ("sigma_ss",)), ("_CONFIDENCE", ("confidence",)), ("_MODEL", ("model",)),
@@ -166,9 +168,8 @@ def write_map_plys(folder: str | Path, vertex: dict, faces: np.ndarray, maps: di
         table = {p: np.asarray(vertex[p], np.float32) for p in ("x", "y", "z", "nx", "ny", "nz") if p in vertex}
         table.update(red=colors[:, 0], green=colors[:, 1], blue=colors[:, 2])
         path = folder / f"map_{name}.ply"
-        tmp = path.with_name(path.name + ".tmp.ply")
-        write_ply(tmp, table, np.asarray(faces))
-        tmp.replace(path)
+        with atomic_file(path) as tmp:
+            write_ply(tmp, table, np.asarray(faces))
         written.append(path)
     return written
 
@@ -247,12 +248,10 @@ def write_glb(path: str | Path, vertex: dict, faces: np.ndarray, up=None, name: 
     text = json.dumps(document, separators=(",", ":")).encode("utf-8")
     text += b" " * (-len(text) % 4)
     total = 12 + 8 + len(text) + 8 + len(binary)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+    with atomic_file(path) as tmp, open(tmp, "wb") as f:
         f.write(struct.pack("<III", 0x46546C67, 2, total))
         f.write(struct.pack("<II", len(text), 0x4E4F534A))
         f.write(text)
         f.write(struct.pack("<II", len(binary), 0x004E4942))
         f.write(binary)
-    tmp.replace(path)
     return path

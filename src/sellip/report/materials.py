@@ -5,7 +5,7 @@ One row per material cluster of ``final/params.zarr`` (``cluster``; a store with
     cluster, vertices, area_share, confident_vertices,
     eta, eta_ci_low, eta_ci_high, eta_spread, eta_fit_std, eta_own_vertices,
     rho_d_r, rho_d_g, rho_d_b, rho_s, sigma_s, rho_ss_r, rho_ss_g, rho_ss_b, sigma_ss,
-    model, model_name, lobe_own_vertices
+    model, model_name, lobe_own_vertices, selection_margin, runner_up_model
     [+ with a ground truth: gt_material, gt_eta, gt_rho_d_r, gt_rho_d_g, gt_rho_d_b, gt_sigma_s, gt_sigma_ss]
 
 Definitions (the cluster's vertices are those with its label; "estimating" vertices are the confident ones,
@@ -24,6 +24,12 @@ confidence > 0, whose own eta is not pinned at a bound of the fit, :func:`sellip
   ``rho_s``, ``sigma_s``, ``sigma_ss``: the median over them.
 - ``model``: the most common per-vertex ``model`` code (:data:`sellip.params.MODEL_NAMES`); ``eta_own_vertices``,
   ``lobe_own_vertices``: how many keep their own eta / specular lobe (``eta_source``/``lobe_source`` = 1).
+- ``selection_margin``, ``runner_up_model``: how far the cluster's model choice was from the selection rule's
+  boundary, in units of its allowance (0: on it, a little more noise would flip it; 1: no candidate came near), and
+  the model nearest to taking its place (:func:`sellip.fit.selection.decision_margin`, from the final pass's
+  ``clusters.json``, carried per vertex as ``selection_margin`` / ``selection_runner_up``); NaN and -1 where the
+  pass scored no candidates (or the store predates them). Below 0.5 the vertices' ``confidence`` is lowered
+  (:func:`sellip.fit.selection.margin_confidence`): a fragile lobe choice says so in both places.
 - ``area_share``: the cluster's share of the surface, each vertex carrying a third of its triangles' area.
 - Ground truth (``gt_*``): each model vertex's nearest ground-truth vertex (same world: a run on known poses) votes;
   ``gt_material`` is the most common true material label (-1: none), ``gt_eta`` etc. the medians of the true values
@@ -37,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from sellip.jobs import atomic_file
 from sellip.model.params import MODEL_NAMES
 
 BOOTSTRAP_ROUNDS = 1000
@@ -45,7 +52,8 @@ MAD_TO_SD = 1.4826
 
 COLUMNS = ("cluster", "vertices", "area_share", "confident_vertices", "eta", "eta_ci_low", "eta_ci_high",
            "eta_spread", "eta_fit_std", "eta_own_vertices", "rho_d_r", "rho_d_g", "rho_d_b", "rho_s", "sigma_s",
-           "rho_ss_r", "rho_ss_g", "rho_ss_b", "sigma_ss", "model", "model_name", "lobe_own_vertices")
+           "rho_ss_r", "rho_ss_g", "rho_ss_b", "sigma_ss", "model", "model_name", "lobe_own_vertices",
+           "selection_margin", "runner_up_model")
 GT_COLUMNS = ("gt_material", "gt_eta", "gt_rho_d_r", "gt_rho_d_g", "gt_rho_d_b", "gt_sigma_s", "gt_sigma_ss")
 
 
@@ -78,6 +86,8 @@ def materials_schema(ground_truth: bool = False):
         "model": pa.Column(int, pa.Check.isin(sorted(MODEL_NAMES)), coerce=True),
         "model_name": pa.Column(str, pa.Check.isin(list(MODEL_NAMES.values()))),
         "lobe_own_vertices": count,
+        "selection_margin": pa.Column(float, [pa.Check.ge(0), pa.Check.le(1)], nullable=True, coerce=True),
+        "runner_up_model": pa.Column(int, pa.Check.isin([-1, *sorted(MODEL_NAMES)]), coerce=True),
     }
     if ground_truth:
         columns.update({
@@ -140,7 +150,8 @@ def material_table(arrays: dict, faces: np.ndarray, ground_truth=None) -> pd.Dat
 
     arrays: name -> (N, ...) arrays of final/params.zarr (:func:`sellip.params.read_params`); needs
     ``vertices`` and the pBRDF fields; uses ``cluster``, ``confidence``, ``eta_vertex``, ``eta_std``, ``model``,
-    ``eta_source``, ``lobe_source`` where present. faces (F, 3) of the model (for the area shares).
+    ``eta_source``, ``lobe_source``, ``selection_margin``, ``selection_runner_up`` where present. faces (F, 3) of the
+    model (for the area shares).
     ground_truth: a :class:`sellip.render.ParamMesh` in the same world (its ``material`` labels used if present).
     """
     from sellip.fit.parameterization import eta_at_bound
@@ -159,6 +170,8 @@ def material_table(arrays: dict, faces: np.ndarray, ground_truth=None) -> pd.Dat
     eta_own = np.asarray(arrays.get("eta_vertex", eta_final), np.float64)
     eta_std = column("eta_std", np.nan).astype(np.float64)
     models = column("model", 3).astype(np.int64)
+    margin = column("selection_margin", np.nan).astype(np.float64)
+    runner_up = column("selection_runner_up", -1).astype(np.int64)
     estimating = (confidence > 0) & ~eta_at_bound(eta_own) & np.isfinite(eta_own)
     area = vertex_areas(vertices, faces)
     total_area = area.sum() or 1.0
@@ -189,7 +202,9 @@ def material_table(arrays: dict, faces: np.ndarray, ground_truth=None) -> pd.Dat
                "rho_ss_r": rho_ss[0], "rho_ss_g": rho_ss[1], "rho_ss_b": rho_ss[2],
                "sigma_ss": float(np.median(np.asarray(arrays["sigma_ss"], np.float64)[member])),
                "model": model, "model_name": MODEL_NAMES[model],
-               "lobe_own_vertices": int(column("lobe_source", 0)[member].astype(np.int64).sum())}
+               "lobe_own_vertices": int(column("lobe_source", 0)[member].astype(np.int64).sum()),
+               "selection_margin": float(np.median(margin[member])) if np.isfinite(margin[member]).all() else np.nan,
+               "runner_up_model": _mode(runner_up[member])}
         if truth is not None:
             row.update(_truth_row(truth, member))
         rows.append(row)
@@ -220,9 +235,8 @@ def write_materials(path: str | Path, table: pd.DataFrame) -> Path:
     """Write the table as CSV atomically (temporary name, then rename), after checking it."""
     path = Path(path)
     validate_materials(table, str(path))
-    tmp = path.with_name(path.name + ".tmp")
-    table.to_csv(tmp, index=False, float_format="%.6g")
-    tmp.replace(path)
+    with atomic_file(path) as tmp:
+        table.to_csv(tmp, index=False, float_format="%.6g")
     return path
 
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 from pathlib import Path
 
@@ -17,6 +16,7 @@ from sellip import workflow_support
 from sellip.capture.files import GROUND_TRUTH_MESH
 from sellip.capture.reader import read_capture
 from sellip.geometry.cameras import load_cameras
+from sellip.jobs import write_text
 from sellip.model.params import read_params
 from sellip.model.ply import read_param_mesh
 from sellip.model.render import Camera, Renderer, flash_light
@@ -287,10 +287,7 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
                            (workflow_support.collect_warnings(logs) if logs is not None else [])]
     metrics["reasons"] = reasons
     metrics["evaluate_s"] = time.perf_counter() - started
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(f".{output.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(metrics, indent=2, allow_nan=False))
-    tmp.rename(output)
+    write_text(json.dumps(metrics, indent=2, allow_nan=False), output)
     log.info("wrote %s in %.1f s", output, metrics["evaluate_s"])
     return metrics
 

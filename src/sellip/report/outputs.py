@@ -39,6 +39,7 @@ import numpy as np
 from sellip.capture.reader import read_capture
 from sellip.capture.scenes import look_at_rotation
 from sellip.geometry.cameras import load_cameras
+from sellip.jobs import atomic_file
 from sellip.model.ply import read_param_mesh, read_ply
 from sellip.model.render import Camera, Light, ParamMesh, Renderer, flash_light
 from sellip.report.previews import WHITE_PERCENTILE, dolp_aolp, srgb_encode, to_uint8
@@ -371,7 +372,8 @@ def convergence_figure(rows: list[dict]):
 
 def save_figure(fig, path: str | Path) -> Path:
     """Write a matplotlib figure as PNG."""
-    fig.savefig(path, format="png")
+    with atomic_file(path) as tmp:
+        fig.savefig(tmp, format="png")
     return Path(path)
 
 

@@ -27,13 +27,13 @@ import base64
 import json
 import logging
 import re
-import shutil
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
+from sellip.jobs import atomic_directory
 from sellip.report.export import MAP_LABELS, MapData, model_maps
 
 log = logging.getLogger(__name__)
@@ -80,9 +80,9 @@ def read_pose_table(path: str | Path) -> list:
     """[(view_id, R (3, 3), t (3,))] of a cameras.csv (poses.csv columns, checked with its pandera schema)."""
     import pandas as pd
 
-    from sellip.model.conventions import quaternion_to_rotation
     from sellip.capture.files import POSE_COLUMNS
     from sellip.capture.tables import validate_poses
+    from sellip.model.conventions import quaternion_to_rotation
 
     table = validate_poses(pd.read_csv(path, dtype={"view_id": str}, keep_default_na=False), str(path))
     rotations = quaternion_to_rotation(table[list(POSE_COLUMNS[1:5])].to_numpy(np.float64))
@@ -92,8 +92,8 @@ def read_pose_table(path: str | Path) -> list:
 
 def load_inputs(results: str | Path, capture: str | Path | None = None) -> ViewerInputs:
     """The viewer's inputs from a results folder (module docstring). ViewerError when there is no finished model."""
-    from sellip.model.ply import read_ply
     from sellip.model.params import ParamsError, read_params
+    from sellip.model.ply import read_ply
 
     results = Path(results)
     model = results / "final" / "model.ply"
@@ -244,18 +244,16 @@ def write_viewer(folder: str | Path, inputs: ViewerInputs) -> Path:
     """Write the page into ``folder`` (built under a temporary name, then renamed). Returns the index.html path."""
     folder = Path(folder)
     meta, binary = payload(inputs)
-    tmp = folder.with_name(folder.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    for name in ASSETS:
-        (tmp / name).write_text(_asset(name), encoding="utf-8")
-    (tmp / "shaders.js").write_text("window.SELLIP_SHADERS = " + json.dumps(shader_sources()) + ";\n", encoding="utf-8")
-    with open(tmp / "model.js", "w", encoding="ascii") as f:
-        f.write("window.SELLIP_MODEL = {meta: " + json.dumps(meta, allow_nan=False) + ', data: "')
-        f.write(base64.b64encode(binary).decode("ascii"))
-        f.write('"};\n')
-    shutil.rmtree(folder, ignore_errors=True)
-    tmp.rename(folder)
+    with atomic_directory(folder) as tmp:
+        tmp.mkdir()
+        for name in ASSETS:
+            (tmp / name).write_text(_asset(name), encoding="utf-8")
+        (tmp / "shaders.js").write_text("window.SELLIP_SHADERS = " + json.dumps(shader_sources()) + ";\n",
+                                        encoding="utf-8")
+        with open(tmp / "model.js", "w", encoding="ascii") as f:
+            f.write("window.SELLIP_MODEL = {meta: " + json.dumps(meta, allow_nan=False) + ', data: "')
+            f.write(base64.b64encode(binary).decode("ascii"))
+            f.write('"};\n')
     return folder / "index.html"
 
 
@@ -329,11 +327,8 @@ def export_results(results: Path, capture: Path | None = None) -> dict:
         up = np.mean([-r[1] for _, r, _ in inputs.cameras], axis=0)
     written["glb"] = write_glb(final / "model.glb", vertex, inputs.faces, up=up, name=results.name)
     maps = maps_of(inputs)
-    tmp = final / "maps.tmp"
-    shutil.rmtree(tmp, ignore_errors=True)
-    write_map_plys(tmp, vertex, inputs.faces, maps)
-    shutil.rmtree(final / "maps", ignore_errors=True)
-    tmp.rename(final / "maps")
+    with atomic_directory(final / "maps") as tmp:
+        write_map_plys(tmp, vertex, inputs.faces, maps)
     written["maps"] = final / "maps"
     written["viewer"] = write_viewer(results / "viewer", inputs)
     for note in inputs.notes:

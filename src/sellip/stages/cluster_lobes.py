@@ -80,6 +80,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="sigma_ss of model 2 when --set sigma_ss_fixed is not given")
     parser.add_argument("--selection-max-samples", type=int, default=selection.max_samples,
                         help="training samples per candidate fit")
+    parser.add_argument("--selection-max-theta-error-deg", type=float, default=selection.max_theta_error_deg,
+                        help="|Delta theta_h| bound of the candidate fits and their held-out scores among models 1-3 "
+                             "(0: none; model 0 against a lobe keeps the lobe fit's)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -99,7 +102,8 @@ def main(args: argparse.Namespace) -> int:
         selection = SelectionSettings(enabled=args.model_selection, candidates=tuple(args.candidates),
                                       held_out_fraction=args.held_out_fraction, tolerance=args.selection_tolerance,
                                       standard_errors=args.selection_standard_errors,
-                                      sigma_ss_fixed=args.fixed_sigma_ss, max_samples=args.selection_max_samples)
+                                      sigma_ss_fixed=args.fixed_sigma_ss, max_samples=args.selection_max_samples,
+                                      max_theta_error_deg=args.selection_max_theta_error_deg)
         cluster_and_fit_lobes(args.params, args.observations, args.output, args.seed, settings,
                   settings_from_pairs(args.overrides), args.compilation_cache, selection, args.inherit_models)
     except (ObserveError, ParamsError, ValueError) as error:

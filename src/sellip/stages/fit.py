@@ -4,7 +4,7 @@
                --output results/NAME/iter/0/fit/2-of-4.npz
                [--prior results/NAME/iter/1/refit.zarr] [--dtype float32]
                [--set lambda_d=100 --set sigma_ss_fixed=0.9 ...] [--compilation-cache DIR]
-               [--lobes results/NAME/iter/0/clusters]
+               [--lobes results/NAME/iter/0/clusters] [--mem-mb 4000]
 
 The shard's vertex range is derived at run time from the store's vertex count and chunking
 (shard i of n takes an equal share of whole vertex chunks, so it reads only its own chunks).
@@ -52,6 +52,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
     parser.add_argument("--lobes", type=Path, default=None,
                         help="cluster-lobes output directory: the augmented refit (virtual specular samples)")
+    parser.add_argument("--mem-mb", type=float, default=None,
+                        help="memory the job may use (MB; the rule's mem_mb resource, config fit.mem_mb): a shard "
+                             "needing more stops before reading, naming the shard count that fits")
     from sellip.fit.selection import SelectionSettings
 
     parser.add_argument("--fixed-sigma-ss", type=float, default=SelectionSettings().sigma_ss_fixed,
@@ -60,14 +63,15 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     from sellip.fit.observe import ObserveError
+    from sellip.fit.shard import ShardMemoryError
 
     try:
         settings = settings_from_pairs(args.overrides)
         if not 0.02 <= args.fixed_sigma_ss <= 1:
             raise ValueError(f"--fixed-sigma-ss must be in [0.02, 1], got {args.fixed_sigma_ss}")
         fit_shard(args.observations, args.shard, args.output, args.prior, args.dtype, settings,
-                  args.compilation_cache, args.lobes, args.fixed_sigma_ss)
-    except (ObserveError, ValueError) as error:
+                  args.compilation_cache, args.lobes, args.fixed_sigma_ss, args.mem_mb)
+    except (ObserveError, ValueError, ShardMemoryError) as error:
         log.error("%s", error)
         return 1
     return 0
