@@ -1,4 +1,5 @@
-"""How careful a calibration must be: the accuracy ladder's ``sensor`` rung (the true mesh observed in the
+"""How careful a calibration must be, the proxy (the whole-workflow table is benchmarks/calibration_reconstruction.py):
+the accuracy ladder's ``sensor`` rung (the true mesh observed in the
 capture's HDR images, one observe + fit pass, sellip.ladder.fit_true_mesh) with the device description
 perturbed: the flash position off, the flash polarizer angle off, fx off.
 
@@ -13,12 +14,8 @@ medians; eta per vertex median; normal error median) and writes sensitivity.json
 from __future__ import annotations
 
 import argparse
-import copy
 import json
-import os
 from pathlib import Path
-
-import yaml
 
 PERTURBATIONS = {
     "true description": {},
@@ -33,25 +30,6 @@ PERTURBATIONS = {
 }
 
 
-def perturbed_capture(capture: Path, out: Path, change: dict) -> Path:
-    """A capture folder at ``out`` sharing ``capture``'s frames (symlinks) with capture.yaml changed."""
-    out.mkdir(parents=True, exist_ok=True)
-    for name in ("frames.csv", "poses.csv", "raw", "ground_truth"):
-        if not (out / name).exists():
-            os.symlink((capture / name).resolve(), out / name)
-    config = yaml.safe_load((capture / "capture.yaml").read_text())
-    config = copy.deepcopy(config)
-    if "flash_mm" in change:
-        config["light"]["position_m"] = [p + d / 1000 for p, d in zip(config["light"]["position_m"], change["flash_mm"])]
-    if "polarizer_deg" in change:
-        config["light"]["polarizer_deg"] = float(config["light"]["polarizer_deg"]) + change["polarizer_deg"]
-    if "fx_rel" in change:
-        for key in ("fx", "fy"):
-            config["camera"][key] = float(config["camera"][key]) * (1 + change["fx_rel"])
-    (out / "capture.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
-    return out
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", default="sphere_ior")
@@ -62,11 +40,12 @@ def main() -> int:
     parser.add_argument("--cores", type=int, default=2)
     args = parser.parse_args()
 
+    from sellip.bench.calibration import perturbed_capture
     from sellip.bench.ladder import fit_true_mesh
-    from sellip.fit.observe import ObserveSettings
-    from sellip.capture.linearize import linearize_capture
     from sellip.capture.hdr import merge_capture
+    from sellip.capture.linearize import linearize_capture
     from sellip.capture.synthetic import synthesize_capture
+    from sellip.fit.observe import ObserveSettings
 
     work = (args.workdir / f"{args.scene}_{args.views}v_{args.width}x{args.height}").resolve()
     capture = work / "capture"

@@ -13,14 +13,10 @@ import pandas as pd
 import pytest
 import yaml
 
-from sellip.capture import ingest
-from sellip.capture import writer
-from sellip.capture import reader
-from sellip.capture import files
 from sellip.calibrate import color, flash, intrinsics, polarization, synthetic
 from sellip.calibrate import device as devices
 from sellip.calibrate.intrinsics import CalibrationError
-from sellip.capture import assemble
+from sellip.capture import assemble, files, ingest, reader, writer
 
 W, H = 612, 512
 SPEC = synthetic.BoardSpec()
@@ -275,12 +271,16 @@ def test_capture_new_from_a_pattern(tmp_path):
     assert sorted(capture.frames["flash_level"].unique()) == [0.0625, 0.125, 0.25]
     assert capture.frames["file"].iloc[0] == "raw/v000_f16.dng"
     assert capture.config["camera"]["fx"] == device["camera"]["fx"] and capture.config["scene"]["distance_m"] == 0.9
-    # the command line, into another folder
+    # the command line, into another folder, from a device.yaml that sellip calibrate wrote (its calibration record
+    # goes into capture.yaml)
+    devices.update_device(device_path, {}, "intrinsics", {"rms_px": 0.1})
     other = tmp_path / "elsewhere"
     subprocess.run([sys.executable, "-m", "sellip.cli", "capture", "new", str(raw_dir), "--device", str(device_path),
                     "--distance-m", "0.8", "--pattern", "{view}_f{level}.dng", "--exposure-s", "0.01",
                     "--out", str(other)], check=True)
-    assert reader.read_capture(other, check_raw=True).frames["file"].iloc[0] == "../owl/raw/v000_f16.dng"
+    written = reader.read_capture(other, check_raw=True)
+    assert written.frames["file"].iloc[0] == "../owl/raw/v000_f16.dng"
+    assert written.config["calibration"]["intrinsics"]["rms_px"] == 0.1
 
 
 def test_capture_new_from_a_csv(tmp_path):

@@ -7,10 +7,17 @@ import sys
 
 import numpy as np
 import pytest
+import yaml
 
 from sellip.capture import files, reader
 from sellip.capture import synthetic as capture_synthetic
-from sellip.capture.scenes import SPHERE_IOR_ETAS, build_scene, device_intrinsics, handheld_orbit, look_at_rotation
+from sellip.capture.scenes import (
+    SPHERE_IOR_ETAS,
+    build_scene,
+    device_intrinsics,
+    handheld_orbit,
+    look_at_rotation,
+)
 from sellip.capture.sensor import SensorModel, simulate_raw
 from sellip.model import ply
 from sellip.model.render import Camera, Renderer, flash_light
@@ -170,3 +177,41 @@ def test_png_frames_and_lens_distortion(tmp_path):
     capture = reader.read_capture(path, check_raw=True)
     assert capture.config["camera"]["distortion"] == distortion
     assert capture.frames["file"].str.endswith(".png").all()
+
+
+def test_a_described_device_shoots_the_capture(tmp_path):
+    """--device: the frames are shot with the device's lens, flash and polarizer, and capture.yaml describes it;
+    --noise-seed changes the noise alone (same orbit); a size other than the device's is refused."""
+    from sellip.calibrate.synthetic import true_device
+
+    device = true_device(96, 80, polarizer_deg=30.0)
+    device["light"]["position_m"] = [0.01, 0.04, 0.0]
+    device_file = tmp_path / "device.yaml"
+    device_file.write_text(yaml.safe_dump({"device": device}))  # synth-calibration's truth.yaml keeps it under device
+    out = tmp_path / "a"
+    subprocess.run([sys.executable, "-m", "sellip.cli", "synth", "--scene", "tiny", "--out", str(out), "--views", "2",
+                    "--device", str(device_file), "--no-progress"], check=True)
+    capture = reader.read_capture(out, check_raw=True)
+    assert capture.config["sensor"] == device["sensor"] and capture.config["light"] == device["light"]
+    for key, value in device["camera"].items():
+        assert np.allclose(capture.config["camera"][key], value), key
+    assert np.allclose(capture.intrinsics(), [[device["camera"]["fx"], 0, device["camera"]["cx"]],
+                                              [0, device["camera"]["fy"], device["camera"]["cy"]], [0, 0, 1]])
+    b = capture_synthetic.synthesize_capture("tiny", tmp_path / "b", views=2, device=device, progress=False)
+    noisy = capture_synthetic.synthesize_capture("tiny", tmp_path / "n", views=2, device=device, noise_seed=7,
+                                                 progress=False)
+    upright = capture_synthetic.synthesize_capture("tiny", tmp_path / "u", views=2, progress=False,
+                                                   device={**device, "light": {**device["light"], "polarizer_deg": 0.0}})
+    files_a, files_b, files_n = _files(out), _files(b), _files(noisy)
+    assert files_a["raw/v000_f0.dng"] == files_b["raw/v000_f0.dng"]  # the CLI and the library agree
+    assert files_n["poses.csv"] == files_a["poses.csv"] and files_n["raw/v000_f0.dng"] != files_a["raw/v000_f0.dng"]
+    # the flash polarizer turned by 30 deg moves signal between the analyzers, beyond the noise
+    raw_a = reader.read_raw_frame(capture, "v000_f0").astype(float)
+    raw_n = reader.read_raw_frame(reader.read_capture(noisy), "v000_f0").astype(float)
+    raw_u = reader.read_raw_frame(reader.read_capture(upright), "v000_f0").astype(float)
+    def by_analyzer(diff):  # signed sum per position of the 2x2 polarizer cell: noise cancels, a shift does not
+        return np.abs([diff[i::2, j::2].sum() for i in range(2) for j in range(2)]).max()
+
+    assert by_analyzer(raw_u - raw_a) > 5 * by_analyzer(raw_n - raw_a)
+    with pytest.raises(ValueError, match="the device's sensor is 96x80"):
+        capture_synthetic.synthesize_capture("tiny", tmp_path / "x", views=1, width=64, height=48, device=device)

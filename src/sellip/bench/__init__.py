@@ -5,6 +5,12 @@ Snakemake runs of the workflow, runs them and tabulates what they measured (docs
 
 Modules and what they export (each name is importable from here too)::
 
+    calibration: How careful a calibration must be, on whole reconstructions (issue #39 item 7): the workflow run on
+      one synthetic capture of ``sphere_ior`` shot by the synthetic device of ``sellip synth-calibration``, once per
+      description of that device
+        Perturbation, FULL_SIZE_ERRORS, PERTURBATIONS, CHART_NOISE_SCALE, perturb_description, perturbed_capture,
+        noisy_chart_matrix, calibrate_synthetic_set, description_errors, sensitivity_config, sensitivity_row,
+        sensitivity_markdown, run_sensitivity
     ladder: The accuracy ladder (docs/accuracy.md): where the error of a reconstruction enters, rung by rung
         render_hdr, fit_true_mesh, figures, resampled_truth, psnr_ceiling
     renderers: Both renderers side by side (issue #36): the figures of runs on captures of the same scenes rendered
@@ -50,6 +56,9 @@ See docs/architecture.md for what this package owns and what it may import.
 from sellip._exports import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
+    "calibration": ("Perturbation", "FULL_SIZE_ERRORS", "PERTURBATIONS", "CHART_NOISE_SCALE", "perturb_description",
+           "perturbed_capture", "noisy_chart_matrix", "calibrate_synthetic_set", "description_errors",
+           "sensitivity_config", "sensitivity_row", "sensitivity_markdown", "run_sensitivity"),
     "ladder": ("render_hdr", "fit_true_mesh", "figures", "resampled_truth", "psnr_ceiling"),
     "renderers": ("false_single_scattering", "renderer_row", "renderer_markdown", "main"),
     "scale": ("RULE_TERMS", "ITERATED_RULES", "SHARDED_RULES", "CaptureSize", "size_terms", "job_costs", "rule_costs",

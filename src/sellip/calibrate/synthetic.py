@@ -45,10 +45,10 @@ import numpy as np
 import yaml
 from scipy import ndimage
 
+from sellip.capture.scenes import DEVICE_FX_PX, DEVICE_WIDTH_PX
+from sellip.capture.sensor import SensorModel, sensor_from_device
 from sellip.capture.writer import write_raw_file
 from sellip.model.render import undistort_normalized
-from sellip.capture.scenes import DEVICE_FX_PX, DEVICE_WIDTH_PX
-from sellip.capture.sensor import SensorModel
 
 DEVICE_DISTORTION = (-0.12, 0.25, 4e-4, -3e-4, 0.0)
 """OpenCV (k1, k2, p1, p2, k3) of the synthetic device's lens (a 25 mm C-mount lens is of this order)."""
@@ -85,12 +85,7 @@ def true_device(width: int = 2448, height: int = 2048, polarizer_deg: float = 0.
 
 
 def _sensor(device: dict) -> SensorModel:
-    s = device["sensor"]
-    black = s["black_level"]
-    return SensorModel(width=s["width"], height=s["height"], bit_depth=s["bit_depth"],
-                       black_level=tuple(map(tuple, black)) if isinstance(black, list) else black,
-                       white_level=s["white_level"], polarizer_layout=tuple(map(tuple, s["polarizer_layout"])),
-                       color_layout=s["color_layout"], color_matrix=tuple(map(tuple, device["camera"]["color_matrix"])))
+    return sensor_from_device(device["sensor"], device["camera"]["color_matrix"])
 
 
 # --------------------------------------------------------------------------- rays

@@ -51,8 +51,8 @@ Modules and what they export (each name is importable from here too)::
         TINY_BUMPS, TINY_BUMP_WIDTH_RAD, TINY_MATERIALS, COW_PATCH_ALBEDO, PPLASTIC_SET_MATERIALS, build_scene,
         device_intrinsics, look_at_rotation, handheld_orbit
     sensor: Sensor simulation: the IMX250MYR colour-polarization mosaic (DESIGN §3) from rendered analyzer images
-        IMX250_POLARIZER_LAYOUT, DEFAULT_COLOR_MATRIX, SRGB_LUMINANCE, SensorModel, camera_rgb_from_srgb,
-        mosaic_sample, sensor_mosaic, sensor_colors, simulate_raw
+        IMX250_POLARIZER_LAYOUT, DEFAULT_COLOR_MATRIX, SRGB_LUMINANCE, SensorModel, sensor_from_device,
+        camera_rgb_from_srgb, mosaic_sample, sensor_mosaic, sensor_colors, simulate_raw
     synthetic: Synthetic captures with known truth (DESIGN §6; ``sellip synth``): a procedural scene rendered with
       the full pBRDF under the polarized flash on a handheld orbit, through the sensor simulator (mosaic, noise,
       quantization) into raw files, frames.csv, capture.yaml, poses.csv and the ground-truth model
@@ -99,7 +99,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "TINY_MATERIALS", "COW_PATCH_ALBEDO", "PPLASTIC_SET_MATERIALS", "build_scene", "device_intrinsics",
            "look_at_rotation", "handheld_orbit"),
     "sensor": ("IMX250_POLARIZER_LAYOUT", "DEFAULT_COLOR_MATRIX", "SRGB_LUMINANCE", "SensorModel",
-           "camera_rgb_from_srgb", "mosaic_sample", "sensor_mosaic", "sensor_colors", "simulate_raw"),
+           "sensor_from_device", "camera_rgb_from_srgb", "mosaic_sample", "sensor_mosaic", "sensor_colors",
+           "simulate_raw"),
     "synthetic": ("FLASH_LEVELS", "FLASH_POSITION_CAM", "RENDERERS", "EXPOSURE_S", "synthesize_capture"),
     "tables": ("FRAMES_SCHEMA", "POSES_SCHEMA", "validate_frames", "validate_poses"),
     "writer": ("write_raw_file", "RAW_FORMATS", "DNG_MIN_SIZE", "CaptureWriter", "yaml_safe", "write_capture"),

@@ -10,7 +10,12 @@ from collections.abc import Mapping
 import jsonschema
 import numpy as np
 
-from sellip.capture.files import CAPTURE_YAML, ConfigError, UnknownLayoutError, more_problems
+from sellip.capture.files import (
+    CAPTURE_YAML,
+    ConfigError,
+    UnknownLayoutError,
+    more_problems,
+)
 from sellip.capture.mosaic import MosaicError, mosaic_layout
 
 # --------------------------------------------------------------------------- capture.yaml
@@ -23,11 +28,13 @@ CONFIG_SCHEMA: dict = {
     "type": "object",
     "required": ["sensor", "camera", "light", "scene"],
     # Like the sections' keys, a top-level key must be known (a misspelt `scene:` must not pass silently): the four
-    # sections, `synthetic` (sellip synth's record), `notes`, and any key starting with `x_` (the user's own).
+    # sections, `synthetic` (sellip synth's record), `calibration` (the device's, copied by sellip capture new),
+    # `notes`, and any key starting with `x_` (the user's own).
     "additionalProperties": False,
     "patternProperties": {"^x_": {}},
     "properties": {
         "synthetic": {"type": "object"},
+        "calibration": {"type": "object"},
         "notes": {},
         "sensor": {
             "type": "object",
@@ -76,7 +83,8 @@ CONFIG_SCHEMA: dict = {
         },
     },
 }
-"""JSON schema of capture.yaml (DESIGN §3). ``synthetic``, ``notes`` and ``x_*`` sections are kept as they are;
+"""JSON schema of capture.yaml (DESIGN §3). ``synthetic``, ``calibration``, ``notes`` and ``x_*`` sections are kept
+as they are;
 another top-level key is an error, as inside the sections."""
 
 

@@ -5,6 +5,7 @@ Public API::
     SensorModel(width, height, ...)            # layout, levels, noise, colour matrix
     SensorModel.capture_sensor() -> dict        # capture.yaml ``sensor`` section
     SensorModel.with_noise_scale(k) -> SensorModel   # noise standard deviations x k at the same signal
+    sensor_from_device(sensor, color_matrix=None) -> SensorModel   # from capture.yaml / device.yaml sections
     camera_rgb_from_srgb(srgb, color_matrix) -> camera RGB (..., 3)
     mosaic_sample(analyzers, layout) -> (H, W)  # each raw pixel's analyzer and colour
     simulate_raw(analyzers, sensor, scale, rng, noise=True) -> (H, W) uint16
@@ -96,6 +97,20 @@ class SensorModel:
             return np.full((self.height, self.width), float(black))
         period = black.shape[0]
         return np.tile(black, (self.height // period, self.width // period))
+
+
+def sensor_from_device(sensor, color_matrix=None) -> SensorModel:
+    """The :class:`SensorModel` of a capture.yaml / device.yaml ``sensor`` section (mapping) with ``color_matrix``
+    (camera.color_matrix, camera RGB -> linear sRGB; None: the default); noise of the real device."""
+    black = sensor.get("black_level", 64)
+    return SensorModel(width=int(sensor["width"]), height=int(sensor["height"]),
+                       bit_depth=int(sensor.get("bit_depth", 12)),
+                       black_level=tuple(map(tuple, black)) if isinstance(black, (list, tuple)) else black,
+                       white_level=int(sensor.get("white_level", 4095)),
+                       polarizer_layout=tuple(map(tuple, sensor.get("polarizer_layout", IMX250_POLARIZER_LAYOUT))),
+                       color_layout=sensor.get("color_layout", "RGGB"),
+                       color_matrix=DEFAULT_COLOR_MATRIX if color_matrix is None
+                       else tuple(tuple(map(float, row)) for row in color_matrix))
 
 
 def camera_rgb_from_srgb(srgb: np.ndarray, color_matrix) -> np.ndarray:

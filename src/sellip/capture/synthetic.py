@@ -6,6 +6,7 @@ quantization) into raw files, frames.csv, capture.yaml, poses.csv and the ground
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -14,7 +15,7 @@ import numpy as np
 
 from sellip.capture.files import GROUND_TRUTH_MESH
 from sellip.capture.scenes import build_scene, handheld_orbit
-from sellip.capture.sensor import SensorModel, simulate_raw
+from sellip.capture.sensor import SensorModel, sensor_from_device, simulate_raw
 from sellip.capture.writer import CaptureWriter
 from sellip.model.ply import write_param_mesh
 from sellip.model.render import Renderer, flash_light
@@ -45,7 +46,8 @@ EXPOSURE_S = 0.005
 def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width: int = 612, height: int = 512,
                        seed: int = 0, supersample: int = 2, raw_format: str = "dng", distortion=None,
                        flash_levels=FLASH_LEVELS, progress: bool = True, noise_scale: float = 1.0,
-                       renderer: str = "sellip", mitsuba_variant: str | None = None) -> Path:
+                       renderer: str = "sellip", mitsuba_variant: str | None = None, device=None,
+                       noise_seed: int | None = None) -> Path:
     """Render and write a synthetic capture of ``scene_name`` to ``out``; returns the folder.
 
     width, height: raw mosaic size (multiples of 4); distortion: OpenCV (k1, k2, p1, p2, k3) or None;
@@ -53,6 +55,14 @@ def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width:
     (:meth:`sellip.capture.sensor.SensorModel.with_noise_scale`; 1 is the real device); renderer: "sellip"
     (:class:`sellip.model.render.Renderer`) or "mitsuba" (Mitsuba 3's pplastic,
     :class:`sellip.capture.mitsuba_capture.MitsubaRenderer` with ``mitsuba_variant``; the rest is the same).
+    device: None (the default device scaled to ``width`` x ``height``: centred principal point, the sensor
+    simulator's colour matrix, the flash at :data:`FLASH_POSITION_CAM` polarized at 0 deg), or a device description
+    (device.yaml's ``sensor``, ``camera`` and ``light`` sections, e.g. ``sellip synth-calibration``'s truth): the
+    frames are shot with that sensor (size, levels, layouts, colour matrix), lens (fx, fy, cx, cy, distortion) and
+    flash, and capture.yaml describes it (``width``, ``height`` and ``distortion`` must then be left at their
+    defaults or agree with it). noise_seed: the sensor noise's seed (default: ``seed``), the orbit keeps ``seed``.
+
+    Long: the device's description, capture.yaml and the render-and-expose loop share their variables.
     """
     from tqdm import tqdm
 
@@ -65,23 +75,42 @@ def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width:
 
         mitsuba_variant = choose_variant(mitsuba_variant)
     scene = build_scene(scene_name)
+    if device is not None:
+        width, height, distortion = _device_size(device, width, height, distortion)
     cameras = handheld_orbit(views, width, height, np.random.default_rng([seed, 1]),
                              distance_m=scene.distance_m, elevation_deg=scene.elevation_deg,
                              distortion=distortion)
-    sensor = SensorModel(width=width, height=height).with_noise_scale(noise_scale)
-    k = cameras[0].intrinsics
+    if device is None:
+        sensor = SensorModel(width=width, height=height).with_noise_scale(noise_scale)
+        k = cameras[0].intrinsics
+        camera = {"fx": float(k[0, 0]), "fy": float(k[1, 1]), "cx": float(k[0, 2]), "cy": float(k[1, 2]),
+                  "distortion": [float(c) for c in (distortion if distortion is not None else [0.0] * 5)],
+                  "color_matrix": [list(map(float, row)) for row in sensor.color_matrix]}
+        light = {"position_m": list(FLASH_POSITION_CAM), "polarizer_deg": 0}
+    else:
+        sensor = sensor_from_device(device["sensor"], device["camera"]["color_matrix"]).with_noise_scale(noise_scale)
+        camera = {key: float(device["camera"][key]) for key in ("fx", "fy", "cx", "cy")}
+        camera["distortion"] = [float(c) for c in distortion]
+        camera["color_matrix"] = [list(map(float, row)) for row in sensor.color_matrix]
+        light = {"position_m": [float(v) for v in device["light"]["position_m"]],
+                 "polarizer_deg": float(device["light"].get("polarizer_deg", 0.0))}
+        k = np.array([[camera["fx"], 0.0, camera["cx"]], [0.0, camera["fy"], camera["cy"]], [0.0, 0.0, 1.0]])
+        cameras = [dataclasses.replace(c, intrinsics=k) for c in cameras]
+    noise_seed = seed if noise_seed is None else int(noise_seed)
     config = {
         "sensor": sensor.capture_sensor(),
-        "camera": {"fx": float(k[0, 0]), "fy": float(k[1, 1]), "cx": float(k[0, 2]), "cy": float(k[1, 2]),
-                   "distortion": [float(c) for c in (distortion if distortion is not None else [0.0] * 5)],
-                   "color_matrix": [list(map(float, row)) for row in sensor.color_matrix]},
-        "light": {"position_m": list(FLASH_POSITION_CAM), "polarizer_deg": 0},
+        "camera": camera,
+        "light": light,
         "scene": {"distance_m": float(np.mean(scene.distance_m))},
         "synthetic": {"scene": scene_name, "seed": int(seed), "views": int(views), "supersample": int(supersample),
                       "flash_power_dn": float(scene.flash_power), "gain_e_per_dn": sensor.gain_e_per_dn,
                       "read_noise_e": sensor.read_noise_e, "noise_scale": float(noise_scale),
                       "ground_truth": GROUND_TRUTH_MESH},
     }
+    if noise_seed != seed:
+        config["synthetic"]["noise_seed"] = noise_seed
+    if device is not None:
+        config["synthetic"]["device"] = "given"
     if renderer == "mitsuba":
         from sellip.capture.mitsuba_capture import MitsubaRenderer
 
@@ -93,10 +122,10 @@ def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width:
     with CaptureWriter(out, config, raw_format=raw_format) as writer:
         for index, camera in enumerate(tqdm(cameras, desc=f"synth {scene_name}", unit="view", disable=not progress)):
             view_id = f"v{index:03d}"
-            light = flash_light(camera, FLASH_POSITION_CAM, polarizer_deg=0.0)
-            analyzers = view_renderer.render(camera, light, supersample=supersample).analyzers
+            flash = flash_light(camera, config["light"]["position_m"], polarizer_deg=config["light"]["polarizer_deg"])
+            analyzers = view_renderer.render(camera, flash, supersample=supersample).analyzers
             for level_index, level in enumerate(flash_levels):
-                rng = np.random.default_rng([seed, 2, index, level_index])
+                rng = np.random.default_rng([noise_seed, 2, index, level_index])
                 raw = simulate_raw(analyzers, sensor, scene.flash_power * level, rng)
                 saturated.append(float(np.mean(raw >= sensor.white_level)))
                 writer.add_frame(f"{view_id}_f{level_index}", view_id, raw, flash_level=level, exposure_s=EXPOSURE_S)
@@ -109,3 +138,16 @@ def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width:
              path, views, len(flash_levels), width, height, time.perf_counter() - started, flash_levels[0],
              int(np.sum(strongest > 0)))
     return path
+
+
+def _device_size(device, width: int, height: int, distortion) -> tuple[int, int, list[float]]:
+    """The raw size and distortion of a device description, checked against the ones asked for (the defaults of
+    :func:`synthesize_capture` stand for "the device's")."""
+    size = int(device["sensor"]["width"]), int(device["sensor"]["height"])
+    if (width, height) not in (size, (612, 512)):
+        raise ValueError(f"the device's sensor is {size[0]}x{size[1]}, not {width}x{height}: leave the size out")
+    lens = [float(c) for c in device["camera"].get("distortion", [0.0] * 5)]
+    lens += [0.0] * (5 - len(lens))
+    if distortion is not None and not np.allclose(distortion, lens):
+        raise ValueError(f"the device's distortion is {lens}, not {list(distortion)}: leave it out")
+    return size[0], size[1], lens

@@ -8,7 +8,7 @@
 device.yaml must exist with at least its ``sensor`` section (docs/calibration.md); each step reads raw frames
 (DNG / 16-bit TIFF / PNG, checked against the sensor), logs every frame it leaves out with why, and writes its
 result and residuals into device.yaml (:mod:`sellip.calibrate.device`). The library is
-:mod:`sellip.calibrate`.
+:mod:`sellip.calibrate`; what each step logs and writes: :mod:`sellip.calibrate.report`.
 """
 
 from __future__ import annotations
@@ -19,10 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from sellip.capture import files
-from sellip.capture import reader
 from sellip.calibrate import device as devices
 from sellip.calibrate.intrinsics import CalibrationError
+from sellip.capture import files, reader
 
 log = logging.getLogger(__name__)
 
@@ -77,67 +76,50 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         "(bluish green's, black's, white's)")
 
 
+def _apply(args, step: str, report) -> None:
+    """Log the step's lines and write its sections and record into device.yaml."""
+    for level, line in report.lines:
+        log.log(level, line)
+    devices.update_device(args.device, report.sections, step, report.record)
+
+
 def _intrinsics(args, device) -> int:
     from sellip.calibrate.intrinsics import calibrate_intrinsics
+    from sellip.calibrate.report import intrinsics_report
 
     cols, rows = args.board
-    frames = _frames(args.frames, device["sensor"])
-    result = calibrate_intrinsics(frames, device["sensor"], cols, rows, args.square_mm / 1000, fix_k3=not args.k3,
-                                  log=log.info)
-    for name, why in result.left_out.items():
-        log.warning("left out %s: %s", name, why)
-    log.info("fx %.2f fy %.2f cx %.2f cy %.2f (1-sigma %.2f %.2f %.2f %.2f px) distortion %s; RMS %.3f px over %d "
-             "frames", result.fx, result.fy, result.cx, result.cy, *result.std.values(),
-             np.round(result.distortion, 5).tolist(), result.rms_px, len(result.per_frame))
-    devices.update_device(args.device, {"camera": result.camera()}, "intrinsics", {
-        "board": f"{cols}x{rows}", "square_mm": args.square_mm, "rms_px": result.rms_px, "std_px": result.std,
-        "per_frame_rms_px": result.per_frame, "left_out": result.left_out})
+    result = calibrate_intrinsics(_frames(args.frames, device["sensor"]), device["sensor"], cols, rows,
+                                  args.square_mm / 1000, fix_k3=not args.k3, log=log.info)
+    _apply(args, "intrinsics", intrinsics_report(result, args.board, args.square_mm))
     return 0
 
 
 def _flash(args, device) -> int:
     from sellip.calibrate.flash import calibrate_flash
+    from sellip.calibrate.report import flash_report
 
-    frames = _frames(args.frames, device["sensor"])
-    result = calibrate_flash(frames, device, args.sphere_radius_mm / 1000, log=log.info)
-    for name, why in result.left_out.items():
-        log.warning("left out %s: %s", name, why)
-    for h in result.highlights:
-        log.info("%s sphere %d: highlight residual %.3f mm", h["frame"], h["sphere"], h["residual_mm"])
-    log.info("flash at %s mm (1-sigma %s mm), RMS residual %.3f mm over %d highlights",
-             np.round(result.position_m * 1e3, 2).tolist(), np.round(result.std_m * 1e3, 2).tolist(), result.rms_mm,
-             len(result.highlights))
-    light = dict(device.get("light", {"polarizer_deg": 0.0}))
-    light["position_m"] = result.position_m.tolist()
-    devices.update_device(args.device, {"light": light}, "flash", {
-        "sphere_radius_mm": args.sphere_radius_mm, "std_mm": (result.std_m * 1e3).tolist(), "rms_mm": result.rms_mm,
-        "highlights": result.highlights, "left_out": result.left_out})
+    result = calibrate_flash(_frames(args.frames, device["sensor"]), device, args.sphere_radius_mm / 1000, log=log.info)
+    _apply(args, "flash", flash_report(result, device, args.sphere_radius_mm))
     return 0
 
 
 def _polarization(args, device) -> int:
     from sellip.calibrate.polarization import check_polarization
+    from sellip.calibrate.report import polarization_report
 
-    frames = _frames(args.frames, device["sensor"])
-    report = check_polarization(frames, device, args.sphere_radius_mm / 1000, log=log.info)
-    for line in report.messages():
-        (log.info if report.ok else log.warning)(line)
-    sections = {}
-    if args.write:
-        sections = {"sensor": {"polarizer_layout": report.best_layout},
-                    "light": {**device.get("light", {}), "polarizer_deg": report.polarizer_deg}}
-    devices.update_device(args.device, sections, "polarization", report.record())
+    report = check_polarization(_frames(args.frames, device["sensor"]), device, args.sphere_radius_mm / 1000,
+                                log=log.info)
+    _apply(args, "polarization", polarization_report(report, device, args.write))
     return 0 if report.ok or args.write else 3
 
 
 def _color(args, device) -> int:
     from sellip.calibrate.color import calibrate_color
+    from sellip.calibrate.report import color_report
 
-    raw = reader.read_raw_file(args.frame, device["sensor"])
-    result = calibrate_color(raw, device, np.asarray(args.corners, np.float64))
-    log.info("colour matrix %s; dE2000 mean %.2f, max %.2f (patch %s)", np.round(result.matrix, 4).tolist(),
-             result.delta_e.mean(), result.delta_e.max(), result.patch_names[int(np.argmax(result.delta_e))])
-    devices.update_device(args.device, {"camera": {"color_matrix": result.matrix.tolist()}}, "color", result.record())
+    result = calibrate_color(reader.read_raw_file(args.frame, device["sensor"]), device,
+                             np.asarray(args.corners, np.float64))
+    _apply(args, "color", color_report(result))
     return 0
 
 

@@ -1,7 +1,7 @@
 """``sellip synth``: generate a synthetic capture folder (DESIGN §3) with ground truth.
 
     sellip synth --scene demo --out captures/demo [--views N --width W --height H --seed S] [--noise-scale K]
-                 [--renderer sellip|mitsuba] [--mitsuba-variant V]
+                 [--renderer sellip|mitsuba] [--mitsuba-variant V] [--device device.yaml] [--noise-seed S]
 
 For each view of a handheld orbit (:func:`sellip.capture.scenes.handheld_orbit`) the
 scene is rendered once with the full pBRDF (:mod:`sellip.model.render`) under the
@@ -10,7 +10,9 @@ model (:mod:`sellip.capture.sensor`) with independent noise. Written: capture.ya
 frames.csv, poses.csv, raw/ frames, ground_truth/model.ply. The same seed
 gives byte-identical files; the folder appears only when complete. ``--renderer mitsuba`` renders the
 views with Mitsuba 3's pplastic instead (:mod:`sellip.capture.mitsuba_capture`; the ``test`` extra), the rest
-unchanged: an independent renderer for the validation set (docs/synthetic.md).
+unchanged: an independent renderer for the validation set (docs/synthetic.md). ``--device`` shoots the frames
+with a described device (device.yaml, or ``sellip synth-calibration``'s truth.yaml): its sensor, lens, colour
+matrix and flash, as the calibration set of that device was (docs/calibration.md, "The synthetic example").
 """
 
 from __future__ import annotations
@@ -46,6 +48,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mitsuba-variant", default=None,
                         help="Mitsuba variant (default: llvm_ad_mono_polarized when a new enough libLLVM is found, "
                              "else scalar_spectral_polarized)")
+    parser.add_argument("--device", type=Path, default=None,
+                        help="device.yaml (or synth-calibration's truth.yaml) whose sensor, lens and flash shoot the "
+                             "frames; its sensor size is the capture's (default: the built-in device at --width "
+                             "x --height)")
+    parser.add_argument("--noise-seed", type=int, default=None,
+                        help="seed of the sensor noise alone (default: --seed, which also sets the orbit)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -63,8 +71,18 @@ def main(args: argparse.Namespace) -> int:
             raise SystemExit("--renderer mitsuba needs the mitsuba package (pip install 'sellip[test]')")
     if not args.noise_scale > 0:
         raise SystemExit(f"--noise-scale must be positive, got {args.noise_scale}")
+    device = None
+    if args.device is not None:
+        import yaml
+
+        document = yaml.safe_load(args.device.read_text()) or {}
+        device = document.get("device", document)  # truth.yaml keeps the device under "device"
+        missing = [key for key in ("sensor", "camera", "light") if not isinstance(device.get(key), dict)]
+        if missing:
+            raise SystemExit(f"{args.device}: no {', '.join(missing)} section(s); run sellip calibrate first")
+        args.width, args.height = int(device["sensor"]["width"]), int(device["sensor"]["height"])
     synthesize_capture(args.scene, args.out, views=args.views, width=args.width, height=args.height, seed=args.seed,
                        supersample=args.supersample, raw_format=args.raw_format, distortion=args.distortion,
                        progress=not args.no_progress, noise_scale=args.noise_scale, renderer=args.renderer,
-                       mitsuba_variant=args.mitsuba_variant)
+                       mitsuba_variant=args.mitsuba_variant, device=device, noise_seed=args.noise_seed)
     return 0
