@@ -132,6 +132,18 @@ def test_flash_position_from_sphere_highlights(calib):
     assert all(np.isfinite(h["residual_mm"]) for h in result.highlights)
 
 
+def test_highlight_centre_by_a_gaussian_fit():
+    """refine_highlight finds a noisy Gaussian spot's centre to a few hundredths of a pixel from a start 1 px off,
+    and gives up (None) where there is nothing to fit."""
+    yy, xx = np.mgrid[0:64, 0:64]
+    centre, sigma = np.array([30.37, 28.71]), 5.0
+    spot = np.exp(-((xx - centre[0]) ** 2 + (yy - centre[1]) ** 2) / (2 * sigma ** 2))
+    noisy = spot + np.random.default_rng(0).normal(0, 0.01, spot.shape)
+    found = flash.refine_highlight(noisy, centre + [1.0, -0.6], sigma)
+    assert found is not None and np.all(np.abs(found - centre) < 0.03), found
+    assert flash.refine_highlight(np.full((64, 64), np.nan), centre, sigma) is None
+
+
 def test_nearest_point_ignores_one_bad_line():
     rng = np.random.default_rng(0)
     target = np.array([0.0, 0.05, 0.0])
