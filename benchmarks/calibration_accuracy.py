@@ -32,9 +32,9 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=2448)
     parser.add_argument("--height", type=int, default=2048)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--board-frames", type=int, default=48, help="board poses (the recommended protocol: 48)")
+    parser.add_argument("--board-frames", type=int, default=96, help="board poses (the recommended protocol: 96)")
     parser.add_argument("--sphere-frames", type=int, default=6, help="sphere layouts, 3 spheres each (6)")
-    parser.add_argument("--burst", type=int, default=4, help="frames per pose (the recommended protocol: 4)")
+    parser.add_argument("--burst", type=int, default=1, help="frames per pose and layout (default 1)")
     args = parser.parse_args()
     if not (args.folder / "truth.yaml").is_file():
         started = time.perf_counter()

@@ -488,7 +488,8 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
     ``burst``: frames per pose (board and sphere layouts alike), each with its own sensor noise, as a camera's
     burst of a still scene: ``board_07_b2.dng`` is pose 7's third frame (``board_07.dng`` when ``burst`` is 1).
     The first frame of every pose is the same as with ``burst`` = 1. docs/calibration.md recommends
-    ``board_frames=48, burst=4`` (benchmarks/calibration_accuracy.py); the tests use fewer frames."""
+    ``board_frames=96`` (benchmarks/calibration_accuracy.py) and measures ``board_frames=48, burst=4`` too; the
+    tests use the defaults or fewer frames."""
     out = Path(out)
     device = true_device(width, height, polarizer_deg)
     suffix = {"dng": ".dng", "tiff": ".tiff", "png": ".png"}[raw_format]
