@@ -28,7 +28,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sphere-frames", type=int, default=6, help="sphere frames, 3 spheres each (default: 6)")
     parser.add_argument("--burst", type=int, default=1,
                         help="frames per board pose and sphere layout, each with its own noise (default: 1; "
-                             "docs/calibration.md recommends 4)")
+                             "a burst helps the flash a little, not the board: docs/calibration.md)")
     parser.add_argument("--polarizer-deg", type=float, default=0.0, help="the flash polarizer's angle (default: 0)")
     parser.add_argument("--raw-format", choices=["dng", "tiff", "png"], default="dng", help="frame files")
 
