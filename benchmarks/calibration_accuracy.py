@@ -2,9 +2,10 @@
 
     python benchmarks/calibration_accuracy.py [--folder DIR] [--width 2448 --height 2048 --seed 0]
 
-Writes the calibration folder with ``sellip synth-calibration`` (unless ``--folder`` already holds one: 24
-board frames of a 14x10-corner, 10 mm board; 6 frames of 3 glossy 40 mm spheres before a light panel; a
-ColorChecker), then runs each step of ``sellip calibrate`` as a library call, the flash and the polarization
+Writes the calibration folder with ``sellip synth-calibration`` (unless ``--folder`` already holds one) in the
+protocol docs/calibration.md recommends: 48 poses of a 14x10-corner, 10 mm board; 6 layouts of 3 glossy 40 mm
+spheres before a light panel; every pose a burst of 4 frames (192 board frames, 24 sphere frames); a
+ColorChecker, then runs each step of ``sellip calibrate`` as a library call, the flash and the polarization
 check with the CALIBRATED intrinsics, and prints the error of each against truth.yaml, one line each, and a
 JSON summary on the last line (docs/calibration.md records the figures).
 """
@@ -31,10 +32,14 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=2448)
     parser.add_argument("--height", type=int, default=2048)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--board-frames", type=int, default=96, help="board poses (the recommended protocol: 96)")
+    parser.add_argument("--sphere-frames", type=int, default=6, help="sphere layouts, 3 spheres each (6)")
+    parser.add_argument("--burst", type=int, default=1, help="frames per pose and layout (default 1)")
     args = parser.parse_args()
     if not (args.folder / "truth.yaml").is_file():
         started = time.perf_counter()
-        synthesize_calibration(args.folder, args.width, args.height, seed=args.seed)
+        synthesize_calibration(args.folder, args.width, args.height, seed=args.seed, board_frames=args.board_frames,
+                               sphere_frames=args.sphere_frames, burst=args.burst, progress=True)
         print(f"synthesized {args.folder} in {time.perf_counter() - started:.0f} s", flush=True)
     truth = yaml.safe_load((args.folder / "truth.yaml").read_text())
     true = truth["device"]

@@ -76,6 +76,17 @@ def test_intrinsics_recover_the_truth(calib):
     assert result.rms_px < 0.2
 
 
+def test_intrinsics_are_bit_identical_between_runs(calib):
+    """Deterministic for the same frames: OpenCV's thread pool made fx ... vary in the 12th digit between runs
+    (intrinsics.opencv_single_threaded fixes it); two runs on 8 frames must agree bit for bit."""
+    folder, truth = calib
+    sensor = truth["device"]["sensor"]
+    frames = dict(list(_frames(folder / "board", sensor).items())[:8])
+    runs = [intrinsics.calibrate_intrinsics(frames, sensor, SPEC.cols, SPEC.rows, SPEC.square_m) for _ in range(2)]
+    assert runs[0].camera() == runs[1].camera() and runs[0].std == runs[1].std
+    assert runs[0].per_frame == runs[1].per_frame
+
+
 def test_bad_board_frames_are_named_and_too_few_is_an_error():
     device = synthetic.true_device(W, H)
     poses = synthetic.board_poses(SPEC, device, 3, np.random.default_rng(7))
@@ -119,6 +130,18 @@ def test_flash_position_from_sphere_highlights(calib):
         nearest = np.min(np.linalg.norm(centres - np.asarray(record["centre_m"]), axis=1))
         assert nearest < 2e-3
     assert all(np.isfinite(h["residual_mm"]) for h in result.highlights)
+
+
+def test_highlight_centre_by_a_gaussian_fit():
+    """refine_highlight finds a noisy Gaussian spot's centre to a few hundredths of a pixel from a start 1 px off,
+    and gives up (None) where there is nothing to fit."""
+    yy, xx = np.mgrid[0:64, 0:64]
+    centre, sigma = np.array([30.37, 28.71]), 5.0
+    spot = np.exp(-((xx - centre[0]) ** 2 + (yy - centre[1]) ** 2) / (2 * sigma ** 2))
+    noisy = spot + np.random.default_rng(0).normal(0, 0.01, spot.shape)
+    found = flash.refine_highlight(noisy, centre + [1.0, -0.6], sigma)
+    assert found is not None and np.all(np.abs(found - centre) < 0.03), found
+    assert flash.refine_highlight(np.full((64, 64), np.nan), centre, sigma) is None
 
 
 def test_nearest_point_ignores_one_bad_line():

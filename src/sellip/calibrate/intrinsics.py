@@ -6,6 +6,7 @@ Public API::
     half_to_raw(points) / raw_to_half(points)                # the half-resolution <-> raw pixel mapping
     detect_board(image, cols, rows, max_edge_px=...) -> BoardDetection   # corners in raw pixels, or why not
     calibrate_intrinsics(frames: {name: raw}, sensor, cols, rows, square_m, ...) -> IntrinsicsResult
+    opencv_single_threaded()                                 # context: OpenCV on one thread (deterministic)
     MIN_BOARD_FRAMES
 
 The intensity image
@@ -22,11 +23,19 @@ Half-resolution pixel centres (stated once, tested in tests/test_calibrate.py)
     the inverse of :func:`sellip.ingest.output_intrinsics` (f' = f / 2, c' = (c - 0.5) / 2). Corners are mapped
     to raw pixels before OpenCV calibrates, so fx, fy, cx, cy come out in raw-pixel units (DESIGN §3) and
     the distortion coefficients (normalized coordinates) need no conversion.
+
+Deterministic
+    OpenCV's parallel loops (findChessboardCornersSB, calibrateCameraExtended) sum in an order that depends on
+    how the work was split between threads: with its thread pool the same frames gave intrinsics differing in the
+    12th digit from run to run (and within one process), which a reconstruction then amplified. Every OpenCV call
+    here runs inside :func:`opencv_single_threaded`, so the same frames give bit-identical results
+    (``test_intrinsics_are_bit_identical_between_runs``); it costs nothing measurable (the demosaicing dominates).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -44,6 +53,20 @@ MAX_EDGE_WIDTH_PX = 2.5
 
 MAX_FRAME_RMS_PX = 1.0
 """A frame whose corners reproject worse than this (raw pixels RMS) after the fit is left out and the fit redone."""
+
+
+@contextmanager
+def opencv_single_threaded() -> Iterator[None]:
+    """Run the enclosed OpenCV calls on one thread (cv2.setNumThreads(1)), restoring the previous setting after:
+    OpenCV's multithreaded reductions are not bit-reproducible (module docstring, "Deterministic")."""
+    import cv2
+
+    previous = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(previous)
 
 
 class CalibrationError(ValueError):
@@ -101,13 +124,16 @@ def detect_board(image: np.ndarray, cols: int, rows: int, max_edge_px: float = M
     if np.mean(np.isnan(image)) > 0.01:
         return BoardDetection(None, problem=f"{100 * np.mean(np.isnan(image)):.1f} % of the image is saturated; "
                                             "expected a board exposed below the white level (lower the flash)")
-    found, corners = cv2.findChessboardCornersSB(gray, (cols, rows),
-                                                 flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
+    with opencv_single_threaded():
+        found, corners = cv2.findChessboardCornersSB(gray, (cols, rows),
+                                                     flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
     if not found:
         return BoardDetection(None, problem=f"board not found: all {cols}x{rows} inner corners must be visible "
                                             "(is the whole board in the frame, in focus, and --board right?)")
     corners = corners.reshape(-1, 2).astype(np.float64)
-    sharpness = cv2.estimateChessboardSharpness(gray, (cols, rows), corners.reshape(-1, 1, 2).astype(np.float32))
+    with opencv_single_threaded():
+        sharpness = cv2.estimateChessboardSharpness(gray, (cols, rows),
+                                                    corners.reshape(-1, 1, 2).astype(np.float32))
     width = float(sharpness[0][0])
     if width > max_edge_px:
         return BoardDetection(None, width, f"board blurred: edges {width:.2f} px wide on the intensity image, "
@@ -151,7 +177,8 @@ def calibrate_intrinsics(frames: Mapping[str, np.ndarray], sensor: Mapping, cols
     A frame whose board is not found, blurred or saturated is left out and named in ``left_out``; so is a frame
     that reprojects worse than ``max_frame_rms_px`` (then the fit is redone without it). Raises
     CalibrationError when fewer than ``min_frames`` frames remain, saying how many more are needed.
-    ``fix_k3``: keep k3 = 0 (a narrow lens cannot separate it from k1, k2).
+    ``fix_k3``: keep k3 = 0 (a narrow lens cannot separate it from k1, k2). Bit-identical for the same frames
+    (OpenCV on one thread, module docstring).
     """
     import cv2
 
@@ -176,9 +203,10 @@ def calibrate_intrinsics(frames: Mapping[str, np.ndarray], sensor: Mapping, cols
         if len(corners) < min_frames:
             raise _too_few(len(corners), min_frames, left_out)
         names = list(corners)
-        rms, k, dist, _, _, std, _, per_view = cv2.calibrateCameraExtended(
-            [objp] * len(names), [corners[n].astype(np.float32).reshape(-1, 1, 2) for n in names], (width, height),
-            None, None, flags=flags, criteria=criteria)
+        with opencv_single_threaded():
+            rms, k, dist, _, _, std, _, per_view = cv2.calibrateCameraExtended(
+                [objp] * len(names), [corners[n].astype(np.float32).reshape(-1, 1, 2) for n in names],
+                (width, height), None, None, flags=flags, criteria=criteria)
         per_view = per_view.ravel()
         worst = int(np.argmax(per_view))
         if per_view[worst] <= max_frame_rms_px:

@@ -29,8 +29,8 @@ A calibration folder (``sellip synth-calibration --out DIR``)::
 
     sensor.yaml                the sensor section only: what a user knows from the datasheet
     truth.yaml                 the true device (sensor, camera, light), board poses, sphere centres, chart corners
-    board/board_NN.dng         checkerboard frames
-    spheres/spheres_NN.dng     frames of glossy spheres of known radius
+    board/board_NN.dng         checkerboard frames (board_NN_bK.dng: frame K of a burst of pose NN)
+    spheres/spheres_NN.dng     frames of glossy spheres of known radius (likewise)
     chart/chart_00.dng         a ColorChecker under the flash
 """
 
@@ -469,12 +469,27 @@ def _look_at(target: np.ndarray, tilt_deg: float, rng: np.random.Generator) -> n
     return Rotation.from_rotvec(np.radians(tilt_deg) * np.array([np.cos(axis), np.sin(axis), 0.0])).as_matrix()
 
 
+def _burst_seed(base: list[int], frame: int) -> list[int]:
+    """The noise seed of a burst's frame: the first frame keeps the seed it has without bursts."""
+    return base if frame == 0 else [*base, frame]
+
+
+def _burst_name(kind: str, pose: int, frame: int, burst: int, suffix: str) -> str:
+    return f"{kind}_{pose:02d}{suffix}" if burst == 1 else f"{kind}_{pose:02d}_b{frame}{suffix}"
+
+
 def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 2048, seed: int = 0,
                            board_frames: int = 24, sphere_frames: int = 6, spheres_per_frame: int = 3,
                            spec: BoardSpec = BoardSpec(), raw_format: str = "dng", polarizer_deg: float = 0.0,
-                           progress: bool = False) -> Path:
+                           progress: bool = False, burst: int = 1) -> Path:
     """Write a calibration folder (module docstring) for the synthetic device; returns it. Atomic: written to a
-    temporary sibling and renamed. The same seed gives the same files."""
+    temporary sibling and renamed. The same seed gives the same files.
+
+    ``burst``: frames per pose (board and sphere layouts alike), each with its own sensor noise, as a camera's
+    burst of a still scene: ``board_07_b2.dng`` is pose 7's third frame (``board_07.dng`` when ``burst`` is 1).
+    The first frame of every pose is the same as with ``burst`` = 1. docs/calibration.md recommends
+    ``board_frames=96`` (benchmarks/calibration_accuracy.py) and measures ``board_frames=48, burst=4`` too; the
+    tests use the defaults or fewer frames."""
     out = Path(out)
     device = true_device(width, height, polarizer_deg)
     suffix = {"dng": ".dng", "tiff": ".tiff", "png": ".png"}[raw_format]
@@ -492,10 +507,12 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
         rng = np.random.default_rng([seed, 10])
         for k, (rotation, translation) in enumerate(board_poses(spec, device, board_frames, rng)):
             analyzers = render_board(device, spec, rotation, translation)
-            raw = expose(analyzers, device, 0.7 * white, np.random.default_rng([seed, 11, k]))
-            name = f"board_{k:02d}{suffix}"
-            write_raw_file(tmp / "board" / name, raw, device["sensor"])
-            truth["board"]["poses"][name] = {"rotation": rotation.tolist(), "translation_m": translation.tolist()}
+            for b in range(burst):
+                raw = expose(analyzers, device, 0.7 * white, np.random.default_rng(_burst_seed([seed, 11, k], b)))
+                name = _burst_name("board", k, b, burst, suffix)
+                write_raw_file(tmp / "board" / name, raw, device["sensor"])
+                truth["board"]["poses"][name] = {"rotation": rotation.tolist(),
+                                                 "translation_m": translation.tolist()}
             if progress:
                 print(f"board {k + 1}/{board_frames}", flush=True)
         rng = np.random.default_rng([seed, 20])
@@ -505,10 +522,12 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
                                                    per_frame=spheres_per_frame)):
             analyzers = render_spheres(device, [(c, radius) for c in centres])
             peak = float(np.max(analyzers))
-            raw = expose(analyzers, device, 0.75 * white, np.random.default_rng([seed, 21, k]), reference=peak)
-            name = f"spheres_{k:02d}{suffix}"
-            write_raw_file(tmp / "spheres" / name, raw, device["sensor"])
-            truth["spheres"]["centres_m"][name] = [c.tolist() for c in centres]
+            for b in range(burst):
+                raw = expose(analyzers, device, 0.75 * white, np.random.default_rng(_burst_seed([seed, 21, k], b)),
+                             reference=peak)
+                name = _burst_name("spheres", k, b, burst, suffix)
+                write_raw_file(tmp / "spheres" / name, raw, device["sensor"])
+                truth["spheres"]["centres_m"][name] = [c.tolist() for c in centres]
             if progress:
                 print(f"spheres {k + 1}/{sphere_frames}", flush=True)
         rng = np.random.default_rng([seed, 30])
