@@ -369,3 +369,12 @@ def test_calibrate_commands_write_device_yaml(calib, tmp_path):
                                    f"{SPEC.cols}x{SPEC.rows}", "--square-mm", "10"], check=False,
                             capture_output=True, text=True)
     assert failed.returncode != 0 and "take 4 more" in failed.stderr
+
+
+def test_board_poses_fit_a_small_sensor_and_an_impossible_margin_is_an_error():
+    """At 320x256 the 40 px margin of the full-size device cannot be met (it looped forever): the margin follows
+    the width there; a margin no pose can keep is a ValueError, not a hang."""
+    device = synthetic.true_device(320, 256)
+    assert len(synthetic.board_poses(SPEC, device, 1, np.random.default_rng(3))) == 1
+    with pytest.raises(ValueError, match="no board pose"):
+        synthetic.board_poses(SPEC, device, 1, np.random.default_rng(3), margin_px=150, max_tries=50)

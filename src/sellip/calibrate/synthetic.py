@@ -282,16 +282,24 @@ def _render_plane(device: dict, rotation: np.ndarray, translation: np.ndarray, t
 
 def board_poses(spec: BoardSpec, device: dict, count: int, rng: np.random.Generator,
                 distance_m: tuple[float, float] = (0.45, 0.6), tilt_deg: tuple[float, float] = (20.0, 50.0),
-                margin_px: float = 40.0) -> list[tuple[np.ndarray, np.ndarray]]:
+                margin_px: float | None = None, max_tries: int = 100_000) -> list[tuple[np.ndarray, np.ndarray]]:
     """``count`` board poses (R, t) (board -> camera) that a user would take: tilted 20-50 deg about a random
     axis in the board plane, rolled up to 30 deg, at 0.45-0.6 m, anywhere in the frame with the whole paper
-    at least ``margin_px`` inside it."""
+    at least ``margin_px`` inside it (default 40 px, and on sensors narrower than 612 px the same share of the
+    width as 40 px of 612, which the frame can hold). ValueError when ``max_tries`` draws per pose find none."""
     from scipy.spatial.transform import Rotation
 
     sensor = device["sensor"]
+    if margin_px is None:
+        margin_px = 40.0 * min(1.0, sensor["width"] / 612)
     centre = spec.outline().mean(axis=0)
     poses = []
+    tries = 0
     while len(poses) < count:
+        tries += 1
+        if tries > max_tries * (len(poses) + 1):
+            raise ValueError(f"no board pose at {distance_m} m keeps the whole board {margin_px:.0f} px inside a "
+                             f"{sensor['width']}x{sensor['height']} frame; expected a smaller board or margin")
         axis_angle = rng.uniform(0, 2 * np.pi)
         tilt = np.radians(rng.uniform(*tilt_deg))
         rotation = (Rotation.from_rotvec(tilt * np.array([np.cos(axis_angle), np.sin(axis_angle), 0.0]))
