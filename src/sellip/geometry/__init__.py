@@ -43,7 +43,7 @@ Modules and what they export (each name is importable from here too)::
     silhouettes: Silhouettes of the object in the HDR views: the level above the background's noise floor, the
       masks, and signed distances to their boundary (to a fraction of a pixel)
         BACKGROUND_NOISE_SIGMAS, BACKGROUND_BINS, background_noise, SilhouetteOptions, DEFAULT_SILHOUETTE,
-        silhouette_level, silhouette_masks, signed_distance, Silhouette, boundary_distance
+        silhouette_level, level_map, silhouette_masks, signed_distance, Silhouette, boundary_distance
     update: The geometry update (DESIGN §2, docs/geometry_update.md): the surface moved to agree with the confident
       fitted normals by normal integration (a sparse least-squares problem), held by the photographs' silhouettes
         SilhouetteConstraints, silhouette_constraints, refine_from_normals
@@ -70,7 +70,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "scale_intrinsics", "match_pairs_by_retrieval", "run_sfm", "result_from_reconstruction",
            "metric_normalization", "transform_result", "check_registration"),
     "silhouettes": ("BACKGROUND_NOISE_SIGMAS", "BACKGROUND_BINS", "background_noise", "SilhouetteOptions",
-           "DEFAULT_SILHOUETTE", "silhouette_level", "silhouette_masks", "signed_distance", "Silhouette",
+           "DEFAULT_SILHOUETTE", "silhouette_level", "level_map", "silhouette_masks", "signed_distance", "Silhouette",
            "boundary_distance"),
     "update": ("SilhouetteConstraints", "silhouette_constraints", "refine_from_normals"),
 })
