@@ -13,7 +13,7 @@ from sellip.geometry import hull as geometry_hull
 from sellip.geometry import meshes
 from sellip.geometry import silhouettes as geometry_silhouettes
 from sellip.model.conventions import camera_center
-from sellip.model.render import Camera, pixel_rays
+from sellip.model.render import Camera, coverage_masks
 
 WIDTH, HEIGHT = 320, 256
 
@@ -33,22 +33,6 @@ def orbit(views: int, seed: int = 1) -> list[Camera]:
 def camera_arrays(cameras):
     return (np.array([c.intrinsics for c in cameras]), np.array([c.rotation for c in cameras]),
             np.array([c.translation for c in cameras]))
-
-
-def render_masks(vertices, faces, cameras) -> np.ndarray:
-    """(V, H, W) bool: pixels whose ray hits the mesh (open3d ray casting)."""
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
-    masks = []
-    for camera in cameras:
-        origin, directions = pixel_rays(camera)
-        directions = directions.reshape(-1, 3)
-        rays = np.concatenate([np.broadcast_to(origin, directions.shape), directions], axis=1).astype(np.float32)
-        hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        masks.append(np.isfinite(hit).reshape(camera.height, camera.width))
-    return np.stack(masks)
 
 
 def revolve(profile: np.ndarray, segments: int = 96) -> tuple[np.ndarray, np.ndarray]:
@@ -278,7 +262,7 @@ def test_boundary_distance_measures_a_sub_pixel_shift_of_a_dim_limb():
 def test_visual_hull_tolerates_a_bad_mask_and_reports_it():
     vertices, faces = sphere(0.05)
     cameras = orbit(24)
-    masks = render_masks(vertices, faces, cameras)
+    masks = coverage_masks(vertices, faces, cameras)
     masks[5, :, : WIDTH // 2] = False  # half the object missing in one view
     intrinsics, rotations, translations = camera_arrays(cameras)
     carving = geometry_hull.visual_hull(masks, intrinsics, rotations, translations, resolution=64)
@@ -295,7 +279,7 @@ def test_initial_mesh_from_silhouettes(shape):
     """Convex (sphere) and concave, genus-1 (torus) objects: Chamfer distance < 3% of the object's size."""
     vertices, faces = {"sphere": sphere, "torus": torus}[shape]()
     cameras = orbit(24)
-    masks = render_masks(vertices, faces, cameras)
+    masks = coverage_masks(vertices, faces, cameras)
     options = geometry_hull.InitMeshOptions(hull_resolution=64, max_vertices=5000)
     mesh = geometry_hull.initial_mesh(masks, *camera_arrays(cameras), options)
     distances = meshes.mesh_distances(mesh.vertices, mesh.faces, vertices, faces, count=20000)
@@ -316,7 +300,7 @@ def test_sparse_points_open_a_concavity_the_silhouettes_cannot():
     """A bowl: silhouettes fill it to the rim; SfM-like points on its inside, seen from above, hollow it out."""
     vertices, faces = bowl()
     cameras = orbit(36)
-    masks = render_masks(vertices, faces, cameras)
+    masks = coverage_masks(vertices, faces, cameras)
     options = geometry_hull.InitMeshOptions(hull_resolution=96, max_vertices=10000)
     camera_args = camera_arrays(cameras)
     hull_only = geometry_hull.initial_mesh(masks, *camera_args, options)
