@@ -41,3 +41,24 @@ def silhouette_agreement(run: str | Path, capture: str | Path, cuts: dict[str, d
                        "missed_median": float(np.median(figures["missed"])),
                        "extra_median": float(np.median(figures["extra"]))}
     return table
+
+
+def cut_difference(run: str | Path, options: dict, reference: dict) -> dict[str, int]:
+    """How the silhouettes of ``run``/hdr.zarr under ``options`` differ from those under ``reference`` (both
+    ``SilhouetteOptions`` fields over the defaults): views that differ, pixels added and removed, object pixels
+    under the reference. No truth needed: a run whose silhouettes do not differ is the same run up to its first use
+    of them."""
+    from sellip.capture.hdr import read_hdr
+    from sellip.geometry.cameras import diffuse_view
+
+    hdr = read_hdr(Path(run) / "hdr.zarr")
+    figures = {"views": len(hdr.view_ids), "views_changed": 0, "added": 0, "removed": 0, "object": 0}
+    for index in range(len(hdr.view_ids)):
+        diffuse, valid = diffuse_view(hdr, index)
+        mask = silhouettes.silhouette_masks(diffuse[None], valid[None], **options)[0]
+        before = silhouettes.silhouette_masks(diffuse[None], valid[None], **reference)[0]
+        figures["views_changed"] += int((mask != before).any())
+        figures["added"] += int((mask & ~before).sum())
+        figures["removed"] += int((before & ~mask).sum())
+        figures["object"] += int(before.sum())
+    return figures
