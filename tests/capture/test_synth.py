@@ -133,6 +133,20 @@ def test_the_config_schema_offers_every_scene():
         assert build_scene(name).name == name
 
 
+def test_the_painted_cow_is_the_cow_with_a_texture_sfm_can_match():
+    """cow_painted has the cow's shape (same extent, finer mesh), one material, and a texture of many colours in
+    dabs a few millimetres across (hundreds of distinct albedos; neighbouring vertices mostly share one)."""
+    cow, painted = build_scene("cow").mesh, build_scene("cow_painted").mesh
+    assert len(painted.vertices) == 40962 and len(cow.vertices) == 10242
+    np.testing.assert_allclose(np.abs(painted.vertices).max(axis=0), np.abs(cow.vertices).max(axis=0), rtol=0.01)
+    albedo = np.asarray(painted.params.rho_d)
+    assert len(np.unique(albedo.round(4), axis=0)) > 500 and albedo.min() >= 0.1 and albedo.max() <= 0.75
+    edges = np.asarray(painted.faces)[:, :2]
+    same = np.all(albedo[edges[:, 0]] == albedo[edges[:, 1]], axis=1).mean()
+    assert 0.7 < same < 0.98  # sharp-edged dabs spanning several vertices
+    assert set(np.asarray(painted.material).tolist()) == {0}
+
+
 def test_sphere_ior_has_the_table_1_indices():
     scene = build_scene("sphere_ior")
     assert sorted(np.unique(np.round(scene.mesh.params.eta, 3))) == sorted(SPHERE_IOR_ETAS)

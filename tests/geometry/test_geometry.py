@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from sellip.capture.scenes import handheld_orbit
@@ -12,7 +13,7 @@ from sellip.geometry import hull as geometry_hull
 from sellip.geometry import meshes
 from sellip.geometry import silhouettes as geometry_silhouettes
 from sellip.model.conventions import camera_center
-from sellip.model.render import Camera, pixel_rays
+from sellip.model.render import Camera, coverage_masks
 
 WIDTH, HEIGHT = 320, 256
 
@@ -32,22 +33,6 @@ def orbit(views: int, seed: int = 1) -> list[Camera]:
 def camera_arrays(cameras):
     return (np.array([c.intrinsics for c in cameras]), np.array([c.rotation for c in cameras]),
             np.array([c.translation for c in cameras]))
-
-
-def render_masks(vertices, faces, cameras) -> np.ndarray:
-    """(V, H, W) bool: pixels whose ray hits the mesh (open3d ray casting)."""
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
-    masks = []
-    for camera in cameras:
-        origin, directions = pixel_rays(camera)
-        directions = directions.reshape(-1, 3)
-        rays = np.concatenate([np.broadcast_to(origin, directions.shape), directions], axis=1).astype(np.float32)
-        hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        masks.append(np.isfinite(hit).reshape(camera.height, camera.width))
-    return np.stack(masks)
 
 
 def revolve(profile: np.ndarray, segments: int = 96) -> tuple[np.ndarray, np.ndarray]:
@@ -208,13 +193,49 @@ def test_a_dim_object_in_a_noisy_view_is_cut_above_the_background_noise():
         assert (mask & truth).sum() / (mask | truth).sum() > 0.95
 
 
+def _patched_figure(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A white disc (ρ_d 0.7) under a co-located flash with a black patch (ρ_d 0.03) across its outline, blurred
+    by a lens (Gaussian, 0.7 px) over a background of noise: (image (H, W), true object mask, true black patch)."""
+    yy, xx = np.mgrid[:HEIGHT, :WIDTH]
+    radius = np.hypot(xx - 160, yy - 128)
+    truth = radius < 70
+    cosine = np.sqrt(np.clip(1 - (radius / 70) ** 2, 0, None))
+    patch = truth & (np.hypot(xx - 215, yy - 150) < 35)
+    image = ndimage.gaussian_filter(1000 * np.where(patch, 0.03, 0.7) * cosine, 0.7)
+    image[np.hypot(xx - 150, yy - 120) < 4] = 5000.0  # the highlight
+    return image + np.random.default_rng(seed).normal(0, 0.3, image.shape), truth, patch
+
+
+def test_a_black_patch_on_the_outline_of_a_white_figure_stays_object():
+    """The cow's failure: a black patch (ρ_d 0.03) where a white figure (0.7) meets the background is below 3 % of
+    the view's maximum, so the view's level alone cuts it out of the silhouette; the level map cuts it at a tenth of
+    its own brightness. The white outline elsewhere is cut exactly as before."""
+    for seed in range(3):
+        image, truth, patch = _patched_figure(seed)
+        before = geometry_silhouettes.silhouette_masks(image[None, ..., None], local_fraction=0)[0]
+        after = geometry_silhouettes.silhouette_masks(image[None, ..., None])[0]
+        assert (before & patch).sum() < 0.7 * patch.sum()  # the view's level loses a third of the patch or more
+        assert (after & patch).sum() > 0.97 * patch.sum()
+        assert (after & truth).sum() / (after | truth).sum() > 0.98
+        white_outline = ~ndimage.binary_dilation(patch, iterations=6)
+        assert np.array_equal(after & white_outline, before & white_outline)
+
+
+def test_a_dim_background_apart_from_the_object_is_not_object():
+    """Pixels above the background's noise floor but dimmer than the view's level count as object only in parts
+    that reach the pixels above the level: a dim wall at 2 % of the object, apart from it, stays background."""
+    image, truth, _ = _patched_figure(0)
+    image[:, :40] += 14.0  # a dim band along the left edge, 40 sd above the noise
+    mask = geometry_silhouettes.silhouette_masks(image[None, ..., None])[0]
+    assert not mask[:, :40].any()
+    assert (mask & truth).sum() / (mask | truth).sum() > 0.98
+
+
 def test_boundary_distance_measures_a_sub_pixel_shift_of_a_dim_limb():
     """Two lit disks, radii 0.1-0.7 px apart, whose brightness falls smoothly to the limb (a Lambertian sphere under
     a co-located flash, box filtered over each pixel) with background noise: at 400 points up to a pixel from the
     boundary, the difference of the two boundary distances along the outward direction is the shift, on average
     within 0.02 px and 0.13 px RMS; the masks' own distances (their staircases) are off by 0.22-0.30 px RMS."""
-    from scipy import ndimage
-
     rng = np.random.default_rng(5)
     centre, radius, sub = np.array([157.3, 121.8]), 61.7, 8
     fine = (np.arange(WIDTH * sub) + 0.5) / sub - 0.5, (np.arange(HEIGHT * sub) + 0.5) / sub - 0.5
@@ -241,7 +262,7 @@ def test_boundary_distance_measures_a_sub_pixel_shift_of_a_dim_limb():
 def test_visual_hull_tolerates_a_bad_mask_and_reports_it():
     vertices, faces = sphere(0.05)
     cameras = orbit(24)
-    masks = render_masks(vertices, faces, cameras)
+    masks = coverage_masks(vertices, faces, cameras)
     masks[5, :, : WIDTH // 2] = False  # half the object missing in one view
     intrinsics, rotations, translations = camera_arrays(cameras)
     carving = geometry_hull.visual_hull(masks, intrinsics, rotations, translations, resolution=64)
@@ -258,7 +279,7 @@ def test_initial_mesh_from_silhouettes(shape):
     """Convex (sphere) and concave, genus-1 (torus) objects: Chamfer distance < 3% of the object's size."""
     vertices, faces = {"sphere": sphere, "torus": torus}[shape]()
     cameras = orbit(24)
-    masks = render_masks(vertices, faces, cameras)
+    masks = coverage_masks(vertices, faces, cameras)
     options = geometry_hull.InitMeshOptions(hull_resolution=64, max_vertices=5000)
     mesh = geometry_hull.initial_mesh(masks, *camera_arrays(cameras), options)
     distances = meshes.mesh_distances(mesh.vertices, mesh.faces, vertices, faces, count=20000)
@@ -279,7 +300,7 @@ def test_sparse_points_open_a_concavity_the_silhouettes_cannot():
     """A bowl: silhouettes fill it to the rim; SfM-like points on its inside, seen from above, hollow it out."""
     vertices, faces = bowl()
     cameras = orbit(36)
-    masks = render_masks(vertices, faces, cameras)
+    masks = coverage_masks(vertices, faces, cameras)
     options = geometry_hull.InitMeshOptions(hull_resolution=96, max_vertices=10000)
     camera_args = camera_arrays(cameras)
     hull_only = geometry_hull.initial_mesh(masks, *camera_args, options)

@@ -10,6 +10,7 @@ import pytest
 from sellip.capture.scenes import build_scene, icosphere
 from sellip.geometry import meshes
 from sellip.geometry import update as geometry_update
+from sellip.model.render import coverage_masks
 
 RADIUS = 0.05
 
@@ -228,21 +229,6 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
         fit_finalize.finalize_model(tmp_path / "params.zarr", tmp_path / "mesh.ply", tmp_path / "x.ply", tmp_path / "x.zarr")
 
 
-def coverage_mask(vertices, faces, camera):
-    """(H, W) bool: pixel centres whose ray hits the mesh (open3d ray casting)."""
-    import open3d as o3d
-
-    from sellip.model.render import pixel_rays
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
-                        o3d.core.Tensor(np.asarray(faces, np.uint32)))
-    origins, directions = pixel_rays(camera, supersample=1)
-    rays = np.concatenate([np.broadcast_to(origins, directions.shape), directions], -1).reshape(-1, 6)
-    hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
-    return np.isfinite(hit).reshape(camera.height, camera.width)
-
-
 def fitted_sphere(vertices):
     """Centre (3,) and radius of the least-squares sphere through the points (N, 3)."""
     a = np.concatenate([2 * vertices, np.ones((len(vertices), 1))], axis=1)
@@ -259,7 +245,7 @@ def test_silhouettes_move_the_mean_offset_that_normals_cannot_tell():
     cameras = handheld_orbit(12, 160, 128, np.random.default_rng(3), distance_m=(0.45, 0.45))
     unit, faces = icosphere(4)
     truth = RADIUS * unit
-    observed = [coverage_mask(truth, faces, camera) for camera in cameras]
+    observed = list(coverage_masks(truth, faces, cameras))
     vertices = (RADIUS - 0.0003) * unit + np.array([0.0, 0.0, -0.0005])
     normals_only = geometry_update.refine_from_normals(vertices, faces, unit, np.ones(len(unit)), reference=vertices)
     np.testing.assert_allclose(normals_only, vertices, atol=2e-6)
@@ -267,7 +253,7 @@ def test_silhouettes_move_the_mean_offset_that_normals_cannot_tell():
         normals = meshes.vertex_normals(vertices, faces)
         constraints = geometry_update.SilhouetteConstraints.concatenate([
             geometry_update.silhouette_constraints(vertices, normals, camera.intrinsics, camera.rotation, camera.translation,
-                                            seen, coverage_mask(vertices, faces, camera))
+                                            seen, coverage_masks(vertices, faces, [camera])[0])
             for camera, seen in zip(cameras, observed)])
         assert len(constraints) > 200
         # 12 views give a tenth of the constraints per vertex of a real capture: ten times the default weight.
@@ -288,7 +274,7 @@ def test_silhouettes_do_not_roughen_a_part_the_normals_do_not_see():
 
     cameras = handheld_orbit(12, 160, 128, np.random.default_rng(3), distance_m=(0.45, 0.45))
     unit, faces = icosphere(4)
-    observed = [coverage_mask(RADIUS * unit, faces, camera) for camera in cameras]
+    observed = list(coverage_masks(RADIUS * unit, faces, cameras))
     unseen = unit[:, 2] < -0.3
     shape = {}
     for stiff in (0.0, 1.0):
@@ -297,7 +283,7 @@ def test_silhouettes_do_not_roughen_a_part_the_normals_do_not_see():
             normals = meshes.vertex_normals(vertices, faces)
             constraints = geometry_update.SilhouetteConstraints.concatenate([
                 geometry_update.silhouette_constraints(vertices, normals, camera.intrinsics, camera.rotation,
-                                                camera.translation, seen, coverage_mask(vertices, faces, camera))
+                                                camera.translation, seen, coverage_masks(vertices, faces, [camera])[0])
                 for camera, seen in zip(cameras, observed)])
             vertices = geometry_update.refine_from_normals(vertices, faces, unit, np.where(unseen, 0.0, 1.0),
                                                     silhouettes=constraints, silhouette_weight=0.1,

@@ -148,12 +148,14 @@ def test_unreadable_missing_or_triangle_free_files_are_named(capture, tmp_path, 
 def box_views():
     """A 8 x 4 x 2 cm box (remeshed to ~2k vertices) and its silhouettes from a 12-view orbit."""
     import open3d as o3d
-    from test_geometry import camera_arrays, orbit, render_masks
+    from test_geometry import camera_arrays, orbit
+
+    from sellip.model.render import coverage_masks
 
     box = o3d.geometry.TriangleMesh.create_box(0.08, 0.04, 0.02).translate((-0.04, -0.02, -0.01))
     vertices, faces = meshes.remesh_to_count(np.asarray(box.vertices), np.asarray(box.triangles), 2000)
     cameras = orbit(12)
-    masks = render_masks(vertices, faces, cameras)
+    masks = coverage_masks(vertices, faces, cameras)
     arrays = camera_arrays(cameras)
     return vertices, masks, arrays, geometry_hull.visual_hull(masks, *arrays, resolution=48)
 

@@ -7,20 +7,28 @@ Modules and what they export (each name is importable from here too)::
 
     calibration: How careful a calibration must be, on whole reconstructions (issue #39 item 7): the workflow run on
       one synthetic capture of ``sphere_ior`` shot by the synthetic device of ``sellip synth-calibration``, once per
-      description of that device
-        Perturbation, FULL_SIZE_ERRORS, PERTURBATIONS, CHART_NOISE_SCALE, perturb_description, perturbed_capture,
-        noisy_chart_matrix, calibrate_synthetic_set, description_errors, sensitivity_config, sensitivity_row,
-        sensitivity_markdown, run_sensitivity
+      description of that device: the truth (with two noise seeds, the noise floor), the truth with one error put in
+      (flash position, flash polarizer angle, fx, a colour matrix from a noisy chart), and the description ``sellip
+      calibrate`` measured on a synthetic calibration set of the same device (docs/calibration.md, "How careful to
+      be")
+        DEVICE_WIDTH_PX, Perturbation, FULL_SIZE_ERRORS, PERTURBATIONS, CHART_NOISE_SCALE, perturb_description,
+        perturbed_capture, noisy_chart_matrix, calibrate_synthetic_set, description_errors, sensitivity_config,
+        sensitivity_row, sensitivity_markdown, run_sensitivity
     ladder: The accuracy ladder (docs/accuracy.md): where the error of a reconstruction enters, rung by rung
         render_hdr, fit_true_mesh, figures, resampled_truth, psnr_ceiling
     renderers: Both renderers side by side (issue #36): the figures of runs on captures of the same scenes rendered
       by sellip and by Mitsuba 3 (stability-suite cases, :mod:`sellip.bench.stability`), with the share of vertices
       that got a single-scattering lobe their ground truth does not have
-        false_single_scattering, renderer_row, renderer_markdown, main
+        single_scattering_shares, false_single_scattering, renderer_row, renderer_markdown, main
     scale: How each stage's cost grows with the capture (issue #20): per-job costs of measured workflow runs, a cost
       model fitted to them, and the time it predicts for a capture that was not run (docs/speed.md, "Scale")
         RULE_TERMS, ITERATED_RULES, SHARDED_RULES, CaptureSize, size_terms, job_costs, rule_costs, fit_cost_model,
         predict
+    silhouettes: How well the silhouettes of a run's photographs match the true ones: the ground-truth mesh ray-cast
+      through each pixel centre of the capture's true cameras, against
+      :func:`sellip.geometry.silhouettes.silhouette_masks` of the run's HDR views under several cuts
+      (``benchmarks/silhouette_iou.py``; docs/geometry.md quotes it)
+        agreement, silhouette_agreement
     stability: The stability suite (issue #9): small reconstructions built to hit the known failure modes
         BASE_VIEWS, BASE_SEED, PERTURB_SEED, StabilityError, CASES, CASE_NAMES, held_out_views, base_config,
         case_config, perturb_along_normals, perturb_mesh_file, miscalibrate_flash, damage_frames, snakemake_command,
@@ -44,7 +52,7 @@ Modules and what they export (each name is importable from here too)::
         write_csv
     sweep_tables: The sweep's results: Pareto front, the table (one row per run, pandera-checked), the speed-
       accuracy chart, the paper's comparisons (Table 1 eta, augmentation, sigma_ss, model selection) and markdown
-      tables; atomic writers of the figures and tables
+      tables
         pareto_front, TIME_RULES, FIGURES, SWEEP_COLUMNS, TIME_AXIS, job_cpu_seconds, sweep_row, sweep_schema,
         sweep_table, CHART_FIGURES, sweep_figure, front_marks, PAPER_TABLE1, PAPER_TABLE1_AVERAGE_PCT,
         PAPER_AUGMENTATION_PSNR_DB, PAPER_SIGMA_SS_PSNR_DB, PAPER_SIGMA_SS_SAVING_PCT, ior_table,
@@ -56,13 +64,14 @@ See docs/architecture.md for what this package owns and what it may import.
 from sellip._exports import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
-    "calibration": ("Perturbation", "FULL_SIZE_ERRORS", "PERTURBATIONS", "CHART_NOISE_SCALE", "perturb_description",
-           "perturbed_capture", "noisy_chart_matrix", "calibrate_synthetic_set", "description_errors",
-           "sensitivity_config", "sensitivity_row", "sensitivity_markdown", "run_sensitivity"),
+    "calibration": ("DEVICE_WIDTH_PX", "Perturbation", "FULL_SIZE_ERRORS", "PERTURBATIONS", "CHART_NOISE_SCALE",
+           "perturb_description", "perturbed_capture", "noisy_chart_matrix", "calibrate_synthetic_set",
+           "description_errors", "sensitivity_config", "sensitivity_row", "sensitivity_markdown", "run_sensitivity"),
     "ladder": ("render_hdr", "fit_true_mesh", "figures", "resampled_truth", "psnr_ceiling"),
-    "renderers": ("false_single_scattering", "renderer_row", "renderer_markdown", "main"),
+    "renderers": ("single_scattering_shares", "false_single_scattering", "renderer_row", "renderer_markdown", "main"),
     "scale": ("RULE_TERMS", "ITERATED_RULES", "SHARDED_RULES", "CaptureSize", "size_terms", "job_costs", "rule_costs",
            "fit_cost_model", "predict"),
+    "silhouettes": ("agreement", "silhouette_agreement"),
     "stability": ("BASE_VIEWS", "BASE_SEED", "PERTURB_SEED", "StabilityError", "CASES", "CASE_NAMES", "held_out_views",
            "base_config", "case_config", "perturb_along_normals", "perturb_mesh_file", "miscalibrate_flash",
            "damage_frames", "snakemake_command", "failure_reason", "run_case", "missing_packages", "write_tables",

@@ -12,7 +12,7 @@ Modules and what they export (each name is importable from here too)::
         assemble_capture
     capture_yaml: capture.yaml (DESIGN §3): its JSON schema and :func:`validate_config`, which names the key, what
       was expected and what was found
-        CONFIG_SCHEMA, validate_config
+        CONFIG_SCHEMA, MAX_FIELD_DEG, validate_config
     checks: Unit checks of a capture's numbers against each other (issue #38): lengths that are off by a factor of
       1000 must not pass silently
         DISTANCE_TOLERANCE, UNIT_MATCH, PoseUnitsError, camera_distances, likely_unit, check_pose_units
@@ -73,7 +73,7 @@ from sellip._exports import lazy_exports
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "assemble": ("RAW_SUFFIXES", "FIELDS", "AssembleError", "parse_pattern", "flash_level", "frames_from_pattern",
            "frames_from_csv", "assemble_capture"),
-    "capture_yaml": ("CONFIG_SCHEMA", "validate_config"),
+    "capture_yaml": ("CONFIG_SCHEMA", "MAX_FIELD_DEG", "validate_config"),
     "checks": ("DISTANCE_TOLERANCE", "UNIT_MATCH", "PoseUnitsError", "camera_distances", "likely_unit",
            "check_pose_units"),
     "files": ("CAPTURE_YAML", "FRAMES_CSV", "POSES_CSV", "RAW_DIR", "GROUND_TRUTH_DIR", "RAWPY_SUFFIXES",

@@ -4,7 +4,7 @@ Public API::
 
     SCENES: tuple of scene names ("demo", "demo_fine", "demo_feathers", "sphere_ior", "tiny", "tiny_dark",
             "tiny_white", "tiny_mirror", "tiny_bumpy", "tiny_relief", "tiny_speckle", "uniform_dark",
-            "uniform_bright", "cow", "tiny_plain", "pplastic_set")
+            "uniform_bright", "cow", "cow_painted", "tiny_plain", "pplastic_set")
     build_scene(name) -> Scene                       # mesh with per-vertex pBRDF parameters, fixed per name
     handheld_orbit(views, width, height, rng, ...) -> list[Camera]
     device_intrinsics(width, height) -> (3, 3) K    # the 25 mm lens on the IMX250 scaled to width
@@ -44,6 +44,8 @@ Scenes:
   rho_d 0.7): degenerate statistics (every albedo one value) for the stability suite.
 - ``cow``: a cow-like figure (body, head, four legs, concavities) in one material painted with flat black
   and white patches with sharp edges: many identical albedo rows, for the stability suite.
+- ``cow_painted``: the cow's shape on a finer mesh, painted with a base coat and 2,000 sharp-edged dabs about
+  3 mm across in random colours: a textured figure that SfM can register (issue #36 item 4).
 - ``tiny_plain``: ``tiny`` without its single scattering (the rough half's ρ_ss is 0), and ``pplastic_set``: a
   4 cm sphere with four wedges of PPLASTIC_SET_MATERIALS (η 1.33-2.0, σ_s 0.1-0.4, among them the η 1.663 / α 0.25
   material that gained a false single-scattering lobe in issue #36): scenes both renderers draw (Mitsuba's pplastic
@@ -62,8 +64,8 @@ from sellip.model.pbrdf import PBRDFParams
 from sellip.model.render import Camera, ParamMesh
 
 SCENES = ("demo", "demo_fine", "demo_feathers", "sphere_ior", "tiny", "tiny_dark", "tiny_white", "tiny_mirror",
-          "tiny_bumpy", "tiny_relief", "tiny_speckle", "uniform_dark", "uniform_bright", "cow", "tiny_plain",
-          "pplastic_set")
+          "tiny_bumpy", "tiny_relief", "tiny_speckle", "uniform_dark", "uniform_bright", "cow", "cow_painted",
+          "tiny_plain", "pplastic_set")
 
 DEVICE_WIDTH_PX = 2448
 DEVICE_FX_PX = 7246.0
@@ -428,24 +430,53 @@ COW_PATCH_ALBEDO = ((0.03, 0.03, 0.03), (0.8, 0.78, 0.74))
 """The cow's two flat patch colours (black, white): the rows of its fitted albedo features repeat."""
 
 
+def _cow_shape(subdivisions: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cow's unit directions (N, 3), vertices (N, 3) metres and faces of an icosphere of ``subdivisions``: an
+    elongated body, a head, four legs (radial bumps on an ellipsoid), star-shaped about the origin."""
+    d, faces = icosphere(subdivisions)
+    body = 1 / np.sqrt((d[:, 0] / 0.05) ** 2 + (d[:, 1] / 0.026) ** 2 + (d[:, 2] / 0.03) ** 2)
+    legs = sum(bump(d, _direction(azimuth, -62), 0.13) for azimuth in (35, 145, -35, -145))
+    radius = body + 0.028 * legs + 0.02 * bump(d, _direction(0, 18), 0.2)
+    return d, radius[:, None] * d, faces
+
+
+def _one_material_mesh(name: str, material: Material, d: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                       albedo: np.ndarray) -> Scene:
+    region = np.zeros(len(d), np.int64)
+    mesh = ParamMesh(vertices=vertices, faces=faces, normals=vertex_normals(vertices, faces, area_weighted=True),
+                     params=_params_from_regions((material,), region, albedo), material=region)
+    return Scene(name, mesh, (material,), flash_power=TINY_FLASH_POWER)
+
+
 def _cow() -> Scene:
     """A cow-like figure about 10 cm long, one material (eta 1.5, sigma_s 0.2) painted with large flat black and
     white patches with sharp edges (Worley cells, each black or white): an elongated body, a head, four legs
     (radial bumps on an ellipsoid, 10242 vertices), with concavities between the legs and at the neck that a visual
     hull does not carve. Star-shaped about the origin, so the radial mesh never folds."""
-    d, faces = icosphere(5)
-    body = 1 / np.sqrt((d[:, 0] / 0.05) ** 2 + (d[:, 1] / 0.026) ** 2 + (d[:, 2] / 0.03) ** 2)
-    legs = sum(bump(d, _direction(azimuth, -62), 0.13) for azimuth in (35, 145, -35, -145))
-    radius = body + 0.028 * legs + 0.02 * bump(d, _direction(0, 18), 0.2)
-    vertices = radius[:, None] * d
+    d, vertices, faces = _cow_shape(5)
     _, _, cell = cellular(d, 28, np.random.default_rng(5))
     black = np.random.default_rng(6).random(28) < 0.4
     albedo = np.asarray(COW_PATCH_ALBEDO, np.float64)[np.where(black[cell], 0, 1)]
     material = Material("cow", eta=1.5, rho_d=COW_PATCH_ALBEDO[1], rho_s=0.8, sigma_s=0.2)
-    region = np.zeros(len(d), np.int64)
-    mesh = ParamMesh(vertices=vertices, faces=faces, normals=vertex_normals(vertices, faces, area_weighted=True),
-                     params=_params_from_regions((material,), region, albedo), material=region)
-    return Scene("cow", mesh, (material,), flash_power=TINY_FLASH_POWER)
+    return _one_material_mesh("cow", material, d, vertices, faces, albedo)
+
+
+def _cow_painted() -> Scene:
+    """The cow's shape (40962 vertices, 0.6 mm apart) in one material (eta 1.5, sigma_s 0.2) with a painted texture
+    that SfM can match: a base coat of 28 large patches in three colours, and over it 2,000 sharp-edged dabs about
+    3 mm across (Worley cells), half of them painted in random colours of albedo 0.1-0.75 (issue #36 item 4: the
+    textured figure, from SfM's poses)."""
+    d, vertices, faces = _cow_shape(6)
+    rng = np.random.default_rng(7)
+    _, _, coat_cell = cellular(d, 28, rng)
+    coats = np.array([(0.62, 0.5, 0.36), (0.75, 0.73, 0.7), (0.25, 0.16, 0.1)])
+    albedo = coats[rng.integers(0, len(coats), 28)][coat_cell]
+    _, _, dab_cell = cellular(d, 2000, rng)
+    painted = rng.random(2000) < 0.5
+    colours = rng.uniform(0.1, 0.75, (2000, 3))
+    albedo = np.where(painted[dab_cell][:, None], colours[dab_cell], albedo)
+    material = Material("cow_painted", eta=1.5, rho_d=tuple(coats[0]), rho_s=0.8, sigma_s=0.2)
+    return _one_material_mesh("cow_painted", material, d, vertices, faces, albedo)
 
 
 PPLASTIC_SET_MATERIALS = (
@@ -481,7 +512,7 @@ _BUILDERS = {"demo": _demo, "demo_fine": _demo_fine, "demo_feathers": _demo_feat
              "tiny": _tiny,
              "tiny_dark": _tiny_dark, "tiny_white": _tiny_white, "tiny_mirror": _tiny_mirror, "tiny_bumpy": _tiny_bumpy,
              "tiny_relief": _tiny_relief, "tiny_speckle": _tiny_speckle, "uniform_dark": _uniform_dark,
-             "uniform_bright": _uniform_bright, "cow": _cow, "tiny_plain": _tiny_plain, "pplastic_set": _pplastic_set}
+             "uniform_bright": _uniform_bright, "cow": _cow, "cow_painted": _cow_painted, "tiny_plain": _tiny_plain, "pplastic_set": _pplastic_set}
 
 
 def build_scene(name: str) -> Scene:

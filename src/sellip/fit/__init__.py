@@ -9,7 +9,7 @@ Modules and what they export (each name is importable from here too)::
     augment_pass: One augmentation pass (rule ``cluster_lobes``; paper §4.3, DESIGN §7): the material clusters, each
       cluster's model chosen on held-out vertices, each cluster's lobe fitted, written to the cluster-lobes directory
       (:func:`cluster_and_fit_lobes`)
-        cluster_and_fit_lobes
+        cluster_rows, cluster_and_fit_lobes
     clusters: Material clusters (paper §4.3, DESIGN §7; docs/augment.md): K-means on the feature (eta, rho_d RGB) of
       the confidently fitted vertices, K chosen by BIC; small clusters merged; spatially incoherent clusters (a cut
       through one material's noise) merged; regions of another albedo inside a cluster added; a material cut along its
@@ -63,9 +63,12 @@ Modules and what they export (each name is importable from here too)::
         decision_margin, MARGIN_FULL_CONFIDENCE, margin_confidence, cluster_margins, select_model, fit_by_model
     shard: One fit shard (rule ``fit_pbrdf``) and the gather of an iteration's shards into ``fit.zarr`` (rule
       ``gather_fit``): the shard's vertex rows, the fit settings from ``--set KEY=VALUE`` pairs, XLA's persistent
-      compilation cache, :func:`fit_shard` and :func:`gather_shards`
-        parse_shard, shard_rows, settings_from_pairs, overrides_from_pairs, enable_compilation_cache, fit_shard,
-        gather_shards
+      compilation cache, :func:`fit_shard` and :func:`gather_shards`; the memory a shard needs (:data:`SHARD_MEMORY`),
+      what the job may use (:func:`memory_budget`) and the error that names the shard count that fits
+      (:class:`ShardMemoryError`)
+        parse_shard, shard_rows, settings_from_pairs, overrides_from_pairs, enable_compilation_cache, largest_shard,
+        ShardMemory, SHARD_MEMORY, ShardMemoryError, available_memory, memory_budget, shard_memory_message,
+        fit_shard, gather_shards
     simulate: Per-vertex observations simulated with the full forward model: inputs with known answers for the fit's
       tests and benchmark (no mesh, no images: one surface point per vertex)
         vertex_observations
@@ -83,7 +86,7 @@ See docs/architecture.md for what this package owns and what it may import.
 from sellip._exports import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
-    "augment_pass": ("cluster_and_fit_lobes",),
+    "augment_pass": ("cluster_rows", "cluster_and_fit_lobes"),
     "clusters": ("CHROMA_SCALE", "LOG_BRIGHTNESS_SCALE", "ETA_SCALE", "VARIANCE_FLOOR", "REGION_OUTLIER_P", "REGION_EPS",
            "REGION_MIN_SAMPLES", "REGION_FIT_POINTS", "CUT_ALBEDO_SD", "CUT_MODE_POINTS", "CUT_ETA_SE",
            "CUT_MODES_ALBEDO_SD", "AugmentSettings", "Clustering", "cluster_features", "kmeans", "bic", "choose_k",
@@ -110,7 +113,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "split_vertices", "choose", "decision_margin", "MARGIN_FULL_CONFIDENCE", "margin_confidence",
            "cluster_margins", "select_model", "fit_by_model"),
     "shard": ("parse_shard", "shard_rows", "settings_from_pairs", "overrides_from_pairs", "enable_compilation_cache",
-           "fit_shard", "gather_shards"),
+           "largest_shard", "ShardMemory", "SHARD_MEMORY", "ShardMemoryError", "available_memory", "memory_budget",
+           "shard_memory_message", "fit_shard", "gather_shards"),
     "simulate": ("vertex_observations",),
     "solver": ("Z_LIMIT", "PROGRESS_ITERATIONS", "STUCK_DAMPING", "HOLD_ROUNDS", "HOLD_ETA_TOLERANCE", "ROUGHNESS_GRID"),
     "vertex_fit": ("select_views", "confidence_from_uncertainty", "fit_vertices", "default_prior"),

@@ -18,12 +18,13 @@ Modules and what they export (each name is importable from here too)::
     hull: The visual hull and the initial mesh (DESIGN §2 mesh_init): voxel carving from the silhouettes, the
       surface points of the occupancy, fusion with SfM's sparse points, screened Poisson at a depth and remeshing to a
       vertex count
-        MeshCheck, VoxelGrid, view_volume_bounds, Carving, carve, visual_hull, surface_points, occluding_points,
-        InitMeshOptions, InitialMesh, initial_mesh
+        MeshCheck, VoxelGrid, EmptyHullError, view_volume_bounds, silhouette_coverage, Carving, carve, visual_hull,
+        surface_points, occluding_points, InitMeshOptions, InitialMesh, initial_mesh
     initial: The initial mesh (DESIGN §2 mesh_init; rule ``init_mesh``): the visual hull fused with SfM's sparse
       points, or multi-view stereo points, or a mesh the user supplies (a scan), checked against the silhouettes
       (:func:`make_initial_mesh`)
-        INIT_MODES, MESH_SUFFIXES, InitMeshError, read_user_mesh, sparse_observations, mvs_points, make_initial_mesh
+        INIT_MODES, MESH_SUFFIXES, InitMeshError, read_user_mesh, sparse_observations, mvs_points, CAMERAS_ADVICE,
+        COVERAGE_STOP, DISAGREEMENT_STOP, make_initial_mesh
     meshes: Triangle-mesh utilities: surface samples and mesh-to-mesh distances (DESIGN §8 Chamfer and Hausdorff),
       point normals, screened Poisson, the largest component, isotropic remeshing to a vertex count, vertex normals,
       edges
@@ -43,7 +44,7 @@ Modules and what they export (each name is importable from here too)::
     silhouettes: Silhouettes of the object in the HDR views: the level above the background's noise floor, the
       masks, and signed distances to their boundary (to a fraction of a pixel)
         BACKGROUND_NOISE_SIGMAS, BACKGROUND_BINS, background_noise, SilhouetteOptions, DEFAULT_SILHOUETTE,
-        silhouette_level, silhouette_masks, signed_distance, Silhouette, boundary_distance
+        silhouette_level, level_map, silhouette_masks, signed_distance, Silhouette, boundary_distance
     update: The geometry update (DESIGN §2, docs/geometry_update.md): the surface moved to agree with the confident
       fitted normals by normal integration (a sparse least-squares problem), held by the photographs' silhouettes
         SilhouetteConstraints, silhouette_constraints, refine_from_normals
@@ -57,10 +58,11 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "alignment": ("Similarity", "umeyama", "align_cameras", "pose_errors"),
     "cameras": ("CamerasError", "write_cameras", "read_cameras", "diffuse_view", "view_masks", "intrinsics_matrix",
            "hdr_camera", "load_cameras"),
-    "hull": ("MeshCheck", "VoxelGrid", "view_volume_bounds", "Carving", "carve", "visual_hull", "surface_points",
-           "occluding_points", "InitMeshOptions", "InitialMesh", "initial_mesh"),
+    "hull": ("MeshCheck", "VoxelGrid", "EmptyHullError", "view_volume_bounds", "silhouette_coverage", "Carving",
+           "carve", "visual_hull", "surface_points", "occluding_points", "InitMeshOptions", "InitialMesh",
+           "initial_mesh"),
     "initial": ("INIT_MODES", "MESH_SUFFIXES", "InitMeshError", "read_user_mesh", "sparse_observations", "mvs_points",
-           "make_initial_mesh"),
+           "CAMERAS_ADVICE", "COVERAGE_STOP", "DISAGREEMENT_STOP", "make_initial_mesh"),
     "meshes": ("angular_error_deg", "surface_samples", "MeshDistances", "mesh_distances", "estimate_normals",
            "poisson_surface", "largest_component", "depth_vertex_count", "mesh_area", "remesh_to_count",
            "vertex_normals", "blend_normals", "mesh_edges"),
@@ -70,7 +72,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "scale_intrinsics", "match_pairs_by_retrieval", "run_sfm", "result_from_reconstruction",
            "metric_normalization", "transform_result", "check_registration"),
     "silhouettes": ("BACKGROUND_NOISE_SIGMAS", "BACKGROUND_BINS", "background_noise", "SilhouetteOptions",
-           "DEFAULT_SILHOUETTE", "silhouette_level", "silhouette_masks", "signed_distance", "Silhouette",
-           "boundary_distance"),
+           "DEFAULT_SILHOUETTE", "silhouette_level", "level_map", "silhouette_masks", "signed_distance",
+           "Silhouette", "boundary_distance"),
     "update": ("SilhouetteConstraints", "silhouette_constraints", "refine_from_normals"),
 })

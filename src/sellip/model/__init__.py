@@ -30,8 +30,8 @@ Modules and what they export (each name is importable from here too)::
     render: Forward renderer: a mesh with per-vertex pBRDF parameters, seen by a pinhole camera under a polarized
       point light
         PARAM_CHANNELS, SHADING_CHUNK, FLASH_STOKES, SHADOW_EPSILON_M, ParamMesh, unpack_params, Camera, Light,
-        flash_light, distort_normalized, undistort_normalized, subpixel_offsets, pixel_rays, RenderResult, Renderer,
-        render_stokes
+        flash_light, distort_normalized, undistort_normalized, subpixel_offsets, pixel_rays, coverage_masks,
+        RenderResult, Renderer, render_stokes
 
 See docs/architecture.md for what this package owns and what it may import.
 """
@@ -55,5 +55,5 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "orthogonal_x_axis"),
     "render": ("PARAM_CHANNELS", "SHADING_CHUNK", "FLASH_STOKES", "SHADOW_EPSILON_M", "ParamMesh", "unpack_params",
            "Camera", "Light", "flash_light", "distort_normalized", "undistort_normalized", "subpixel_offsets",
-           "pixel_rays", "RenderResult", "Renderer", "render_stokes"),
+           "pixel_rays", "coverage_masks", "RenderResult", "Renderer", "render_stokes"),
 })

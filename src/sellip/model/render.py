@@ -209,6 +209,22 @@ def pixel_rays(camera: Camera, supersample: int = 1, rows: slice | None = None) 
     return camera.center, directions
 
 
+def coverage_masks(vertices: np.ndarray, faces: np.ndarray, cameras: list) -> np.ndarray:
+    """(V, H, W) bool: which pixel centres' rays (:func:`pixel_rays`, distortion included) meet the triangle mesh
+    (vertices (N, 3) metres, faces (F, 3)), for each :class:`Camera`: a mesh's true silhouettes."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(faces, np.uint32)))
+    masks = []
+    for camera in cameras:
+        centre, directions = pixel_rays(camera)
+        rays = np.concatenate([np.broadcast_to(centre, directions.shape), directions], axis=-1)[:, :, 0]
+        masks.append(np.isfinite(scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()))
+    return np.stack(masks)
+
+
 # --------------------------------------------------------------------------- shading kernel
 
 
