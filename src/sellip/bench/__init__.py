@@ -28,7 +28,7 @@ Modules and what they export (each name is importable from here too)::
       through each pixel centre of the capture's true cameras, against
       :func:`sellip.geometry.silhouettes.silhouette_masks` of the run's HDR views under several cuts
       (``benchmarks/silhouette_iou.py``; docs/geometry.md quotes it)
-        agreement, silhouette_agreement
+        agreement, silhouette_agreement, cut_difference
     stability: The stability suite (issue #9): small reconstructions built to hit the known failure modes
         BASE_VIEWS, BASE_SEED, PERTURB_SEED, StabilityError, CASES, CASE_NAMES, held_out_views, base_config,
         case_config, perturb_along_normals, perturb_mesh_file, miscalibrate_flash, damage_frames, snakemake_command,
@@ -71,7 +71,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "renderers": ("single_scattering_shares", "false_single_scattering", "renderer_row", "renderer_markdown", "main"),
     "scale": ("RULE_TERMS", "ITERATED_RULES", "SHARDED_RULES", "CaptureSize", "size_terms", "job_costs", "rule_costs",
            "fit_cost_model", "predict"),
-    "silhouettes": ("agreement", "silhouette_agreement"),
+    "silhouettes": ("agreement", "silhouette_agreement", "cut_difference"),
     "stability": ("BASE_VIEWS", "BASE_SEED", "PERTURB_SEED", "StabilityError", "CASES", "CASE_NAMES", "held_out_views",
            "base_config", "case_config", "perturb_along_normals", "perturb_mesh_file", "miscalibrate_flash",
            "damage_frames", "snakemake_command", "failure_reason", "run_case", "missing_packages", "write_tables",
