@@ -59,8 +59,8 @@ def test_half_resolution_centres_are_raw_cell_centres():
 
 def test_refined_corners_lie_on_the_true_projection_and_the_window_follows_the_squares(monkeypatch):
     """refine_corners (cv2.cornerSubPix) starts from the sector detector's corners and ends within a few hundredths
-    of a pixel of the true projection on a rendered board (0.07 px RMS at 612x512), in a window that follows the squares' size (squares half
-    as large in the image get half the window, at least 2 px)."""
+    of a pixel of the true projection on a rendered board (0.07 px RMS at 612x512), in a window that follows the
+    squares' size (squares half as large in the image get half the window, at least 2 px)."""
     import cv2
 
     device = synthetic.true_device(W, H)
