@@ -14,12 +14,10 @@ refit and the per-vertex deviations. The replays of docs/augment.md and docs/acc
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import sys
 import time
-import warnings
 from pathlib import Path
 
 
@@ -40,14 +38,13 @@ def replay(run: Path, iteration: int, overrides: dict | None = None):
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run", type=Path, help="the run's results folder (results/<name>)")
-    parser.add_argument("--iteration", type=int, required=True, help="the pass whose fit is clustered (iter/N)")
-    parser.add_argument("--truth", type=Path, required=True, help="the capture's ground_truth/model.ply")
+    from sellip.bench.replay import ignore_snakemake_zarr_warnings, replay_parser
+
+    parser = replay_parser(__doc__, "the pass whose fit is clustered (iter/N)")
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                         help="AugmentSettings fields over the run's own (e.g. min_coherence=0.5)")
     args = parser.parse_args(argv)
-    warnings.filterwarnings("ignore", message=".*not recognized as a component of a Zarr hierarchy")  # Snakemake's
+    ignore_snakemake_zarr_warnings()
 
     import numpy as np
     from scipy.spatial import cKDTree

@@ -16,23 +16,19 @@ stability ``baseline``'s first pass the rough material's light band alone swaps 
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
-import warnings
-from pathlib import Path
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run", type=Path, help="the run's results folder (results/<name>), run with --notemp")
-    parser.add_argument("--iteration", type=int, required=True, help="the pass (iter/N)")
-    parser.add_argument("--truth", type=Path, required=True, help="the capture's ground_truth/model.ply")
+    from sellip.bench.replay import ignore_snakemake_zarr_warnings, replay_parser
+
+    parser = replay_parser(__doc__)
     parser.add_argument("--material", type=int, required=True, help="the true material label")
     parser.add_argument("--models", type=int, nargs="+", default=[1, 3], help="models to fit (sellip.fit.selection)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    warnings.filterwarnings("ignore", message=".*not recognized as a component of a Zarr hierarchy")  # Snakemake's
+    ignore_snakemake_zarr_warnings()
 
     import numpy as np
     from scipy.spatial import cKDTree

@@ -20,6 +20,9 @@ Modules and what they export (each name is importable from here too)::
       by sellip and by Mitsuba 3 (stability-suite cases, :mod:`sellip.bench.stability`), with the share of vertices
       that got a single-scattering lobe their ground truth does not have
         single_scattering_shares, false_single_scattering, renderer_row, renderer_markdown, main
+    replay: The command line shared by the replay benchmarks (``benchmarks/replay_*.py``): a run's results folder,
+      one of its passes and the capture's ground truth
+        replay_parser, ignore_snakemake_zarr_warnings
     scale: How each stage's cost grows with the capture (issue #20): per-job costs of measured workflow runs, a cost
       model fitted to them, and the time it predicts for a capture that was not run (docs/speed.md, "Scale")
         RULE_TERMS, ITERATED_RULES, SHARDED_RULES, CaptureSize, size_terms, job_costs, rule_costs, fit_cost_model,
@@ -69,6 +72,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "description_errors", "sensitivity_config", "sensitivity_row", "sensitivity_markdown", "run_sensitivity"),
     "ladder": ("render_hdr", "fit_true_mesh", "figures", "resampled_truth", "psnr_ceiling"),
     "renderers": ("single_scattering_shares", "false_single_scattering", "renderer_row", "renderer_markdown", "main"),
+    "replay": ("replay_parser", "ignore_snakemake_zarr_warnings"),
     "scale": ("RULE_TERMS", "ITERATED_RULES", "SHARDED_RULES", "CaptureSize", "size_terms", "job_costs", "rule_costs",
            "fit_cost_model", "predict"),
     "silhouettes": ("agreement", "silhouette_agreement", "cut_difference"),

@@ -228,6 +228,11 @@ class Silhouette:
         """(H, W) :func:`signed_distance` of the mask (computed once)."""
         return signed_distance(self.mask)
 
+    @functools.cached_property
+    def excess(self) -> np.ndarray:
+        """(H, W) luminance above the level (negative below; computed once)."""
+        return self.luminance - self.level
+
 
 def boundary_distance(silhouette: Silhouette, points: np.ndarray, outward: np.ndarray, reach_px: float = 1.5,
                       step_px: float = 0.125) -> np.ndarray:
@@ -243,8 +248,7 @@ def boundary_distance(silhouette: Silhouette, points: np.ndarray, outward: np.nd
     steps = np.arange(-reach_px, reach_px + step_px / 2, step_px)
     along = -coarse[:, None] + steps[None, :]  # (K, S): where the mask puts the boundary, and around it
     where = points[:, None, :] + along[..., None] * outward[:, None, :]
-    excess = silhouette.luminance - silhouette.level
-    level = ndimage.map_coordinates(excess, [where[..., 1].ravel(), where[..., 0].ravel()], order=1,
+    level = ndimage.map_coordinates(silhouette.excess, [where[..., 1].ravel(), where[..., 0].ravel()], order=1,
                                     mode="nearest").reshape(along.shape)
     falls = (level[:, :-1] > 0) & (level[:, 1:] <= 0)
     fraction = level[:, :-1] / np.where(falls, level[:, :-1] - level[:, 1:], 1.0)
