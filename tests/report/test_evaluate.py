@@ -246,13 +246,17 @@ def test_evaluate_aligns_an_sfm_world_model_and_reports_nulls_without_ground_tru
     metrics = report_metrics.evaluate_model(run / "model.ply", run / "cameras.csv", tiny_run["hdr"], tiny_run["capture"],
                                        run / "metrics.json", params_path=run / "params.zarr",
                                        held_out=[view_ids[0]], geometry_samples=5000, supersample=1)
-    assert metrics["alignment"]["method"] == "sim3"
+    assert metrics["alignment"]["method"] == "sim3+icp"
     assert metrics["alignment"]["scale"] == pytest.approx(1 / 1.2)
+    # Exact cameras: the refinement by ICP has nothing to add.
+    assert metrics["alignment"]["cameras"]["scale"] == pytest.approx(1 / 1.2)
+    assert metrics["alignment"]["refinement"]["translation_mm"] < 1e-3
+    assert metrics["alignment"]["refinement"]["rotation_deg"] < 1e-3
     assert metrics["vertices"]["confident"] == n - n // 2
     assert metrics["normal_error_deg"]["confident"]["median"] == pytest.approx(3.0, abs=1e-3)
     assert metrics["geometry"]["chamfer_mm"] < 1e-3
     assert metrics["eta_relative_error_pct"]["mean"] == pytest.approx(0, abs=1e-4)
-    assert json.loads((run / "metrics.json").read_text())["alignment"]["method"] == "sim3"
+    assert json.loads((run / "metrics.json").read_text())["alignment"]["method"] == "sim3+icp"
     # Held-out PSNR is measured in the model's own (SfM) world: supersample 1 against 2 and the 3° normals cost some.
     assert metrics["psnr_held_out"]["views"][view_ids[0]]["psnr_db"] > 20
 

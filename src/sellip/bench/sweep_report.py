@@ -29,7 +29,7 @@ def ior_of_results(results: Path, capture: Path):
     truth = read_param_mesh(capture / GROUND_TRUTH_MESH)
     confident, _ = confident_vertices(model_path, params_path, model.num_vertices)
     alignment = json.loads((results / "metrics.json").read_text()).get("alignment") or {}
-    if alignment.get("method") == "sim3":
+    if alignment.get("method") in ("sim3", "sim3+icp"):
         model = transform_mesh(model, Similarity(float(alignment["scale"]), np.asarray(alignment["rotation"]),
                                                  np.asarray(alignment["translation"])))
     return bench_sweep_tables.ior_table(model, truth, confident)

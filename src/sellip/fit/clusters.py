@@ -55,6 +55,12 @@ class AugmentSettings:
     lambda_theta: float = 1.0  # weight of L_theta = Delta theta_h^2 (radians): 1 deg costs a 1.7 % I_s error
     max_theta_error_deg: float = 5.0  # |Delta theta_h| bound
     alternations: int = 4  # (lobe parameters, Delta theta_h) alternations
+    # The cluster lobe is refitted up to this many times without the vertices it fits worst: a vertex whose mean
+    # sample loss lies more than trim_z robust SDs (1.4826 MAD) above the median is another material's (a misfit
+    # vertex clustered by its greyed albedo); the refits stop when the lobe stops moving (docs/augment.md,
+    # "Trimmed lobe fits"). 0: one fit on every vertex.
+    trim_rounds: int = 3
+    trim_z: float = 3.5
 
 
 class Clustering(NamedTuple):

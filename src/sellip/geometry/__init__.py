@@ -9,7 +9,7 @@ Modules and what they export (each name is importable from here too)::
 
     alignment: Sim(3) alignment of camera sets and pose errors (DESIGN §8: SfM poses are compared after a similarity
       alignment)
-        Similarity, umeyama, align_cameras, pose_errors
+        Similarity, umeyama, align_cameras, refine_to_surface, pose_errors
     cameras: The cameras table ``cameras.csv`` (poses.csv's columns: COLMAP cam_from_world) and cameras built from
       it: its reader and writer, the intrinsics matrix of capture.yaml's camera, a view's camera at the HDR images'
       resolution (half the raw mosaic), the diffuse image and silhouette masks a view gives SfM and the hull
@@ -55,7 +55,7 @@ See docs/architecture.md for what this package owns and what it may import.
 from sellip._exports import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
-    "alignment": ("Similarity", "umeyama", "align_cameras", "pose_errors"),
+    "alignment": ("Similarity", "umeyama", "align_cameras", "refine_to_surface", "pose_errors"),
     "cameras": ("CamerasError", "write_cameras", "read_cameras", "diffuse_view", "view_masks", "intrinsics_matrix",
            "hdr_camera", "load_cameras"),
     "hull": ("MeshCheck", "VoxelGrid", "EmptyHullError", "view_volume_bounds", "silhouette_coverage", "Carving",

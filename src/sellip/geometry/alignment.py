@@ -91,6 +91,38 @@ def align_cameras(rotations: np.ndarray, translations: np.ndarray, ref_rotations
     return transform
 
 
+def refine_to_surface(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, start: Similarity,
+                      distances: tuple[float, ...] = (0.05, 0.02, 0.01), samples: int = 100000, seed: int = 0,
+                      iterations: int = 50) -> Similarity:
+    """``start`` (a similarity from the points' world to the surface's, e.g. :func:`align_cameras`) refined by ICP.
+
+    points (N, 3), e.g. a reconstruction's vertices; the surface a triangle mesh (vertices (V, 3), faces (F, 3)),
+    e.g. the ground truth. open3d's point-to-point ICP with scale, onto the surface's vertices and ``samples``
+    area-uniform points of it (seeded), correspondences within ``distances`` (fractions of the surface's bounding-box diagonal,
+    coarse to fine). Returns the refined similarity, points' world -> surface's world.
+    Why the evaluation needs it: docs/benchmarks.md, "The painted cow from SfM".
+    """
+    import open3d as o3d
+
+    from sellip.geometry.meshes import surface_samples
+
+    vertices = np.asarray(vertices, np.float64)
+    # The surface's own vertices among the targets: a model that is the surface moved stays exactly where it is.
+    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
+        np.concatenate([vertices, surface_samples(vertices, np.asarray(faces), samples, seed)])))
+    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(start.apply(np.asarray(points, np.float64))))
+    diagonal = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+    estimation = o3d.pipelines.registration.TransformationEstimationPointToPoint(with_scaling=True)
+    criteria = o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=iterations)
+    transform = np.eye(4)
+    for fraction in distances:
+        transform = o3d.pipelines.registration.registration_icp(source, target, fraction * diagonal, transform,
+                                                                estimation, criteria).transformation
+    linear = transform[:3, :3]
+    scale = float(np.cbrt(np.linalg.det(linear)))
+    return Similarity(scale, linear / scale, transform[:3, 3]).compose(start)
+
+
 def pose_errors(rotations: np.ndarray, translations: np.ndarray, ref_rotations: np.ndarray,
                 ref_translations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per camera: rotation error (deg, angle of R R_ref^T) and camera-centre distance (world units). (N,) each."""
