@@ -1,6 +1,6 @@
 """The accuracy ladder (docs/accuracy.md): one capture through rungs that each add one source of error.
 
-    python benchmarks/accuracy_ladder.py --scene sphere_ior --views 24 --width 612 --height 512 \
+    python benchmarks/accuracy_ladder.py --scene sphere_ior --views 24 --width 612 --height 512 [--renderer mitsuba] \
         [--rungs render sensor mesh hull] [--iterations 1] [--workdir results/bench/ladder] [--cores 2]
         [--ceiling-vertices 6000 30000] [--max-vertices 6000]
 
@@ -49,6 +49,9 @@ def workflow_rung(capture: Path, name: str, results: Path, iterations: int, core
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", default="sphere_ior")
+    parser.add_argument("--renderer", default="sellip", choices=["sellip", "mitsuba"],
+                        help="the capture's renderer (sellip synth --renderer); the render rung is sellip's render "
+                             "of the truth, so it belongs to sellip's captures only")
     parser.add_argument("--views", type=int, default=24)
     parser.add_argument("--width", type=int, default=612)
     parser.add_argument("--height", type=int, default=512)
@@ -73,11 +76,15 @@ def main(argv=None) -> int:
     from sellip.capture.synthetic import synthesize_capture
     from sellip.fit.observe import ObserveSettings
 
-    tag = f"{args.scene}_{args.views}v_{args.width}x{args.height}"
+    if args.renderer != "sellip" and "render" in args.rungs:
+        parser.error("the render rung renders the truth with sellip's renderer: leave it out of a --renderer "
+                     f"{args.renderer} ladder")
+    tag = f"{args.scene}_{args.views}v_{args.width}x{args.height}" + ("" if args.renderer == "sellip" else f"_{args.renderer}")
     work = (args.workdir / tag).resolve()
     capture = work / "capture"
     if not (capture / "capture.yaml").is_file():
-        synthesize_capture(args.scene, capture, views=args.views, width=args.width, height=args.height, progress=False)
+        synthesize_capture(args.scene, capture, views=args.views, width=args.width, height=args.height, progress=False,
+                           renderer=args.renderer)
     hdr = work / "hdr.zarr"
     if not hdr.exists():
         linearize_capture(capture, work / "linear.zarr", threads=args.cores)

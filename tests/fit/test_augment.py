@@ -239,7 +239,8 @@ def test_a_few_vertices_of_a_narrower_brighter_lobe_do_not_take_the_cluster_lobe
     """A cluster of a rough material (eta 1.33, sigma_s 0.4) with 8 of its 120 vertices of another (eta 1.6, sigma_s
     0.08, dark: a misfit vertex whose greyed albedo joined the cluster, as on stability pplastic_set): one fit
     takes the intruders' narrow lobe; the trimmed fit (AugmentSettings.trim_rounds) the majority's. On the pure
-    cluster the trimmed fit is the plain one's to 0.01 in sigma_s and 0.1 % in eta."""
+    cluster the trimmed fit is the plain one's to 0.01 in sigma_s and 0.1 % in eta; with 36 intruders (30 %) nothing
+    is trimmed."""
     import dataclasses
 
     from sellip.fit.selection import settings_for_model
@@ -247,7 +248,7 @@ def test_a_few_vertices_of_a_narrower_brighter_lobe_do_not_take_the_cluster_lobe
     materials = ((1.33, (0.27, 0.27, 0.22), 0.8, 0.4, (0, 0, 0), 0.6), (1.6, (0.1, 0.09, 0.08), 0.8, 0.08, (0, 0, 0), 0.6))
     settings = settings_for_model(HELD, 1)
     fits = {}
-    for intruders in (8, 0):
+    for intruders in (8, 0, 36):
         s = material_scene(np.random.default_rng(1), materials, (np.arange(120) < intruders).astype(int), 40, 0.005)
         for rounds in (0, 3):
             fits[intruders, rounds] = fit_lobes.fit_cluster_lobe(
@@ -257,6 +258,8 @@ def test_a_few_vertices_of_a_narrower_brighter_lobe_do_not_take_the_cluster_lobe
     assert abs(fits[8, 3].sigma_s - 0.4) < 0.02 and abs(fits[8, 3].eta / 1.33 - 1) < 0.003  # measured 0.394, 1.3301
     assert abs(fits[0, 3].sigma_s - fits[0, 0].sigma_s) < 0.01  # measured 0.397 and 0.402
     assert fits[0, 3].eta == pytest.approx(fits[0, 0].eta, rel=1e-3)
+    # 36 of 120 are not a few intruders (more than trim_max_share of the vertices would go): no trimming.
+    assert (fits[36, 3].eta, fits[36, 3].sigma_s) == (fits[36, 0].eta, fits[36, 0].sigma_s)
 
 
 def test_clusters_and_lobes_are_deterministic_for_a_seed(scene):

@@ -57,10 +57,15 @@ class AugmentSettings:
     alternations: int = 4  # (lobe parameters, Delta theta_h) alternations
     # The cluster lobe is refitted up to this many times without the vertices it fits worst: a vertex whose mean
     # sample loss lies more than trim_z robust SDs (1.4826 MAD) above the median is another material's (a misfit
-    # vertex clustered by its greyed albedo); the refits stop when the lobe stops moving (docs/augment.md,
-    # "Trimmed lobe fits"). 0: one fit on every vertex.
+    # vertex clustered by its greyed albedo); the refits stop when the lobe stops moving, and do not start when more
+    # than trim_max_share of the vertices would go (then the losses are skewed by the lobe itself, as on a mirror,
+    # where the few vertices that see the highlight carry it) (docs/augment.md, "Trimmed lobe fits"). 0: one fit on
+    # every vertex; nor in a pool of fewer than trim_min_vertices vertices, where a few vertices may be all that
+    # see the highlight.
     trim_rounds: int = 3
     trim_z: float = 3.5
+    trim_max_share: float = 0.15
+    trim_min_vertices: int = 100
 
 
 class Clustering(NamedTuple):
