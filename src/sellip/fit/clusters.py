@@ -61,8 +61,9 @@ class AugmentSettings:
     # than trim_max_share of the vertices would go (then the losses are skewed by the lobe itself, as on a mirror,
     # where the few vertices that see the highlight carry it) (docs/augment.md, "Trimmed lobe fits"). 0: one fit on
     # every vertex; nor in a pool of fewer than trim_min_vertices vertices, where a few vertices may be all that
-    # see the highlight.
-    trim_rounds: int = 3
+    # see the highlight. Off by default: on the stability suite it fixed pplastic_set's lobe, but model selection's
+    # candidate fits are not trimmed, and mitsuba_set gained a false lobe (docs/benchmarks.md, "Trimmed lobe fits").
+    trim_rounds: int = 0
     trim_z: float = 3.5
     trim_max_share: float = 0.15
     trim_min_vertices: int = 100
