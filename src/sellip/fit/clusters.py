@@ -55,14 +55,13 @@ class AugmentSettings:
     lambda_theta: float = 1.0  # weight of L_theta = Delta theta_h^2 (radians): 1 deg costs a 1.7 % I_s error
     max_theta_error_deg: float = 5.0  # |Delta theta_h| bound
     alternations: int = 4  # (lobe parameters, Delta theta_h) alternations
-    # The cluster lobe is refitted up to this many times without the vertices it fits worst: a vertex whose mean
-    # sample loss lies more than trim_z robust SDs (1.4826 MAD) above the median is another material's (a misfit
-    # vertex clustered by its greyed albedo); the refits stop when the lobe stops moving, and do not start when more
-    # than trim_max_share of the vertices would go (then the losses are skewed by the lobe itself, as on a mirror,
-    # where the few vertices that see the highlight carry it) (docs/augment.md, "Trimmed lobe fits"). 0: one fit on
-    # every vertex; nor in a pool of fewer than trim_min_vertices vertices, where a few vertices may be all that
-    # see the highlight. Off by default: on the stability suite it fixed pplastic_set's lobe, but model selection's
-    # candidate fits are not trimmed, and mitsuba_set gained a false lobe (docs/benchmarks.md, "Trimmed lobe fits").
+    # Trimmed lobe fits (docs/augment.md, "Trimmed lobe fits"): the cluster lobe is refitted up to trim_rounds
+    # times without the vertices it fits worst, those whose mean sample loss lies more than trim_z robust SDs
+    # (1.4826 MAD) above the median vertex's (another material's vertices, clustered by their greyed albedo). The
+    # refits stop when the lobe stops moving; none starts where more than trim_max_share of the pooled vertices
+    # would go (the losses are then skewed by the lobe itself) or fewer than trim_min_vertices are pooled (a few
+    # vertices may be all that see the highlight). 0 rounds, the default: on the stability suite trimming fixed
+    # pplastic_set's lobe, but model selection's candidate fits are not trimmed and mitsuba_set gained a false lobe.
     trim_rounds: int = 0
     trim_z: float = 3.5
     trim_max_share: float = 0.15

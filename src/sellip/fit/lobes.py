@@ -241,8 +241,9 @@ def fit_cluster_lobe(obs: Observations, normals, rho_d, eta0: float, fit_setting
     ``settings.alternations`` times. Intensities are divided by the cluster's median diffuse level.
     Then up to ``settings.trim_rounds`` refits without the vertices the lobe fits worst (:func:`_worst_vertices`),
     until the lobe stops moving (eta by 0.1 %, a roughness by 0.01), and none where more than
-    ``settings.trim_max_share`` of the vertices would go or fewer than ``settings.trim_min_vertices`` are pooled: a few vertices of another material with a brighter,
-    narrower lobe otherwise pull the lobe to theirs (docs/augment.md, "Trimmed lobe fits").
+    ``settings.trim_max_share`` of the vertices would go or fewer than ``settings.trim_min_vertices`` are pooled:
+    a few vertices of another material with a brighter, narrower lobe otherwise pull the lobe to theirs
+    (docs/augment.md, "Trimmed lobe fits"; off by default).
     The lobes are those of ``fit_settings.lobes`` and ``sigma_ss_fixed`` (the model, :mod:`sellip.fit.selection`):
     a lobe left out has albedo 0 (its roughness is then the start value, unused).
     """
@@ -254,14 +255,16 @@ def fit_cluster_lobe(obs: Observations, normals, rho_d, eta0: float, fit_setting
     lobe = _fit_pool(pool, eta0, fit_settings, settings)
     rows = np.arange(len(normals))  # the vertices the lobe is fitted to
     for _ in range(settings.trim_rounds if fit_settings.lobes != "diffuse" else 0):
-        if np.unique(pool.vertex).size < settings.trim_min_vertices:
+        pooled = np.unique(pool.vertex).size
+        if pooled < settings.trim_min_vertices:
             break
         worst = _worst_vertices(lobe, pool, len(rows), fit_settings, settings)
-        share = worst.sum() / max(np.unique(pool.vertex).size, 1)
-        if not worst.any() or share > settings.trim_max_share:
-            if worst.any():
-                log.info("lobe not trimmed (further): %d of %d vertices (%.0f %%) fit it worse than %g robust SD, more than a "
-                         "few intruders", int(worst.sum()), len(rows), 100 * share, settings.trim_z)
+        share = worst.sum() / pooled
+        if share > settings.trim_max_share:
+            log.info("lobe not trimmed (further): %d of %d pooled vertices (%.0f %%) fit it worse than %g robust SD, "
+                     "more than a few intruders", int(worst.sum()), pooled, 100 * share, settings.trim_z)
+            break
+        if not worst.any():
             break
         rows = rows[~worst]
         pool = _pool_samples(Observations(*[np.asarray(x)[rows] for x in obs]), np.asarray(normals)[rows],
@@ -269,9 +272,9 @@ def fit_cluster_lobe(obs: Observations, normals, rho_d, eta0: float, fit_setting
         if pool.count == 0:
             break
         previous, lobe = lobe, _fit_pool(pool, eta0, fit_settings, settings)
-        log.info("lobe refit without the %d of %d vertices (%.0f %%) it fit worst: eta %.4f sigma_s %.3f -> eta %.4f "
-                 "sigma_s %.3f", int(worst.sum()), len(rows) + int(worst.sum()), 100 * share, previous.eta,
-                 previous.sigma_s, lobe.eta, lobe.sigma_s)
+        log.info("lobe refit without the %d of %d pooled vertices (%.0f %%) it fit worst: eta %.4f sigma_s %.3f -> "
+                 "eta %.4f sigma_s %.3f", int(worst.sum()), pooled, 100 * share, previous.eta, previous.sigma_s,
+                 lobe.eta, lobe.sigma_s)
         if (abs(lobe.eta - previous.eta) < 1e-3 * previous.eta and abs(lobe.sigma_s - previous.sigma_s) < 0.01
                 and abs(lobe.sigma_ss - previous.sigma_ss) < 0.01):
             break

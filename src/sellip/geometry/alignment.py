@@ -98,8 +98,8 @@ def refine_to_surface(points: np.ndarray, vertices: np.ndarray, faces: np.ndarra
 
     points (N, 3), e.g. a reconstruction's vertices; the surface a triangle mesh (vertices (V, 3), faces (F, 3)),
     e.g. the ground truth. open3d's point-to-point ICP with scale, onto the surface's vertices and ``samples``
-    area-uniform points of it (seeded), correspondences within ``distances`` (fractions of the surface's bounding-box diagonal,
-    coarse to fine). Returns the refined similarity, points' world -> surface's world.
+    area-uniform points of it (seeded), correspondences within ``distances`` (fractions of the surface's
+    bounding-box diagonal, coarse to fine). Returns the refined similarity, points' world -> surface's world.
     Why the evaluation needs it: docs/benchmarks.md, "The painted cow from SfM".
     """
     import open3d as o3d

@@ -8,7 +8,8 @@ Modules and what they export (each name is importable from here too)::
     evaluate: Figures of merit of a reconstructed model (DESIGN §8): parameters, geometry, re-render PSNR, stage
       timings
         PSNR_PEAK_PERCENTILE, PSNR_MAX_DB, FIT_RULE, transform_mesh, camera_alignment, eta_per_material,
-        parameter_errors, geometry_errors, geometry_series, psnr, render_mask, stage_timings, vertex_errors
+        parameter_errors, geometry_errors, nearest_normal_errors, geometry_series, psnr, render_mask, stage_timings,
+        vertex_errors
     export: Exports of a final model that other tools open (issue #40): glTF 2.0 binary and per-map colour PLYs
         GLTF_ATTRIBUTES, MAP_RANGE_PERCENTILES, CATEGORY_COLORS, MapData, MAP_LABELS, MAP_NAMES, model_maps,
         viridis, map_colors, write_map_plys, up_rotation, base_color, write_glb
@@ -42,8 +43,8 @@ from sellip._exports import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "evaluate": ("PSNR_PEAK_PERCENTILE", "PSNR_MAX_DB", "FIT_RULE", "transform_mesh", "camera_alignment",
-           "eta_per_material", "parameter_errors", "geometry_errors", "geometry_series", "psnr", "render_mask",
-           "stage_timings", "vertex_errors"),
+           "eta_per_material", "parameter_errors", "geometry_errors", "nearest_normal_errors", "geometry_series",
+           "psnr", "render_mask", "stage_timings", "vertex_errors"),
     "export": ("GLTF_ATTRIBUTES", "MAP_RANGE_PERCENTILES", "CATEGORY_COLORS", "MapData", "MAP_LABELS", "MAP_NAMES",
            "model_maps", "viridis", "map_colors", "write_map_plys", "up_rotation", "base_color", "write_glb"),
     "materials": ("BOOTSTRAP_ROUNDS", "BOOTSTRAP_SEED", "MAD_TO_SD", "COLUMNS", "GT_COLUMNS", "MaterialsError",

@@ -167,6 +167,16 @@ def geometry_errors(model: ParamMesh, truth: ParamMesh, similarity: Similarity |
             "model_to_truth_mm": 1000 * d.a_to_b, "truth_to_model_mm": 1000 * d.b_to_a, "samples": samples}
 
 
+def nearest_normal_errors(mesh: ParamMesh, truth: ParamMesh,
+                          similarity: Similarity | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(errors (N,) deg, true normals (N, 3)): the angle between each vertex normal of ``mesh`` (moved by
+    ``similarity``) and the normal of its nearest ground-truth vertex, and that normal."""
+    moved = transform_mesh(mesh, similarity)
+    _, nearest = cKDTree(np.asarray(truth.vertices, np.float64)).query(np.asarray(moved.vertices), k=1)
+    true_normals = np.asarray(truth.normals, np.float64)[nearest]
+    return angular_error_deg(np.asarray(moved.normals, np.float64), true_normals), true_normals
+
+
 def geometry_series(meshes: list[ParamMesh], fitted: list[tuple[np.ndarray, np.ndarray] | None],
                     truth: ParamMesh | None, similarity: Similarity | None = None, samples: int = 20000,
                     seed: int = 0) -> list[dict]:
@@ -188,11 +198,8 @@ def geometry_series(meshes: list[ParamMesh], fitted: list[tuple[np.ndarray, np.n
         if truth is not None:
             geometry = geometry_errors(mesh, truth, similarity, samples=samples, seed=seed)
             row.update(chamfer_mm=geometry["chamfer_mm"], hausdorff_mm=geometry["hausdorff_mm"])
-            moved_mesh = transform_mesh(mesh, similarity)
-            _, nearest = cKDTree(np.asarray(truth.vertices, np.float64)).query(np.asarray(moved_mesh.vertices), k=1)
-            true_normals = np.asarray(truth.normals, np.float64)[nearest]
-            row["mesh_normal_deg"] = _summary(angular_error_deg(np.asarray(moved_mesh.normals, np.float64),
-                                                                true_normals), True)
+            mesh_error, true_normals = nearest_normal_errors(mesh, truth, similarity)
+            row["mesh_normal_deg"] = _summary(mesh_error, True)
             if index < len(fitted) and fitted[index] is not None:
                 normals, counted = fitted[index]
                 if similarity is not None:

@@ -11,14 +11,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from sellip import workflow_support
 from sellip.capture.files import GROUND_TRUTH_MESH
 from sellip.capture.reader import read_capture
 from sellip.geometry.alignment import Similarity
 from sellip.geometry.cameras import load_cameras
-from sellip.geometry.meshes import angular_error_deg
 from sellip.jobs import write_text
 from sellip.model.params import read_params
 from sellip.model.ply import read_param_mesh
@@ -117,33 +115,33 @@ def view_psnr(renderer, camera: Camera, light, hdr, view_id: str, supersample: i
 
 
 
-def _refined_alignment(model, truth, cameras: Similarity, mode: str, geometry_samples: int) -> dict:
-    """The record of the Sim(3) alignment of an SfM world to the truth's: ``cameras`` (the camera centres' Umeyama)
-    refined by ICP of the model's vertices onto the true surface (:func:`sellip.geometry.alignment.refine_to_surface`).
-    The centres alone leave millimetres of error with a narrow field of view (a small rotation of a camera and a
-    shift across its axis look alike): docs/benchmarks.md, "The painted cow from SfM". The record keeps the centres'
-    alignment, the refinement's size and the Chamfer distance and normal median (all vertices) under the centres'
-    alignment alone."""
+def _refined_alignment(model, truth, cameras: Similarity, mode: str, geometry_samples: int) -> tuple[Similarity, dict]:
+    """(the Sim(3) of an SfM world to the truth's, its record for metrics.json): ``cameras`` (the camera centres'
+    Umeyama) refined by ICP of the model's vertices onto the true surface
+    (:func:`sellip.geometry.alignment.refine_to_surface`). The centres alone leave millimetres of error with a narrow
+    field of view (a small rotation of a camera and a shift across its axis look alike): docs/benchmarks.md, "The
+    painted cow from SfM". The record keeps the centres' alignment, the refinement's size and the Chamfer distance
+    and normal median (all vertices) under the centres' alignment alone."""
+    from scipy.spatial.transform import Rotation
+
     from sellip.geometry.alignment import refine_to_surface
 
     refined = refine_to_surface(model.vertices, truth.vertices, truth.faces, cameras)
     step = refined.compose(cameras.inverse())
-    cosine = np.clip((np.trace(step.rotation) - 1) / 2, -1.0, 1.0)
-    moved = evaluate.transform_mesh(model, cameras)
-    nearest = cKDTree(np.asarray(truth.vertices, np.float64)).query(np.asarray(moved.vertices), k=1)[1]
-    normal_error = angular_error_deg(np.asarray(moved.normals, np.float64), np.asarray(truth.normals, np.float64)[nearest])
-    return {"method": "sim3+icp", "sfm_mode": mode,
-            "source": "cameras.csv centres -> poses.csv centres, refined by ICP of the model's vertices onto the "
-                      "true surface",
-            "scale": refined.scale, "rotation": refined.rotation.tolist(), "translation": refined.translation.tolist(),
-            "cameras": {"scale": cameras.scale, "rotation": cameras.rotation.tolist(),
-                        "translation": cameras.translation.tolist(),
-                        "chamfer_mm": evaluate.geometry_errors(model, truth, cameras,
-                                                               samples=geometry_samples)["chamfer_mm"],
-                        "normal_median_deg": float(np.median(normal_error))},
-            "refinement": {"rotation_deg": float(np.degrees(np.arccos(cosine))),
-                           "translation_mm": 1000 * float(np.linalg.norm(step.translation)),
-                           "scale_change": step.scale - 1.0}}
+    normal_error, _ = evaluate.nearest_normal_errors(model, truth, cameras)
+    record = {"method": "sim3+icp", "sfm_mode": mode,
+              "source": "cameras.csv centres -> poses.csv centres, refined by ICP of the model's vertices onto the "
+                        "true surface",
+              "scale": refined.scale, "rotation": refined.rotation.tolist(), "translation": refined.translation.tolist(),
+              "cameras": {"scale": cameras.scale, "rotation": cameras.rotation.tolist(),
+                          "translation": cameras.translation.tolist(),
+                          "chamfer_mm": evaluate.geometry_errors(model, truth, cameras,
+                                                                 samples=geometry_samples)["chamfer_mm"],
+                          "normal_median_deg": float(np.median(normal_error))},
+              "refinement": {"rotation_deg": float(np.degrees(Rotation.from_matrix(step.rotation).magnitude())),
+                             "translation_mm": 1000 * float(np.linalg.norm(step.translation)),
+                             "scale_change": step.scale - 1.0}}
+    return refined, record
 
 
 def _truth_and_alignment(truth_path: Path, ground_truth_keys, capture, capture_path: Path, cameras_path, sfm_report,
@@ -175,9 +173,7 @@ def _truth_and_alignment(truth_path: Path, ground_truth_keys, capture, capture_p
                                                            np.stack([t for _, t in ref]))
                 except ValueError as exc:
                     raise OutputsError(f"{cameras_path} vs {capture_path}/poses.csv: {exc}") from None
-                metrics["alignment"] = _refined_alignment(model, truth, similarity, mode, geometry_samples)
-                similarity = Similarity(metrics["alignment"]["scale"], np.asarray(metrics["alignment"]["rotation"]),
-                                        np.asarray(metrics["alignment"]["translation"]))
+                similarity, metrics["alignment"] = _refined_alignment(model, truth, similarity, mode, geometry_samples)
         else:
             metrics["alignment"] = {"method": "none", "sfm_mode": mode,
                                     "source": "cameras.csv is in the ground truth's world (poses.csv)"}
