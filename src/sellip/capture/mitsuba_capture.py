@@ -204,9 +204,11 @@ def mitsuba_camera(camera: Camera) -> dict:
             "near_clip": 0.01, "far_clip": 100.0, "to_world": mi.ScalarTransform4f(to_world.tolist())}
 
 
-def _polarizer_sheet(camera: Camera, light: Light) -> tuple[np.ndarray, np.ndarray]:
-    """(4, 3) corners and (2, 3) triangles of the polarizer sheet in front of the flash: local x (the first edge,
-    Mitsuba's dp/du, the polarizer's transmission axis) along the light's axis, facing the camera's optical axis."""
+def _polarizer_sheet(camera: Camera, light: Light) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(4, 3) corners, (2, 3) triangles and (4, 2) texture coordinates of the polarizer sheet in front of the
+    flash, facing the camera's optical axis. The texture's u runs along the light's axis on both triangles, so
+    that Mitsuba's dp/du (the polarizer's local x, its transmission axis) is that axis everywhere: without
+    texture coordinates a mesh's dp/du is each triangle's first edge, the diagonal on the second triangle."""
     forward = np.asarray(camera.rotation, np.float64)[2]
     axis = np.asarray(light.axis, np.float64)
     axis = axis - np.dot(axis, forward) * forward
@@ -215,7 +217,8 @@ def _polarizer_sheet(camera: Camera, light: Light) -> tuple[np.ndarray, np.ndarr
     center = np.asarray(light.position, np.float64) + POLARIZER_OFFSET_M * forward
     h = POLARIZER_HALF_SIZE_M
     corners = np.stack([center + h * (sx * axis + sy * other) for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
-    return corners, np.array([[0, 1, 2], [0, 2, 3]])
+    texcoords = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    return corners, np.array([[0, 1, 2], [0, 2, 3]]), texcoords
 
 
 # --------------------------------------------------------------------------- the Python BSDF
@@ -267,21 +270,24 @@ def _register_textured_pplastic(variant: str) -> None:
     _REGISTERED.add(variant)
 
 
-def _mesh_shape(name: str, vertices, faces, normals=None, albedo=None, bsdf=None):
-    """A mi.Mesh from numpy arrays (vertices (V, 3), faces (F, 3), optional normals (V, 3) and one albedo channel
-    (V,) as ALBEDO_ATTRIBUTE), with ``bsdf``."""
+def _mesh_shape(name: str, vertices, faces, normals=None, albedo=None, bsdf=None, texcoords=None):
+    """A mi.Mesh from numpy arrays (vertices (V, 3), faces (F, 3), optional normals (V, 3), one albedo channel
+    (V,) as ALBEDO_ATTRIBUTE and texture coordinates (V, 2)), with ``bsdf``."""
     import mitsuba as mi
 
     props = mi.Properties()
     if bsdf is not None:
         props["bsdf"] = bsdf
-    shape = mi.Mesh(name, len(vertices), len(faces), props=props, has_vertex_normals=normals is not None)
+    shape = mi.Mesh(name, len(vertices), len(faces), props=props, has_vertex_normals=normals is not None,
+                    has_vertex_texcoords=texcoords is not None)
     params = mi.traverse(shape)
     floats, indices = type(params["vertex_positions"]), type(params["faces"])  # dynamic arrays, also in scalar variants
     params["vertex_positions"] = floats(np.asarray(vertices, np.float32).ravel())
     params["faces"] = indices(np.asarray(faces, np.uint32).ravel())
     if normals is not None:
         params["vertex_normals"] = floats(np.asarray(normals, np.float32).ravel())
+    if texcoords is not None:
+        params["vertex_texcoords"] = floats(np.asarray(texcoords, np.float32).ravel())
     if albedo is not None:
         shape.add_attribute(ALBEDO_ATTRIBUTE, 1, floats(np.asarray(albedo, np.float32).ravel()))
     params.update()
@@ -347,7 +353,7 @@ class MitsubaRenderer:
     def _scene(self, camera: Camera, light: Light, channel: int, supersample: int, seed: int):
         import mitsuba as mi
 
-        corners, triangles = _polarizer_sheet(camera, light)
+        corners, triangles, texcoords = _polarizer_sheet(camera, light)
         sensor = {**mitsuba_camera(camera),
                   "film": {"type": "hdrfilm", "width": int(camera.width), "height": int(camera.height),
                            "rfilter": {"type": "box"}, "pixel_format": "luminance" if self._mono else "rgb"},
@@ -359,7 +365,8 @@ class MitsubaRenderer:
             "sensor": sensor,
             "flash": {"type": "point", "position": [float(v) for v in light.position],
                       "intensity": intensity if self._mono else {"type": "spectrum", "value": intensity}},
-            "polarizer": _mesh_shape("polarizer", corners, triangles, bsdf=self._polarizer),
+            "polarizer": _mesh_shape("polarizer", corners, triangles, bsdf=self._polarizer,
+                                      texcoords=texcoords),
             **self._shapes(channel),
         })
 
