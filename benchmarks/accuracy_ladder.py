@@ -6,7 +6,8 @@
 
 Rungs (each resumable: a rung whose result file exists is not run again):
 
-- ``render``: the true mesh observed in noise-free images rendered at the HDR grid (sellip.bench.ladder);
+- ``render``: the true mesh observed in noise-free images rendered at the HDR grid by the capture's renderer
+  (sellip.bench.ladder);
 - ``sensor``: the true mesh observed in the capture's HDR images (sensor noise, mosaic, ingest);
 - ``mesh``: the whole workflow (``snakemake``) with ``init.mode: mesh`` from the true mesh;
 - ``hull``: the whole workflow from the visual hull (the default).
@@ -50,8 +51,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scene", default="sphere_ior")
     parser.add_argument("--renderer", default="sellip", choices=["sellip", "mitsuba"],
-                        help="the capture's renderer (sellip synth --renderer); the render rung is sellip's render "
-                             "of the truth, so it belongs to sellip's captures only")
+                        help="the capture's renderer (sellip synth --renderer); the render rung renders the truth "
+                             "noise-free with the same renderer")
     parser.add_argument("--views", type=int, default=24)
     parser.add_argument("--width", type=int, default=612)
     parser.add_argument("--height", type=int, default=512)
@@ -76,9 +77,6 @@ def main(argv=None) -> int:
     from sellip.capture.synthetic import synthesize_capture
     from sellip.fit.observe import ObserveSettings
 
-    if args.renderer != "sellip" and "render" in args.rungs:
-        parser.error("the render rung renders the truth with sellip's renderer: leave it out of a --renderer "
-                     f"{args.renderer} ladder")
     tag = f"{args.scene}_{args.views}v_{args.width}x{args.height}" + ("" if args.renderer == "sellip" else f"_{args.renderer}")
     work = (args.workdir / tag).resolve()
     capture = work / "capture"
@@ -102,7 +100,7 @@ def main(argv=None) -> int:
         out = work / f"{rung}{suffix}.json"
         if not out.is_file():
             if rung == "render":
-                clean = render_hdr(capture, hdr, work / "render_hdr.zarr")
+                clean = render_hdr(capture, hdr, work / "render_hdr.zarr", renderer=args.renderer)
                 figures = fit_true_mesh(capture, clean, work / "render", observe, cache)
             elif rung == "sensor":
                 figures = fit_true_mesh(capture, hdr, work / "sensor", observe, cache)

@@ -67,11 +67,12 @@ def _camera(center, width=96, height=80, focal=700.0, roll_rad=0.0) -> Camera:
 def test_flat_patch_matches_sellips_renderer_pixel_by_pixel():
     """Every Stokes component of the fully covered pixels (two pixels in from the patch's edge) of a textured glossy
     patch seen at 40° from its normal, with the flash polarizer at 0° and at 30°: Mitsuba's pplastic = sellip's
-    pBRDF within 0.5 % of the brightest s0 on 98 % of the pixels, 0.05 % in the median.
+    pBRDF within 0.2 % of the brightest s0 on every pixel, 0.05 % in the median.
 
-    Measured (Mitsuba 3.9.1, llvm_ad_mono_polarized): median 0.01 %; at 0° one patch of 81 pixels (1.2 %) next to
-    the highlight reads up to 6 % brighter in Mitsuba (a weakly polarized excess, the same for every sampler seed,
-    absent at 30°); not explained (docs/synthetic.md)."""
+    Measured (Mitsuba 3.9.1, llvm_ad_mono_polarized): median 0.015 %, worst pixel 0.09 %. At 0° part of the patch
+    is lit through the second triangle of the polarizer sheet; before the sheet had texture coordinates, that
+    triangle polarized at 45° from the axis and those pixels were up to 2.7 % of the brightest s0 off
+    (docs/synthetic.md)."""
     from scipy.ndimage import binary_dilation, binary_erosion
 
     mesh = _patch()
@@ -86,7 +87,7 @@ def test_flat_patch_matches_sellips_renderer_pixel_by_pixel():
         ours = result.stokes[inside][:, :3]  # (P, 3 Stokes, RGB)
         scale = ours[:, 0].max()
         difference = np.abs(mitsuba[inside][:, :3] - ours).max(axis=(1, 2)) / scale  # per pixel, worst component
-        assert np.percentile(difference, 98) < 0.005, np.percentile(difference, 98)
+        assert difference.max() < 0.002, difference.max()
         assert np.median(difference) < 0.0005
         # The polarized parts are not vanishingly small: the comparison sees the frames.
         assert np.abs(ours[:, 1:]).max() > 0.02 * scale  # 4x the tolerance: a wrong sign or axis would show

@@ -14,7 +14,7 @@ mesh's vertices; their figures are those of :func:`figures`.
 
 Public API::
 
-    render_hdr(capture, hdr, output, supersample=2) -> Path       # noise-free HDR store of the true mesh
+    render_hdr(capture, hdr, output, supersample=2, renderer='sellip') -> Path  # noise-free HDR of the truth
     fit_true_mesh(capture, hdr, workdir, observe_settings) -> dict  # observe + fit on the true mesh
     figures(fit, truth) -> dict                                     # eta per material / vertex, normals
     psnr_ceiling(capture, hdr, views, vertices=None) -> dict        # held-out PSNR of the truth (resampled)
@@ -36,15 +36,23 @@ from sellip.capture.reader import read_capture
 from sellip.model.ply import read_param_mesh, write_param_mesh
 
 
-def render_hdr(capture: str | Path, hdr: str | Path, output: str | Path, supersample: int = 2) -> Path:
+def render_hdr(capture: str | Path, hdr: str | Path, output: str | Path, supersample: int = 2,
+               renderer: str = "sellip", batch: int = 8) -> Path:
     """A copy of the ``hdr`` store whose analyzer images are rendered noise-free from the capture's true
     mesh at the HDR grid (same intrinsics, poses from poses.csv, same flash), scaled to the store's units
-    (the synthetic capture's flash power over the raw range); every pixel valid."""
+    (the synthetic capture's flash power over the raw range); every pixel valid.
+
+    ``renderer``: "sellip" (sellip.model.render) or "mitsuba" (sellip.capture.mitsuba_capture, in a fresh process,
+    ``batch`` views at a time): the render rung of a capture drawn by either renderer."""
     import zarr
 
     from sellip.capture.hdr import read_hdr
     from sellip.geometry.cameras import intrinsics_matrix, read_cameras
+    from sellip.model.conventions import stokes_to_analyzers
     from sellip.model.render import Camera, Renderer, flash_light
+
+    if renderer not in ("sellip", "mitsuba"):
+        raise ValueError(f"renderer must be 'sellip' or 'mitsuba', got {renderer!r}")
 
     capture, output = Path(capture), Path(output)
     config = read_capture(capture, check_files=False).config
@@ -57,16 +65,28 @@ def render_hdr(capture: str | Path, hdr: str | Path, output: str | Path, supersa
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(hdr, tmp)
     group = zarr.open_group(str(tmp), mode="r+")
-    renderer = Renderer(truth)
     k = intrinsics_matrix(source.intrinsics)
     size = int(source.intrinsics["width"]), int(source.intrinsics["height"])
-    for v, view_id in enumerate(source.view_ids):
+    views = []
+    for view_id in source.view_ids:
         row = view_ids.index(view_id)
         camera = Camera(k, rotations[row], translations[row], *size)
-        light = flash_light(camera, config["light"]["position_m"], config["light"]["polarizer_deg"])
-        analyzers = np.asarray(renderer.render(camera, light, supersample=supersample).analyzers, np.float32)
-        group["analyzers"][v] = scale * analyzers
-        group["valid"][v] = np.ones(analyzers.shape[:2], bool)
+        views.append((camera, flash_light(camera, config["light"]["position_m"], config["light"]["polarizer_deg"])))
+    if renderer == "sellip":
+        ours = Renderer(truth)
+        batches = ([ours.render(camera, light, supersample=supersample).analyzers] for camera, light in views)
+    else:
+        from sellip.capture.mitsuba_capture import render_in_subprocess
+
+        batches = (stokes_to_analyzers(render_in_subprocess(truth, views[start:start + batch], supersample,
+                                                            timeout_s=3600.0), axis=-2)
+                   for start in range(0, len(views), batch))
+    v = 0
+    for analyzers in batches:
+        for image in analyzers:
+            group["analyzers"][v] = scale * np.asarray(image, np.float32)
+            group["valid"][v] = np.ones(image.shape[:2], bool)
+            v += 1
     shutil.rmtree(output, ignore_errors=True)
     tmp.rename(output)
     return output
