@@ -75,7 +75,7 @@ def main(argv=None) -> int:
     print("| cluster | vertices | true material (share) | model | margin (runner-up) | s | reason |")
     print("|---|---|---|---|---|---|---|")
     models = np.zeros(len(clustering.centres), np.int64)
-    for cluster, (members, rows) in enumerate(cluster_rows(clustering, settings, seed)):
+    for cluster, (members, rows) in enumerate(cluster_rows(clustering, settings, seed, vertices=store["vertices"])):
         began = time.perf_counter()
         eta0 = float(np.median(store["eta"][members]))
         picked = fit_selection.select_model(load_rows(group, rows), store["normals"][rows], store["rho_d"][rows],

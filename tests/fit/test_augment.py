@@ -570,3 +570,36 @@ def test_stage_degrades_when_no_vertex_is_confident_or_has_a_usable_sample(tmp_p
     assert np.all(read_models(clusters, 120) == 0)
     summary = json.loads((clusters / "clusters.json").read_text())
     assert summary["k"] == 1 and len(summary["degenerate"]) == 3  # nothing clustered, no confident, no sample
+
+
+def test_coherent_pools_leave_out_a_clusters_border_vertices():
+    """With pool_min_coherence, a cluster's lobe fit and model selection read only its vertices whose nearest
+    neighbours are mostly in it: here cluster 1 is a 20 x 20 patch of a plane plus 12 vertices scattered along the
+    border of cluster 0's patch (a blended albedo clustered with the wrong material), which are left out; a cluster
+    that is mostly such vertices keeps them all (nothing else to fit), and 0 (the default) pools every vertex."""
+    from sellip.fit.augment_pass import cluster_rows
+
+    u = np.arange(20) * 1e-3
+    x, y = np.meshgrid(u, u, indexing="ij")
+    patch = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+    vertices = np.concatenate([patch, patch + [0.03, 0.0, 0.0], patch + [0.0, 0.03, 0.0]])
+    labels = np.repeat([0, 1, 2], 400).astype(np.int32)
+    border = np.flatnonzero((patch[:, 0] == u[-1]) & (np.arange(400) % 3 == 0))[:12]  # cluster 0's right edge
+    labels[border] = 1
+    labels[800:] = np.where(np.arange(400) % 2 == 0, 2, 0)  # cluster 2: every other vertex, never coherent
+    clustering = fit_clusters.Clustering(labels=labels, centres=np.zeros((3, 4)), bic={}, merges=[],
+                                         used=np.ones(labels.size, bool))
+    settings = AugmentSettings(pool_min_coherence=0.5)
+    near = fit_clusters.nearest_vertices(vertices, settings.coherence_neighbours)
+    coherence = fit_clusters.vertex_coherence(labels, near)
+    assert coherence[border].max() < 0.5 and np.median(coherence[400:800]) == 1.0
+    rows = cluster_rows(clustering, settings, seed=0, vertices=vertices)
+    members, pooled = rows[1]
+    assert set(border) <= set(members) and not set(border) & set(pooled)
+    assert len(pooled) >= 0.9 * 400
+    members, pooled = rows[2]
+    assert np.array_equal(members, pooled)  # too few coherent vertices: every member pooled
+    everyone = cluster_rows(clustering, AugmentSettings(), seed=0, vertices=vertices)
+    assert all(np.array_equal(m, p) for m, p in everyone)
+    with pytest.raises(ValueError, match="pool_min_coherence"):
+        AugmentSettings(pool_min_coherence=1.5)

@@ -62,12 +62,20 @@ def _choose_model(cluster: int, obs, store: dict, rows, eta0: float, clustering,
     return model, lobe, choice
 
 
-def cluster_rows(clustering, settings, seed: int, notes: list | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+def cluster_rows(clustering, settings, seed: int, notes: list | None = None,
+                 vertices: np.ndarray | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per cluster of ``clustering`` (:func:`sellip.fit.clusters.cluster_materials`), (members, rows): its
     confidently fitted vertices (all its vertices where it has none; said in ``notes``) and the seeded subset of
     them whose observations its lobe fit and model selection read (enough for ``settings.max_samples`` samples at
-    8 usable views each). The same ``seed`` gives the same rows (``benchmarks/replay_selection.py`` replays them)."""
+    8 usable views each). With ``settings.pool_min_coherence`` > 0 and the ``vertices`` (N, 3), the rows are drawn
+    from the members at least that coherent (:func:`sellip.fit.clusters.vertex_coherence`), where at least half of
+    them are. The same ``seed`` gives the same rows (``benchmarks/replay_selection.py`` replays them)."""
+    from sellip.fit.clusters import nearest_vertices, vertex_coherence
+
     rng = np.random.default_rng(seed)
+    coherence = None
+    if settings.pool_min_coherence > 0 and vertices is not None:
+        coherence = vertex_coherence(clustering.labels, nearest_vertices(vertices, settings.coherence_neighbours))
     out = []
     for cluster in range(len(clustering.centres)):
         members = np.flatnonzero((clustering.labels == cluster) & clustering.used)
@@ -77,8 +85,18 @@ def cluster_rows(clustering, settings, seed: int, notes: list | None = None) -> 
                 notes.append(f"cluster {cluster} has no confidently fitted vertex: its lobe is fitted on all its "
                              f"{members.size} vertices")
                 log.warning("%s", notes[-1])
+        pooled = members
+        if coherence is not None:
+            coherent = members[coherence[members] >= settings.pool_min_coherence]
+            if 2 * coherent.size >= members.size:
+                pooled = coherent
+                log.info("cluster %d: %d of %d vertices pooled (coherence >= %g)", cluster, coherent.size,
+                         members.size, settings.pool_min_coherence)
+            else:
+                log.info("cluster %d: all %d vertices pooled (only %d are coherent >= %g)", cluster, members.size,
+                         coherent.size, settings.pool_min_coherence)
         limit = max(64, settings.max_samples // 8)
-        rows = np.sort(rng.choice(members, limit, replace=False)) if members.size > limit else members
+        rows = np.sort(rng.choice(pooled, limit, replace=False)) if pooled.size > limit else pooled
         out.append((members, rows))
     return out
 
@@ -156,7 +174,7 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
             log.warning("%s has no models to inherit: selecting", params)
     lobes, rows_out, colors, models, choices = [], [], [], [], []
     notes = list(clustering.notes)
-    for cluster, (members, rows) in enumerate(cluster_rows(clustering, settings, seed, notes)):
+    for cluster, (members, rows) in enumerate(cluster_rows(clustering, settings, seed, notes, store["vertices"])):
         mark("read")
         obs = load_rows(group, rows)
         mark("select")

@@ -66,6 +66,16 @@ class AugmentSettings:
     trim_z: float = 3.5
     trim_max_share: float = 0.15
     trim_min_vertices: int = 100
+    # Coherent pools (docs/augment.md, "Coherent pools"): a cluster's lobe fit and model selection pool only its
+    # vertices whose coherence_neighbours nearest vertices lie in the cluster at least this often, unless fewer than
+    # half of its vertices would be left (0: every vertex, the default until it has run on the whole suite). A vertex
+    # on the border of two materials sees both; clustered by its blended albedo, it joins a cluster of neither.
+    pool_min_coherence: float = 0.0
+
+    def __post_init__(self):
+        for name in ("min_coherence", "pool_min_coherence"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"augment {name} must be in [0, 1] (a share of neighbours), got {getattr(self, name)}")
 
 
 class Clustering(NamedTuple):
@@ -183,11 +193,20 @@ def nearest_vertices(vertices, neighbours: int) -> np.ndarray:
     return cKDTree(vertices).query(vertices, k=k)[1][:, 1:]
 
 
+def vertex_coherence(labels, near) -> np.ndarray:
+    """(N,) the share of each vertex's nearest vertices ``near`` (N, m) (:func:`nearest_vertices`) that carry its
+    label of ``labels`` (N,); 1 where it has no neighbour."""
+    labels, near = np.asarray(labels), np.asarray(near, np.intp)
+    if near.shape[1] == 0:
+        return np.ones(len(labels))
+    return (labels[near] == labels[:, None]).mean(1)
+
+
 def _coherence(labels, near) -> np.ndarray:
     count = int(labels.max()) + 1 if labels.size else 0
     if near.shape[1] == 0:
         return np.ones(count)
-    same = (labels[near] == labels[:, None]).mean(1)
+    same = vertex_coherence(labels, near)
     sums, members = np.bincount(labels, weights=same, minlength=count), np.bincount(labels, minlength=count)
     with np.errstate(invalid="ignore", divide="ignore"):
         return sums / members
