@@ -62,6 +62,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-coherence", type=float, default=defaults.min_coherence,
                         help="merge a cluster whose vertices' nearest neighbours lie in it less often than this "
                              "(a cut through one material's noise, not a material; 0: no test)")
+    parser.add_argument("--pool-min-coherence", type=float, default=defaults.pool_min_coherence,
+                        help="pool only a cluster's vertices whose nearest neighbours lie in it at least this often "
+                             "in its lobe fit and model selection, where half of them do (0: every vertex)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a FitSettings field (repeatable)")
     parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
@@ -95,10 +98,12 @@ def main(args: argparse.Namespace) -> int:
     try:
         if args.k_max < 1 or args.max_samples < 1 or args.min_cluster_vertices < 1 or args.selection_max_samples < 1:
             raise ValueError("--k-max, --max-samples, --min-cluster-vertices and --selection-max-samples must be >= 1")
-        if not 0 <= args.min_coherence <= 1:
-            raise ValueError(f"--min-coherence must be in [0, 1], got {args.min_coherence}")
+        for name in ("min_coherence", "pool_min_coherence"):
+            if not 0 <= getattr(args, name) <= 1:
+                raise ValueError(f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(args, name)}")
         settings = AugmentSettings(k_max=args.k_max, max_samples=args.max_samples,
-                                   min_cluster_vertices=args.min_cluster_vertices, min_coherence=args.min_coherence)
+                                   min_cluster_vertices=args.min_cluster_vertices, min_coherence=args.min_coherence,
+                                   pool_min_coherence=args.pool_min_coherence)
         selection = SelectionSettings(enabled=args.model_selection, candidates=tuple(args.candidates),
                                       held_out_fraction=args.held_out_fraction, tolerance=args.selection_tolerance,
                                       standard_errors=args.selection_standard_errors,
