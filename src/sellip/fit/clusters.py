@@ -61,7 +61,8 @@ class AugmentSettings:
     # refits stop when the lobe stops moving; none starts where more than trim_max_share of the pooled vertices
     # would go (the losses are then skewed by the lobe itself) or fewer than trim_min_vertices are pooled (a few
     # vertices may be all that see the highlight). 0 rounds, the default: on the stability suite trimming fixed
-    # pplastic_set's lobe, but model selection's candidate fits are not trimmed and mitsuba_set gained a false lobe.
+    # pplastic_set's lobe, but model selection's candidate fits are not trimmed and mitsuba_set gained a false lobe
+    # (on a Mitsuba capture drawn before the generator's polarizer fix, d82e1ef).
     trim_rounds: int = 0
     trim_z: float = 3.5
     trim_max_share: float = 0.15

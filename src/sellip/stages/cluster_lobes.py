@@ -98,9 +98,6 @@ def main(args: argparse.Namespace) -> int:
     try:
         if args.k_max < 1 or args.max_samples < 1 or args.min_cluster_vertices < 1 or args.selection_max_samples < 1:
             raise ValueError("--k-max, --max-samples, --min-cluster-vertices and --selection-max-samples must be >= 1")
-        for name in ("min_coherence", "pool_min_coherence"):
-            if not 0 <= getattr(args, name) <= 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be in [0, 1], got {getattr(args, name)}")
         settings = AugmentSettings(k_max=args.k_max, max_samples=args.max_samples,
                                    min_cluster_vertices=args.min_cluster_vertices, min_coherence=args.min_coherence,
                                    pool_min_coherence=args.pool_min_coherence)
