@@ -74,19 +74,16 @@ def render_hdr(capture: str | Path, hdr: str | Path, output: str | Path, supersa
         views.append((camera, flash_light(camera, config["light"]["position_m"], config["light"]["polarizer_deg"])))
     if renderer == "sellip":
         ours = Renderer(truth)
-        batches = ([ours.render(camera, light, supersample=supersample).analyzers] for camera, light in views)
+        images = (ours.render(camera, light, supersample=supersample).analyzers for camera, light in views)
     else:
         from sellip.capture.mitsuba_capture import render_in_subprocess
 
-        batches = (stokes_to_analyzers(render_in_subprocess(truth, views[start:start + batch], supersample,
-                                                            timeout_s=3600.0), axis=-2)
-                   for start in range(0, len(views), batch))
-    v = 0
-    for analyzers in batches:
-        for image in analyzers:
-            group["analyzers"][v] = scale * np.asarray(image, np.float32)
-            group["valid"][v] = np.ones(image.shape[:2], bool)
-            v += 1
+        images = (image for start in range(0, len(views), batch)
+                  for image in stokes_to_analyzers(render_in_subprocess(truth, views[start:start + batch], supersample,
+                                                                        timeout_s=3600.0), axis=-2))
+    for v, image in enumerate(images):
+        group["analyzers"][v] = scale * np.asarray(image, np.float32)
+        group["valid"][v] = np.ones(image.shape[:2], bool)
     shutil.rmtree(output, ignore_errors=True)
     tmp.rename(output)
     return output

@@ -205,9 +205,7 @@ def vertex_coherence(labels, near) -> np.ndarray:
 
 def _coherence(labels, near) -> np.ndarray:
     count = int(labels.max()) + 1 if labels.size else 0
-    if near.shape[1] == 0:
-        return np.ones(count)
-    same = vertex_coherence(labels, near)
+    same = vertex_coherence(labels, near)  # 1 for a vertex without neighbours
     sums, members = np.bincount(labels, weights=same, minlength=count), np.bincount(labels, minlength=count)
     with np.errstate(invalid="ignore", divide="ignore"):
         return sums / members
