@@ -40,7 +40,8 @@ def model_selection_args(wildcards):
     inherit = " --inherit-models" if it % int(selection["every"]) and it != ITERATIONS else ""
     return (f"--{'' if selection['enabled'] else 'no-'}model-selection{inherit}"
             f" --candidates {' '.join(str(m) for m in selection['candidates'])}"
-            f" --held-out-fraction {selection['held_out_fraction']} --selection-tolerance {selection['tolerance']}"
+            f" --held-out-fraction {selection['held_out_fraction']} --selection-folds {selection['folds']}"
+            f" --selection-tolerance {selection['tolerance']}"
             f" --selection-standard-errors {selection['standard_errors']}"
             f" --fixed-sigma-ss {selection['sigma_ss_fixed']} --selection-max-samples {selection['max_samples']}"
             f" --selection-max-theta-error-deg {selection['max_theta_error_deg']}")

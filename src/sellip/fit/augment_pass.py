@@ -163,8 +163,10 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
              len(clustering.regions))
     allowed = allowed_models(fit_settings, selection.candidates)
     if selection.enabled:
-        log.info("model selection: candidates %s, %.0f %% of each cluster's vertices held out, tolerance %g + %g SE",
-                 allowed, 100 * selection.held_out_fraction, selection.tolerance, selection.standard_errors)
+        split = (f"{selection.folds}-fold cross-validation" if selection.folds > 1
+                 else f"{100 * selection.held_out_fraction:.0f} % of each cluster's vertices held out")
+        log.info("model selection: candidates %s, %s, tolerance %g + %g SE", allowed, split, selection.tolerance,
+                 selection.standard_errors)
     inherited = None
     if selection.enabled and inherit_models:
         if "model" in store:

@@ -74,7 +74,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="no candidate fits: each cluster takes its vertices' most common model in --params")
     parser.add_argument("--candidates", type=int, nargs="+", default=list(selection.candidates),
                         help="model codes tried (sellip.model.params.MODEL_NAMES)")
-    parser.add_argument("--held-out-fraction", type=float, default=selection.held_out_fraction)
+    parser.add_argument("--held-out-fraction", type=float, default=selection.held_out_fraction,
+                        help="share of a cluster's vertices held out, with --selection-folds 1")
+    parser.add_argument("--selection-folds", type=int, default=selection.folds,
+                        help="k >= 2: k-fold cross-validation (every vertex held out once); 1: one held-out part")
     parser.add_argument("--selection-tolerance", type=float, default=selection.tolerance,
                         help="relative held-out loss a simpler model may lose")
     parser.add_argument("--selection-standard-errors", type=float, default=selection.standard_errors,
@@ -102,7 +105,7 @@ def main(args: argparse.Namespace) -> int:
                                    min_cluster_vertices=args.min_cluster_vertices, min_coherence=args.min_coherence,
                                    pool_min_coherence=args.pool_min_coherence)
         selection = SelectionSettings(enabled=args.model_selection, candidates=tuple(args.candidates),
-                                      held_out_fraction=args.held_out_fraction, tolerance=args.selection_tolerance,
+                                      held_out_fraction=args.held_out_fraction, folds=args.selection_folds, tolerance=args.selection_tolerance,
                                       standard_errors=args.selection_standard_errors,
                                       sigma_ss_fixed=args.fixed_sigma_ss, max_samples=args.selection_max_samples,
                                       max_theta_error_deg=args.selection_max_theta_error_deg)
