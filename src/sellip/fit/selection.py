@@ -12,10 +12,11 @@ Each is nested in the next (2 in 3: sigma_ss free includes the fixed value), so 
 lower code. The fit settings of a pass are the most complex model allowed (:func:`model_of`): a
 run with ``sigma_ss_fixed`` set never selects 3, one with ``lobes="specular"`` never 2 or 3.
 
-The rule (:func:`select_model`, per cluster): the cluster's vertices are split (seeded, by
-vertex) into a training and a held-out part; every candidate's cluster lobe
-(:func:`sellip.fit.lobes.fit_cluster_lobe`) is fitted on the training part and scored by the
-cluster loss on the held-out samples (:func:`sellip.fit.lobes.lobe_sample_losses`). The simplest
+The rule (:func:`select_model`, per cluster): the cluster's vertices are cut (seeded, by vertex) into
+``folds`` parts (:func:`fold_splits`; one training and one held-out part with ``folds`` 1); each part is held out
+once, every candidate's cluster lobe (:func:`sellip.fit.lobes.fit_cluster_lobe`) fitted on the others, the fits
+nested (:func:`nested_fits`: each model takes the best training fit it can express), and scored by the cluster
+loss on the held-out samples (:func:`sellip.fit.lobes.lobe_sample_losses`). The simplest
 candidate whose held-out loss exceeds the best one's by at most ``tolerance`` (relative) plus
 ``standard_errors`` standard errors of the paired per-vertex difference is chosen (:func:`choose`), in two
 questions: a reflection lobe or not, then which lobes.
@@ -132,8 +133,8 @@ class Selection(NamedTuple):
     held_out_loss (the cluster loss summed over the held-out samples), excess (over the best),
     standard_error (of that excess, from the per-vertex paired differences) and allowed (the rule's
     bound). best: the code of the lowest held-out loss. reason: a sentence. train_vertices (a fold's, the mean
-    over folds), held_out_vertices, held_out_samples (all folds'): the split. margin, runner_up: :func:`decision_margin` (NaN and
-    None where no candidates were scored)."""
+    over folds), held_out_vertices, held_out_samples (all folds'): the split. margin, runner_up:
+    :func:`decision_margin` (NaN and None where no candidates were scored)."""
 
     model: int
     candidates: dict
@@ -258,13 +259,10 @@ def nested_fits(fits: dict, sigma_ss_fixed: float) -> dict:
     end in a worse optimum than a simpler one, or a simpler one miss the optimum a richer one found with its extra
     lobe at 0; the two then differ on held-out samples by what the optimizer did, not by what the extra lobe
     explains (on the stability suite's near-mirror, model 3 ended at sigma_s 0.050 with no single scattering,
-    model 1 at 0.031 with a lower training loss, and five highlight vertices made model 3 "win" held out by 39 %;
-    docs/model_selection.md, "Nested fits")."""
-    nested = {}
-    for m, own in fits.items():
-        members = [lobe for j, lobe in fits.items() if j <= m or in_family(lobe, m, sigma_ss_fixed)]
-        nested[m] = min(members, key=lambda lobe: lobe.loss) if members else own
-    return nested
+    model 1 at 0.031 with a lower training loss, and five held-out vertices made model 3 "win" by 39 %;
+    docs/model_selection.md, "Cross-validation and nested fits")."""
+    return {m: min((lobe for j, lobe in fits.items() if j <= m or in_family(lobe, m, sigma_ss_fixed)),
+                   key=lambda lobe: lobe.loss) for m in fits}
 
 
 def _held_out_losses(models, folds, eta0: float, fit_settings: FitSettings, selection: SelectionSettings,

@@ -105,7 +105,8 @@ def main(args: argparse.Namespace) -> int:
                                    min_cluster_vertices=args.min_cluster_vertices, min_coherence=args.min_coherence,
                                    pool_min_coherence=args.pool_min_coherence)
         selection = SelectionSettings(enabled=args.model_selection, candidates=tuple(args.candidates),
-                                      held_out_fraction=args.held_out_fraction, folds=args.selection_folds, tolerance=args.selection_tolerance,
+                                      held_out_fraction=args.held_out_fraction, folds=args.selection_folds,
+                                      tolerance=args.selection_tolerance,
                                       standard_errors=args.selection_standard_errors,
                                       sigma_ss_fixed=args.fixed_sigma_ss, max_samples=args.selection_max_samples,
                                       max_theta_error_deg=args.selection_max_theta_error_deg)
