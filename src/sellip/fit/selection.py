@@ -66,7 +66,7 @@ class SelectionSettings:
     candidates: tuple[int, ...] = MODELS  # models tried (capped by the fit settings, see model_of)
     held_out_fraction: float = 0.25  # of the cluster's vertices (seeded split by vertex), when folds is 1
     # 1: one held-out part of held_out_fraction; k >= 2: k-fold cross-validation, every vertex held out once (the
-    # candidates fitted k times; docs/model_selection.md, "Cross-validation")
+    # candidates fitted k times; docs/model_selection.md, "Cross-validation and nested fits")
     folds: int = 4
     tolerance: float = 0.01  # a simpler model may lose this fraction of the best held-out loss ...
     standard_errors: float = 1.0  # ... plus this many standard errors of the paired difference
@@ -273,10 +273,11 @@ def _held_out_losses(models, folds, eta0: float, fit_settings: FitSettings, sele
     ``lobe_settings`` (0: none, and no Delta theta_h fitted on the held-out samples either)."""
     delta_rounds = 2 if lobe_settings.max_theta_error_deg > 0 else 0
     settings = {m: settings_for_model(fit_settings, m, selection.sigma_ss_fixed) for m in models}
+    model_2_sigma_ss = settings_for_model(fit_settings, 2, selection.sigma_ss_fixed).sigma_ss_fixed
     per_fold = {m: [] for m in models}
     for train_pool, held_pool, held in folds:
         fits = nested_fits({m: fit_lobes._fit_pool(train_pool, eta0, settings[m], lobe_settings) for m in models},
-                           settings_for_model(fit_settings, 2, selection.sigma_ss_fixed).sigma_ss_fixed)
+                           model_2_sigma_ss)
         for m in models:
             per_sample = fit_lobes.lobe_sample_losses(fits[m], held_pool, settings[m], lobe_settings, delta_rounds)
             per_fold[m].append(np.bincount(held_pool.vertex, weights=per_sample, minlength=held))
