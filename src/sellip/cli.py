@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "gather-fit": ("gather_fit", "assemble the fit shards of an iteration into params.zarr"),
     "cluster-lobes": ("cluster_lobes", "material clusters and per-cluster specular lobes (augmentation)"),
     "refine-geometry": ("refine_geometry", "the mesh moved to agree with the fitted normals (normal integration)"),
+    "refine-poses": ("refine_poses", "every view's pose aligned to an iteration's model (pose refinement)"),
     "finalize": ("finalize", "the final model: model.ply and params.zarr"),
     "render-outputs": ("render_outputs", "renders, Mueller images, AoLP/DoP and parameter maps of a model"),
     "evaluate": ("evaluate", "figures of merit against the ground truth (metrics.json)"),

@@ -243,10 +243,18 @@ def test_evaluate_aligns_an_sfm_world_model_and_reports_nulls_without_ground_tru
     status[: n // 2] = 2  # failed: not confident
     write_params(run / "params.zarr", {"vertices": model.vertices, "normals": tilted.normals,
                                        **tilted.params._asdict(), "confidence": np.ones(n), "status": status})
+    # The poses stage's cameras before a refinement: one view turned by 0.1 degrees about its optical axis.
+    turned = rotations.copy()
+    turned[1] = Rotation.from_euler("z", 0.1, degrees=True).as_matrix() @ turned[1]
+    write_cameras(run / "initial.csv", view_ids, *sim.apply_to_poses(turned, translations))
     metrics = report_metrics.evaluate_model(run / "model.ply", run / "cameras.csv", tiny_run["hdr"], tiny_run["capture"],
                                        run / "metrics.json", params_path=run / "params.zarr",
-                                       held_out=[view_ids[0]], geometry_samples=5000, supersample=1)
+                                       held_out=[view_ids[0]], geometry_samples=5000, supersample=1,
+                                       initial_cameras=run / "initial.csv")
     assert metrics["alignment"]["method"] == "sim3+icp"
+    # Exact cameras put the true surface where the true ones do; the turned view moves it by about r * 0.1 degrees.
+    assert metrics["poses"]["final"]["max"] < 1e-3 and metrics["poses"]["final"]["views"] == len(view_ids)
+    assert metrics["poses"]["initial"]["worst_view"] == view_ids[1] and metrics["poses"]["initial"]["max"] > 0.01
     assert metrics["alignment"]["scale"] == pytest.approx(1 / 1.2)
     # Exact cameras: the refinement by ICP has nothing to add.
     assert metrics["alignment"]["cameras"]["scale"] == pytest.approx(1 / 1.2)
@@ -267,7 +275,8 @@ def test_evaluate_aligns_an_sfm_world_model_and_reports_nulls_without_ground_tru
                                        tmp_path / "no_gt.json", held_out=[view_ids[0]], supersample=2,
                                        benchmarks=_fake_benchmarks(tmp_path / "bench_run"))
     written = json.loads((tmp_path / "no_gt.json").read_text())
-    for key in ("normal_error_deg", "eta_relative_error_pct", "rho_d_relative_rmse", "geometry", "psnr_new_light"):
+    for key in ("normal_error_deg", "eta_relative_error_pct", "rho_d_relative_rmse", "geometry", "psnr_new_light",
+                "poses"):
         assert written[key] is None and "no ground truth" in written["reasons"][key]
     assert written["psnr_held_out"]["views"][view_ids[0]]["psnr_db"] > 40
     assert written["timings"]["rules"]["merge_hdr"]["s"] == 3.5

@@ -205,3 +205,36 @@ def test_killed_run_resumes_without_redoing_finished_jobs(tiny_run, tmp_path_fac
     uninterrupted = read_params(tiny_run / "results" / "tiny" / "final" / "params.zarr")
     for name in ("vertices", "normals", "eta", "rho_d", "sigma_s", "confidence"):
         np.testing.assert_allclose(resumed[name], uninterrupted[name], rtol=1e-5, atol=1e-6, err_msg=name)
+
+
+def test_pose_refinement_joins_the_loop_and_keeps_true_poses(tiny_run, tmp_path_factory):
+    """`refine_poses.enabled: true` (auto: only for SfM poses) puts a refine_poses job before every iteration after
+    the first, whose cameras the rest of the loop, the renders and the figures then read; run on a copy of the
+    finished run (known, exact poses), it aligns every view to iteration 0's model and keeps the poses within a
+    fraction of a pixel of the truth."""
+    from sellip.geometry.cameras import load_cameras
+    from sellip.report.evaluate import truth_reprojection
+
+    workdir = tmp_path_factory.mktemp("refined")
+    shutil.copytree(tiny_run, workdir, symlinks=True, dirs_exist_ok=True)
+    results = workdir / "results" / "tiny"
+    plan = _snakemake(workdir, "-n", "-p", "--config", "refine_poses={enabled: true}").stdout
+    counts = {line.split()[0]: int(line.split()[1]) for line in plan.splitlines()
+              if len(line.split()) == 2 and line.split()[1].isdigit()}
+    assert counts["refine_poses"] == ITERATIONS and counts["gather_observations"] == 1, plan[-3000:]
+    assert f"--cameras results/tiny/iter/{ITERATIONS}/cameras.csv" in plan  # the later jobs read the new poses
+    assert "refine_poses" not in _snakemake(workdir, "-n").stdout  # auto, with poses.csv: off
+    _snakemake(workdir, "--cores", "2", "--config", "refine_poses={enabled: true}", "--allowed-rules", "refine_poses",
+               "--", f"results/tiny/iter/{ITERATIONS}/cameras.csv")
+    report = json.loads((results / "iter" / str(ITERATIONS) / "cameras.csv.json").read_text())
+    assert report["views"] == 24 and report["refined"] >= 20, report["kept"]
+    hdr = results / "hdr.zarr"
+    known, _ = load_cameras(results / "cameras.csv", hdr)
+    refined, _ = load_cameras(results / "iter" / str(ITERATIONS) / "cameras.csv", hdr)
+    from sellip.model.ply import read_param_mesh
+
+    truth_points = np.asarray(read_param_mesh(workdir / "captures" / "tiny" / "ground_truth" / "model.ply").vertices)
+    moved = truth_reprojection(refined, {v: (c.rotation, c.translation) for v, c in known.items()}, truth_points, None)
+    # Aligned to the hull's first fit on a 160x128-pixel capture, they moved 0.23 px in the median (max 0.52) when
+    # this was written: the model's own error, which later iterations shrink.
+    assert moved["median"] < 0.35 and moved["max"] < 0.8, moved

@@ -151,6 +151,28 @@ def mesh_of(it):
     return f"{RESULTS}/mesh/init.ply" if int(it) == 0 else f"{RESULTS}/iter/{int(it) - 1}/mesh.ply"
 
 
+def refines_poses():
+    """Whether the loop refines the poses against the model (config `refine_poses.enabled`; "auto": when the poses
+    come from SfM, i.e. sfm.mode sfm or a capture without poses.csv)."""
+    enabled = config["refine_poses"]["enabled"]
+    if enabled == "auto":
+        return config["sfm"]["mode"] == "sfm" or not poses_file()
+    return bool(enabled)
+
+
+def cameras_of(it):
+    """The cameras of iteration `it`: the poses stage's, or with pose refinement from iteration
+    after_iteration + 1 on, those aligned to iteration it-1's model."""
+    it = int(it)
+    if not refines_poses() or it <= int(config["refine_poses"]["after_iteration"]):
+        return f"{RESULTS}/cameras.csv"
+    return f"{RESULTS}/iter/{it}/cameras.csv"
+
+
+def get_cameras(wildcards):
+    return cameras_of(wildcards.it)
+
+
 def get_mesh(wildcards):
     return mesh_of(wildcards.it)
 

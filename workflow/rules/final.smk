@@ -34,7 +34,7 @@ rule finalize_model:
 rule render_outputs:
     input:
         model=f"{RESULTS}/final/model.ply",
-        cameras=f"{RESULTS}/cameras.csv",
+        cameras=cameras_of(ITERATIONS),
         hdr=f"{RESULTS}/hdr.zarr",
         capture=capture_file("capture.yaml"),
     output:
@@ -65,7 +65,7 @@ rule evaluate_model:
     input:
         model=f"{RESULTS}/final/model.ply",
         params=f"{RESULTS}/final/params.zarr",
-        cameras=f"{RESULTS}/cameras.csv",
+        cameras=cameras_of(ITERATIONS),
         hdr=f"{RESULTS}/hdr.zarr",
         capture=capture_file("capture.yaml"),
         renders=f"{RESULTS}/final/renders",  # evaluated last: its timings cover every other stage
@@ -73,6 +73,8 @@ rule evaluate_model:
         fits=[f"{RESULTS}/iter/{it}/fit.zarr" for it in range(ITERATIONS)],
         truth=ground_truth_file(),
         poses=poses_file(),  # with sfm.mode sfm, the SfM cameras are aligned to poses.csv for the figures
+        sfm=f"{RESULTS}/sfm",  # its report.json says where the cameras came from
+        initial_cameras=f"{RESULTS}/cameras.csv",  # the poses stage's, measured beside the refined ones
     output:
         metrics=report(f"{RESULTS}/metrics.json", caption="../report/metrics.rst", category="Metrics"),
         timings=report(f"{RESULTS}/final/timings.png", caption="../report/timings.rst", category="Metrics"),
@@ -94,7 +96,8 @@ rule evaluate_model:
         " --hdr {input.hdr:q} --capture {params.capture:q} --benchmarks {params.benchmarks:q}"
         " --held-out {params.held_out:q} --output {output.metrics:q} --timings-plot {output.timings:q}"
         " --iteration-meshes {input.meshes:q} --iteration-fits {input.fits:q} --convergence-plot {output.convergence:q}"
-        " --logs {params.logs:q} > {log:q} 2>&1"
+        " --logs {params.logs:q} --sfm-report {input.sfm:q}/report.json --initial-cameras {input.initial_cameras:q}"
+        " > {log:q} 2>&1"
 
 
 rule export_viewer:
@@ -103,7 +106,7 @@ rule export_viewer:
     input:
         model=f"{RESULTS}/final/model.ply",
         params=f"{RESULTS}/final/params.zarr",
-        cameras=f"{RESULTS}/cameras.csv",
+        cameras=cameras_of(ITERATIONS),
         hdr=f"{RESULTS}/hdr.zarr",
         capture=capture_file("capture.yaml"),
         metrics=f"{RESULTS}/metrics.json",

@@ -83,7 +83,7 @@ rule refine_geometry:
         mesh=get_mesh,
         reference=f"{RESULTS}/mesh/init.ply",
         hdr=f"{RESULTS}/hdr.zarr",
-        cameras=f"{RESULTS}/cameras.csv",
+        cameras=get_cameras,
         capture=capture_file("capture.yaml"),
     output:
         mesh=f"{RESULTS}/iter/{{it}}/mesh.ply",
@@ -110,3 +110,36 @@ rule refine_geometry:
         " --smoothness-unconfident {params.smoothness_unconfident} --anchor {params.anchor} --rounds {params.rounds}"
         " --silhouette {params.silhouette} --cameras {input.cameras:q} --hdr {input.hdr:q} --capture {params.capture:q}"
         " --exclude-views {params.held_out:q} --mask-threshold {params.mask_threshold} > {log:q} 2>&1"
+
+
+rule refine_poses:
+    # The cameras of iteration {it} (docs/geometry.md, "Poses refined against the object"): every view's pose
+    # aligned to iteration it-1's model. Only in the DAG when refines_poses() (common.smk, cameras_of).
+    input:
+        params=lambda wildcards: params_of(int(wildcards.it) - 1),
+        mesh=lambda wildcards: mesh_of(int(wildcards.it) - 1),
+        cameras=lambda wildcards: cameras_of(int(wildcards.it) - 1),
+        hdr=f"{RESULTS}/hdr.zarr",
+        capture=capture_file("capture.yaml"),
+    output:
+        cameras=f"{RESULTS}/iter/{{it}}/cameras.csv",
+        summary=f"{RESULTS}/iter/{{it}}/cameras.csv.json",
+    wildcard_constraints:
+        it=r"[1-9]\d*",
+    params:
+        capture=lambda wildcards, input: Path(input.capture).parent,
+        blur_px=" ".join(str(float(b)) for b in config["refine_poses"]["blur_px"]),
+        rounds=config["refine_poses"]["rounds"],
+        max_rotation_deg=config["refine_poses"]["max_rotation_deg"],
+        max_shift_fraction=config["refine_poses"]["max_shift_fraction"],
+    conda:
+        "../../envs/geometry.yaml"
+    log:
+        f"{RESULTS}/logs/refine_poses/{{it}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/refine_poses/{{it}}.tsv"
+    shell:
+        SELLIP + " refine-poses --params {input.params:q} --mesh {input.mesh:q} --cameras {input.cameras:q}"
+        " --hdr {input.hdr:q} --capture {params.capture:q} --output {output.cameras:q} --blur-px {params.blur_px}"
+        " --rounds {params.rounds} --max-rotation-deg {params.max_rotation_deg}"
+        " --max-shift-fraction {params.max_shift_fraction} > {log:q} 2>&1"

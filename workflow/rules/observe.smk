@@ -7,7 +7,7 @@
 rule gather_observations:
     input:
         mesh=get_mesh,
-        cameras=f"{RESULTS}/cameras.csv",
+        cameras=get_cameras,
         hdr=f"{RESULTS}/hdr.zarr",
         capture=capture_file("capture.yaml"),
     output:

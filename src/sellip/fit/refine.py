@@ -1,6 +1,8 @@
-"""The geometry update of one iteration (rule ``refine_geometry``; docs/geometry_update.md): the fitted
+"""The updates between iterations. The geometry (rule ``refine_geometry``; docs/geometry_update.md): the fitted
 normals blended by confidence, the photographs' silhouettes measured against the model's predicted
-photograph, and the mesh moved by normal integration (:func:`refine_geometry`).
+photograph, and the mesh moved by normal integration (:func:`refine_geometry`). The poses (rule
+``refine_poses``; docs/geometry.md, "Poses refined against the object"): every view aligned to the iteration's
+model (:func:`refine_poses`).
 """
 
 from __future__ import annotations
@@ -114,6 +116,30 @@ def measure_silhouettes(mesh, mesh_normals: np.ndarray, shading_normals: np.ndar
 
 
 
+def iteration_model(params_path: Path, mesh_path: Path):
+    """One iteration's model: (the params store, its mesh (:func:`sellip.fit.observe.read_mesh`), the pBRDF
+    parameters (float64), each vertex's confidence (V,) (1 where the store has none), its normal confidence (V,)
+    from the fit's normal uncertainty, or the confidence where the store has none). Raises ParamsError when the store's vertices are not the mesh's."""
+    from sellip.fit.observe import read_mesh
+    from sellip.fit.vertex_fit import confidence_from_uncertainty
+    from sellip.model.params import PARAM_FIELDS, ParamsError, params_from, read_params, same_vertices
+
+    store = read_params(params_path)
+    vertices = store["vertices"]
+    confidence = store.get("confidence")
+    if confidence is None:
+        confidence = np.ones(len(vertices), np.float32)
+    # The normals move the surface as far as they are certain (eta's uncertainty does not matter here).
+    normal_confidence = np.asarray(confidence_from_uncertainty(store["normal_std_deg"], 0.0)
+                                   if "normal_std_deg" in store else confidence, np.float64)
+    mesh = read_mesh(mesh_path)
+    if not same_vertices(mesh.vertices, vertices):
+        raise ParamsError(f"{params_path}: its {len(vertices)} vertices are not those of {mesh_path} "
+                          f"({mesh.num_vertices})")
+    params = params_from({name: store[name] for name in PARAM_FIELDS}, np.float64)
+    return store, mesh, params, confidence, normal_confidence
+
+
 def refine_geometry(params_path: Path, mesh_path: Path, output: Path, smoothness: float = 0.01, anchor: float = 1e-3,
               rounds: int = 3, min_confidence: float = 0.5, reference_mesh: Path | None = None,
               smoothness_unconfident: float = 1.0,
@@ -126,36 +152,15 @@ def refine_geometry(params_path: Path, mesh_path: Path, output: Path, smoothness
 
     Long: one job's steps in order (read, blend, silhouettes, integrate, carry parameters, write), each a call."""
     from sellip.fit.observe import read_mesh
-    from sellip.fit.vertex_fit import confidence_from_uncertainty
-    from sellip.geometry.meshes import (
-        angular_error_deg,
-        blend_normals,
-        mesh_distances,
-        vertex_normals,
-    )
+    from sellip.geometry.meshes import angular_error_deg, blend_normals, mesh_distances, vertex_normals
     from sellip.geometry.update import refine_from_normals
-    from sellip.model.params import (
-        PARAM_FIELDS,
-        ParamsError,
-        params_from,
-        read_params,
-        same_vertices,
-    )
+    from sellip.model.params import ParamsError
     from sellip.model.ply import write_param_mesh
     from sellip.model.render import ParamMesh
 
     started = time.perf_counter()
-    store = read_params(params_path)
-    vertices, fitted, confidence = store["vertices"], store["normals"], store.get("confidence")
-    if confidence is None:
-        confidence = np.ones(len(vertices), np.float32)
-    # The normals move the surface as far as they are certain (eta's uncertainty does not matter here).
-    normal_confidence = np.asarray(confidence_from_uncertainty(store["normal_std_deg"], 0.0)
-                                   if "normal_std_deg" in store else confidence, np.float64)
-    mesh = read_mesh(mesh_path)
-    if not same_vertices(mesh.vertices, vertices):
-        raise ParamsError(f"{params_path}: its {len(vertices)} vertices are not those of {mesh_path} "
-                          f"({mesh.num_vertices})")
+    store, mesh, params, confidence, normal_confidence = iteration_model(params_path, mesh_path)
+    vertices, fitted = store["vertices"], store["normals"]
     reference = None
     if reference_mesh is not None:
         reference = read_mesh(reference_mesh)
@@ -167,7 +172,6 @@ def refine_geometry(params_path: Path, mesh_path: Path, output: Path, smoothness
     log.info("%s: %d vertices, %d with normal confidence >= %.2f (median %.2f); smoothness %g (unconfident %g), "
              "anchor %g, %d rounds", params_path, len(vertices), int(confident.sum()), min_confidence,
              float(np.median(normal_confidence)), smoothness, smoothness_unconfident, anchor, rounds)
-    params = params_from({name: store[name] for name in PARAM_FIELDS}, np.float64)
     mesh_normals = vertex_normals(mesh.vertices, mesh.faces)
     silhouettes, per_view = None, {}
     if silhouette > 0:
@@ -210,3 +214,62 @@ def refine_geometry(params_path: Path, mesh_path: Path, output: Path, smoothness
              summary["offset_median_mm"], *(np.nan if summary[key] is None else summary[key]
                                           for key in ("fitted_vs_mesh_before_deg", "fitted_vs_mesh_after_deg")))
     return summary
+
+
+
+def refine_poses(params_path: Path, mesh_path: Path, cameras_path: Path, hdr_path: Path, capture_path: Path,
+                 output: Path, settings=None, views=None) -> dict:
+    """Write the next iteration's cameras table ``output`` (cameras.csv columns) and ``<output>.json``: every view
+    of ``cameras_path`` with its pose aligned to this iteration's model (``params_path`` on ``mesh_path``, shaded
+    with its fitted normals blended by confidence as the geometry update does) by
+    :func:`sellip.geometry.pose_refinement.refine_view` under the capture's flash; ``views`` (default: all) limits
+    which are aligned, the others are copied. ``settings``: a :class:`PoseRefinementSettings`. Returns the
+    summary written beside it (per view: the step and the cost; over the views: medians and maxima)."""
+    from sellip.capture.reader import read_capture
+    from sellip.geometry.cameras import load_cameras, read_cameras, write_cameras
+    from sellip.geometry.meshes import blend_normals, vertex_normals
+    from sellip.geometry.pose_refinement import PoseRefinementSettings, refine_view
+    from sellip.model.render import ParamMesh, Renderer, flash_light
+
+    started = time.perf_counter()
+    settings = settings or PoseRefinementSettings()
+    store, mesh, params, confidence, normal_confidence = iteration_model(params_path, mesh_path)
+    shading = blend_normals(store["normals"], vertex_normals(mesh.vertices, mesh.faces), normal_confidence)
+    renderer = Renderer(ParamMesh(mesh.vertices, mesh.faces, shading, params))
+    light = read_capture(capture_path, check_files=False).config["light"]
+
+    def flash(camera):
+        return flash_light(camera, light["position_m"], polarizer_deg=float(light["polarizer_deg"]))
+
+    cameras, hdr = load_cameras(cameras_path, hdr_path)
+    view_ids, rotations, translations = read_cameras(cameras_path)
+    chosen = set(cameras if views is None else views)
+    per_view = {}
+    for index, view in enumerate(view_ids):
+        if view not in cameras or view not in chosen or not np.all(np.isfinite(translations[index])):
+            continue
+        analyzers, valid = hdr.view(view)
+        camera, per_view[view] = refine_view(renderer, cameras[view], flash, analyzers, valid, settings,
+                                                    vertex_confidence=confidence)
+        rotations[index], translations[index] = camera.rotation, camera.translation
+        log.info("%s: %s", view, "rotated %.4f deg, centre moved %.3f mm, robust cost %.4g -> %.4g (%d pixels)" % (
+            per_view[view]["rotation_deg"], per_view[view]["shift_mm"], per_view[view]["cost_start"],
+            per_view[view]["cost_end"], per_view[view]["pixels"]) if per_view[view]["refined"]
+            else "kept: " + per_view[view]["reason"])
+    refined = [r for r in per_view.values() if r["refined"]]
+    summary = {"views": len(per_view), "refined": len(refined),
+               "kept": {view: r["reason"] for view, r in per_view.items() if not r["refined"]},
+               "rotation_deg": _spread([r["rotation_deg"] for r in refined]),
+               "shift_mm": _spread([r["shift_mm"] for r in refined]),
+               "settings": {name: getattr(settings, name) for name in settings.__dataclass_fields__},
+               "per_view": per_view, "seconds": time.perf_counter() - started}
+    write_text(json.dumps(summary, indent=1), f"{output}.json")
+    write_cameras(output, view_ids, rotations, translations)  # atomic
+    log.info("wrote %s in %.1f s: %d of %d views refined (rotation median %s deg, centre shift median %s mm), %d kept",
+             output, summary["seconds"], len(refined), len(per_view), (summary["rotation_deg"] or {}).get("median"),
+             (summary["shift_mm"] or {}).get("median"), len(summary["kept"]))
+    return summary
+
+
+def _spread(values) -> dict | None:
+    return {"median": float(np.median(values)), "max": float(np.max(values))} if len(values) else None

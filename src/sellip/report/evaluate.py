@@ -84,6 +84,33 @@ def camera_alignment(view_ids: list[str], rotations: np.ndarray, translations: n
     return align_cameras(rotations[own], translations[own], ref_rotations[ref], ref_translations[ref])
 
 
+def truth_reprojection(cameras: dict, true_poses: dict, truth_points: np.ndarray,
+                       similarity: Similarity | None) -> dict | None:
+    """How far each camera puts the true surface from where its true camera puts it: per view of ``cameras``
+    ({view: Camera}, the model's world) that ``true_poses`` ({view: (R (3, 3), t (3,))}, the truth's world) has,
+    the median over ``truth_points`` (N, 3), truth's world, of the distance in pixels between their projections
+    through the true camera and, moved into the model's world by the inverse of ``similarity``, through the
+    model's. Occlusion is ignored: this measures the poses, not a render. Returns {"median", "p90", "max" (pixels,
+    over the views), "worst_view", "views"} or None when no view has both."""
+    from sellip.model.render import Camera
+
+    points = np.asarray(truth_points, np.float64)
+    own_points = points if similarity is None else similarity.inverse().apply(points)
+    per_view = {}
+    for view, camera in cameras.items():
+        if view not in true_poses or not np.all(np.isfinite(camera.translation)):
+            continue
+        rotation, translation = true_poses[view]
+        true_camera = Camera(camera.intrinsics, rotation, translation, camera.width, camera.height, camera.distortion)
+        per_view[view] = float(np.median(np.linalg.norm(camera.project(own_points) - true_camera.project(points),
+                                                        axis=-1)))
+    if not per_view:
+        return None
+    values = np.array(list(per_view.values()))
+    return {"median": float(np.median(values)), "p90": float(np.percentile(values, 90)), "max": float(values.max()),
+            "worst_view": max(per_view, key=per_view.get), "views": len(per_view)}
+
+
 # --------------------------------------------------------------------------- parameters and geometry
 
 

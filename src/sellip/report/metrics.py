@@ -180,6 +180,26 @@ def _truth_and_alignment(truth_path: Path, ground_truth_keys, capture, capture_p
     return truth, similarity
 
 
+def _pose_figures(cameras: dict, initial_cameras, hdr_path, capture, truth, similarity) -> dict | None:
+    """With SfM cameras (``similarity`` set) and poses.csv: :func:`sellip.report.evaluate.truth_reprojection` of
+    the cameras (``final``) and, when given, of ``initial_cameras`` (the poses stage's, before
+    the refinement against the object: ``initial``); None otherwise."""
+    if similarity is None or capture.poses is None:
+        return None
+    true_poses = {view: capture.pose(view) for view in capture.poses["view_id"]}
+    points = np.asarray(truth.vertices, np.float64)
+    points = points[np.linspace(0, len(points) - 1, min(len(points), 5000)).astype(int)]
+    figures = {"final": evaluate.truth_reprojection(cameras, true_poses, points, similarity),
+               "unit": "HDR pixels: median over the true surface, then median / p90 / max over the views"}
+    if initial_cameras is not None:
+        initial, _ = load_cameras(initial_cameras, hdr_path)
+        figures["initial"] = evaluate.truth_reprojection(initial, true_poses, points, similarity)
+    log.info("poses: the true surface lands %.3f px (median; max %.3f px) from where the true cameras put it%s",
+             figures["final"]["median"], figures["final"]["max"], "" if "initial" not in figures else
+             " (the poses stage's: %.3f, max %.3f px)" % (figures["initial"]["median"], figures["initial"]["max"]))
+    return figures
+
+
 def _ground_truth_figures(model, truth, similarity, renderer, cameras, hdr, held_out, flash, light, metrics: dict,
                           reasons: dict, model_path: Path, params_path, supersample: int, geometry_samples: int,
                           new_light_offset_cam) -> None:
@@ -247,7 +267,7 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
               supersample: int = 2, geometry_samples: int = 50000, timings_plot: str | Path | None = None,
               new_light_offset_cam=NEW_LIGHT_OFFSET_M, iteration_meshes: list | None = None,
               iteration_fits: list | None = None, convergence_plot: str | Path | None = None,
-              logs: str | Path | None = None) -> dict:
+              logs: str | Path | None = None, initial_cameras: str | Path | None = None) -> dict:
     """Compute the figures of merit and write ``output`` (metrics.json); returns the metrics.
 
     ``iteration_meshes``: the loop's meshes in order (the initial one, then each iteration's), and
@@ -289,7 +309,7 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
     truth_path = capture_path / GROUND_TRUTH_MESH
     ground_truth_keys = ("alignment", "vertices", "normal_error_deg", "eta_relative_error_pct",
                          "rho_d_relative_rmse", "sigma_s_abs_error", "sigma_ss_abs_error",
-                         "correspondence_distance_mm", "geometry", "psnr_new_light")
+                         "correspondence_distance_mm", "geometry", "psnr_new_light", "poses")
     metrics.update({key: None for key in ground_truth_keys})
     metrics["ground_truth"] = str(truth_path) if truth_path.is_file() else None
     truth, similarity = _truth_and_alignment(truth_path, ground_truth_keys, capture, capture_path, cameras_path,
@@ -297,6 +317,9 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
     if truth is not None:
         _ground_truth_figures(model, truth, similarity, renderer, cameras, hdr, held_out, flash, light, metrics,
                               reasons, model_path, params_path, supersample, geometry_samples, new_light_offset_cam)
+        metrics["poses"] = _pose_figures(cameras, initial_cameras, hdr_path, capture, truth, similarity)
+        if metrics["poses"] is None:
+            reasons["poses"] = "the cameras are poses.csv's"
 
     # How the geometry converged over the loop.
     metrics["geometry_iterations"] = None

@@ -61,6 +61,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="the first-pass fit store (fit.zarr) of each of those meshes (fitted normals)")
     parser.add_argument("--convergence-plot", type=Path, default=None, help="also write the convergence PNG")
     parser.add_argument("--logs", type=Path, default=None, help="the run's log folder: its warnings into metrics.json")
+    parser.add_argument("--initial-cameras", type=Path, default=None,
+                        help="the poses stage's cameras.csv, measured beside --cameras when pose refinement moved them")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -72,7 +74,8 @@ def main(args: argparse.Namespace) -> int:
                   benchmarks=args.benchmarks, held_out=args.held_out, sim3_from_sfm=args.sim3_from_sfm,
                   sfm_report=args.sfm_report, supersample=args.supersample, geometry_samples=args.geometry_samples,
                   timings_plot=args.timings_plot, iteration_meshes=args.iteration_meshes,
-                  iteration_fits=args.iteration_fits, convergence_plot=args.convergence_plot, logs=args.logs)
+                  iteration_fits=args.iteration_fits, convergence_plot=args.convergence_plot, logs=args.logs,
+                  initial_cameras=args.initial_cameras)
     except (OutputsError, CamerasError, CaptureError, PlyError, ObserveError, ParamsError) as exc:
         log.error("%s", exc)
         return 1
