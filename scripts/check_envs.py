@@ -30,8 +30,8 @@ REPO = Path(__file__).resolve().parents[1]
 FAMILIES: dict[str, dict[str, list[str]]] = {
     "ingest": {"rules": ["synth_capture", "linearize_frames", "merge_hdr", "plot_hdr_previews"],
                "modules": ["synth", "linearize", "merge_hdr", "hdr_previews"]},
-    "geometry": {"rules": ["run_sfm", "init_mesh", "gather_observations", "refine_geometry"],
-                 "modules": ["sfm", "init_mesh", "observe", "refine_geometry"]},
+    "geometry": {"rules": ["run_sfm", "init_mesh", "gather_observations", "refine_geometry", "refine_poses"],
+                 "modules": ["sfm", "init_mesh", "observe", "refine_geometry", "refine_poses"]},
     "fit": {"rules": ["fit_pbrdf", "gather_fit", "cluster_lobes", "finalize_model"],
             "modules": ["fit", "gather_fit", "cluster_lobes", "finalize"]},
     "report": {"rules": ["render_outputs", "evaluate_model", "export_viewer"],

@@ -224,6 +224,7 @@ def test_pose_refinement_joins_the_loop_and_keeps_true_poses(tiny_run, tmp_path_
     assert counts["refine_poses"] == ITERATIONS and counts["gather_observations"] == 1, plan[-3000:]
     assert f"--cameras results/tiny/iter/{ITERATIONS}/cameras.csv" in plan  # the later jobs read the new poses
     assert "refine_poses" not in _snakemake(workdir, "-n").stdout  # auto, with poses.csv: off
+    assert "refine_poses" in _snakemake(workdir, "-n", "--config", "sfm={mode: sfm}").stdout  # auto, SfM poses: on
     _snakemake(workdir, "--cores", "2", "--config", "refine_poses={enabled: true}", "--allowed-rules", "refine_poses",
                "--", f"results/tiny/iter/{ITERATIONS}/cameras.csv")
     report = json.loads((results / "iter" / str(ITERATIONS) / "cameras.csv.json").read_text())
