@@ -65,6 +65,14 @@ def test_a_moved_camera_is_brought_back_to_the_photograph(scene):
     assert report["rotation_deg"] == pytest.approx(angle) and report["shift_mm"] == pytest.approx(1e3 * shift)
 
 
+def test_a_true_pose_is_kept(scene):
+    """From the true pose the alignment moves the object by a few hundredths of a pixel: within min_motion_px."""
+    _, renderer, truth, image = scene
+    kept, report = refine_view(renderer, truth, flash_light, image, np.ones(image.shape[:2], bool))
+    assert not report["refined"] and "own noise" in report["reason"] and report["motion_px"] < 0.1, report
+    assert kept is truth
+
+
 def test_a_view_that_does_not_see_the_object_keeps_its_pose(scene):
     _, renderer, truth, image = scene
     away = Camera(truth.intrinsics, truth.rotation, truth.translation + np.array([0.0, 0.0, -1.0]),
@@ -86,7 +94,7 @@ def test_a_step_beyond_the_limits_keeps_the_pose(scene):
 
 
 @pytest.mark.parametrize("bad", [{"blur_px": ()}, {"blur_px": (-1.0,)}, {"rounds": 0}, {"max_rotation_deg": 0},
-                                 {"erode_px": -1}, {"robust_scale": -0.1}])
+                                 {"erode_px": -1}, {"robust_scale": -0.1}, {"min_motion_px": -1}])
 def test_settings_are_checked(bad):
     with pytest.raises(ValueError):
         PoseRefinementSettings(**bad)

@@ -132,6 +132,7 @@ rule refine_poses:
         rounds=config["refine_poses"]["rounds"],
         max_rotation_deg=config["refine_poses"]["max_rotation_deg"],
         max_shift_fraction=config["refine_poses"]["max_shift_fraction"],
+        min_motion_px=config["refine_poses"]["min_motion_px"],
     conda:
         "../../envs/geometry.yaml"
     log:
@@ -142,4 +143,4 @@ rule refine_poses:
         SELLIP + " refine-poses --params {input.params:q} --mesh {input.mesh:q} --cameras {input.cameras:q}"
         " --hdr {input.hdr:q} --capture {params.capture:q} --output {output.cameras:q} --blur-px {params.blur_px}"
         " --rounds {params.rounds} --max-rotation-deg {params.max_rotation_deg}"
-        " --max-shift-fraction {params.max_shift_fraction} > {log:q} 2>&1"
+        " --max-shift-fraction {params.max_shift_fraction} --min-motion-px {params.min_motion_px} > {log:q} 2>&1"

@@ -250,17 +250,15 @@ def refine_poses(params_path: Path, mesh_path: Path, cameras_path: Path, hdr_pat
             continue
         analyzers, valid = hdr.view(view)
         camera, per_view[view] = refine_view(renderer, cameras[view], flash, analyzers, valid, settings,
-                                                    vertex_confidence=confidence)
+                                             vertex_confidence=confidence)
         rotations[index], translations[index] = camera.rotation, camera.translation
-        log.info("%s: %s", view, "rotated %.4f deg, centre moved %.3f mm, robust cost %.4g -> %.4g (%d pixels)" % (
-            per_view[view]["rotation_deg"], per_view[view]["shift_mm"], per_view[view]["cost_start"],
-            per_view[view]["cost_end"], per_view[view]["pixels"]) if per_view[view]["refined"]
-            else "kept: " + per_view[view]["reason"])
+        log.info("%s: %s", view, _step_text(per_view[view]))
     refined = [r for r in per_view.values() if r["refined"]]
     summary = {"views": len(per_view), "refined": len(refined),
                "kept": {view: r["reason"] for view, r in per_view.items() if not r["refined"]},
                "rotation_deg": _spread([r["rotation_deg"] for r in refined]),
                "shift_mm": _spread([r["shift_mm"] for r in refined]),
+               "motion_px": _spread([r["motion_px"] for r in refined]),
                "settings": {name: getattr(settings, name) for name in settings.__dataclass_fields__},
                "per_view": per_view, "seconds": time.perf_counter() - started}
     write_text(json.dumps(summary, indent=1), f"{output}.json")
@@ -269,6 +267,14 @@ def refine_poses(params_path: Path, mesh_path: Path, cameras_path: Path, hdr_pat
              output, summary["seconds"], len(refined), len(per_view), (summary["rotation_deg"] or {}).get("median"),
              (summary["shift_mm"] or {}).get("median"), len(summary["kept"]))
     return summary
+
+
+def _step_text(report: dict) -> str:
+    if not report["refined"]:
+        return "kept: " + report["reason"]
+    return ("rotated %.4f deg, centre moved %.3f mm, the object %.3f px, robust cost %.4g -> %.4g (%d pixels)"
+            % tuple(report[key] for key in ("rotation_deg", "shift_mm", "motion_px", "cost_start", "cost_end",
+                                           "pixels")))
 
 
 def _spread(values) -> dict | None:

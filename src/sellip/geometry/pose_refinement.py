@@ -41,7 +41,10 @@ class PoseRefinementSettings:
     pixels (no silhouette pixel, whose value mixes object and background). min_pixels: fewer usable pixels
     leave the pose as it was. max_rotation_deg, max_shift_fraction: a larger step (rotation in degrees; centre
     shift as a fraction of the camera's distance to the object) is taken for a divergence and the pose kept.
-    min_confidence: pixels of vertices fitted with less confidence are not compared.
+    min_confidence: pixels of vertices fitted with less confidence are not compared. min_motion_px: a view whose
+    new pose moves the object's surface points by less (median, pixels) keeps its pose: from exact or good poses
+    the alignment moves them by 0.2-0.3 px (its own noise: the model's error), so a smaller step is no evidence
+    (docs/geometry.md, "Poses refined against the object").
     robust_scale: the soft-L1 loss's scale, a fraction of the render's median value. max_evaluations: per
     blur level.
     """
@@ -55,6 +58,7 @@ class PoseRefinementSettings:
     robust_scale: float = 0.05
     max_evaluations: int = 60
     min_confidence: float = 0.5
+    min_motion_px: float = 0.5
 
     def __post_init__(self):
         if not self.blur_px or any(not np.isfinite(b) or b < 0 for b in self.blur_px):
@@ -62,6 +66,8 @@ class PoseRefinementSettings:
         for name in ("rounds", "min_pixels", "max_evaluations"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not self.min_motion_px >= 0:
+            raise ValueError(f"min_motion_px must be >= 0, got {self.min_motion_px}")
         for name in ("max_rotation_deg", "max_shift_fraction", "robust_scale"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
@@ -175,8 +181,9 @@ def refine_view(renderer, camera, flash, analyzers: np.ndarray, valid: np.ndarra
     its usable pixels; vertex_confidence (V,) optional: pixels whose interpolated confidence is below
     ``settings.min_confidence`` are not compared. The s0 = I0 + I90 image (RGB) is compared. Each of
     ``settings.rounds`` rounds renders the model at the current pose and aligns (:func:`align_pose`) the
-    photograph to that render on the render's fully covered, lit, eroded footprint. Returns (the camera, moved or not, and a report: ``refined`` and, when
-    not, ``reason``; the step's rotation in degrees and centre shift in millimetres; the pixels compared; the
+    photograph to that render on the render's fully covered, lit, eroded footprint. Returns (the camera, moved or
+    not, and a report: ``refined`` and, when not, ``reason``; the step's rotation in degrees, centre shift in
+    millimetres and the median motion in pixels of the surface points first compared; the pixels compared; the
     robust cost before and after at the finest blur).
     """
     from scipy.ndimage import binary_erosion
@@ -206,14 +213,21 @@ def refine_view(renderer, camera, flash, analyzers: np.ndarray, valid: np.ndarra
         blur = settings.blur_px if round_index == 0 else settings.blur_px[-1:]
         rotation, translation, step = align_pose(points[usable], reference[usable], image, current, blur,
                                                  settings.robust_scale, settings.max_evaluations)
-        first_cost = step["cost_start"] if first_cost is None else first_cost
+        if first_cost is None:
+            first_cost, seen = step["cost_start"], points[usable]
         current = replace(current, rotation=rotation, translation=translation)
     angle, shift = pose_change(start.rotation, start.translation, current.rotation, current.translation)
-    report.update(rotation_deg=angle, shift_mm=1e3 * shift, cost_start=first_cost, cost_end=step["cost_end"])
+    motion = float(np.median(np.linalg.norm(current.project(seen) - start.project(seen), axis=-1)))
+    report.update(rotation_deg=angle, shift_mm=1e3 * shift, motion_px=motion, cost_start=first_cost,
+                  cost_end=step["cost_end"])
     if angle > settings.max_rotation_deg or shift > settings.max_shift_fraction * step["distance_m"]:
         report["reason"] = (f"a step of {angle:.3f} deg and {1e3 * shift:.2f} mm exceeds max_rotation_deg "
                             f"{settings.max_rotation_deg} or max_shift_fraction {settings.max_shift_fraction} of "
                             f"{step['distance_m']:.3f} m: taken for a divergence")
+        return start, report
+    if motion < settings.min_motion_px:
+        report["reason"] = (f"the object would move {motion:.3f} px (median), less than min_motion_px "
+                            f"{settings.min_motion_px}: within the alignment's own noise")
         return start, report
     report["refined"] = True
     return current, report
