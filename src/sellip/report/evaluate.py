@@ -84,31 +84,50 @@ def camera_alignment(view_ids: list[str], rotations: np.ndarray, translations: n
     return align_cameras(rotations[own], translations[own], ref_rotations[ref], ref_translations[ref])
 
 
-def truth_reprojection(cameras: dict, true_poses: dict, truth_points: np.ndarray,
-                       similarity: Similarity | None) -> dict | None:
-    """How far each camera puts the true surface from where its true camera puts it: per view of ``cameras``
-    ({view: Camera}, the model's world) that ``true_poses`` ({view: (R (3, 3), t (3,))}, the truth's world) has,
-    the median over ``truth_points`` (N, 3), truth's world, of the distance in pixels between their projections
-    through the true camera and, moved into the model's world by the inverse of ``similarity``, through the
-    model's. Occlusion is ignored: this measures the poses, not a render. Returns {"median", "p90", "max" (pixels,
-    over the views), "worst_view", "views"} or None when no view has both."""
+def truth_reprojection(cameras: dict, true_poses: dict, truth_renderer, similarity: Similarity | None,
+                       max_points: int = 5000) -> dict | None:
+    """How far each camera puts the visible true surface from where its true camera puts it, and how far its centre is.
+
+    cameras: {view: Camera} in the model's world; true_poses: {view: (R (3, 3), t (3,))} in the truth's world;
+    truth_renderer: a :class:`sellip.model.render.Renderer` of the true mesh; similarity: model world -> truth world
+    (None: the same world). Per view that both have: the true surface points behind the true camera's fully covered
+    pixels (at most ``max_points``, evenly spread), moved into the model's world by the inverse of ``similarity`` and
+    projected through the model's camera, against their projection through the true camera (pixels, median over
+    the points); and the distance of the model's camera centre, moved into the truth's world, from the true one
+    (millimetres). The hidden side is left out: a step of a narrow-field camera along its weak directions (a shift
+    across the axis with a turn, or along it) moves the far side far more than the side the camera photographs.
+    Returns {"reprojection_px": {"median", "p90", "max", "worst_view"}, "centre_mm": {"median", "p90", "max",
+    "worst_view"}, "views"} or None when no view has both."""
+    from sellip.model.conventions import camera_center
     from sellip.model.render import Camera
 
-    points = np.asarray(truth_points, np.float64)
-    own_points = points if similarity is None else similarity.inverse().apply(points)
-    per_view = {}
+    reprojection, centre = {}, {}
+    vertices = np.asarray(truth_renderer.mesh.vertices, np.float64)
     for view, camera in cameras.items():
         if view not in true_poses or not np.all(np.isfinite(camera.translation)):
             continue
         rotation, translation = true_poses[view]
         true_camera = Camera(camera.intrinsics, rotation, translation, camera.width, camera.height, camera.distortion)
-        per_view[view] = float(np.median(np.linalg.norm(camera.project(own_points) - true_camera.project(points),
-                                                        axis=-1)))
-    if not per_view:
+        surface, coverage = truth_renderer.interpolate(true_camera, vertices)
+        points = surface[coverage >= 1].astype(np.float64)
+        if not len(points):
+            continue
+        points = points[np.linspace(0, len(points) - 1, min(len(points), max_points)).astype(int)]
+        own_points = points if similarity is None else similarity.inverse().apply(points)
+        reprojection[view] = float(np.median(np.linalg.norm(camera.project(own_points) - true_camera.project(points),
+                                                            axis=-1)))
+        own_centre = camera.center if similarity is None else similarity.apply(camera.center)
+        centre[view] = 1e3 * float(np.linalg.norm(own_centre - camera_center(np.asarray(rotation, np.float64),
+                                                                             np.asarray(translation, np.float64))))
+    if not reprojection:
         return None
-    values = np.array(list(per_view.values()))
-    return {"median": float(np.median(values)), "p90": float(np.percentile(values, 90)), "max": float(values.max()),
-            "worst_view": max(per_view, key=per_view.get), "views": len(per_view)}
+
+    def spread(per_view: dict) -> dict:
+        values = np.array(list(per_view.values()))
+        return {"median": float(np.median(values)), "p90": float(np.percentile(values, 90)),
+                "max": float(values.max()), "worst_view": max(per_view, key=per_view.get)}
+
+    return {"reprojection_px": spread(reprojection), "centre_mm": spread(centre), "views": len(reprojection)}
 
 
 # --------------------------------------------------------------------------- parameters and geometry

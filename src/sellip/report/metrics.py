@@ -182,21 +182,27 @@ def _truth_and_alignment(truth_path: Path, ground_truth_keys, capture, capture_p
 
 def _pose_figures(cameras: dict, initial_cameras, hdr_path, capture, truth, similarity) -> dict | None:
     """With SfM cameras (``similarity`` set) and poses.csv: :func:`sellip.report.evaluate.truth_reprojection` of
-    the cameras (``final``) and, when given, of ``initial_cameras`` (the poses stage's, before
-    the refinement against the object: ``initial``); None otherwise."""
+    the cameras (``final``) and, when given, of ``initial_cameras`` (the poses stage's, before the refinement against
+    the object: ``initial``); None otherwise."""
     if similarity is None or capture.poses is None:
         return None
     true_poses = {view: capture.pose(view) for view in capture.poses["view_id"]}
-    points = np.asarray(truth.vertices, np.float64)
-    points = points[np.linspace(0, len(points) - 1, min(len(points), 5000)).astype(int)]
-    figures = {"final": evaluate.truth_reprojection(cameras, true_poses, points, similarity),
-               "unit": "HDR pixels: median over the true surface, then median / p90 / max over the views"}
+    truth_renderer = Renderer(truth)
+    figures = {"final": evaluate.truth_reprojection(cameras, true_poses, truth_renderer, similarity),
+               "unit": "reprojection_px: HDR pixels, median over the visible true surface, then median / p90 / max "
+                       "over the views; centre_mm: millimetres"}
     if initial_cameras is not None:
         initial, _ = load_cameras(initial_cameras, hdr_path)
-        figures["initial"] = evaluate.truth_reprojection(initial, true_poses, points, similarity)
-    log.info("poses: the true surface lands %.3f px (median; max %.3f px) from where the true cameras put it%s",
-             figures["final"]["median"], figures["final"]["max"], "" if "initial" not in figures else
-             " (the poses stage's: %.3f, max %.3f px)" % (figures["initial"]["median"], figures["initial"]["max"]))
+        figures["initial"] = evaluate.truth_reprojection(initial, true_poses, truth_renderer, similarity)
+    if figures["final"] is None:
+        return None
+    for key in ("final", "initial"):
+        if figures.get(key):
+            log.info("poses (%s): the visible true surface lands %.3f px from where the true cameras put it (median; "
+                     "max %.3f px, %s); centres %.2f mm off (median; max %.2f mm)", key,
+                     figures[key]["reprojection_px"]["median"], figures[key]["reprojection_px"]["max"],
+                     figures[key]["reprojection_px"]["worst_view"], figures[key]["centre_mm"]["median"],
+                     figures[key]["centre_mm"]["max"])
     return figures
 
 
