@@ -228,17 +228,16 @@ def test_pose_refinement_joins_the_loop_and_keeps_true_poses(tiny_run, tmp_path_
     _snakemake(workdir, "--cores", "2", "--config", "refine_poses={enabled: true}", "--allowed-rules", "refine_poses",
                "--", f"results/tiny/iter/{ITERATIONS}/cameras.csv")
     report = json.loads((results / "iter" / str(ITERATIONS) / "cameras.csv.json").read_text())
-    # From exact poses most views' steps are within the alignment's noise (min_motion_px): they keep their pose.
-    noise = [view for view, reason in report["kept"].items() if "own noise" in reason]
-    assert report["views"] == 24 and len(noise) >= 12, report["kept"]
-    assert all(report["per_view"][view]["motion_px"] < 0.5 for view in noise)
+    assert report["views"] == 24 and report["refined"] >= 20, report["kept"]
     hdr = results / "hdr.zarr"
     known, _ = load_cameras(results / "cameras.csv", hdr)
     refined, _ = load_cameras(results / "iter" / str(ITERATIONS) / "cameras.csv", hdr)
     from sellip.model.ply import read_param_mesh
+    from sellip.model.render import Renderer
 
-    truth_points = np.asarray(read_param_mesh(workdir / "captures" / "tiny" / "ground_truth" / "model.ply").vertices)
-    moved = truth_reprojection(refined, {v: (c.rotation, c.translation) for v, c in known.items()}, truth_points, None)
-    # Aligned to the hull's first fit on a 160x128-pixel capture, without min_motion_px, they moved 0.23 px in the
-    # median (max 0.52) when this was written: the model's own error.
-    assert moved["median"] < 0.35 and moved["max"] < 0.8, moved
+    truth = Renderer(read_param_mesh(workdir / "captures" / "tiny" / "ground_truth" / "model.ply"))
+    moved = truth_reprojection(refined, {v: (c.rotation, c.translation) for v, c in known.items()}, truth, None)
+    # Aligned to the hull's first fit on a 160x128-pixel capture the visible surface moved 0.12 px in the median view
+    # (0.35 the worst) when this was written: the model's own error. (The centres moved 15 mm in the median: the
+    # weak direction of a narrow field of view, which the photographs do not pin; docs/geometry.md.)
+    assert moved["reprojection_px"]["median"] < 0.25 and moved["reprojection_px"]["max"] < 0.6, moved

@@ -42,9 +42,9 @@ class PoseRefinementSettings:
     leave the pose as it was. max_rotation_deg, max_shift_fraction: a larger step (rotation in degrees; centre
     shift as a fraction of the camera's distance to the object) is taken for a divergence and the pose kept.
     min_confidence: pixels of vertices fitted with less confidence are not compared. min_motion_px: a view whose
-    new pose moves the object's surface points by less (median, pixels) keeps its pose: from exact or good poses
-    the alignment moves them by 0.2-0.3 px (its own noise: the model's error), so a smaller step is no evidence
-    (docs/geometry.md, "Poses refined against the object").
+    new pose moves the object's surface points by less (median, pixels) keeps its pose (0: none does; from exact or
+    good poses the alignment moves them by 0.2-0.3 px, its own noise; docs/geometry.md, "Poses refined against the
+    object").
     robust_scale: the soft-L1 loss's scale, a fraction of the render's median value. max_evaluations: per
     blur level.
     """
@@ -58,7 +58,7 @@ class PoseRefinementSettings:
     robust_scale: float = 0.05
     max_evaluations: int = 60
     min_confidence: float = 0.5
-    min_motion_px: float = 0.5
+    min_motion_px: float = 0.0
 
     def __post_init__(self):
         if not self.blur_px or any(not np.isfinite(b) or b < 0 for b in self.blur_px):

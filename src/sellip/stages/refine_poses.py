@@ -4,7 +4,7 @@
     sellip refine-poses --params results/NAME/iter/1/refit.zarr --mesh results/NAME/iter/0/mesh.ply
                         --cameras results/NAME/iter/1/cameras.csv --hdr results/NAME/hdr.zarr --capture CAPTURE
                         --output results/NAME/iter/2/cameras.csv [--blur-px 1.5 0] [--rounds 2]
-                        [--max-rotation-deg 2] [--max-shift-fraction 0.03] [--min-motion-px 0.5]
+                        [--max-rotation-deg 2] [--max-shift-fraction 0.03] [--min-motion-px 0]
 
 The model (the params store on its mesh, shaded with its fitted normals) is rendered through each view's camera
 under the capture's flash, and the pose that best aligns the photograph with the render is the view's new pose
@@ -37,8 +37,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="a larger rotation is taken for a divergence: the view keeps its pose")
     parser.add_argument("--max-shift-fraction", type=float, default=0.03,
                         help="a larger centre shift (fraction of the camera's distance) keeps the view's pose")
-    parser.add_argument("--min-motion-px", type=float, default=0.5,
-                        help="a smaller move of the object (median, pixels) keeps the view's pose (the alignment's noise)")
+    parser.add_argument("--min-motion-px", type=float, default=0.0,
+                        help="a smaller move of the object (median, pixels) keeps the view's pose (0: every view moves)")
 
 
 def main(args: argparse.Namespace) -> int:
