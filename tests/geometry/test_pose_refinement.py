@@ -99,3 +99,15 @@ def test_a_step_beyond_the_limits_keeps_the_pose(scene):
 def test_settings_are_checked(bad):
     with pytest.raises(ValueError):
         PoseRefinementSettings(**bad)
+
+
+def test_a_blank_photograph_leaves_the_pose(scene):
+    """A photograph that does not change with the pose (all zero): no direction is determined, nothing moves."""
+    mesh, renderer, truth, image = scene
+    from sellip.geometry.pose_refinement import align_pose
+
+    points = np.asarray(mesh.vertices)[:500]
+    rotation, translation, report = align_pose(points, np.ones((500, 3)), np.zeros((120, 160, 3)), truth)
+    assert report["directions"] == 0
+    np.testing.assert_array_equal(rotation, truth.rotation)
+    np.testing.assert_array_equal(translation, truth.translation)

@@ -127,9 +127,12 @@ def align_pose(points: np.ndarray, reference: np.ndarray, image: np.ndarray, cam
     pose the start, its intrinsics and distortion held). For each blur (sigma in pixels, coarse to fine) the
     soft-L1 (scale ``robust_scale`` of the reference's median) least-squares residual
     ``(image(project(points; pose)) - k reference) / median(reference)``, k the median ratio of the two (robust to
-    a few vertices fitted far too bright), is minimised over the
-    6 parameters of :func:`moved_pose`. Returns (rotation (3, 3), translation (3,), report: the step's rotation
-    in degrees and centre shift in metres, the robust cost at the start and the end of the finest level).
+    a few vertices fitted far too bright), is minimised over the 6 parameters of :func:`moved_pose`, in the
+    directions whose singular value is at least ``min_singular_ratio`` of the largest (:func:`_determined_directions`;
+    the default keeps all but a direction the photograph does not see at all: on the painted cow the weakest are
+    0.5-2 % of the largest). Returns (rotation (3, 3), translation (3,), report: the step's rotation in degrees and
+    centre shift in metres, the distance, the robust cost at the start pose and at the end on the finest level, the
+    directions used).
     """
     from scipy.ndimage import gaussian_filter
     from scipy.optimize import least_squares
@@ -161,6 +164,8 @@ def align_pose(points: np.ndarray, reference: np.ndarray, image: np.ndarray, cam
                    if sigma > 0 else image)
         basis = _determined_directions(lambda step: residual(step, rotation, translation, blurred), min_singular_ratio)
         directions_kept = basis.shape[1]
+        if not directions_kept:  # a photograph that does not change with the pose (a flat, dark one)
+            continue
         solution = least_squares(lambda y: residual(basis @ y, rotation, translation, blurred), np.zeros(basis.shape[1]),
                                  loss="soft_l1", f_scale=robust_scale, diff_step=1e-4, max_nfev=max_evaluations)
         rotation, translation = moved_pose(basis @ solution.x, rotation, translation, distance)
