@@ -1,7 +1,7 @@
 """Benchmark of the per-vertex fit against a one-vertex-at-a-time scipy baseline, in one run.
 
     python benchmarks/bench_fit.py [--vertices 50000] [--views 100] [--baseline 100] [--noise 0.01]
-                                   [--dtype float32] [--workers 2]
+                                   [--dtype float32] [--workers 2] [--gpu] [--gpu-batch 4096]
 
 The standard problem: N surface points, each seen by K cameras spread over the whole sphere
 around it (about half see the front: ~K/2 usable views), observations from the FULL forward
@@ -20,6 +20,11 @@ intensity; starting normals 5 deg off, eta = 1.5.
   on the SAME residuals (the jitted sellip residual, float64, finite-difference Jacobians as
   fmincon's), from the same start and the same selected views, on one core; view selection
   included in its time.
+
+- ``--gpu``: the same N vertices fitted once more in one process on the GPU (JAX's CUDA backend, ``pip install
+  sellip[cuda]``), ``--gpu-batch`` vertices advanced together by one LM kernel (the CPU's 512 starves a GPU),
+  compile run then timed run as above; prints its throughput and the GPU / CPU-shards ratio, measured in the same
+  run. ``--baseline 0`` skips the scipy baseline.
 
 Prints both throughputs (vertex-fits per second of wall time, and per CPU-second, which a busy
 machine disturbs less), their ratios, and both accuracies (normal angle, eta relative error,
@@ -82,6 +87,35 @@ def _worker(folder: str, start: int, stop: int, core: int, barrier, results) -> 
     results.put((start, wall, cpu, first))
 
 
+def _gpu_worker(folder: str, batch: int, results) -> None:
+    """All rows of the problem saved in ``folder`` on the GPU in one process; report (wall, first, device)."""
+    os.environ["JAX_PLATFORMS"] = "cuda"
+    os.environ.pop("XLA_FLAGS", None)
+    import dataclasses as _dc
+
+    import jax
+    import numpy as np
+
+    from sellip.fit.records import FitSettings, Observations
+    from sellip.fit.vertex_fit import default_prior, fit_vertices
+
+    folder = Path(folder)
+    obs = Observations(*[np.load(folder / f"{name}.npy") for name in OBS_FIELDS])
+    start_normals = np.load(folder / "start.npy")
+    prior = default_prior(len(start_normals), obs.diffuse.dtype)
+    settings = _dc.replace(FitSettings(), lm_batch=batch, chunk_size=max(FitSettings().chunk_size, batch))
+    first = time.perf_counter()
+    fit_vertices(obs, start_normals, prior, settings)
+    first = time.perf_counter() - first
+    wall = time.perf_counter()
+    result = fit_vertices(obs, start_normals, prior, settings)
+    wall = time.perf_counter() - wall
+    np.save(folder / "gpu_normal.npy", result.normal)
+    np.save(folder / "gpu_eta.npy", result.params.eta)
+    np.save(folder / "gpu_rho_d.npy", result.params.rho_d)
+    results.put((wall, first, str(jax.devices()[0])))
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--vertices", type=int, default=50000)
@@ -91,6 +125,9 @@ def main() -> int:
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument("--workers", type=int, default=2, help="shard processes, one core each")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--gpu", action="store_true", help="also fit the same vertices on the GPU (one process)")
+    parser.add_argument("--gpu-batch", type=int, nargs="+", default=[4096],
+                        help="vertices per LM kernel on the GPU (several: one GPU run each)")
     args = parser.parse_args()
     cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else list(range(os.cpu_count() or 1))
     if args.workers > len(cores):
@@ -161,6 +198,19 @@ def main() -> int:
                 raise RuntimeError(f"a fit worker failed (exit code {w.exitcode})")
         load = lambda name: np.concatenate([np.load(Path(folder) / f"{name}_{a}.npy") for a in bounds[:-1]])  # noqa: E731
         result_normal, result_params = load("normal"), truth._replace(eta=load("eta"), rho_d=load("rho_d"))
+        gpu_runs = []
+        for batch in args.gpu_batch if args.gpu else ():
+            gpu_results = context.Queue()
+            worker = context.Process(target=_gpu_worker, args=(folder, batch, gpu_results))
+            worker.start()
+            gpu_wall, gpu_first, gpu_device = gpu_results.get()
+            worker.join()
+            if worker.exitcode != 0:
+                raise RuntimeError(f"the GPU fit worker failed (exit code {worker.exitcode})")
+            gpu_params = truth._replace(eta=np.load(Path(folder) / "gpu_eta.npy"),
+                                        rho_d=np.load(Path(folder) / "gpu_rho_d.npy"))
+            gpu_runs.append((batch, gpu_wall, gpu_first, gpu_device, np.load(Path(folder) / "gpu_normal.npy"),
+                             gpu_params))
     ours = max(t[1] for t in timings)
     ours_cpu = sum(t[2] for t in timings)
     ours_rate, ours_cpu_rate = n / ours, n / ours_cpu
@@ -169,6 +219,14 @@ def main() -> int:
           f"({args.workers} shard processes of one core; {ours_cpu_rate:.1f} vertex-fits per CPU-second); "
           f"first run, compiling: {first:.1f} s")
     print(f"           {accuracy(result_normal, result_params, slice(None))}")
+    for batch, gpu_wall, gpu_first, gpu_device, gpu_normal, gpu_params in gpu_runs:
+        print(f"gpu      : {gpu_wall:8.1f} s for {n} vertices = {n / gpu_wall:8.1f} vertex-fits/s "
+              f"(one process on {gpu_device}, {batch} vertices per LM kernel); first run, compiling: "
+              f"{gpu_first:.1f} s")
+        print(f"           {accuracy(gpu_normal, gpu_params, slice(None))}")
+        print(f"gpu / cpu: {ours / gpu_wall:.1f}x the {args.workers} CPU shard processes' vertex-fits/s")
+    if args.baseline <= 0:
+        return 0
 
     # Baseline: the same procedure (sellip.fit.vertex_fit._fit_chunk), one vertex at a time, with scipy least_squares on the
     # same residuals (same views, same start, float64, finite-difference Jacobians as fmincon's) on one core.
