@@ -344,7 +344,7 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
 
 
 def test_material_value_is_piecewise_constant_and_keeps_real_deviations():
-    """eta per material (DESIGN §7): on a two-material scene the noisy per-vertex eta becomes its cluster's
+    """eta per material (docs/design.md §7): on a two-material scene the noisy per-vertex eta becomes its cluster's
     (a piecewise-constant map with the boundary where the clusters meet), a spot whose own eta differs
     significantly keeps it, and a vertex of unknown uncertainty takes the material's."""
     rng = np.random.default_rng(1)

@@ -1,4 +1,4 @@
-"""Model selection (sellip.fit.selection, DESIGN §7): which lobes a cluster needs, and fitting vertices by model.
+"""Model selection (sellip.fit.selection, docs/design.md §7): which lobes a cluster needs, and fitting vertices by model.
 
 One synthetic scene (the renderer and cameras of test_augment.py: the full model, 40 views within
 25 deg of +z, 0.5 % noise): three materials of 48 surface points each, a quarter of them facing the

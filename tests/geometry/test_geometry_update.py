@@ -181,7 +181,7 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
     np.testing.assert_array_equal(model_faces, read_ply(tmp_path / "mesh.ply")[1])
     store = read_params(tmp_path / "final" / "params.zarr")
     np.testing.assert_array_equal(store["cluster"], (mesh.vertices[:, 0] > 0).astype(np.int32))
-    # No eta_std in the store: no vertex's own eta is known well enough, each takes its cluster's (DESIGN §7).
+    # No eta_std in the store: no vertex's own eta is known well enough, each takes its cluster's (docs/design.md §7).
     np.testing.assert_array_equal(store["eta_source"], 0)
     np.testing.assert_allclose(store["eta"], np.where(mesh.vertices[:, 0] > 0, 1.6, 1.4), rtol=1e-6)
     np.testing.assert_allclose(model_vertex["eta"], store["eta"], rtol=1e-6)

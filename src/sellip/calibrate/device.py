@@ -1,4 +1,4 @@
-"""device.yaml: a calibrated device (DESIGN §3) -- the sensor, camera and light sections of capture.yaml, plus
+"""device.yaml: a calibrated device (docs/design.md §3) -- the sensor, camera and light sections of capture.yaml, plus
 a ``calibration`` section with each step's residuals and date.
 
 Public API::

@@ -71,7 +71,7 @@ SHADE_CHUNK = 1 << 18
 
 def true_device(width: int = 2448, height: int = 2048, polarizer_deg: float = 0.0) -> dict:
     """The synthetic device (device.yaml sections sensor, camera, light): the IMX250MYR sensor, the 25 mm lens
-    of DESIGN §3's notes scaled to ``width``, a principal point off the centre, :data:`DEVICE_DISTORTION`,
+    of docs/design.md §3's notes scaled to ``width``, a principal point off the centre, :data:`DEVICE_DISTORTION`,
     the sensor simulator's colour matrix, and the flash 5 cm below the lens."""
     sensor = SensorModel(width=width, height=height)
     f = DEVICE_FX_PX * width / DEVICE_WIDTH_PX

@@ -1,4 +1,4 @@
-"""capture.yaml (DESIGN §3): its JSON schema and :func:`validate_config`, which names the key,
+"""capture.yaml (docs/design.md §3): its JSON schema and :func:`validate_config`, which names the key,
 what was expected and what was found.
 """
 
@@ -83,7 +83,7 @@ CONFIG_SCHEMA: dict = {
         },
     },
 }
-"""JSON schema of capture.yaml (DESIGN §3). ``synthetic``, ``calibration``, ``notes`` and ``x_*`` sections are kept
+"""JSON schema of capture.yaml (docs/design.md §3). ``synthetic``, ``calibration``, ``notes`` and ``x_*`` sections are kept
 as they are;
 another top-level key is an error, as inside the sections."""
 

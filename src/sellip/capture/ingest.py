@@ -1,4 +1,4 @@
-"""Ingest kernels: raw mosaic frames -> linear analyzer images -> one HDR image per view (DESIGN §2, §3).
+"""Ingest kernels: raw mosaic frames -> linear analyzer images -> one HDR image per view (docs/design.md §2, §3).
 
 Pure numpy functions (the only file access is :func:`rawpy_black_level`); the
 stages :mod:`sellip.stages.linearize` and :mod:`sellip.stages.merge_hdr` do the

@@ -6,11 +6,11 @@ selection, the geometry update job, and the final model.
 
 Modules and what they export (each name is importable from here too)::
 
-    augment_pass: One augmentation pass (rule ``cluster_lobes``; paper §4.3, DESIGN §7): the material clusters, each
+    augment_pass: One augmentation pass (rule ``cluster_lobes``; paper §4.3, docs/design.md §7): the material clusters, each
       cluster's model chosen on held-out vertices, each cluster's lobe fitted, written to the cluster-lobes directory
       (:func:`cluster_and_fit_lobes`)
         cluster_rows, cluster_and_fit_lobes
-    clusters: Material clusters (paper §4.3, DESIGN §7; docs/augment.md): K-means on the feature (eta, rho_d RGB) of
+    clusters: Material clusters (paper §4.3, docs/design.md §7; docs/augment.md): K-means on the feature (eta, rho_d RGB) of
       the confidently fitted vertices, K chosen by BIC; small clusters merged; spatially incoherent clusters (a cut
       through one material's noise) merged; regions of another albedo inside a cluster added; a material cut along its
       eta merged
@@ -18,7 +18,7 @@ Modules and what they export (each name is importable from here too)::
         REGION_MIN_SAMPLES, REGION_FIT_POINTS, CUT_ALBEDO_SD, CUT_MODE_POINTS, CUT_ETA_SE, CUT_MODES_ALBEDO_SD,
         AugmentSettings, Clustering, cluster_features, kmeans, bic, choose_k, spatial_coherence, nearest_vertices,
         vertex_coherence, DEGENERATE_VARIANCE, cluster_materials
-    finalize: The final model (rule ``finalize_model``; DESIGN §4): per-material η and lobes with per-vertex
+    finalize: The final model (rule ``finalize_model``; docs/design.md §4): per-material η and lobes with per-vertex
       deviations where a vertex's data demand them, unfitted vertices interpolated from their neighbours, confidence,
       ``model``: ``final/model.ply`` and ``final/params.zarr`` (:func:`finalize_model`)
         finalize_model
@@ -35,12 +35,12 @@ Modules and what they export (each name is importable from here too)::
       a vertex's data demand them
         ClusterLobe, lobe_fit_settings, fit_cluster_lobe, no_lobe, lobe_sample_losses, lobe_curve, virtual_theta_h,
         virtual_samples, VALUE_SOURCES, cluster_medians, material_or_own
-    observe: Per-vertex, per-view observations for the pBRDF fit (DESIGN §2 observe, §5)
+    observe: Per-vertex, per-view observations for the pBRDF fit (docs/design.md §2 observe, §5)
         PER_VIEW_ARRAYS, VIEW_AXES, BYTES_PER_OBSERVATION, ObserveError, ObserveSettings, ObserveMesh, read_mesh,
         median_edge_length, raycasting_scene, segments_clear, project_points, inside_image, Footprint,
         bilinear_footprint, bilinear_sample, silhouette_distance, relative_slope, Visibility, ViewObservations,
         Observer, ObservationWriter, VertexObservations, open_observations, load_observations
-    observe_mesh: Observe a mesh in every view (DESIGN §2 observe; rule ``gather_observations``): pair the HDR views
+    observe_mesh: Observe a mesh in every view (docs/design.md §2 observe; rule ``gather_observations``): pair the HDR views
       with the cameras, check the scale, and write the observation store (:func:`observe_mesh`)
         MISSING_POSES, UNITS, pair_views, spread_subset, observe_mesh
     parameterization: The fit's bounded parameterization (scaled sigmoids: eta in ETA_BOUNDS, sigma_s <= sigma_ss -
@@ -55,10 +55,10 @@ Modules and what they export (each name is importable from here too)::
       normals blended by confidence, the photographs' silhouettes measured against the model's predicted photograph,
       and the mesh moved by normal integration (:func:`refine_geometry`)
         raw_camera, predicted_diffuse, measure_silhouettes, refine_geometry
-    residuals: The residuals of one vertex (DESIGN §5): the linear parameters (rho_d RGB, rho_s, rho_ss RGB) solved
+    residuals: The residuals of one vertex (docs/design.md §5): the linear parameters (rho_d RGB, rho_s, rho_ss RGB) solved
       in closed form with non-negativity inside the residual (variable projection), then
         solve_spd, measured_dop, DIFFERENCE_STEPS, per_view_error
-    selection: Model selection (DESIGN §7): which lobes a material cluster needs, and fitting vertices by model
+    selection: Model selection (docs/design.md §7): which lobes a material cluster needs, and fitting vertices by model
         SelectionSettings, settings_for_model, allowed_models, cap_models, Selection, split_vertices, choose,
         decision_margin, MARGIN_FULL_CONFIDENCE, margin_confidence, cluster_margins, select_model, fit_by_model
     shard: One fit shard (rule ``fit_pbrdf``) and the gather of an iteration's shards into ``fit.zarr`` (rule
@@ -73,7 +73,7 @@ Modules and what they export (each name is importable from here too)::
       tests and benchmark (no mesh, no images: one surface point per vertex)
         vertex_observations
     solver: The batched Levenberg-Marquardt of the per-vertex fit (JAX): damping, steps, rounds, the roughness
-      starts, the diffuse eta hold's constants; each vertex an independent small problem (paper §4.3, DESIGN §5, §7)
+      starts, the diffuse eta hold's constants; each vertex an independent small problem (paper §4.3, docs/design.md §5, §7)
       over 5 nonlinear unknowns (normal offset (2), eta, sigma_s, sigma_ss)
         Z_LIMIT, PROGRESS_ITERATIONS, STUCK_DAMPING, HOLD_ROUNDS, HOLD_ETA_TOLERANCE, ROUGHNESS_GRID
     vertex_fit: The per-vertex polarimetric fit (:func:`fit_vertices`): view selection, batching by view count, the

@@ -1,4 +1,4 @@
-"""Material clusters (paper §4.3, DESIGN §7; docs/augment.md): K-means on the feature (eta, rho_d
+"""Material clusters (paper §4.3, docs/design.md §7; docs/augment.md): K-means on the feature (eta, rho_d
 RGB) of the confidently fitted vertices, K chosen by BIC; small clusters merged; spatially incoherent clusters
 (a cut through one material's noise) merged; regions of another albedo inside a cluster added; a material cut
 along its eta merged. Pure numpy/scikit-learn, no I/O.

@@ -461,7 +461,7 @@ def cluster_medians(value, labels, use, fallback) -> np.ndarray:
 
 def material_or_own(value, value_std, labels, cluster_value, deviation_sigmas: float = 3.0, std_floor: float = 0.01,
                     neighbours=None, min_support: int = 0):
-    """A property of the material, not of the vertex (DESIGN §7: no more model than the scene needs): each
+    """A property of the material, not of the vertex (docs/design.md §7: no more model than the scene needs): each
     vertex takes its cluster's value unless its own fitted value differs from it by more than
     ``deviation_sigmas`` of its own uncertainty, and, with ``neighbours``, at least ``min_support`` of its
     neighbours differ from theirs the same way, by as much: a deviation the data demand is a spot, not one vertex.

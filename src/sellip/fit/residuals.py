@@ -1,4 +1,4 @@
-"""The residuals of one vertex (DESIGN §5): the linear parameters (rho_d RGB, rho_s, rho_ss RGB)
+"""The residuals of one vertex (docs/design.md §5): the linear parameters (rho_d RGB, rho_s, rho_ss RGB)
 solved in closed form with non-negativity inside the residual (variable projection), then
 
     lambda_psi  sum_k w_k (psi_hat(theta_o, eta) - psi_k)^2          (DoP)
@@ -8,7 +8,7 @@ solved in closed form with non-negativity inside the residual (variable projecti
 
 with view weights w_k = v_k / sum(v) and every intensity divided by the vertex's own diffuse level
 (dimensionless). psi_k = G_k / I_d,k with G = sqrt(I_alpha^2 + I_beta^2) on the colour-weighted mono signals,
-I_beta = I_s minus both predicted specular lobes (DESIGN §7). The azimuth term equals the paper's
+I_beta = I_s minus both predicted specular lobes (docs/design.md §7). The azimuth term equals the paper's
 2 w Gamma^2 (1 - cos(2 phi_hat - 2 phi_I)).
 """
 

@@ -1,4 +1,4 @@
-"""Model selection (DESIGN §7): which lobes a material cluster needs, and fitting vertices by model.
+"""Model selection (docs/design.md §7): which lobes a material cluster needs, and fitting vertices by model.
 
 The models (:data:`sellip.model.params.MODEL_NAMES`, the ``model`` of every vertex in model.ply), from
 the simplest:
@@ -302,7 +302,7 @@ def _describe(chosen: int, best: int, table: dict, question: str) -> str:
 def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: FitSettings | None = None,
                  selection: SelectionSettings = SelectionSettings(),
                  augment_settings: clusters.AugmentSettings = clusters.AugmentSettings(), seed: int = 0) -> Selection:
-    """Choose the model of one cluster from the observations of its n vertices (DESIGN §7).
+    """Choose the model of one cluster from the observations of its n vertices (docs/design.md §7).
 
     obs: :class:`sellip.fit.records.Observations` (n, K); normals (n, 3), rho_d (n, 3): the vertices'
     fitted normals and albedos (held, as in :func:`sellip.fit.lobes.fit_cluster_lobe`); eta0: the

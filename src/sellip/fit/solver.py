@@ -1,6 +1,6 @@
 """The batched Levenberg-Marquardt of the per-vertex fit (JAX): damping, steps, rounds, the
 roughness starts, the diffuse eta hold's constants; each vertex an independent small problem (paper §4.3,
-DESIGN §5, §7) over 5 nonlinear unknowns (normal offset (2), eta, sigma_s, sigma_ss).
+docs/design.md §5, §7) over 5 nonlinear unknowns (normal offset (2), eta, sigma_s, sigma_ss).
 """
 
 from __future__ import annotations

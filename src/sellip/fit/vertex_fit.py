@@ -383,7 +383,7 @@ def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSe
 
 
 def default_prior(n, dtype=np.float32) -> PBRDFParams:
-    """The starting parameters of the first iteration (DESIGN §5: eta = 1.5)."""
+    """The starting parameters of the first iteration (docs/design.md §5: eta = 1.5)."""
     full = lambda value, *shape: jnp.full((n,) + shape, value, dtype)  # noqa: E731
     return PBRDFParams(eta=full(1.5), rho_d=full(0.5, 3), rho_s=full(0.0), sigma_s=full(0.3),
                        rho_ss=full(0.0, 3), sigma_ss=full(0.6))

@@ -1,4 +1,4 @@
-"""The visual hull and the initial mesh (DESIGN §2 mesh_init): voxel carving from the silhouettes,
+"""The visual hull and the initial mesh (docs/design.md §2 mesh_init): voxel carving from the silhouettes,
 the surface points of the occupancy, fusion with SfM's sparse points, screened Poisson at a depth and
 remeshing to a vertex count.
 """
@@ -328,7 +328,7 @@ def initial_mesh(masks: np.ndarray, intrinsics: np.ndarray, rotations: np.ndarra
                  options: InitMeshOptions = InitMeshOptions(), sparse_points: np.ndarray | None = None,
                  sparse_views: list[np.ndarray] | None = None, sparse_errors: np.ndarray | None = None,
                  extra_points: tuple[np.ndarray, np.ndarray] | None = None) -> InitialMesh:
-    """The initial mesh of DESIGN §2 mesh_init from silhouettes, fused with SfM points.
+    """The initial mesh of docs/design.md §2 mesh_init from silhouettes, fused with SfM points.
 
     1. visual hull (:func:`visual_hull`) and its oriented surface points (:func:`surface_points`);
     2. SfM points (``sparse_points`` (P, 3), observing view indices ``sparse_views``, reprojection

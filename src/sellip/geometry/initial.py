@@ -1,4 +1,4 @@
-"""The initial mesh (DESIGN §2 mesh_init; rule ``init_mesh``): the visual hull fused with SfM's sparse
+"""The initial mesh (docs/design.md §2 mesh_init; rule ``init_mesh``): the visual hull fused with SfM's sparse
 points, or multi-view stereo points, or a mesh the user supplies (a scan), checked against the silhouettes
 (:func:`make_initial_mesh`).
 """

@@ -1,4 +1,4 @@
-"""The poses of a capture (DESIGN §2 sfm; rule ``run_sfm``): known (poses.csv), SfM (pycolmap), or
+"""The poses of a capture (docs/design.md §2 sfm; rule ``run_sfm``): known (poses.csv), SfM (pycolmap), or
 SfM verified against poses.csv; SfM poses scaled to ``scene.distance_m``; ``cameras.csv`` and the
 comparison with known poses (rotation and centre errors after a similarity alignment).
 """

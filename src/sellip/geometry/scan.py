@@ -149,7 +149,7 @@ def user_initial_mesh(vertices: np.ndarray, faces: np.ndarray, masks: np.ndarray
                       rotations: np.ndarray, translations: np.ndarray, options: InitMeshOptions = InitMeshOptions(),
                       normals: np.ndarray | None = None) -> InitialMesh:
     """The initial mesh from a mesh the user supplies (a scan, in the cameras' world, metres), checked against
-    the silhouettes (DESIGN §2 mesh_init, ``init.mode: mesh``).
+    the silhouettes (docs/design.md §2 mesh_init, ``init.mode: mesh``).
 
     1. the largest connected component; faces wound consistently and outward (:func:`orient_outward`, by the
        scan's vertex ``normals`` (V, 3) when given);

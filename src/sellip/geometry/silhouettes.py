@@ -28,7 +28,7 @@ BACKGROUND_BINS = 200  # histogram bins over the darker half of a view's pixels 
 def background_noise(luminance: np.ndarray, usable: np.ndarray) -> tuple[float, float]:
     """The background (the peak of the histogram of the darker half of the ``usable`` pixels of a (H, W)
     ``luminance``) and its noise sd, from the pixels below the peak (object pixels lie above it):
-    1.4826 times their median distance to it. A flash photograph's background is dark noise (DESIGN §2)."""
+    1.4826 times their median distance to it. A flash photograph's background is dark noise (docs/design.md §2)."""
     values = luminance[usable]
     if values.size == 0:
         return 0.0, 0.0

@@ -1,4 +1,4 @@
-"""The geometry update (DESIGN §2, docs/geometry_update.md): the surface moved to agree with the
+"""The geometry update (docs/design.md §2, docs/geometry_update.md): the surface moved to agree with the
 confident fitted normals by normal integration (a sparse least-squares problem), held by the photographs'
 silhouettes.
 """

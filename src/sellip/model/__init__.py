@@ -5,7 +5,7 @@ parameter records and the params.zarr store, the PLY model file, and the forward
 
 Modules and what they export (each name is importable from here too)::
 
-    conventions: The conventions every stage shares, stated and implemented once (DESIGN §3)
+    conventions: The conventions every stage shares, stated and implemented once (docs/design.md §3)
         ANALYZER_ANGLES_DEG, analyzer_intensity, stokes_to_analyzers, analyzers_to_stokes,
         observations_from_analyzers, camera_center, camera_right, camera_up, camera_forward, camera_to_world_point,
         quaternion_to_rotation, rotation_to_quaternion
@@ -20,7 +20,7 @@ Modules and what they export (each name is importable from here too)::
         PBRDFParams, Observations, ViewFrames, view_frames, SurfaceTerms, surface_terms, reflection_stokes,
         diffuse_stokes, full_mueller, lobe_stokes, lobe_factor, full_stokes, normal_azimuth_terms,
         coaxial_observations
-    ply: PLY meshes with per-vertex parameters (DESIGN §4 ``final/model.ply``): a small binary PLY writer and
+    ply: PLY meshes with per-vertex parameters (docs/design.md §4 ``final/model.ply``): a small binary PLY writer and
       reader, and the model's vertex properties (x y z nx ny nz eta rho_d_rgb rho_s sigma_s rho_ss_rgb sigma_ss,
       float32)
         PlyError, MODEL_VERTEX_PROPERTIES, write_ply, read_ply, write_param_mesh, read_param_mesh

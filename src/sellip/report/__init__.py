@@ -1,11 +1,11 @@
 """What a person reads: renders, maps, previews, figures of merit (above fit).
 
 Novel-view and new-light renders, Mueller/AoLP/DoP images, parameter maps, HDR previews, and the figures
-of merit of DESIGN §8 (metrics.json).
+of merit of docs/design.md §8 (metrics.json).
 
 Modules and what they export (each name is importable from here too)::
 
-    evaluate: Figures of merit of a reconstructed model (DESIGN §8): parameters, geometry, re-render PSNR, stage
+    evaluate: Figures of merit of a reconstructed model (docs/design.md §8): parameters, geometry, re-render PSNR, stage
       timings
         PSNR_PEAK_PERCENTILE, PSNR_MAX_DB, FIT_RULE, transform_mesh, camera_alignment, eta_per_material,
         parameter_errors, geometry_errors, nearest_normal_errors, geometry_series, psnr, render_mask, stage_timings,
@@ -16,11 +16,11 @@ Modules and what they export (each name is importable from here too)::
     materials: The per-material table of a final model (``final/materials.csv``; issue #40)
         BOOTSTRAP_ROUNDS, BOOTSTRAP_SEED, MAD_TO_SD, COLUMNS, GT_COLUMNS, MaterialsError, materials_schema,
         validate_materials, vertex_areas, median_interval, material_table, write_materials, read_materials
-    metrics: The figures of merit of a reconstruction (DESIGN §8; rule ``evaluate_model``): normals, η per material
+    metrics: The figures of merit of a reconstruction (docs/design.md §8; rule ``evaluate_model``): normals, η per material
       and per vertex, albedo, roughness, Chamfer and Hausdorff, held-out and new-light PSNR, the geometry's
       convergence over the iterations -> ``metrics.json`` (:func:`evaluate_model`)
         confident_vertices, sfm_mode, geometry_convergence, view_psnr, evaluate_model, headline_figures
-    outputs: Renders, Mueller-matrix images, AoLP/DoP images and parameter maps of a model (DESIGN §1 outputs, paper
+    outputs: Renders, Mueller-matrix images, AoLP/DoP images and parameter maps of a model (docs/design.md §1 outputs, paper
       Fig. 10)
         NEW_LIGHT_OFFSET_M, NOVEL_ELEVATION_DEG, MUELLER_BASIS, DARK_FRACTION, MAP_SPECS, object_center,
         novel_camera, moved_flash, mueller_image, polarization_images, parameter_maps, fit_scale, tone_map,

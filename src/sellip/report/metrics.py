@@ -1,4 +1,4 @@
-"""The figures of merit of a reconstruction (DESIGN §8; rule ``evaluate_model``): normals, η per
+"""The figures of merit of a reconstruction (docs/design.md §8; rule ``evaluate_model``): normals, η per
 material and per vertex, albedo, roughness, Chamfer and Hausdorff, held-out and new-light PSNR, the geometry's
 convergence over the iterations -> ``metrics.json`` (:func:`evaluate_model`).
 """

@@ -1,4 +1,4 @@
-"""Renders, Mueller-matrix images, AoLP/DoP images and parameter maps of a model (DESIGN §1 outputs, paper Fig. 10).
+"""Renders, Mueller-matrix images, AoLP/DoP images and parameter maps of a model (docs/design.md §1 outputs, paper Fig. 10).
 
 Public API::
 

@@ -1,4 +1,4 @@
-"""``sellip init-mesh``: the initial mesh (rule ``init_mesh``, DESIGN §2 mesh_init).
+"""``sellip init-mesh``: the initial mesh (rule ``init_mesh``, docs/design.md §2 mesh_init).
 
     sellip init-mesh --hdr results/NAME/hdr.zarr --cameras results/NAME/cameras.csv --sfm results/NAME/sfm
                      --output results/NAME/mesh/init.ply [--mode hull|mvs|mesh] [--mesh-path scan.ply]
