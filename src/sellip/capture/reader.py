@@ -27,7 +27,7 @@ from sellip.capture.files import (
     ViewWithoutFramesError,
 )
 from sellip.capture.mosaic import MosaicLayout, mosaic_layout
-from sellip.capture.tables import _read_csv, validate_frames, validate_poses
+from sellip.capture.tables import read_csv, validate_frames, validate_poses
 
 # --------------------------------------------------------------------------- reading
 
@@ -100,10 +100,10 @@ def read_capture(path: str | Path, check_raw: bool = False, check_files: bool = 
     except yaml.YAMLError as exc:
         raise ConfigError(str(yaml_path), None, f"not valid YAML ({exc})") from None
     config = validate_config(raw_config, str(yaml_path))
-    frames = validate_frames(_read_csv(frames_path, str(frames_path)), str(frames_path))
+    frames = validate_frames(read_csv(frames_path, str(frames_path)), str(frames_path))
     poses = None
     if poses_path.is_file():
-        poses = validate_poses(_read_csv(poses_path, str(poses_path)), str(poses_path))
+        poses = validate_poses(read_csv(poses_path, str(poses_path)), str(poses_path))
         framed = set(frames["view_id"])
         for i, view in enumerate(poses["view_id"]):
             if view not in framed:

@@ -115,7 +115,7 @@ def validate_poses(poses: pd.DataFrame, file_label: str = POSES_CSV) -> pd.DataF
     return poses
 
 
-def _read_csv(path: Path, label: str) -> pd.DataFrame:
+def read_csv(path: Path, label: str) -> pd.DataFrame:
     try:
         return pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:

@@ -276,7 +276,7 @@ def _held_out_losses(models, folds, eta0: float, fit_settings: FitSettings, sele
     model_2_sigma_ss = settings_for_model(fit_settings, 2, selection.sigma_ss_fixed).sigma_ss_fixed
     per_fold = {m: [] for m in models}
     for train_pool, held_pool, held in folds:
-        fits = nested_fits({m: fit_lobes._fit_pool(train_pool, eta0, settings[m], lobe_settings) for m in models},
+        fits = nested_fits({m: fit_lobes.fit_pool(train_pool, eta0, settings[m], lobe_settings) for m in models},
                            model_2_sigma_ss)
         for m in models:
             per_sample = fit_lobes.lobe_sample_losses(fits[m], held_pool, settings[m], lobe_settings, delta_rounds)
@@ -334,9 +334,9 @@ def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: F
     normals, rho_d = np.asarray(normals), np.asarray(rho_d)
     pools = []
     for fold, (train, held) in enumerate(splits):  # fold 0's generators are those of the single split
-        train_pool = fit_lobes._pool_samples(take(train), normals[train], rho_d[train], fit_settings,
+        train_pool = fit_lobes.pool_samples(take(train), normals[train], rho_d[train], fit_settings,
                                            selection.max_samples, np.random.default_rng(seed + 1 + 2 * fold))
-        held_pool = fit_lobes._pool_samples(take(held), normals[held], rho_d[held], fit_settings,
+        held_pool = fit_lobes.pool_samples(take(held), normals[held], rho_d[held], fit_settings,
                                           selection.max_samples, np.random.default_rng(seed + 2 + 2 * fold))
         pools.append((train_pool, held_pool, len(held)))
     held_samples = sum(held_pool.count for _, held_pool, _ in pools)

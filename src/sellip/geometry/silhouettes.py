@@ -16,7 +16,7 @@ from scipy import ndimage
 # --------------------------------------------------------------------------- silhouettes
 
 
-def _disk(radius: int) -> np.ndarray:
+def disk(radius: int) -> np.ndarray:
     r = np.arange(-radius, radius + 1)
     return (r[:, None] ** 2 + r[None, :] ** 2) <= radius * radius
 
@@ -174,10 +174,10 @@ def _cut(luminance: np.ndarray, level: float, levels: np.ndarray, valid: np.ndar
     if valid is not None:
         mask |= ~np.asarray(valid, bool) & ndimage.binary_dilation(mask)
     if cut.open_px:
-        mask = ndimage.binary_opening(mask, _disk(cut.open_px))
+        mask = ndimage.binary_opening(mask, disk(cut.open_px))
     if cut.close_px:
         c = cut.close_px
-        mask = ndimage.binary_closing(np.pad(mask, c), _disk(c))[c:-c, c:-c]
+        mask = ndimage.binary_closing(np.pad(mask, c), disk(c))[c:-c, c:-c]
     return _clean_components(mask, cut.max_hole_fraction, cut.min_blob_fraction)
 
 
