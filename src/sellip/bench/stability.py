@@ -30,7 +30,7 @@ Public API::
 
 Confidence flagging (per case, over every vertex of final/model.ply): a vertex is *bad* when its normal
 is more than ``bad_above`` (10°) from the normal of its nearest ground-truth vertex
-(:func:`sellip.report.evaluate.vertex_errors`), *flagged* when its confidence is below ``low_below`` (0.5).
+(:func:`sellip.report.figures_of_merit.vertex_errors`), *flagged* when its confidence is below ``low_below`` (0.5).
 ``bad_flagged`` = flagged share of the bad vertices (recall); ``flagged_bad`` = bad share of the flagged
 vertices (precision); ``auc`` = the probability that a random bad vertex has a lower confidence than a
 random good one (ties count one half): 0.5 is a confidence that knows nothing, 1 a perfect ranking.

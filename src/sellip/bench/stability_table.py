@@ -205,7 +205,7 @@ def case_row(case: Case, workdir: str | Path, wall_s: float, error: str | None =
     ``error``: why the run failed (the row then has status "failed" and whatever outputs exist)."""
     from sellip.capture.files import GROUND_TRUTH_MESH
     from sellip.model.ply import read_param_mesh, read_ply
-    from sellip.report.evaluate import vertex_errors
+    from sellip.report.figures_of_merit import vertex_errors
 
     workdir = Path(workdir)
     results = workdir / "results" / case.name

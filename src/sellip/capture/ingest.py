@@ -491,7 +491,7 @@ def develop(linear: np.ndarray, plan: IngestPlan) -> np.ndarray:
     """A linear mosaic (H, W) float32 (NaN where invalid) -> colour-corrected, undistorted analyzer images
     (H/2, W/2, 4, C) float32: demosaicing, the colour matrix, the remap. What :func:`process_frame` does after
     :func:`linearize`; also what makes a render look like an ingested photograph
-    (:func:`sellip.fit.refine.predicted_diffuse`)."""
+    (:func:`sellip.fit.geometry_jobs.predicted_diffuse`)."""
     images = demosaic(np.asarray(linear, np.float32), plan.demosaic)  # (4, Hc, Wc, C)
     if plan.color_matrix is not None:
         images = apply_color_matrix(images, plan.color_matrix)

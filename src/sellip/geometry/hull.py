@@ -284,7 +284,7 @@ def occluding_points(points: np.ndarray, sparse_points: np.ndarray, sparse_views
 
 @dataclass(frozen=True)
 class InitMeshOptions:
-    """Settings of :func:`initial_mesh` (config section ``init``).
+    """Settings of :func:`hull_mesh` (config section ``init``).
 
     hull_resolution: voxels along the longest side of the hull's box; min_inside_fraction: share of
     the in-frame views whose silhouette must contain a voxel; poisson_depth: octree depth of the
@@ -324,7 +324,7 @@ class InitialMesh:
     check: MeshCheck | None = None
 
 
-def initial_mesh(masks: np.ndarray, intrinsics: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
+def hull_mesh(masks: np.ndarray, intrinsics: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
                  options: InitMeshOptions = InitMeshOptions(), sparse_points: np.ndarray | None = None,
                  sparse_views: list[np.ndarray] | None = None, sparse_errors: np.ndarray | None = None,
                  extra_points: tuple[np.ndarray, np.ndarray] | None = None) -> InitialMesh:
