@@ -154,10 +154,9 @@ def references(path: Path, modules: dict[str, Path], exports: dict[str, dict[str
         if isinstance(node, ast.Attribute):
             chain = dotted(node)
         elif isinstance(node, ast.Call) and getattr(node.func, "attr", getattr(node.func, "id", None)) == "setattr" \
-                and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant) and isinstance(node.args[1].value, str):
-            head = dotted(node.args[0]) if isinstance(node.args[0], (ast.Attribute, ast.Name)) else None
-            if isinstance(node.args[0], ast.Name) and node.args[0].id in aliases:
-                head = [aliases[node.args[0].id]]
+                and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant) \
+                and isinstance(node.args[1].value, str):
+            head = dotted(node.args[0])
             if head:
                 chain = head + [node.args[1].value]
         if not chain:
