@@ -1,4 +1,4 @@
-# sellip: sparse ellipsometry as a Snakemake workflow (see README.md and DESIGN).
+# sellip: sparse ellipsometry as a Snakemake workflow (see README.md and docs/design.md).
 # This file only wires things together: config, includes, the default target.
 from snakemake.utils import min_version
 

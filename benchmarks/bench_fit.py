@@ -236,8 +236,8 @@ def main() -> int:
     as64 = lambda x: np.asarray(x, np.float64) if np.asarray(x).dtype.kind == "f" else np.asarray(x)  # noqa: E731
     sub = type(obs)(*[jnp.asarray(as64(x[:m])) for x in obs])
     sub_prior = type(prior)(*[jnp.asarray(np.asarray(x[:m], np.float64)) for x in prior])
-    residual = jax.jit(lambda z, v, f: fit_residuals._residuals(z, v, f, settings))
-    weights = jax.jit(lambda z, v, f: fit_vertex_fit._robust_weights(z, v, f, settings))
+    residual = jax.jit(lambda z, v, f: fit_residuals.vertex_residuals(z, v, f, settings))
+    weights = jax.jit(lambda z, v, f: fit_vertex_fit.robust_weights(z, v, f, settings))
     take = lambda tree, i: jax.tree_util.tree_map(lambda x: x[i], tree)  # noqa: E731
     grid = np.asarray(solver.ROUGHNESS_GRID)
 
@@ -249,7 +249,7 @@ def main() -> int:
 
         def best_start(x):
             eta = fit_records.ETA_BOUNDS[0] + (fit_records.ETA_BOUNDS[1] - fit_records.ETA_BOUNDS[0]) / (1 + np.exp(-x[2]))
-            starts = np.array(parameterization._encode(jnp.full(len(grid), eta), jnp.asarray(grid[:, 0]), jnp.asarray(grid[:, 1]),
+            starts = np.array(parameterization.encode_parameters(jnp.full(len(grid), eta), jnp.asarray(grid[:, 0]), jnp.asarray(grid[:, 1]),
                                             jnp.float64))
             starts[:, :2] = x[:2]
             candidates = [x, *starts]
@@ -275,24 +275,24 @@ def main() -> int:
             z = solve(z, [0, 1, 2, 3, 4])
         return z, v
 
-    keep, records, frames, z0 = fit_vertex_fit._select_and_prepare(sub, start[:m].astype(np.float64), sub_prior, settings)
+    keep, records, frames, z0 = fit_vertex_fit.select_and_prepare(sub, start[:m].astype(np.float64), sub_prior, settings)
     v0, f0 = take(records, 0), take(frames, 0)
     residual(z0[0], v0, f0).block_until_ready()  # compile once, outside the timing
     weights(z0[0], v0, f0)
     began, began_cpu = time.perf_counter(), time.process_time()
-    keep, records, frames, z0 = fit_vertex_fit._select_and_prepare(sub, start[:m].astype(np.float64), sub_prior, settings)
+    keep, records, frames, z0 = fit_vertex_fit.select_and_prepare(sub, start[:m].astype(np.float64), sub_prior, settings)
     solutions = []
     for i in range(m):
         solutions.append(baseline_fit(take(records, i), take(frames, i), np.asarray(z0[i], np.float64)))
     base, base_cpu = time.perf_counter() - began, time.process_time() - began_cpu
     base_rate, base_cpu_rate = m / base, m / base_cpu
-    decoded = [parameterization._decode(jnp.asarray(z), take(frames, i), None) for i, (z, _) in enumerate(solutions)]
+    decoded = [parameterization.decode_parameters(jnp.asarray(z), take(frames, i), None) for i, (z, _) in enumerate(solutions)]
     base_normal = np.stack([np.asarray(d[0]) for d in decoded])
     base_eta = np.array([float(d[1]) for d in decoded])
     rho_d = []
     for i, (z, v) in enumerate(solutions):
-        terms = fit_residuals._model_terms(*parameterization._decode(jnp.asarray(z), take(frames, i), None), v)
-        rho_d.append(np.asarray(fit_residuals._linear_solution(terms, v, settings)[0]) * float(v.scale))
+        terms = fit_residuals.model_terms(*parameterization.decode_parameters(jnp.asarray(z), take(frames, i), None), v)
+        rho_d.append(np.asarray(fit_residuals.linear_solution(terms, v, settings)[0]) * float(v.scale))
     base_params = truth._replace(eta=base_eta, rho_d=np.stack(rho_d))
     print(f"baseline : {base:8.1f} s for {m} vertices = {base_rate:8.1f} vertex-fits/s "
           f"(the same procedure, one vertex at a time, scipy least_squares; one core; "

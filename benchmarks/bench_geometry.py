@@ -6,7 +6,7 @@
 Rendered mode (default): renders I_d = 2 I90 of a scene (:mod:`sellip.capture.scenes`, default ``demo``)
 from a handheld orbit directly at the demosaiced size (the sensor and ingest are not part of the
 measurement; rendering is not timed), then times :func:`sellip.geometry.sfm.run_sfm` (with the stage's
-silhouettes and magnification) and :func:`sellip.geometry.hull.initial_mesh` fused with the SfM points.
+silhouettes and magnification) and :func:`sellip.geometry.hull.hull_mesh` fused with the SfM points.
 Capture mode: times the stages as the workflow runs them (``sellip sfm --mode verify`` and
 ``sellip init-mesh``) on an ingested capture with poses.csv and ground_truth/.
 
@@ -74,7 +74,7 @@ def rendered(args) -> dict:
     index = -np.ones(args.views, np.int64)
     index[ok] = np.arange(ok.sum())
     views = [index[t] for t in result.tracks]
-    mesh = geometry_hull.initial_mesh(masks[ok], intrinsics, result.rotations[ok], result.translations[ok],
+    mesh = geometry_hull.hull_mesh(masks[ok], intrinsics, result.rotations[ok], result.translations[ok],
                                  geometry_hull.InitMeshOptions(max_vertices=args.max_vertices, threads=args.cores),
                                  result.points, views, result.errors / upscale)
     init_s = time.perf_counter() - started

@@ -41,7 +41,7 @@ def bumpy_sphere(vertices: int, radius: float = 0.04):
     a, b = index[:-1], np.roll(index, -1, axis=1)[:-1]
     c, d = index[1:], np.roll(index, -1, axis=1)[1:]
     faces = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
-    from sellip.capture.scenes import vertex_normals
+    from sellip.geometry.meshes import vertex_normals
 
     return pos, vertex_normals(pos, faces), faces
 

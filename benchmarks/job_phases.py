@@ -19,7 +19,7 @@ def main(argv=None) -> int:
     parser.add_argument("results", type=Path, help="results/NAME of a workflow run")
     parser.add_argument("--json", type=Path, default=None, help="also write the per-rule sums here")
     args = parser.parse_args(argv)
-    from sellip.report.evaluate import stage_timings
+    from sellip.report.figures_of_merit import stage_timings
     from sellip.timing import phase_table
 
     if not (args.results / "benchmarks").is_dir():

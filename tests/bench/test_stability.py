@@ -246,7 +246,7 @@ def test_confidence_flagging_counts_recall_precision_and_ranking():
         stability_table.confidence_flagging(error, confidence[:-1], bad_above=10)
 
 
-def _fake_run(workdir: Path, case: stability.Case, nan: bool = False) -> None:
+def _fake_run(workdir: Path, case: stability_table.Case, nan: bool = False) -> None:
     """A finished run of ``case`` in ``workdir``: ground truth, a model whose normals are 30 deg off on a cap
     (and flagged there with confidence 0.1 except for a band), params.zarr, a renders npz and metrics.json."""
     from sellip.model.params import write_params
@@ -298,7 +298,7 @@ def test_case_row_reads_the_figures_the_flagging_and_finiteness(tmp_path):
     assert row["flagged_bad"] == 1.0 and row["auc"] > 0.9 and row["worst_auc"] > 0.8
     assert row["eta_bad_share"] == 0.0 and row["eta_auc"] is None and row["eta_worst_auc"] is None  # all tied
 
-    broken = stability.Case("broken", "capture", "x")
+    broken = stability_table.Case("broken", "capture", "x")
     _fake_run(tmp_path / "nan", broken, nan=True)
     (tmp_path / "nan" / "results" / "broken" / "metrics.json").write_text('{"psnr": NaN}')
     row = stability_table.case_row(broken, tmp_path / "nan", wall_s=1.0, error="Error in rule fit_pbrdf: boom")

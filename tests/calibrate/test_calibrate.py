@@ -46,7 +46,7 @@ def test_half_resolution_centres_are_raw_cell_centres():
     raw = synthetic.expose(analyzers, device, 2800, np.random.default_rng(6))
     found = intrinsics.detect_board(intrinsics.intensity_image(raw, device["sensor"]), SPEC.cols, SPEC.rows)
     assert found.problem is None
-    truth = synthetic._project(device, SPEC.corners() @ rotation.T + translation)
+    truth = synthetic.project(device, SPEC.corners() @ rotation.T + translation)
     error = min((found.corners - truth, found.corners[::-1] - truth), key=lambda e: np.abs(e).max())
     assert np.all(np.abs(error.mean(axis=0)) < 0.05), error.mean(axis=0)
     assert np.sqrt(np.mean(error ** 2)) < 0.15
@@ -68,7 +68,7 @@ def test_refined_corners_lie_on_the_true_projection_and_the_window_follows_the_s
     raw = synthetic.expose(synthetic.render_board(device, SPEC, rotation, translation), device, 2800,
                            np.random.default_rng(6))
     image = intrinsics.intensity_image(raw, device["sensor"])
-    truth = intrinsics.raw_to_half(synthetic._project(device, SPEC.corners() @ rotation.T + translation))
+    truth = intrinsics.raw_to_half(synthetic.project(device, SPEC.corners() @ rotation.T + translation))
     found = intrinsics.raw_to_half(intrinsics.detect_board(image, SPEC.cols, SPEC.rows).corners)
     error = min((found - truth, found[::-1] - truth), key=lambda e: np.abs(e).max())
     assert np.sqrt(np.mean(error ** 2)) < 0.08 and np.all(np.abs(error.mean(axis=0)) < 0.03)  # intensity-image px
@@ -253,7 +253,7 @@ def test_chart_in_shadow_names_the_patches():
     lit = synthetic.render_chart(device, rotation, translation)
     dark = synthetic.render_chart(device, rotation, translation, shadow=0.02)
     raw = synthetic.expose(dark, device, 2400, np.random.default_rng(0), reference=float(np.percentile(lit, 99.9)))
-    corners = synthetic._project(device, synthetic.chart_corners_board() @ rotation.T + translation)
+    corners = synthetic.project(device, synthetic.chart_corners_board() @ rotation.T + translation)
     with pytest.raises(CalibrationError, match=r"usable ColorChecker patches, at least 12 needed") as error:
         color.calibrate_color(raw, device, corners)
     assert "dark skin: too dark" in str(error.value)

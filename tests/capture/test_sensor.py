@@ -16,7 +16,7 @@ def _labelled_analyzers(height, width):
 
 
 def test_mosaic_follows_the_imx250myr_layout():
-    """2x2 polarizer cell [[90, 45], [135, 0]] under an RGGB Bayer of 2x2 cells (DESIGN §3)."""
+    """2x2 polarizer cell [[90, 45], [135, 0]] under an RGGB Bayer of 2x2 cells (docs/design.md §3)."""
     sensor = SensorModel(width=8, height=8)
     raw = mosaic_sample(_labelled_analyzers(8, 8), sensor.layout)
     angle_index = {0: 0, 45: 1, 90: 2, 135: 3}

@@ -344,7 +344,7 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
 
 
 def test_material_value_is_piecewise_constant_and_keeps_real_deviations():
-    """eta per material (DESIGN §7): on a two-material scene the noisy per-vertex eta becomes its cluster's
+    """eta per material (docs/design.md §7): on a two-material scene the noisy per-vertex eta becomes its cluster's
     (a piecewise-constant map with the boundary where the clusters meet), a spot whose own eta differs
     significantly keeps it, and a vertex of unknown uncertainty takes the material's."""
     rng = np.random.default_rng(1)
@@ -406,7 +406,7 @@ def test_a_materials_eta_is_the_median_of_its_confident_vertices():
 
 
 def test_a_material_cut_along_its_eta_is_one_cluster_and_two_materials_stay_two():
-    """fit_clusters._eta_cut: k-means cuts one material (one albedo, eta 1.48 +- 0.06) at its median eta when it has a
+    """fit_clusters.find_eta_cut: k-means cuts one material (one albedo, eta 1.48 +- 0.06) at its median eta when it has a
     centre too many: the halves' mean albedos are 0 pooled sd apart and their features have one mode along the line
     between the centres, so they are one material. Two materials of one albedo whose eta differ by 0.3 (two modes),
     or of the same eta but another albedo (5+ sd apart), stay two."""
@@ -419,13 +419,13 @@ def test_a_material_cut_along_its_eta_is_one_cluster_and_two_materials_stay_two(
 
     one = features([0.22, 0.14, 0.075], rng.normal(1.48, 0.06, n))
     halves = np.array([one[one[:, 3] < np.median(one[:, 3])].mean(0), one[one[:, 3] >= np.median(one[:, 3])].mean(0)])
-    cut = fit_clusters._eta_cut(one, np.ones(n, bool), halves, np.random.default_rng(0))
+    cut = fit_clusters.find_eta_cut(one, np.ones(n, bool), halves, np.random.default_rng(0))
     assert cut is not None and sorted(cut[:2]) == [0, 1] and cut[2] < 0.5
     for other in (features([0.22, 0.14, 0.075], rng.normal(1.78, 0.06, n)),   # same albedo, eta 0.3 higher
                   features([0.42, 0.28, 0.06], rng.normal(1.48, 0.06, n))):   # another albedo, same eta
         both = np.vstack([one, other])
         centres = np.array([one.mean(0), other.mean(0)])
-        assert fit_clusters._eta_cut(both, np.ones(2 * n, bool), centres, np.random.default_rng(0)) is None
+        assert fit_clusters.find_eta_cut(both, np.ones(2 * n, bool), centres, np.random.default_rng(0)) is None
 
 
 def test_vertices_pinned_at_an_eta_bound_are_not_clustered():
@@ -452,10 +452,10 @@ def test_vertices_pinned_at_an_eta_bound_are_not_clustered():
 
 
 def test_a_material_of_two_albedo_modes_cut_along_its_eta_is_one_cluster():
-    """fit_clusters._same_eta_by_albedo: a speckled material (two albedo modes, log brightness +-0.13 with sd 0.1; eta
+    """fit_clusters.same_eta_by_albedo: a speckled material (two albedo modes, log brightness +-0.13 with sd 0.1; eta
     1.40 +- 0.06 whatever the albedo) that k-means cuts on albedo and eta together (each cluster one mode's
     high- or low-eta side: median etas 1.42 and 1.38) is one material; split by albedo alone its halves have one eta,
-    and _eta_cut merges the pair. The same two albedo modes at eta 1.40 and 1.45 (two materials), or one albedo
+    and find_eta_cut merges the pair. The same two albedo modes at eta 1.40 and 1.45 (two materials), or one albedo
     at eta 1.40 and 1.70, stay two; so do two albedos of one eta more than CUT_MODES_ALBEDO_SD apart (two materials
     that share an eta, as sphere_ior's 1.463 and 1.462 wedges)."""
     rng = np.random.default_rng(4)
@@ -471,18 +471,18 @@ def test_a_material_of_two_albedo_modes_cut_along_its_eta_is_one_cluster():
 
     features, a, b = cut_in_two(rng.normal(1.40, 0.06, n))
     assert np.median(a[:, 3]) - np.median(b[:, 3]) > 0.03 / fit_clusters.ETA_SCALE  # the cut's etas differ
-    assert fit_clusters._same_eta_by_albedo(a, b, np.random.default_rng(0))
+    assert fit_clusters.same_eta_by_albedo(a, b, np.random.default_rng(0))
     centres = np.array([a.mean(0), b.mean(0)])
-    assert fit_clusters._eta_cut(features, np.ones(n, bool), centres, np.random.default_rng(0)) is not None
+    assert fit_clusters.find_eta_cut(features, np.ones(n, bool), centres, np.random.default_rng(0)) is not None
     features, a, b = cut_in_two(rng.normal(1.40, 0.06, n), step=0.3)  # two materials, one eta: 6 sd apart
     centres = np.array([features[mode > 0].mean(0), features[mode < 0].mean(0)])
-    assert fit_clusters._same_eta_by_albedo(features[mode > 0], features[mode < 0], np.random.default_rng(0))
-    assert fit_clusters._eta_cut(features, np.ones(n, bool), centres, np.random.default_rng(0)) is None
+    assert fit_clusters.same_eta_by_albedo(features[mode > 0], features[mode < 0], np.random.default_rng(0))
+    assert fit_clusters.find_eta_cut(features, np.ones(n, bool), centres, np.random.default_rng(0)) is None
     _, a, b = cut_in_two(np.where(mode > 0, 1.45, 1.40) + rng.normal(0, 0.06, n))  # two materials: two etas
-    assert not fit_clusters._same_eta_by_albedo(a, b, np.random.default_rng(0))
+    assert not fit_clusters.same_eta_by_albedo(a, b, np.random.default_rng(0))
     one_albedo = fit_clusters.cluster_features(np.where(mode > 0, 1.7, 1.4), np.tile([0.3, 0.25, 0.2], (n, 1))
                                           * np.exp(rng.normal(0, 0.1, (n, 1))))
-    assert not fit_clusters._same_eta_by_albedo(one_albedo[mode > 0], one_albedo[mode < 0], np.random.default_rng(0))
+    assert not fit_clusters.same_eta_by_albedo(one_albedo[mode > 0], one_albedo[mode < 0], np.random.default_rng(0))
 
 
 def test_a_region_is_kept_when_its_cluster_also_takes_scattered_vertices_of_a_similar_albedo():

@@ -111,11 +111,11 @@ def test_random_flat_textures_never_raise(seed):
 def test_degenerate_statistics_helpers():
     rng = np.random.default_rng(0)
     flat = np.tile([1.0, 2.0, 3.0], (100, 1))
-    distances, note = clusters._robust_mahalanobis(flat, np.array([[1.0, 2.0, 3.0], [1.0, 2.0, 4.0]]), rng)
+    distances, note = clusters.robust_mahalanobis(flat, np.array([[1.0, 2.0, 3.0], [1.0, 2.0, 4.0]]), rng)
     assert distances[0] == 0 and distances[1] == pytest.approx(1 / clusters.VARIANCE_FLOOR) and note
     spread = rng.normal(size=(300, 3))
-    distances, note = clusters._robust_mahalanobis(spread, spread[:5], rng)
+    distances, note = clusters.robust_mahalanobis(spread, spread[:5], rng)
     assert note is None and np.all(np.isfinite(distances))
-    assert clusters._separation(np.array([0.0, 0.0, 1.0]), np.zeros((3, 3))) == pytest.approx(2.0)
-    assert clusters._one_mode(np.full(50, 3.0), rng)
-    assert not clusters._same_eta_by_albedo(np.tile([1.0, 1, 1, 30], (20, 1)), np.tile([1.0, 1, 1, 31], (20, 1)), rng)
+    assert clusters.albedo_separation(np.array([0.0, 0.0, 1.0]), np.zeros((3, 3))) == pytest.approx(2.0)
+    assert clusters.one_mode(np.full(50, 3.0), rng)
+    assert not clusters.same_eta_by_albedo(np.tile([1.0, 1, 1, 30], (20, 1)), np.tile([1.0, 1, 1, 31], (20, 1)), rng)

@@ -177,10 +177,10 @@ def test_levenberg_marquardt_agrees_with_scipy_least_squares():
     params, normals, obs, start = _scene(6, seed=8, noise=0.01)
     settings = FitSettings(hold_diffuse_eta=False)
     result = fit_vertices(obs, start, default_prior(6, np.float64), settings)
-    keep, records, frames, z0 = vertex_fit._select_and_prepare(obs, jnp.asarray(start), default_prior(6, np.float64), settings)
-    z0 = fit_solver._best_start(z0, records, frames, settings)
-    residual = jax.jit(lambda z, v, f: fit_residuals._residuals(z, v, f, settings))
-    jacobian = jax.jit(jax.jacfwd(lambda z, v, f: fit_residuals._residuals(z, v, f, settings)))
+    keep, records, frames, z0 = vertex_fit.select_and_prepare(obs, jnp.asarray(start), default_prior(6, np.float64), settings)
+    z0 = fit_solver.pick_best_start(z0, records, frames, settings)
+    residual = jax.jit(lambda z, v, f: fit_residuals.vertex_residuals(z, v, f, settings))
+    jacobian = jax.jit(jax.jacfwd(lambda z, v, f: fit_residuals.vertex_residuals(z, v, f, settings)))
     for i in range(6):
         v = jax.tree_util.tree_map(lambda x: x[i], records)
         f = jax.tree_util.tree_map(lambda x: x[i], frames)
@@ -189,7 +189,7 @@ def test_levenberg_marquardt_agrees_with_scipy_least_squares():
                                         xtol=1e-12, ftol=1e-12, gtol=1e-12)
         their_loss = 2 * theirs.cost
         assert result.loss[i] <= their_loss * 1.01 + 1e-10, (i, result.loss[i], their_loss)
-        their_normal = np.asarray(parameterization._decode(jnp.asarray(theirs.x), f, None)[0])
+        their_normal = np.asarray(parameterization.decode_parameters(jnp.asarray(theirs.x), f, None)[0])
         if result.loss[i] < their_loss * 1.01:  # same minimum: same normal
             assert np.degrees(np.arccos(np.clip(their_normal @ result.normal[i], -1, 1))) < 0.05
 
@@ -203,7 +203,7 @@ def test_specular_nnls_matches_scipy():
         weight = rng.uniform(0.1, 1, k)
         ridge = 1e-3
         prior = rng.uniform(0, 0.5, 4)
-        ours = np.asarray(fit_residuals._nnls_specular(jnp.asarray(a), jnp.asarray(b), jnp.asarray(y), jnp.asarray(weight),
+        ours = np.asarray(fit_residuals.nnls_specular(jnp.asarray(a), jnp.asarray(b), jnp.asarray(y), jnp.asarray(weight),
                                              jnp.asarray(prior), ridge))
         # The same problem as one stacked non-negative least squares, solved by scipy.
         sw = np.sqrt(weight)
@@ -240,13 +240,13 @@ def test_zero_weight_virtual_samples_change_nothing():
     settings = FitSettings()
     virtual = VirtualSamples(theta_h=np.tile(np.radians(np.arange(180) * 0.5), (2, 1)),
                              reflectance=np.full((2, 180, 3), 0.3), weight=np.zeros((2, 180)))
-    _, plain, frames, z0 = vertex_fit._select_and_prepare(obs, jnp.asarray(start), default_prior(2, np.float64), settings)
-    _, zero, _, _ = vertex_fit._select_and_prepare(obs, jnp.asarray(start), default_prior(2, np.float64), settings, virtual)
+    _, plain, frames, z0 = vertex_fit.select_and_prepare(obs, jnp.asarray(start), default_prior(2, np.float64), settings)
+    _, zero, _, _ = vertex_fit.select_and_prepare(obs, jnp.asarray(start), default_prior(2, np.float64), settings, virtual)
     v, w, f = (jax.tree_util.tree_map(lambda x: x[0], r) for r in (plain, zero, frames))
-    r_plain, r_zero = fit_residuals._residuals(z0[0], v, f, settings), fit_residuals._residuals(z0[0], w, f, settings)
+    r_plain, r_zero = fit_residuals.vertex_residuals(z0[0], v, f, settings), fit_residuals.vertex_residuals(z0[0], w, f, settings)
     np.testing.assert_allclose(r_zero[:r_plain.size], r_plain, rtol=1e-12, atol=1e-15)  # sums reordered: round-off
     np.testing.assert_array_equal(r_zero[r_plain.size:], 0)
-    assert fit_solver._free_parameters(FitSettings(fit_normal=False)) == (2, 3, 4)
+    assert fit_solver.free_parameters(FitSettings(fit_normal=False)) == (2, 3, 4)
 
 
 def test_measured_dop_is_unbiased_under_noise():

@@ -1,4 +1,4 @@
-"""Model selection (sellip.fit.selection, DESIGN §7): which lobes a cluster needs, and fitting vertices by model.
+"""Model selection (sellip.fit.selection, docs/design.md §7): which lobes a cluster needs, and fitting vertices by model.
 
 One synthetic scene (the renderer and cameras of test_augment.py: the full model, 40 views within
 25 deg of +z, 0.5 % noise): three materials of 48 surface points each, a quarter of them facing the
@@ -263,9 +263,9 @@ def test_fit_by_model_fits_every_vertex_with_its_model(scene):
                                            *[np.asarray(x)[m] for x in virtual]))
             for a, b in zip(jax_leaves(same), jax_leaves(alone)):
                 np.testing.assert_array_equal(a, b)
-    compiled = solver._lm_rounds._cache_size()
+    compiled = solver.lm_rounds._cache_size()
     mixed = fit_selection.fit_by_model(obs, normals, prior, np.arange(n) % 4, HELD, virtual=virtual)
-    assert solver._lm_rounds._cache_size() == compiled
+    assert solver.lm_rounds._cache_size() == compiled
     assert np.all(mixed.params.rho_s[np.arange(n) % 4 == 0] == 0) and np.all(mixed.params.rho_ss[np.arange(n) % 4 < 2] == 0)
     np.testing.assert_allclose(mixed.params.sigma_ss[np.arange(n) % 4 == 2], 0.9, rtol=1e-12)
     assert np.all(grouped.status == 0) and np.all(grouped.params.rho_ss == 0)

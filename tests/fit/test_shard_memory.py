@@ -111,7 +111,7 @@ def test_an_allocation_that_fails_is_reported_with_the_count_that_fits(tmp_path,
     def exhausted(*args, **kwargs):
         raise MemoryError("Unable to allocate 3.1 GiB for an array")
 
-    monkeypatch.setattr(fit_shard_module, "_fit_rows", exhausted)
+    monkeypatch.setattr(fit_shard_module, "fit_rows", exhausted)
     with pytest.raises(ShardMemoryError) as raised:
         fit_shard_module.fit_shard(store, (0, 1), tmp_path / "x.npz", mem_mb=100_000)
     text = str(raised.value)

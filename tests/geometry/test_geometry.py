@@ -305,7 +305,7 @@ def test_initial_mesh_from_silhouettes(shape):
     cameras = orbit(24)
     masks = coverage_masks(vertices, faces, cameras)
     options = geometry_hull.InitMeshOptions(hull_resolution=64, max_vertices=5000)
-    mesh = geometry_hull.initial_mesh(masks, *camera_arrays(cameras), options)
+    mesh = geometry_hull.hull_mesh(masks, *camera_arrays(cameras), options)
     distances = meshes.mesh_distances(mesh.vertices, mesh.faces, vertices, faces, count=20000)
     assert distances.chamfer < 0.03 * size_of(vertices)
     assert len(mesh.vertices) <= 1.1 * options.max_vertices
@@ -327,14 +327,14 @@ def test_sparse_points_open_a_concavity_the_silhouettes_cannot():
     masks = coverage_masks(vertices, faces, cameras)
     options = geometry_hull.InitMeshOptions(hull_resolution=96, max_vertices=10000)
     camera_args = camera_arrays(cameras)
-    hull_only = geometry_hull.initial_mesh(masks, *camera_args, options)
+    hull_only = geometry_hull.hull_mesh(masks, *camera_args, options)
 
     # Points on the inner surface (z above the floor, inside the inner radius), with the views that see them.
     samples = meshes.surface_samples(vertices, faces, 40000, seed=4)
     inner = samples[np.linalg.norm(samples - [0.0, 0.0, 0.03], axis=1) < 0.0505][:3000]
     views = visible_views(inner, vertices, faces, cameras)
     keep = np.array([len(v) >= 3 for v in views])
-    fused = geometry_hull.initial_mesh(masks, *camera_args, options, sparse_points=inner[keep],
+    fused = geometry_hull.hull_mesh(masks, *camera_args, options, sparse_points=inner[keep],
                                   sparse_views=[v for v, k in zip(views, keep) if k],
                                   sparse_errors=np.zeros(keep.sum()))
     assert fused.stats["hull_points_removed"] > 1000

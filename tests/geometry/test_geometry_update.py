@@ -121,7 +121,7 @@ def test_bumps_converge_from_a_smooth_start():
 
 def test_refine_and_finalize_stages_write_readable_models(tmp_path):
     from sellip.fit import finalize as fit_finalize
-    from sellip.fit import refine as fit_refine
+    from sellip.fit import geometry_jobs
     from sellip.model.params import MODEL_NAMES, ParamsError, read_params, write_params
     from sellip.model.ply import read_param_mesh, read_ply, write_ply
 
@@ -135,7 +135,7 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
     write_params(tmp_path / "params.zarr", arrays)
     write_ply(tmp_path / "sphere.ply", {"x": vertices[:, 0], "y": vertices[:, 1], "z": vertices[:, 2],
                                         "nx": normals[:, 0], "ny": normals[:, 1], "nz": normals[:, 2]}, faces)
-    summary = fit_refine.refine_geometry(tmp_path / "params.zarr", tmp_path / "sphere.ply", tmp_path / "mesh.ply")
+    summary = geometry_jobs.refine_geometry(tmp_path / "params.zarr", tmp_path / "sphere.ply", tmp_path / "mesh.ply")
     mesh = read_param_mesh(tmp_path / "mesh.ply")
     assert summary["vertices"] == mesh.num_vertices == n
     np.testing.assert_array_equal(read_ply(tmp_path / "mesh.ply")[1], faces)
@@ -153,7 +153,7 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
                                        "nx": normals[:-3, 0], "ny": normals[:-3, 1], "nz": normals[:-3, 2]},
               faces[np.all(faces < n - 3, axis=1)])
     with pytest.raises(ParamsError, match="other.ply.*not the same mesh"):
-        fit_refine.refine_geometry(tmp_path / "params.zarr", tmp_path / "sphere.ply", tmp_path / "x.ply",
+        geometry_jobs.refine_geometry(tmp_path / "params.zarr", tmp_path / "sphere.ply", tmp_path / "x.ply",
                                   reference_mesh=tmp_path / "other.ply")
 
     # The final pass fits the final mesh: its store has the mesh's vertices.
@@ -181,7 +181,7 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
     np.testing.assert_array_equal(model_faces, read_ply(tmp_path / "mesh.ply")[1])
     store = read_params(tmp_path / "final" / "params.zarr")
     np.testing.assert_array_equal(store["cluster"], (mesh.vertices[:, 0] > 0).astype(np.int32))
-    # No eta_std in the store: no vertex's own eta is known well enough, each takes its cluster's (DESIGN §7).
+    # No eta_std in the store: no vertex's own eta is known well enough, each takes its cluster's (docs/design.md §7).
     np.testing.assert_array_equal(store["eta_source"], 0)
     np.testing.assert_allclose(store["eta"], np.where(mesh.vertices[:, 0] > 0, 1.6, 1.4), rtol=1e-6)
     np.testing.assert_allclose(model_vertex["eta"], store["eta"], rtol=1e-6)
@@ -323,7 +323,7 @@ def test_the_true_model_predicts_the_photographs_silhouettes(tiny_capture):
     8 views, RMS 0.1 px; the threshold alone puts them 0.2-0.9 px inside the true outline, and a render at the
     HDR resolution without the mosaic 0.13 px outside: docs/geometry_update.md), and a model 1.5 mm low is seen
     1.5 mm low."""
-    from sellip.fit.refine import measure_silhouettes
+    from sellip.fit.geometry_jobs import measure_silhouettes
 
     truth = tiny_capture["truth"]
     for shift_m in (0.0, 0.0015):
@@ -350,7 +350,7 @@ def test_the_prediction_is_the_photograph_of_the_render(tiny_capture):
     from sellip.capture.ingest import develop, make_ingest_plan
     from sellip.capture.reader import read_capture
     from sellip.capture.sensor import sensor_mosaic
-    from sellip.fit.refine import predicted_diffuse, raw_camera
+    from sellip.fit.geometry_jobs import predicted_diffuse, raw_camera
     from sellip.geometry.cameras import load_cameras
     from sellip.model.render import Renderer, flash_light
 
@@ -377,7 +377,7 @@ def test_the_stage_moves_a_displaced_model_onto_the_silhouettes(tiny_capture, tm
     summary says so."""
     import json
 
-    from sellip.fit import refine as fit_refine
+    from sellip.fit import geometry_jobs
     from sellip.fit.observe import read_mesh
     from sellip.model.params import write_params
     from sellip.model.ply import write_ply
@@ -395,7 +395,7 @@ def test_the_stage_moves_a_displaced_model_onto_the_silhouettes(tiny_capture, tm
                   hdr_path=tiny_capture["hdr"], capture_path=tiny_capture["folder"])
     low = []
     for weight in (0.0, 0.1):
-        summary = fit_refine.refine_geometry(tmp_path / "params.zarr", tmp_path / "low.ply", tmp_path / f"{weight}.ply",
+        summary = geometry_jobs.refine_geometry(tmp_path / "params.zarr", tmp_path / "low.ply", tmp_path / f"{weight}.ply",
                                             silhouette=weight, **common)
         low.append(-1e3 * fitted_sphere(read_mesh(tmp_path / f"{weight}.ply").vertices)[0][2])
         assert json.loads((tmp_path / f"{weight}.ply.json").read_text())["silhouette_constraints"] == \

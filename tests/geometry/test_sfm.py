@@ -109,7 +109,7 @@ def test_initial_mesh_from_sfm_poses_and_points(rendered, reconstruction):
     ok = result.registered
     index = np.cumsum(ok) - 1
     views = [index[t] for t in result.tracks]
-    mesh = geometry_hull.initial_mesh(rendered["masks"][ok], rendered["cameras"][0].intrinsics, result.rotations[ok],
+    mesh = geometry_hull.hull_mesh(rendered["masks"][ok], rendered["cameras"][0].intrinsics, result.rotations[ok],
                                  result.translations[ok], geometry_hull.InitMeshOptions(hull_resolution=96,
                                                                                    max_vertices=10000),
                                  result.points, views, result.errors / upscale)

@@ -295,7 +295,7 @@ def test_gradients_are_finite_at_edge_cases(case):
 
 
 def test_full_pbrdf_matches_mitsuba_pplastic():
-    """Our full model (DESIGN §6) against Mitsuba 3's ``pplastic`` BSDF (Baek 2018's pBRDF, GGX), an
+    """Our full model (docs/design.md §6) against Mitsuba 3's ``pplastic`` BSDF (Baek 2018's pBRDF, GGX), an
     independent implementation: Mueller matrices from the flash frame to the camera frame agree for
     random light and view directions, specular and diffuse lobes separately. Mitsuba's diffuse lobe
     has 1/pi (our rho_d does not) and its eval includes the light-side cosine, as our S does at d = 1."""

@@ -52,3 +52,34 @@ def test_a_package_name_that_is_also_a_module_is_always_the_module():
             "from sellip.fit import fit_vertices\nassert callable(fit_vertices)\n")
     subprocess.run([sys.executable, "-c", code], check=True, env={**__import__("os").environ,
                                                                   "PYTHONPATH": str(REPO / "src")})
+
+
+def test_no_file_takes_a_private_name_of_another_module_and_the_packages_list_what_others_take():
+    assert _checker().surface_problems(REPO) == []
+
+
+def test_the_checker_finds_a_private_name_taken_and_a_name_missing_from_the_package_list(tmp_path):
+    src = tmp_path / "src" / "sellip"
+    (src / "fit").mkdir(parents=True)
+    (src / "report").mkdir()
+    (src / "__init__.py").write_text("")
+    (src / "report" / "__init__.py").write_text("")
+    (src / "fit" / "__init__.py").write_text("from sellip._exports import lazy_exports\n"
+                                             "__getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), "
+                                             "{'solver': ('listed',)})\n")
+    (src / "fit" / "solver.py").write_text("def listed():\n    pass\n\ndef unlisted():\n    pass\n\n"
+                                           "def _hidden():\n    pass\n")
+    (src / "fit" / "vertex_fit.py").write_text("from sellip.fit.solver import _hidden, unlisted\n")  # same package
+    (src / "report" / "use.py").write_text("from sellip.fit import listed\nfrom sellip.fit.solver import unlisted\n")
+    (tmp_path / "tests").mkdir()
+    (tmp_path / "tests" / "test_x.py").write_text("from sellip.fit import solver\nsolver._hidden()\n"
+                                                  "setattr(solver, '_hidden', None)\n")
+    found = _checker().surface_problems(tmp_path)
+    assert found == [
+        "src/sellip/fit/vertex_fit.py:1: takes sellip.fit.solver._hidden, a private name of another module "
+        "(make it public)",
+        "src/sellip/report/use.py:2: takes sellip.fit.solver.unlisted from outside sellip.fit, whose __init__ does "
+        "not list it",
+        "tests/test_x.py:2: takes sellip.fit.solver._hidden, a private name of another module (make it public)",
+        "tests/test_x.py:3: takes sellip.fit.solver._hidden, a private name of another module (make it public)",
+    ]

@@ -213,7 +213,7 @@ def test_pose_refinement_joins_the_loop_and_keeps_true_poses(tiny_run, tmp_path_
     finished run (known, exact poses), it aligns every view to iteration 0's model and keeps the poses within a
     fraction of a pixel of the truth."""
     from sellip.geometry.cameras import load_cameras
-    from sellip.report.evaluate import truth_reprojection
+    from sellip.report.figures_of_merit import truth_reprojection
 
     workdir = tmp_path_factory.mktemp("refined")
     shutil.copytree(tiny_run, workdir, symlinks=True, dirs_exist_ok=True)

@@ -1,7 +1,7 @@
-# The final model (DESIGN §4), its renders and its figures of merit (DESIGN §8).
+# The final model (docs/design.md §4), its renders and its figures of merit (docs/design.md §8).
 # The last pass of the loop (iteration ITERATIONS) refits the pBRDF on the final geometry with
 # its normals held (config `final.settings`); finalize_model writes it as model.ply + params.zarr,
-# with each vertex's model (DESIGN §7) from the last pass's store.
+# with each vertex's model (docs/design.md §7) from the last pass's store.
 
 
 rule finalize_model:

@@ -1,7 +1,7 @@
-# Per-vertex fit (DESIGN §2 fit / augment / refit, per iteration and vertex shard) and its gather step.
+# Per-vertex fit (docs/design.md §2 fit / augment / refit, per iteration and vertex shard) and its gather step.
 # Two passes per iteration, one set of rules: `fit` (warm-started from iteration it-1) and, when
 # augmentation is on, `refit` (virtual specular samples from the iteration's cluster lobes).
-# cluster_lobes also chooses each cluster's model (config `model_selection`, DESIGN §7); the refit
+# cluster_lobes also chooses each cluster's model (config `model_selection`, docs/design.md §7); the refit
 # and the next iteration's passes fit every vertex with its model.
 # The numerics live in sellip.fit and sellip.fit; each rule calls one `sellip` command.
 
@@ -32,7 +32,7 @@ def cluster_settings_args(wildcards):
 
 
 def model_selection_args(wildcards):
-    """The model-selection options of `sellip cluster-lobes` from config `model_selection` (DESIGN §7):
+    """The model-selection options of `sellip cluster-lobes` from config `model_selection` (docs/design.md §7):
     candidates are fitted at iteration 0, every `every`-th iteration and the final pass; the others
     inherit their vertices' models (`--inherit-models`)."""
     selection = config["model_selection"]

@@ -1,4 +1,4 @@
-# Geometry bootstrap (DESIGN §2 sfm, mesh_init): camera poses, then the initial mesh.
+# Geometry bootstrap (docs/design.md §2 sfm, mesh_init): camera poses, then the initial mesh.
 # The numerics live in sellip.geometry.sfm and sellip.geometry; each rule calls one `sellip` command
 # (sellip.stages.sfm, sellip.stages.init_mesh). sfm.mode decides whether poses.csv is used
 # as is (known), checked against SfM (verify), or ignored (sfm); see docs/geometry.md.

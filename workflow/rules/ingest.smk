@@ -1,4 +1,4 @@
-# Ingest (DESIGN §2): raw frames -> linear analyzer images -> one HDR image per view, plus previews.
+# Ingest (docs/design.md §2): raw frames -> linear analyzer images -> one HDR image per view, plus previews.
 # The numerics live in sellip.capture.ingest; each rule calls one `sellip` command (sellip.stages.*).
 
 

@@ -1,4 +1,4 @@
-# Observations (DESIGN §2 observe, per iteration): for every vertex of iteration {it}'s mesh and
+# Observations (docs/design.md §2 observe, per iteration): for every vertex of iteration {it}'s mesh and
 # every view, visibility, bilinear HDR samples (I_d, I_alpha, I_s) and the geometry the fit needs.
 # The numerics live in sellip.fit.observe; the rule calls `sellip observe` (sellip.stages.observe).
 # The store is bulky (65 B per vertex and view before compression) and cheap to rebuild: temp().

@@ -1,4 +1,4 @@
-# Synthetic captures with ground truth (sellip synth, DESIGN §3). The built-in demo capture
+# Synthetic captures with ground truth (sellip synth, docs/design.md §3). The built-in demo capture
 # (config `demo`) is made here when `capture` is empty; any scene can be built by asking for
 # captures/<scene>/capture.yaml. capture.yaml appears last: the folder is written whole or not at all.
 

@@ -5,61 +5,51 @@ Snakemake runs of the workflow, runs them and tabulates what they measured (docs
 
 Modules and what they export (each name is importable from here too)::
 
-    calibration: How careful a calibration must be, on whole reconstructions (issue #39 item 7): the workflow run on
-      one synthetic capture of ``sphere_ior`` shot by the synthetic device of ``sellip synth-calibration``, once per
+    calibration: How careful a calibration must be, on whole reconstructions (issue #39 item 7): the workflow run on one
+      synthetic capture of ``sphere_ior`` shot by the synthetic device of ``sellip synth-calibration``, once per
       description of that device: the truth (with two noise seeds, the noise floor), the truth with one error put in
       (flash position, flash polarizer angle, fx, a colour matrix from a noisy chart), and the description ``sellip
-      calibrate`` measured on a synthetic calibration set of the same device (docs/calibration.md, "How careful to
-      be")
-        DEVICE_WIDTH_PX, Perturbation, FULL_SIZE_ERRORS, PERTURBATIONS, CHART_NOISE_SCALE, perturb_description,
-        perturbed_capture, noisy_chart_matrix, calibrate_synthetic_set, description_errors, sensitivity_config,
-        sensitivity_row, sensitivity_markdown, run_sensitivity
+      calibrate`` measured on a synthetic calibration set of the same device (docs/calibration.md, "How careful to be")
+        FULL_SIZE_ERRORS, PERTURBATIONS, perturb_description, perturbed_capture, noisy_chart_matrix, description_errors,
+        sensitivity_markdown, run_sensitivity
     ladder: The accuracy ladder (docs/accuracy.md): where the error of a reconstruction enters, rung by rung
         render_hdr, fit_true_mesh, figures, resampled_truth, psnr_ceiling
-    renderers: Both renderers side by side (issue #36): the figures of runs on captures of the same scenes rendered
-      by sellip and by Mitsuba 3 (stability-suite cases, :mod:`sellip.bench.stability`), with the share of vertices
-      that got a single-scattering lobe their ground truth does not have
-        single_scattering_shares, false_single_scattering, renderer_row, renderer_markdown, main
-    replay: The command line shared by the replay benchmarks (``benchmarks/replay_*.py``): a run's results folder,
-      one of its passes and the capture's ground truth
+    renderers: Both renderers side by side (issue #36): the figures of runs on captures of the same scenes rendered by
+      sellip and by Mitsuba 3 (stability-suite cases, :mod:`sellip.bench.stability`), with the share of vertices that
+      got a single-scattering lobe their ground truth does not have
+        single_scattering_shares, false_single_scattering, renderer_markdown
+    replay: The command line shared by the replay benchmarks (``benchmarks/replay_*.py``): a run's results folder, one
+      of its passes and the capture's ground truth
         replay_parser, ignore_snakemake_zarr_warnings
     scale: How each stage's cost grows with the capture (issue #20): per-job costs of measured workflow runs, a cost
       model fitted to them, and the time it predicts for a capture that was not run (docs/speed.md, "Scale")
-        RULE_TERMS, ITERATED_RULES, SHARDED_RULES, CaptureSize, size_terms, job_costs, rule_costs, fit_cost_model,
-        predict
+        CaptureSize, size_terms, job_costs, rule_costs, fit_cost_model, predict
     silhouettes: How well the silhouettes of a run's photographs match the true ones: the ground-truth mesh ray-cast
       through each pixel centre of the capture's true cameras, against
       :func:`sellip.geometry.silhouettes.silhouette_masks` of the run's HDR views under several cuts
       (``benchmarks/silhouette_iou.py``; docs/geometry.md quotes it)
         agreement, silhouette_agreement, cut_difference
     stability: The stability suite (issue #9): small reconstructions built to hit the known failure modes
-        BASE_VIEWS, BASE_SEED, PERTURB_SEED, StabilityError, CASES, CASE_NAMES, held_out_views, base_config,
-        case_config, perturb_along_normals, perturb_mesh_file, miscalibrate_flash, damage_frames, snakemake_command,
-        failure_reason, run_case, missing_packages, write_tables, run_suite
+        BASE_VIEWS, StabilityError, CASES, CASE_NAMES, held_out_views, case_config, perturb_along_normals,
+        perturb_mesh_file, miscalibrate_flash, damage_frames, snakemake_command, failure_reason, missing_packages,
+        run_suite
     stability_table: The stability suite's measurements: one row per case from its results folder (figures of merit,
       non-finite outputs, how well confidence flags bad vertices), the table's schema, and the markdown tables of
       docs/benchmarks.md
-        Case, BAD_NORMAL_DEG, BAD_ETA_PCT, LOW_CONFIDENCE, rank_auc, confidence_flagging, INFINITE_WHEN_UNKNOWN,
-        nonfinite_outputs, COLUMNS, empty_row, case_row, validate_table, stability_markdown
+        Case, rank_auc, confidence_flagging, nonfinite_outputs, COLUMNS, case_row, validate_table
     sweep: Speed-accuracy sweep of the whole workflow (issue #9): one factor at a time from a base configuration
-        UPSTREAM_RULES, UPSTREAM_OUTPUTS, link_upstream, cache_entries, SnakemakeRunner, xla_compile_seconds,
-        RECOMPILE_FRACTION, RECORD, SweepPaths, prepare_scene, run_variant, run_sweep
+        UPSTREAM_RULES, UPSTREAM_OUTPUTS, link_upstream, SnakemakeRunner, xla_compile_seconds, RECORD, run_sweep
     sweep_plan: What the speed-accuracy sweep varies (:class:`Factor`, the presets), the nested-config helpers (get,
       set, merge, the defaults of config/config.yaml) and the plan of runs (:class:`Variant`, one per factor value and
       scene), with the checkout (``REPO``) whose Snakefile runs them and the sweep's error
-        REPO, SweepError, Factor, FACTORS, SCENE_FACTORS, PRESETS, get_key, set_key, merge, load_defaults,
-        value_label, Variant, plan_variants, variant_overrides
-    sweep_report: The sweep's report (``sellip bench-sweep``): η per material of a run's results against the truth,
-      the vertices per model, and the markdown tables and files the sweep writes (:func:`write_outputs`)
-        ior_of_results, SWEEP_MD, IOR_MD, AUG_MD, SIGMA_MD, MODEL_MD, vertex_models, tables_markdown, write_outputs,
-        write_csv
-    sweep_tables: The sweep's results: Pareto front, the table (one row per run, pandera-checked), the speed-
-      accuracy chart, the paper's comparisons (Table 1 eta, augmentation, sigma_ss, model selection) and markdown
-      tables
-        pareto_front, TIME_RULES, FIGURES, SWEEP_COLUMNS, TIME_AXIS, job_cpu_seconds, sweep_row, sweep_schema,
-        sweep_table, CHART_FIGURES, sweep_figure, front_marks, PAPER_TABLE1, PAPER_TABLE1_AVERAGE_PCT,
-        PAPER_AUGMENTATION_PSNR_DB, PAPER_SIGMA_SS_PSNR_DB, PAPER_SIGMA_SS_SAVING_PCT, ior_table,
-        augmentation_table, sigma_ss_table, model_selection_table, markdown_table
+        SweepError, Factor, FACTORS, PRESETS, get_key, set_key, merge, Variant, plan_variants, variant_overrides
+    sweep_report: The sweep's report (``sellip bench-sweep``): η per material of a run's results against the truth, the
+      vertices per model, and the markdown tables and files the sweep writes (:func:`write_outputs`)
+        tables_markdown, write_outputs, write_csv
+    sweep_tables: The sweep's results: Pareto front, the table (one row per run, pandera-checked), the speed- accuracy
+      chart, the paper's comparisons (Table 1 eta, augmentation, sigma_ss, model selection) and markdown tables
+        pareto_front, SWEEP_COLUMNS, job_cpu_seconds, sweep_row, sweep_table, sweep_figure, front_marks, PAPER_TABLE1,
+        ior_table, augmentation_table, sigma_ss_table, model_selection_table, markdown_table
 
 See docs/architecture.md for what this package owns and what it may import.
 """
@@ -67,32 +57,24 @@ See docs/architecture.md for what this package owns and what it may import.
 from sellip._exports import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
-    "calibration": ("DEVICE_WIDTH_PX", "Perturbation", "FULL_SIZE_ERRORS", "PERTURBATIONS", "CHART_NOISE_SCALE",
-           "perturb_description", "perturbed_capture", "noisy_chart_matrix", "calibrate_synthetic_set",
-           "description_errors", "sensitivity_config", "sensitivity_row", "sensitivity_markdown", "run_sensitivity"),
+    "calibration": ("FULL_SIZE_ERRORS", "PERTURBATIONS", "perturb_description", "perturbed_capture",
+           "noisy_chart_matrix", "description_errors", "sensitivity_markdown", "run_sensitivity"),
     "ladder": ("render_hdr", "fit_true_mesh", "figures", "resampled_truth", "psnr_ceiling"),
-    "renderers": ("single_scattering_shares", "false_single_scattering", "renderer_row", "renderer_markdown", "main"),
+    "renderers": ("single_scattering_shares", "false_single_scattering", "renderer_markdown"),
     "replay": ("replay_parser", "ignore_snakemake_zarr_warnings"),
-    "scale": ("RULE_TERMS", "ITERATED_RULES", "SHARDED_RULES", "CaptureSize", "size_terms", "job_costs", "rule_costs",
-           "fit_cost_model", "predict"),
+    "scale": ("CaptureSize", "size_terms", "job_costs", "rule_costs", "fit_cost_model", "predict"),
     "silhouettes": ("agreement", "silhouette_agreement", "cut_difference"),
-    "stability": ("BASE_VIEWS", "BASE_SEED", "PERTURB_SEED", "StabilityError", "CASES", "CASE_NAMES", "held_out_views",
-           "base_config", "case_config", "perturb_along_normals", "perturb_mesh_file", "miscalibrate_flash",
-           "damage_frames", "snakemake_command", "failure_reason", "run_case", "missing_packages", "write_tables",
-           "run_suite"),
-    "stability_table": ("Case", "BAD_NORMAL_DEG", "BAD_ETA_PCT", "LOW_CONFIDENCE", "rank_auc", "confidence_flagging",
-           "INFINITE_WHEN_UNKNOWN", "nonfinite_outputs", "COLUMNS", "empty_row", "case_row", "validate_table",
-           "stability_markdown"),
-    "sweep": ("UPSTREAM_RULES", "UPSTREAM_OUTPUTS", "link_upstream", "cache_entries", "SnakemakeRunner",
-           "xla_compile_seconds", "RECOMPILE_FRACTION", "RECORD", "SweepPaths", "prepare_scene", "run_variant",
-           "run_sweep"),
-    "sweep_plan": ("REPO", "SweepError", "Factor", "FACTORS", "SCENE_FACTORS", "PRESETS", "get_key", "set_key", "merge",
-           "load_defaults", "value_label", "Variant", "plan_variants", "variant_overrides"),
-    "sweep_report": ("ior_of_results", "SWEEP_MD", "IOR_MD", "AUG_MD", "SIGMA_MD", "MODEL_MD", "vertex_models",
-           "tables_markdown", "write_outputs", "write_csv"),
-    "sweep_tables": ("pareto_front", "TIME_RULES", "FIGURES", "SWEEP_COLUMNS", "TIME_AXIS", "job_cpu_seconds", "sweep_row",
-           "sweep_schema", "sweep_table", "CHART_FIGURES", "sweep_figure", "front_marks", "PAPER_TABLE1",
-           "PAPER_TABLE1_AVERAGE_PCT", "PAPER_AUGMENTATION_PSNR_DB", "PAPER_SIGMA_SS_PSNR_DB",
-           "PAPER_SIGMA_SS_SAVING_PCT", "ior_table", "augmentation_table", "sigma_ss_table",
+    "stability": ("BASE_VIEWS", "StabilityError", "CASES", "CASE_NAMES", "held_out_views", "case_config",
+           "perturb_along_normals", "perturb_mesh_file", "miscalibrate_flash", "damage_frames", "snakemake_command",
+           "failure_reason", "missing_packages", "run_suite"),
+    "stability_table": ("Case", "rank_auc", "confidence_flagging", "nonfinite_outputs", "COLUMNS", "case_row",
+           "validate_table"),
+    "sweep": ("UPSTREAM_RULES", "UPSTREAM_OUTPUTS", "link_upstream", "SnakemakeRunner", "xla_compile_seconds",
+           "RECORD", "run_sweep"),
+    "sweep_plan": ("SweepError", "Factor", "FACTORS", "PRESETS", "get_key", "set_key", "merge", "Variant",
+           "plan_variants", "variant_overrides"),
+    "sweep_report": ("tables_markdown", "write_outputs", "write_csv"),
+    "sweep_tables": ("pareto_front", "SWEEP_COLUMNS", "job_cpu_seconds", "sweep_row", "sweep_table", "sweep_figure",
+           "front_marks", "PAPER_TABLE1", "ior_table", "augmentation_table", "sigma_ss_table",
            "model_selection_table", "markdown_table"),
 })

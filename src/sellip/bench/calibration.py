@@ -132,7 +132,7 @@ def noisy_chart_matrix(device: Mapping, noise_scale: float = CHART_NOISE_SCALE, 
     device = copy.deepcopy(dict(device))
     width = int(device["sensor"]["width"])
     rng = np.random.default_rng([seed, 30])
-    rotation = synthetic._look_at(np.zeros(3), 10.0, rng)
+    rotation = synthetic.look_at(np.zeros(3), 10.0, rng)
     distance = 1.1 * 6 * synthetic.CHART_PATCH_M * device["camera"]["fx"] / (0.8 * width)
     translation = np.array([0.0, 0.0, distance]) - rotation @ synthetic.chart_corners_board().mean(axis=0)
     analyzers = synthetic.render_chart(device, rotation, translation)
@@ -140,7 +140,7 @@ def noisy_chart_matrix(device: Mapping, noise_scale: float = CHART_NOISE_SCALE, 
     sensor = sensor_from_device(device["sensor"], device["camera"]["color_matrix"]).with_noise_scale(noise_scale)
     raw = simulate_raw(analyzers, sensor, 0.6 * white / float(np.percentile(analyzers, 99.9)),
                        np.random.default_rng([seed, 31]))
-    corners = synthetic._project(device, synthetic.chart_corners_board() @ rotation.T + translation)
+    corners = synthetic.project(device, synthetic.chart_corners_board() @ rotation.T + translation)
     result = calibrate_color(raw, device, corners)
     return np.asarray(result.matrix), float(np.mean(result.delta_e))
 

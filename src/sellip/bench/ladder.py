@@ -114,7 +114,7 @@ def figures(fit: dict, truth) -> dict:
     eta per true material (median of its vertices, paper Table 1) and per vertex, normal error."""
     from sellip.fit.records import STATUS_FITTED
     from sellip.geometry.meshes import angular_error_deg
-    from sellip.report.evaluate import eta_per_material
+    from sellip.report.figures_of_merit import eta_per_material
 
     fitted = np.asarray(fit["status"]) == STATUS_FITTED
     if not fitted.any():

@@ -10,7 +10,7 @@ Public API::
     fit_cost_model(runs) -> DataFrame         # per rule: term, a + b * term for once_s, per_iteration_s, max_rss_mb
     predict(model, size, iterations, cores, shards) -> DataFrame   # per rule: job time and critical-path time
 
-A run's iterations are 0 .. I-1 and the final pass I (DESIGN §4). Iteration 0 and the final pass compile what a
+A run's iterations are 0 .. I-1 and the final pass I (docs/design.md §4). Iteration 0 and the final pass compile what a
 later iteration loads from the cache, and the final pass has no geometry update, so a rule's cost is split into
 ``once_s`` (its one-off jobs, iteration 0 and the final pass) and ``per_iteration_s`` (the mean of the iterations
 1 .. I-1): a run of I iterations costs ``once_s + (I - 1) * per_iteration_s``.

@@ -30,7 +30,7 @@ Public API::
 
 Confidence flagging (per case, over every vertex of final/model.ply): a vertex is *bad* when its normal
 is more than ``bad_above`` (10°) from the normal of its nearest ground-truth vertex
-(:func:`sellip.report.evaluate.vertex_errors`), *flagged* when its confidence is below ``low_below`` (0.5).
+(:func:`sellip.report.figures_of_merit.vertex_errors`), *flagged* when its confidence is below ``low_below`` (0.5).
 ``bad_flagged`` = flagged share of the bad vertices (recall); ``flagged_bad`` = bad share of the flagged
 vertices (precision); ``auc`` = the probability that a random bad vertex has a lower confidence than a
 random good one (ties count one half): 0.5 is a confidence that knows nothing, 1 a perfect ranking.
@@ -52,7 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sellip.bench.stability_table import Case, _fmt, case_row, stability_markdown, validate_table
+from sellip.bench.stability_table import Case, format_cell, case_row, stability_markdown, validate_table
 from sellip.bench.sweep_plan import merge
 
 log = logging.getLogger(__name__)
@@ -404,8 +404,8 @@ def run_suite(cases: Sequence[Case], out: str | Path, snakefile: str | Path, cor
         rows.append(row)
         log.info("[%d/%d] %s: %s in %.0f s (CPU %s s); normal median %s deg, eta median %s %%, finite %s, "
                  "bad flagged %s", index, len(cases), case.name, row["status"], row["wall_s"],
-                 _fmt(row["cpu_s"], 0), _fmt(row["normal_median_deg"], 2), _fmt(row["eta_median_pct"]),
-                 row["outputs_finite"], _fmt(row["bad_flagged"], percent=True))
+                 format_cell(row["cpu_s"], 0), format_cell(row["normal_median_deg"], 2), format_cell(row["eta_median_pct"]),
+                 row["outputs_finite"], format_cell(row["bad_flagged"], percent=True))
         if row["status"] != "ok":
             log.warning("%s failed: %s (see %s)", case.name, row["error"], workdir / "snakemake.log")
     write_tables(rows, out)

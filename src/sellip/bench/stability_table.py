@@ -205,7 +205,7 @@ def case_row(case: Case, workdir: str | Path, wall_s: float, error: str | None =
     ``error``: why the run failed (the row then has status "failed" and whatever outputs exist)."""
     from sellip.capture.files import GROUND_TRUTH_MESH
     from sellip.model.ply import read_param_mesh, read_ply
-    from sellip.report.evaluate import vertex_errors
+    from sellip.report.figures_of_merit import vertex_errors
 
     workdir = Path(workdir)
     results = workdir / "results" / case.name
@@ -281,7 +281,7 @@ def validate_table(rows: Sequence[Mapping]):
     return _schema().validate(table, lazy=True)
 
 
-def _fmt(value, digits: int = 1, percent: bool = False) -> str:
+def format_cell(value, digits: int = 1, percent: bool = False) -> str:
     if value is None or (isinstance(value, float) and not np.isfinite(value)):
         return "–"
     return f"{100 * value:.0f} %" if percent else f"{value:.{digits}f}"
@@ -307,23 +307,23 @@ def stability_markdown(table) -> str:
     for row in records:
         status = "ok" if row["status"] == "ok" else f"**failed**: {row['error'][:160]}"
         merit.append([
-            row["case"], row["breaks"], status, _fmt(row["views"], 0), _fmt(row["vertices"], 0),
-            " / ".join(_fmt(row[k]) for k in ("normal_mean_deg", "normal_median_deg", "normal_p90_deg")),
-            _fmt(row["eta_median_pct"]),
-            " / ".join(_fmt(row[k], 2) for k in ("eta_material_mean_pct", "eta_material_max_pct")),
-            _fmt(row["rho_d_rmse"], 2), _fmt(row["sigma_s_median_err"], 2),
-            f"{_fmt(row['chamfer_mm'], 2)} / {_fmt(row['hausdorff_mm'], 1)}", _fmt(row["psnr_held_out_db"]),
-            _fmt(row["psnr_new_light_db"]), f"{_fmt(row['wall_s'], 0)} / {_fmt(row['cpu_s'], 0)}"])
+            row["case"], row["breaks"], status, format_cell(row["views"], 0), format_cell(row["vertices"], 0),
+            " / ".join(format_cell(row[k]) for k in ("normal_mean_deg", "normal_median_deg", "normal_p90_deg")),
+            format_cell(row["eta_median_pct"]),
+            " / ".join(format_cell(row[k], 2) for k in ("eta_material_mean_pct", "eta_material_max_pct")),
+            format_cell(row["rho_d_rmse"], 2), format_cell(row["sigma_s_median_err"], 2),
+            f"{format_cell(row['chamfer_mm'], 2)} / {format_cell(row['hausdorff_mm'], 1)}", format_cell(row["psnr_held_out_db"]),
+            format_cell(row["psnr_new_light_db"]), f"{format_cell(row['wall_s'], 0)} / {format_cell(row['cpu_s'], 0)}"])
         finite = "yes" if row["outputs_finite"] else f"**no**: {row['nonfinite'][:120]}"
         flags.append([
-            row["case"], finite, _fmt(row["confident_share"], percent=True), _fmt(row["confidence_median"], 2),
-            _fmt(row["flagged_share"], percent=True),
+            row["case"], finite, format_cell(row["confident_share"], percent=True), format_cell(row["confidence_median"], 2),
+            format_cell(row["flagged_share"], percent=True),
             f"{_share_count(row['bad_share'], row['vertices'])} / "
-            + " / ".join(_fmt(row[k], percent=True) for k in ("bad_flagged", "flagged_bad")),
-            _fmt(row["auc"], 2), _fmt(row["worst_auc"], 2),
+            + " / ".join(format_cell(row[k], percent=True) for k in ("bad_flagged", "flagged_bad")),
+            format_cell(row["auc"], 2), format_cell(row["worst_auc"], 2),
             f"{_share_count(row['eta_bad_share'], row['vertices'])} / "
-            + " / ".join(_fmt(row[k], percent=True) for k in ("eta_bad_flagged", "eta_flagged_bad")),
-            _fmt(row["eta_auc"], 2), _fmt(row["eta_worst_auc"], 2)])
+            + " / ".join(format_cell(row[k], percent=True) for k in ("eta_bad_flagged", "eta_flagged_bad")),
+            format_cell(row["eta_auc"], 2), format_cell(row["eta_worst_auc"], 2)])
     lines = ["Figures of merit (metrics.json of each run):", ""]
     lines += _markdown(["case", "broken", "status", "views", "vertices", "normal mean / median / p90 (°)",
                         "η per vertex, median (%)", "η per material, mean / worst (%)", "ρ_d rel. RMSE",

@@ -62,7 +62,7 @@ from sellip.bench.sweep_plan import (
     value_label,
     variant_overrides,
 )
-from sellip.bench.sweep_tables import FIGURES, _dig
+from sellip.bench.sweep_tables import FIGURES, metric_at
 from sellip.jobs import write_text
 
 log = logging.getLogger(__name__)
@@ -262,7 +262,7 @@ def prepare_scene(scene: str, preset: str, paths: SweepPaths, runner: Callable) 
 def _figures(folder: Path) -> dict:
     """The FIGURES of a run's metrics.json (None where missing)."""
     metrics = json.loads((folder / "metrics.json").read_text())
-    return {column: _dig(metrics, path) for column, (path, _, _) in FIGURES.items()}
+    return {column: metric_at(metrics, path) for column, (path, _, _) in FIGURES.items()}
 
 
 def run_variant(variant: Variant, preset: str, paths: SweepPaths, runner: Callable, upstream: dict,

@@ -21,7 +21,7 @@ def ior_of_results(results: Path, capture: Path):
     from sellip.capture.files import GROUND_TRUTH_MESH
     from sellip.geometry.alignment import Similarity
     from sellip.model.ply import read_param_mesh
-    from sellip.report.evaluate import transform_mesh
+    from sellip.report.figures_of_merit import transform_mesh
     from sellip.report.metrics import confident_vertices
 
     model_path, params_path = results / "final" / "model.ply", results / "final" / "params.zarr"

@@ -76,7 +76,7 @@ TIME_AXIS = "cpu_s"
 it hardly depends on what else the (shared) machine runs."""
 
 
-def _dig(metrics: dict, path: tuple[str, ...]):
+def metric_at(metrics: dict, path: tuple[str, ...]):
     node = metrics
     for part in path:
         if not isinstance(node, dict) or node.get(part) is None:
@@ -124,7 +124,7 @@ def sweep_row(variant: Variant, metrics: dict, record: dict, preset: str, cpu: d
     for column, rule in TIME_RULES.items():
         row[column] = float(rules[rule]["s"]) if rule in rules else np.nan
     for column, (path, _, _) in FIGURES.items():
-        value = _dig(metrics, path)
+        value = metric_at(metrics, path)
         row[column] = np.nan if value is None else float(value)
     return {column: row[column] for column in SWEEP_COLUMNS}
 

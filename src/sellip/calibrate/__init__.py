@@ -1,4 +1,4 @@
-"""Calibration of a real device (DESIGN §3, paper §6): what ``sellip calibrate`` computes.
+"""Calibration of a real device (docs/design.md §3, paper §6): what ``sellip calibrate`` computes.
 
 Public API (raw frames are (H, W) uint16 mosaics; a device is device.yaml's mapping)::
 

@@ -15,7 +15,7 @@ The chart: the four corners of its patch area in raw pixels, dark skin's outer c
 margin). Camera RGB is the demosaiced mean of the four analyzers (s0 / 2 per colour), without any colour
 matrix. The matrix M minimizes sum |M c_i - k r_i|^2 over patches i with the flash's unknown level k (the
 chart's white reads what it reads); it is then scaled so that the neutral patches keep their green level
-(albedos are relative anyway, DESIGN §4). Patches darker than 2 % of full scale in green, or with a clipped
+(albedos are relative anyway, docs/design.md §4). Patches darker than 2 % of full scale in green, or with a clipped
 sample, are left out and named (a chart in shadow: all of them).
 """
 

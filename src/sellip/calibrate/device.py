@@ -1,4 +1,4 @@
-"""device.yaml: a calibrated device (DESIGN §3) -- the sensor, camera and light sections of capture.yaml, plus
+"""device.yaml: a calibrated device (docs/design.md §3) -- the sensor, camera and light sections of capture.yaml, plus
 a ``calibration`` section with each step's residuals and date.
 
 Public API::
@@ -62,7 +62,7 @@ def validate_device(device: Mapping, file_label: str = "device.yaml", complete: 
             if errors:
                 error = min(errors, key=lambda e: list(map(str, e.absolute_path)))
                 error.path.appendleft(section)
-                key, problem = capture_yaml._schema_problem(error)
+                key, problem = capture_yaml.schema_problem(error)
                 raise DeviceError(file_label, f"key '{key}'", problem)
     # The sensor and camera checks of capture.yaml (layouts, levels, an invertible colour matrix), with
     # stand-ins for what a partial device does not have yet.

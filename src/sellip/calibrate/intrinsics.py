@@ -22,7 +22,7 @@ Half-resolution pixel centres (stated once, tested in tests/test_calibrate.py)
     sits at the cell's centre, raw (x, y) = (2j + 0.5, 2i + 0.5), with pixel centres at integer coordinates
     (OpenCV). So a position (x', y') on the intensity image is raw (2x' + 0.5, 2y' + 0.5) (:func:`half_to_raw`),
     the inverse of :func:`sellip.ingest.output_intrinsics` (f' = f / 2, c' = (c - 0.5) / 2). Corners are mapped
-    to raw pixels before OpenCV calibrates, so fx, fy, cx, cy come out in raw-pixel units (DESIGN §3) and
+    to raw pixels before OpenCV calibrates, so fx, fy, cx, cy come out in raw-pixel units (docs/design.md §3) and
     the distortion coefficients (normalized coordinates) need no conversion.
 
 Deterministic

@@ -71,7 +71,7 @@ SHADE_CHUNK = 1 << 18
 
 def true_device(width: int = 2448, height: int = 2048, polarizer_deg: float = 0.0) -> dict:
     """The synthetic device (device.yaml sections sensor, camera, light): the IMX250MYR sensor, the 25 mm lens
-    of DESIGN §3's notes scaled to ``width``, a principal point off the centre, :data:`DEVICE_DISTORTION`,
+    of docs/design.md §3's notes scaled to ``width``, a principal point off the centre, :data:`DEVICE_DISTORTION`,
     the sensor simulator's colour matrix, and the flash 5 cm below the lens."""
     sensor = SensorModel(width=width, height=height)
     f = DEVICE_FX_PX * width / DEVICE_WIDTH_PX
@@ -220,7 +220,7 @@ class BoardSpec:
         return np.where(on_paper, np.where(black, 0.03, 0.8), 0.0)
 
 
-def _project(device: dict, points_cam: np.ndarray) -> np.ndarray:
+def project(device: dict, points_cam: np.ndarray) -> np.ndarray:
     """Raw-pixel (u, v) (..., 2) of camera-coordinate points (..., 3), distortion included."""
     from sellip.model.render import distort_normalized
 
@@ -309,7 +309,7 @@ def board_poses(spec: BoardSpec, device: dict, count: int, rng: np.random.Genera
         target = np.array([rng.uniform(-0.5, 0.5) * half_fov * distance,
                            rng.uniform(-0.5, 0.5) * half_fov * distance * sensor["height"] / sensor["width"], distance])
         translation = target - rotation @ centre
-        pixels = _project(device, spec.outline() @ rotation.T + translation)
+        pixels = project(device, spec.outline() @ rotation.T + translation)
         inside = ((pixels[:, 0] > margin_px) & (pixels[:, 0] < sensor["width"] - margin_px)
                   & (pixels[:, 1] > margin_px) & (pixels[:, 1] < sensor["height"] - margin_px))
         if inside.all():
@@ -393,12 +393,12 @@ def sphere_layouts(device: dict, frames: int, rng: np.random.Generator, radius: 
         ok = True
         for c in centres:
             r_px = cam["fx"] * radius / c[2] * 1.15
-            u, v = _project(device, c)
+            u, v = project(device, c)
             ok &= margin_px + r_px < u < sensor["width"] - margin_px - r_px
             ok &= margin_px + r_px < v < sensor["height"] - margin_px - r_px
         for a in range(len(centres)):
             for b in range(a):
-                pa, pb = _project(device, centres[a]), _project(device, centres[b])
+                pa, pb = project(device, centres[a]), project(device, centres[b])
                 ok &= np.linalg.norm(pa - pb) > cam["fx"] * radius * (1 / centres[a][2] + 1 / centres[b][2]) * 1.3
         if ok:
             layouts.append(centres)
@@ -470,7 +470,7 @@ def expose(analyzers: np.ndarray, device: dict, peak_dn: float, rng: np.random.G
     return simulate_raw(analyzers, _sensor(device), peak_dn / reference, rng)
 
 
-def _look_at(target: np.ndarray, tilt_deg: float, rng: np.random.Generator) -> np.ndarray:
+def look_at(target: np.ndarray, tilt_deg: float, rng: np.random.Generator) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     axis = rng.uniform(0, 2 * np.pi)
@@ -539,13 +539,13 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
             if progress:
                 print(f"spheres {k + 1}/{sphere_frames}", flush=True)
         rng = np.random.default_rng([seed, 30])
-        rotation = _look_at(np.zeros(3), 10.0, rng)
+        rotation = look_at(np.zeros(3), 10.0, rng)
         distance = 1.1 * 6 * CHART_PATCH_M * device["camera"]["fx"] / (0.8 * width)
         translation = np.array([0.0, 0.0, distance]) - rotation @ chart_corners_board().mean(axis=0)
         analyzers = render_chart(device, rotation, translation)
         raw = expose(analyzers, device, 0.6 * white, np.random.default_rng([seed, 31]))
         write_raw_file(tmp / "chart" / f"chart_00{suffix}", raw, device["sensor"])
-        corners = _project(device, chart_corners_board() @ rotation.T + translation)
+        corners = project(device, chart_corners_board() @ rotation.T + translation)
         truth["chart"] = {"file": f"chart_00{suffix}", "corners_px": corners.tolist(),
                           "rotation": rotation.tolist(), "translation_m": translation.tolist()}
         with open(tmp / "sensor.yaml", "w") as f:

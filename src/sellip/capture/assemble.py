@@ -1,4 +1,4 @@
-"""A capture folder (DESIGN §3) from a folder of raw frames and a calibrated device.yaml (``sellip capture new``).
+"""A capture folder (docs/design.md §3) from a folder of raw frames and a calibrated device.yaml (``sellip capture new``).
 
 Public API::
 

@@ -1,4 +1,4 @@
-"""capture.yaml (DESIGN §3): its JSON schema and :func:`validate_config`, which names the key,
+"""capture.yaml (docs/design.md §3): its JSON schema and :func:`validate_config`, which names the key,
 what was expected and what was found.
 """
 
@@ -83,7 +83,7 @@ CONFIG_SCHEMA: dict = {
         },
     },
 }
-"""JSON schema of capture.yaml (DESIGN §3). ``synthetic``, ``calibration``, ``notes`` and ``x_*`` sections are kept
+"""JSON schema of capture.yaml (docs/design.md §3). ``synthetic``, ``calibration``, ``notes`` and ``x_*`` sections are kept
 as they are;
 another top-level key is an error, as inside the sections."""
 
@@ -97,7 +97,7 @@ def _key_path(parts) -> str:
     return ".".join(str(p) for p in parts) or "(top level)"
 
 
-def _schema_problem(error: jsonschema.ValidationError) -> tuple[str, str]:
+def schema_problem(error: jsonschema.ValidationError) -> tuple[str, str]:
     """(key, what was expected) for one jsonschema error."""
     path = list(error.absolute_path)
     if error.validator == "required":
@@ -134,8 +134,8 @@ def validate_config(config: Mapping, file_label: str = CAPTURE_YAML) -> dict:
     errors = sorted(jsonschema.Draft7Validator(CONFIG_SCHEMA).iter_errors(config),
                     key=lambda e: [str(p) for p in e.absolute_path])
     if errors:
-        key, problem = _schema_problem(errors[0])
-        others = [f"key '{k}': {p}" for k, p in map(_schema_problem, errors[1:])]
+        key, problem = schema_problem(errors[0])
+        others = [f"key '{k}': {p}" for k, p in map(schema_problem, errors[1:])]
         raise ConfigError(file_label, f"key '{key}'", problem + more_problems(others))
 
     cfg = {k: (dict(v) if isinstance(v, Mapping) else v) for k, v in config.items()}

@@ -21,7 +21,7 @@ from sellip.model.conventions import camera_center, camera_forward
 
 DISTANCE_TOLERANCE = 4.0
 """The median camera distance may differ from scene.distance_m by this factor either way ("typical camera-object
-distance", DESIGN §3: a rough figure; a millimetre or centimetre mistake is a factor of 1000 or 100)."""
+distance", docs/design.md §3: a rough figure; a millimetre or centimetre mistake is a factor of 1000 or 100)."""
 
 UNIT_MATCH = 1.5
 """A ratio within this factor of a unit's size (UNIT_SIZES) is named as that unit."""
@@ -34,7 +34,7 @@ class PoseUnitsError(CaptureError):
 def camera_distances(rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
     """(V,) distance of each camera centre from the point nearest to all optical axes (least squares).
 
-    rotations (V, 3, 3) and translations (V, 3): cam_from_world poses (COLMAP, DESIGN §3), in any length unit;
+    rotations (V, 3, 3) and translations (V, 3): cam_from_world poses (COLMAP, docs/design.md §3), in any length unit;
     the distances are in that unit. With fewer than two views, or axes that are (nearly) parallel, the point is
     undefined: the distances are then from the centroid of the camera centres (0 for a single view)."""
     rotations = np.asarray(rotations, np.float64)
@@ -79,10 +79,10 @@ def check_pose_units(rotations: np.ndarray, translations: np.ndarray, distance_m
             f"{ratio:.4g} times scene.distance_m = {distance_m:g} m in {capture_label}")
     guess = likely_unit(ratio)
     if guess is None:
-        advice = (f"expected translations in metres (DESIGN §3) within {DISTANCE_TOLERANCE:g}x of scene.distance_m; "
+        advice = (f"expected translations in metres (docs/design.md §3) within {DISTANCE_TOLERANCE:g}x of scene.distance_m; "
                   "check the units of tx, ty, tz and scene.distance_m")
     elif guess[1] == "poses":
-        advice = (f"the translations look like {guess[0]}; poses.csv needs metres (DESIGN §3): divide tx, ty, tz "
+        advice = (f"the translations look like {guess[0]}; poses.csv needs metres (docs/design.md §3): divide tx, ty, tz "
                   f"by {guess[2]:.4g}")
     else:
         advice = (f"scene.distance_m looks like {guess[0]} (it needs metres): {distance_m / guess[2]:.4g} m "

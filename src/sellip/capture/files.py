@@ -1,4 +1,4 @@
-"""The capture folder's file names and columns (DESIGN §3), and the errors every reader raises
+"""The capture folder's file names and columns (docs/design.md §3), and the errors every reader raises
 (:class:`CaptureError` and its kinds: each names the file, and where it applies the row, column or key).
 """
 
@@ -22,7 +22,7 @@ POSE_COLUMNS = ("view_id", "qw", "qx", "qy", "qz", "tx", "ty", "tz")
 
 
 class CaptureError(ValueError):
-    """A capture folder that does not follow DESIGN §3. The message names file, place and expectation."""
+    """A capture folder that does not follow docs/design.md §3. The message names file, place and expectation."""
 
     def __init__(self, file: str, where: str | None, problem: str):
         self.file = str(file)

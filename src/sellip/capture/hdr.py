@@ -1,4 +1,4 @@
-"""The HDR store ``hdr.zarr`` (DESIGN §2 hdr_merge): one HDR image per view and analyzer (I0, I45, I90,
+"""The HDR store ``hdr.zarr`` (docs/design.md §2 hdr_merge): one HDR image per view and analyzer (I0, I45, I90,
 I135, RGB, float32, relative radiance) and its valid mask, merged from a view's flash levels
 (:func:`merge_capture`), and its reader (:func:`read_hdr` -> :class:`HDRImages`).
 """

@@ -1,4 +1,4 @@
-"""Ingest kernels: raw mosaic frames -> linear analyzer images -> one HDR image per view (DESIGN §2, §3).
+"""Ingest kernels: raw mosaic frames -> linear analyzer images -> one HDR image per view (docs/design.md §2, §3).
 
 Pure numpy functions (the only file access is :func:`rawpy_black_level`); the
 stages :mod:`sellip.stages.linearize` and :mod:`sellip.stages.merge_hdr` do the
@@ -491,7 +491,7 @@ def develop(linear: np.ndarray, plan: IngestPlan) -> np.ndarray:
     """A linear mosaic (H, W) float32 (NaN where invalid) -> colour-corrected, undistorted analyzer images
     (H/2, W/2, 4, C) float32: demosaicing, the colour matrix, the remap. What :func:`process_frame` does after
     :func:`linearize`; also what makes a render look like an ingested photograph
-    (:func:`sellip.fit.refine.predicted_diffuse`)."""
+    (:func:`sellip.fit.geometry_jobs.predicted_diffuse`)."""
     images = demosaic(np.asarray(linear, np.float32), plan.demosaic)  # (4, Hc, Wc, C)
     if plan.color_matrix is not None:
         images = apply_color_matrix(images, plan.color_matrix)

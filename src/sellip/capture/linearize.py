@@ -1,4 +1,4 @@
-"""Linearize a capture's raw frames (DESIGN §2 linearize; docs/ingest.md): black and white level,
+"""Linearize a capture's raw frames (docs/design.md §2 linearize; docs/ingest.md): black and white level,
 saturation mask, demosaic into the four analyzer images, colour matrix, undistortion, one store for all
 frames (:func:`linearize_capture`); a bad frame stops with its file and row, or is left out with
 ``bad_frames: skip``.

@@ -371,7 +371,7 @@ class MitsubaRenderer:
         })
 
     def render(self, camera: Camera, light: Light, supersample: int = 2) -> MitsubaResult:
-        """Render one view: Stokes (H, W, 4, 3) per pixel in sellip's camera frame (DESIGN §3)."""
+        """Render one view: Stokes (H, W, 4, 3) per pixel in sellip's camera frame (docs/design.md §3)."""
         import mitsuba as mi
 
         if not np.allclose(np.asarray(light.stokes, np.float64), FLASH_STOKES):

@@ -27,7 +27,7 @@ from sellip.capture.files import (
     ViewWithoutFramesError,
 )
 from sellip.capture.mosaic import MosaicLayout, mosaic_layout
-from sellip.capture.tables import _read_csv, validate_frames, validate_poses
+from sellip.capture.tables import read_csv, validate_frames, validate_poses
 
 # --------------------------------------------------------------------------- reading
 
@@ -37,7 +37,7 @@ class Capture:
     """A validated capture folder.
 
     root: the folder. config: capture.yaml with defaults filled in (see validate_config).
-    frames: frames.csv (columns of DESIGN §3, flash_level/exposure_s float).
+    frames: frames.csv (columns of docs/design.md §3, flash_level/exposure_s float).
     poses: poses.csv or None.
     """
 
@@ -82,7 +82,7 @@ class Capture:
 
 
 def read_capture(path: str | Path, check_raw: bool = False, check_files: bool = True) -> Capture:
-    """Read and validate a capture folder (DESIGN §3).
+    """Read and validate a capture folder (docs/design.md §3).
 
     Checks capture.yaml, frames.csv (and poses.csv if present), that every raw
     file exists (unless ``check_files`` is False: for stages that never read a
@@ -94,16 +94,16 @@ def read_capture(path: str | Path, check_raw: bool = False, check_files: bool = 
     yaml_path, frames_path, poses_path = root / CAPTURE_YAML, root / FRAMES_CSV, root / POSES_CSV
     for needed in (yaml_path, frames_path):
         if not needed.is_file():
-            raise MissingFileError(str(needed), None, "missing; every capture folder needs it (DESIGN §3)")
+            raise MissingFileError(str(needed), None, "missing; every capture folder needs it (docs/design.md §3)")
     try:
         raw_config = yaml.safe_load(yaml_path.read_text())
     except yaml.YAMLError as exc:
         raise ConfigError(str(yaml_path), None, f"not valid YAML ({exc})") from None
     config = validate_config(raw_config, str(yaml_path))
-    frames = validate_frames(_read_csv(frames_path, str(frames_path)), str(frames_path))
+    frames = validate_frames(read_csv(frames_path, str(frames_path)), str(frames_path))
     poses = None
     if poses_path.is_file():
-        poses = validate_poses(_read_csv(poses_path, str(poses_path)), str(poses_path))
+        poses = validate_poses(read_csv(poses_path, str(poses_path)), str(poses_path))
         framed = set(frames["view_id"])
         for i, view in enumerate(poses["view_id"]):
             if view not in framed:

@@ -69,7 +69,7 @@ SCENES = ("demo", "demo_fine", "demo_feathers", "sphere_ior", "tiny", "tiny_dark
 
 DEVICE_WIDTH_PX = 2448
 DEVICE_FX_PX = 7246.0
-"""IMX250 (3.45 um pixels) behind a 25 mm lens: fx at the full sensor width (DESIGN §4 notes)."""
+"""IMX250 (3.45 um pixels) behind a 25 mm lens: fx at the full sensor width (docs/design.md §4 notes)."""
 
 SPHERE_IOR_ETAS = (1.463, 1.485, 1.503, 1.462, 2.295, 1.303, 1.663)
 """Refractive indices of the paper's Table 1, one per wedge of the sphere_ior scene."""

@@ -1,4 +1,4 @@
-"""Sensor simulation: the IMX250MYR colour-polarization mosaic (DESIGN §3) from rendered analyzer images.
+"""Sensor simulation: the IMX250MYR colour-polarization mosaic (docs/design.md §3) from rendered analyzer images.
 
 Public API::
 
@@ -67,7 +67,7 @@ class SensorModel:
         return mosaic_layout(self.polarizer_layout, self.color_layout)
 
     def capture_sensor(self) -> dict:
-        """The ``sensor`` section of capture.yaml (DESIGN §3)."""
+        """The ``sensor`` section of capture.yaml (docs/design.md §3)."""
         black = np.asarray(self.black_level)
         return {
             "width": int(self.width),

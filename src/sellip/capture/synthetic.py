@@ -1,4 +1,4 @@
-"""Synthetic captures with known truth (DESIGN §6; ``sellip synth``): a procedural scene rendered with
+"""Synthetic captures with known truth (docs/design.md §6; ``sellip synth``): a procedural scene rendered with
 the full pBRDF under the polarized flash on a handheld orbit, through the sensor simulator (mosaic, noise,
 quantization) into raw files, frames.csv, capture.yaml, poses.csv and the ground-truth model
 (:func:`synthesize_capture`).

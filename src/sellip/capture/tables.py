@@ -1,4 +1,4 @@
-"""frames.csv and poses.csv (DESIGN §3): pandera schemas and validation that names the file, row
+"""frames.csv and poses.csv (docs/design.md §3): pandera schemas and validation that names the file, row
 and column of every problem.
 """
 
@@ -39,7 +39,7 @@ FRAMES_SCHEMA = pa.DataFrameSchema(
     },
     name="frames.csv",
 )
-"""pandera schema of frames.csv (DESIGN §3)."""
+"""pandera schema of frames.csv (docs/design.md §3)."""
 
 POSES_SCHEMA = pa.DataFrameSchema(
     {
@@ -96,7 +96,7 @@ def _validate_table(table: pd.DataFrame, schema: pa.DataFrameSchema, file_label:
 
 
 def validate_frames(frames: pd.DataFrame, file_label: str = FRAMES_CSV) -> pd.DataFrame:
-    """Check a frames table (DESIGN §3); returns it with float columns coerced.
+    """Check a frames table (docs/design.md §3); returns it with float columns coerced.
 
     Raises FramesError, DuplicateFrameError or FlashLevelError naming row and column.
     """
@@ -115,7 +115,7 @@ def validate_poses(poses: pd.DataFrame, file_label: str = POSES_CSV) -> pd.DataF
     return poses
 
 
-def _read_csv(path: Path, label: str) -> pd.DataFrame:
+def read_csv(path: Path, label: str) -> pd.DataFrame:
     try:
         return pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:

@@ -1,4 +1,4 @@
-"""One augmentation pass (rule ``cluster_lobes``; paper §4.3, DESIGN §7): the material clusters, each
+"""One augmentation pass (rule ``cluster_lobes``; paper §4.3, docs/design.md §7): the material clusters, each
 cluster's model chosen on held-out vertices, each cluster's lobe fitted, written to the cluster-lobes
 directory (:func:`cluster_and_fit_lobes`).
 """
@@ -182,7 +182,7 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
         mark("select")
         eta0 = float(np.median(store["eta"][members]))
         if not np.isfinite(eta0):
-            eta0 = 1.5  # DESIGN §5's start
+            eta0 = 1.5  # docs/design.md §5's start
         model, lobe, choice = _choose_model(cluster, obs, store, rows, eta0, clustering, inherited, allowed, params,
                                             fit_settings, selection, settings, seed, notes)
         if choice is not None:

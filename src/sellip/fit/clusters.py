@@ -1,4 +1,4 @@
-"""Material clusters (paper §4.3, DESIGN §7; docs/augment.md): K-means on the feature (eta, rho_d
+"""Material clusters (paper §4.3, docs/design.md §7; docs/augment.md): K-means on the feature (eta, rho_d
 RGB) of the confidently fitted vertices, K chosen by BIC; small clusters merged; spatially incoherent clusters
 (a cut through one material's noise) merged; regions of another albedo inside a cluster added; a material cut
 along its eta merged. Pure numpy/scikit-learn, no I/O.
@@ -44,7 +44,7 @@ class AugmentSettings:
     # A material occupies a region: a cluster whose vertices' nearest neighbours on the surface lie in it less
     # often than this (on average) is a split of a material's noise, not a material, and is merged; a region of
     # another albedo inside a cluster at least this coherent becomes a cluster (:func:`_region_centres`); and two
-    # clusters that are one material cut along its eta are merged (:func:`_eta_cut`) (0: none of the three;
+    # clusters that are one material cut along its eta are merged (:func:`find_eta_cut`) (0: none of the three;
     # docs/augment.md).
     min_coherence: float = 0.5
     coherence_neighbours: int = 6  # the nearest vertices (3-D) that stand for a vertex's 1-ring
@@ -213,7 +213,7 @@ def _coherence(labels, near) -> np.ndarray:
 
 def _region_centres(features, used, centres, near, settings: AugmentSettings, rng) -> tuple[np.ndarray, list, list]:
     """Centres (K + R, d) with a centre added for each small material that k-means left inside a cluster, one
-    record per added centre, and the notes of clusters whose albedos had no spread (:func:`_robust_mahalanobis`).
+    record per added centre, and the notes of clusters whose albedos had no spread (:func:`robust_mahalanobis`).
 
     BIC does not spend a cluster on a material of 1 % of the surface (the demo's eyes and beak, 67 of 5.7k
     vertices, inside the plumage's cluster), and its median eta then is the plumage's. Per cluster: the albedo
@@ -238,7 +238,7 @@ def _region_centres(features, used, centres, near, settings: AugmentSettings, rn
         albedo = features[members, :3]
         sample = albedo if len(albedo) <= REGION_FIT_POINTS else albedo[rng.choice(len(albedo), REGION_FIT_POINTS,
                                                                                     replace=False)]
-        distances, note = _robust_mahalanobis(sample, albedo, rng, cluster)
+        distances, note = robust_mahalanobis(sample, albedo, rng, cluster)
         notes += [note] if note else []
         outliers = members[distances > threshold]
         if outliers.size < REGION_MIN_SAMPLES:
@@ -270,7 +270,7 @@ def _region_centres(features, used, centres, near, settings: AugmentSettings, rn
 DEGENERATE_VARIANCE = 1e-12  # a robust covariance eigenvalue below this (feature units^2) is no spread at all
 
 
-def _robust_mahalanobis(sample: np.ndarray, x: np.ndarray, rng, cluster: int = -1) -> tuple[np.ndarray, str | None]:
+def robust_mahalanobis(sample: np.ndarray, x: np.ndarray, rng, cluster: int = -1) -> tuple[np.ndarray, str | None]:
     """Squared Mahalanobis distances (n,) of ``x`` (n, d) from the robust Gaussian (scikit-learn ``MinCovDet``) of
     ``sample`` (m, d), and a note when that Gaussian was degenerate (None otherwise).
 
@@ -305,9 +305,9 @@ def _robust_mahalanobis(sample: np.ndarray, x: np.ndarray, rng, cluster: int = -
     return np.sum(projected**2 / values, 1), note
 
 
-def _separation(gap: np.ndarray, pooled: np.ndarray) -> float:
+def albedo_separation(gap: np.ndarray, pooled: np.ndarray) -> float:
     """Mahalanobis length of ``gap`` (d,) under the covariance ``pooled`` (d, d); a direction without spread (two
-    flat colours) counts with ``VARIANCE_FLOOR``, as in :func:`_robust_mahalanobis`, so that a gap along it is
+    flat colours) counts with ``VARIANCE_FLOOR``, as in :func:`robust_mahalanobis`, so that a gap along it is
     large, not ignored."""
     values, vectors = np.linalg.eigh(pooled)
     degenerate = ~(values > DEGENERATE_VARIANCE)
@@ -317,7 +317,7 @@ def _separation(gap: np.ndarray, pooled: np.ndarray) -> float:
     return float(np.sqrt(np.sum(projected**2 / np.where(degenerate, VARIANCE_FLOOR, values))))
 
 
-def _one_mode(x: np.ndarray, rng) -> bool:
+def one_mode(x: np.ndarray, rng) -> bool:
     """Whether the 1-D sample ``x`` (n,) has one mode: a two-component Gaussian mixture fitted to it (at most
     CUT_MODE_POINTS, seeded) has one local maximum between its 0.5th and 99.5th percentiles."""
     from sklearn.mixture import GaussianMixture
@@ -332,7 +332,7 @@ def _one_mode(x: np.ndarray, rng) -> bool:
     return int(np.sum((density[1:-1] > density[:-2]) & (density[1:-1] > density[2:]))) <= 1
 
 
-def _same_eta_by_albedo(A: np.ndarray, B: np.ndarray, rng) -> bool:
+def same_eta_by_albedo(A: np.ndarray, B: np.ndarray, rng) -> bool:
     """Whether the features (n, 4) of two clusters are two albedo modes of one eta: their albedos (chromaticity,
     brightness) projected on the line between the two mean albedos have two modes, and their members split again by
     albedo alone (the nearer of the two mean albedos) have median etas within CUT_ETA_SE standard errors (each
@@ -344,7 +344,7 @@ def _same_eta_by_albedo(A: np.ndarray, B: np.ndarray, rng) -> bool:
     line = B[:, :3].mean(0) - A[:, :3].mean(0)
     if not np.linalg.norm(line) > 0:  # one mean albedo: one albedo mode
         return False
-    if _one_mode(x[:, :3] @ (line / np.linalg.norm(line)), rng):
+    if one_mode(x[:, :3] @ (line / np.linalg.norm(line)), rng):
         return False
     to_a = np.sum((x[:, :3] - A[:, :3].mean(0)) ** 2, 1) <= np.sum((x[:, :3] - B[:, :3].mean(0)) ** 2, 1)
     groups = [x[to_a, 3], x[~to_a, 3]]
@@ -355,12 +355,12 @@ def _same_eta_by_albedo(A: np.ndarray, B: np.ndarray, rng) -> bool:
     return abs(medians[0] - medians[1]) <= CUT_ETA_SE * np.hypot(*se)
 
 
-def _eta_cut(features, used, centres, rng) -> tuple[int, int, float] | None:
+def find_eta_cut(features, used, centres, rng) -> tuple[int, int, float] | None:
     """(keep, drop, separation) for the pair of clusters that is most likely one material cut along its eta noise,
     None when no pair is. A pair is when its mean albedos (chromaticity, brightness) are within CUT_ALBEDO_SD pooled
     standard deviations and its clustered vertices' features, projected on the line between the two centres, have
     one mode; or when they are within CUT_MODES_ALBEDO_SD and are two albedo modes of one eta
-    (:func:`_same_eta_by_albedo`: a textured material, two modes on that line too). k-means cuts a material so when
+    (:func:`same_eta_by_albedo`: a textured material, two modes on that line too). k-means cuts a material so when
     BIC takes more clusters than materials: sphere_ior's eta 1.462 wedge at 98k vertices, two halves at eta 1.507 and
     1.422, 1.97 sd apart in albedo, coherence 0.69 and 0.73, which the coherence test passes; the albedo modes of
     the stability spheres' materials 2.4-4.1 sd apart; two real materials are 5.4 sd apart and more on sphere_ior,
@@ -376,13 +376,13 @@ def _eta_cut(features, used, centres, rng) -> tuple[int, int, float] | None:
                 continue
             pooled = (np.cov(A[:, :3].T) * (len(A) - 1) + np.cov(B[:, :3].T) * (len(B) - 1)) / (len(A) + len(B) - 2)
             gap = A[:, :3].mean(0) - B[:, :3].mean(0)
-            separation = _separation(gap, pooled)
+            separation = albedo_separation(gap, pooled)
             if separation >= CUT_MODES_ALBEDO_SD or (best is not None and separation >= best[2]):
                 continue
             line = B.mean(0) - A.mean(0)
             line = line / np.linalg.norm(line) if np.linalg.norm(line) > 0 else line  # one centre: one mode
-            if (separation < CUT_ALBEDO_SD and _one_mode(np.concatenate([A, B]) @ line, rng)) \
-                    or _same_eta_by_albedo(A, B, rng):
+            if (separation < CUT_ALBEDO_SD and one_mode(np.concatenate([A, B]) @ line, rng)) \
+                    or same_eta_by_albedo(A, B, rng):
                 best = (a, b, separation) if len(A) >= len(B) else (b, a, separation)
     return best
 
@@ -419,7 +419,7 @@ def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings 
     and such a cut's median eta is biased by construction (the demo's plumage: a cluster of 396 of its vertices
     at eta 1.325 against 1.492, coherence 0.34). Before that test, a region of another albedo inside a cluster
     becomes a cluster of its own (:func:`_region_centres`), which that test then leaves (it passed it as a group).
-    Last, two clusters that are one material cut along its eta (:func:`_eta_cut`) are merged, closest first. Every
+    Last, two clusters that are one material cut along its eta (:func:`find_eta_cut`) are merged, closest first. Every
     vertex, also unfitted ones, is labelled with its nearest centre; labels are ordered by cluster size (0 the
     largest).
     Long: the merge rules' finders are closures over the features and the pool; the driver is :func:`_merge_while`.
@@ -468,7 +468,7 @@ def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings 
                 features[used & ((labels == worst) | (labels == into))])
 
     def eta_cut(centres, is_region):
-        cut = _eta_cut(features, used, centres, rng)
+        cut = find_eta_cut(features, used, centres, rng)
         if cut is None:
             return None
         keep, drop, separation = cut

@@ -1,4 +1,4 @@
-"""The final model (rule ``finalize_model``; DESIGN §4): per-material η and lobes with per-vertex deviations
+"""The final model (rule ``finalize_model``; docs/design.md §4): per-material η and lobes with per-vertex deviations
 where a vertex's data demand them, unfitted vertices interpolated from their neighbours, confidence, ``model``:
 ``final/model.ply`` and ``final/params.zarr`` (:func:`finalize_model`).
 """

@@ -50,32 +50,32 @@ class _Samples(NamedTuple):
     """Pooled (vertex, view) samples of one cluster as a one-vertex fit record (J slots) plus what the
     cluster fit adds: normal (J, 3) and rho_d (J, 3) / scale of each sample's vertex."""
 
-    record: fit_residuals._Vertex
+    record: fit_residuals.Vertex
     normal: jnp.ndarray
     rho_d: jnp.ndarray
 
 
 def _solve_spec(terms, target_s, w, prior):
-    """Closed-form (rho_s, rho_ss RGB) (4,) of the cluster fit: exact NNLS (:func:`sellip.fit.residuals._nnls_specular`).
+    """Closed-form (rho_s, rho_ss RGB) (4,) of the cluster fit: exact NNLS (:func:`sellip.fit.residuals.nnls_specular`).
     A lobe the model leaves out has a zero basis (:func:`sellip.fit.residuals._lobe_terms`): its albedo comes out 0,
     and rho_s alone is the clamped 1-D least squares. target_s (J, 3): I_s minus its diffuse part."""
     basis_s, basis_ss = terms["lobe_s"] * terms["r_is"], terms["lobe_ss"] * terms["r_is"]
     ridge = 1e-6 * jnp.maximum(jnp.sum(w * (basis_s**2 + basis_ss**2)), 1e-12)
-    return fit_residuals._nnls_specular(basis_s, basis_ss, target_s, w, prior, ridge)
+    return fit_residuals.nnls_specular(basis_s, basis_ss, target_s, w, prior, ridge)
 
 
 def _cluster_residuals(z, delta, spec, samples: _Samples, settings: FitSettings, lambda_theta):
     """Residual matrix (J, 5) of the cluster fit: DoP, specular RGB, Delta theta_h (paper Eq. 25).
 
-    z (5,) as :func:`sellip.fit.parameterization._decode` (the normal entries unused); delta (J,) radians; spec (4,)
+    z (5,) as :func:`sellip.fit.parameterization.decode_parameters` (the normal entries unused); delta (J,) radians; spec (4,)
     rho_s, rho_ss RGB, or None to solve them (closed form, variable projection). The lobes are
     those of the record's model (``lobe_mask``, ``sigma_ss_fixed``: :func:`_with_model`; a lobe left
     out contributes nothing). Returns (res, spec).
     """
     v = samples.record
-    frame = fit_parameterization._Frame(*(jnp.array([0.0, 0.0, 1.0], z.dtype),) * 3)
-    _, eta, sigma_s, sigma_ss = fit_parameterization._decode(z, frame, fit_residuals._fixed_sigma_ss(v, settings))
-    terms = fit_residuals._model_terms(samples.normal, eta, sigma_s, sigma_ss, v, theta_h_offset=delta, lobes=settings.lobes)
+    frame = fit_parameterization.Frame(*(jnp.array([0.0, 0.0, 1.0], z.dtype),) * 3)
+    _, eta, sigma_s, sigma_ss = fit_parameterization.decode_parameters(z, frame, fit_residuals.fixed_sigma_ss(v, settings))
+    terms = fit_residuals.model_terms(samples.normal, eta, sigma_s, sigma_ss, v, theta_h_offset=delta, lobes=settings.lobes)
     w = v.weight * terms["lit"]
     diffuse_s = samples.rho_d * terms["d_is"][:, None]
     if spec is None:
@@ -93,7 +93,7 @@ def _cluster_residuals(z, delta, spec, samples: _Samples, settings: FitSettings,
 
 
 class _Pool(NamedTuple):
-    """Pooled samples of a cluster (:func:`_pool_samples`): the samples (J slots), the count of real
+    """Pooled samples of a cluster (:func:`pool_samples`): the samples (J slots), the count of real
     ones, the intensity scale they are divided by, and vertex (count,) the row of each real sample."""
 
     samples: _Samples
@@ -102,7 +102,7 @@ class _Pool(NamedTuple):
     vertex: np.ndarray
 
 
-def _pool_samples(obs: Observations, normals, rho_d, settings: FitSettings, max_samples: int,
+def pool_samples(obs: Observations, normals, rho_d, settings: FitSettings, max_samples: int,
                   rng: np.random.Generator) -> _Pool:
     """The usable views (:func:`sellip.fit.vertex_fit.select_views`) of n vertices as J <= max_samples samples,
     padded with weight-0 slots to the power of two at or above ``max_samples``: every cluster has
@@ -115,15 +115,15 @@ def _pool_samples(obs: Observations, normals, rho_d, settings: FitSettings, max_
     # Rows padded to 2048 or a power of two (repeats, cut off after): one compiled view selection serves clusters
     # and pools of any size (each size was a trace and a compile or cache load, 24 per demo job).
     n = len(normals)
-    rows = np.minimum(np.arange(fit_solver._bucket(n, minimum=2048)), max(n - 1, 0))
-    keep = np.asarray(fit_vertex_fit._select(Observations(*[jnp.asarray(np.asarray(x)[rows]) for x in obs]),
+    rows = np.minimum(np.arange(fit_solver.bucket(n, minimum=2048)), max(n - 1, 0))
+    keep = np.asarray(fit_vertex_fit.select_for_normal(Observations(*[jnp.asarray(np.asarray(x)[rows]) for x in obs]),
                                   jnp.asarray(normals[rows]), settings))[:n]
     vertex, view = np.nonzero(keep)
     if vertex.size > max_samples:
         pick = np.sort(rng.choice(vertex.size, max_samples, replace=False))
         vertex, view = vertex[pick], view[pick]
     count = vertex.size
-    size = fit_solver._bucket(max_samples, minimum=256)
+    size = fit_solver.bucket(max_samples, minimum=256)
     index_v = np.resize(vertex, size) if count else np.zeros(size, int)
     index_k = np.resize(view, size) if count else np.zeros(size, int)
     take = lambda x: np.asarray(x)[index_v, index_k]  # noqa: E731
@@ -132,7 +132,7 @@ def _pool_samples(obs: Observations, normals, rho_d, settings: FitSettings, max_
     scale = float(np.median(diffuse[:count].mean(-1))) if count else 1.0
     color = diffuse[:count].sum(0)
     color = color / color.sum() if count and color.sum() > 0 else np.full(3, 1 / 3)
-    record = fit_residuals._Vertex(
+    record = fit_residuals.Vertex(
         obs_d=diffuse / scale, obs_a=take(obs.diffuse_pol) / scale, obs_s=take(obs.specular) / scale,
         to_light=take(obs.to_light), to_camera=take(obs.to_camera), light_distance=take(obs.light_distance),
         camera_up=take(obs.camera_up), light_axis=take(obs.light_axis),
@@ -182,9 +182,9 @@ def _pool_solution(z, delta, samples: _Samples, settings: FitSettings, lambda_th
     the measured lobe value (J,) and its shading R+(theta_d)/R+(0) x S (J,) (their ratio is comparable to
     :func:`lobe_curve`, plotted against theta_h + delta). One compiled kernel, not op-by-op dispatch."""
     res, spec = _cluster_residuals(z, delta, None, samples, settings, lambda_theta)
-    frame = fit_parameterization._Frame(*(jnp.array([0.0, 0.0, 1.0], z.dtype),) * 3)
-    _, eta, sigma_s, sigma_ss = fit_parameterization._decode(z, frame, fit_residuals._fixed_sigma_ss(samples.record, settings))
-    terms = fit_residuals._model_terms(samples.normal, eta, sigma_s, sigma_ss, samples.record, theta_h_offset=delta)
+    frame = fit_parameterization.Frame(*(jnp.array([0.0, 0.0, 1.0], z.dtype),) * 3)
+    _, eta, sigma_s, sigma_ss = fit_parameterization.decode_parameters(z, frame, fit_residuals.fixed_sigma_ss(samples.record, settings))
+    terms = fit_residuals.model_terms(samples.normal, eta, sigma_s, sigma_ss, samples.record, theta_h_offset=delta)
     measured = (samples.record.obs_s - samples.rho_d * terms["d_is"][:, None]) @ samples.record.color
     shading = terms["r_is"] / model_fresnel.fresnel(jnp.ones((), z.dtype), eta).r_plus
     return jnp.sum(res**2), spec, eta, sigma_s, sigma_ss, measured, shading
@@ -225,8 +225,8 @@ def _with_model(samples: _Samples, settings: FitSettings) -> _Samples:
 
 def _free_lobe_parameters(settings: FitSettings) -> list[int]:
     """Indices into z of the cluster fit's nonlinear parameters: eta (2), and sigma_s (3), sigma_ss (4)
-    where the lobe set fits them (:func:`sellip.fit.solver._free_parameters` without the normal)."""
-    return list(fit_solver._free_parameters(dataclasses.replace(settings, fit_normal=False)))
+    where the lobe set fits them (:func:`sellip.fit.solver.free_parameters` without the normal)."""
+    return list(fit_solver.free_parameters(dataclasses.replace(settings, fit_normal=False)))
 
 
 def fit_cluster_lobe(obs: Observations, normals, rho_d, eta0: float, fit_settings: FitSettings | None = None,
@@ -249,10 +249,10 @@ def fit_cluster_lobe(obs: Observations, normals, rho_d, eta0: float, fit_setting
     """
     fit_settings = lobe_fit_settings(fit_settings or FitSettings())
     rng = np.random.default_rng(seed)
-    pool = _pool_samples(obs, normals, rho_d, fit_settings, settings.max_samples, rng)
+    pool = pool_samples(obs, normals, rho_d, fit_settings, settings.max_samples, rng)
     if pool.count == 0:
         raise ValueError("the cluster has no usable (vertex, view) sample")
-    lobe = _fit_pool(pool, eta0, fit_settings, settings)
+    lobe = fit_pool(pool, eta0, fit_settings, settings)
     rows = np.arange(len(normals))  # the vertices the lobe is fitted to
     for _ in range(settings.trim_rounds if fit_settings.lobes != "diffuse" else 0):
         pooled = np.unique(pool.vertex).size
@@ -267,11 +267,11 @@ def fit_cluster_lobe(obs: Observations, normals, rho_d, eta0: float, fit_setting
         if not worst.any():
             break
         rows = rows[~worst]
-        pool = _pool_samples(Observations(*[np.asarray(x)[rows] for x in obs]), np.asarray(normals)[rows],
+        pool = pool_samples(Observations(*[np.asarray(x)[rows] for x in obs]), np.asarray(normals)[rows],
                              np.asarray(rho_d)[rows], fit_settings, settings.max_samples, rng)
         if pool.count == 0:
             break
-        previous, lobe = lobe, _fit_pool(pool, eta0, fit_settings, settings)
+        previous, lobe = lobe, fit_pool(pool, eta0, fit_settings, settings)
         log.info("lobe refit without the %d of %d pooled vertices (%.0f %%) it fit worst: eta %.4f sigma_s %.3f -> "
                  "eta %.4f sigma_s %.3f", int(worst.sum()), pooled, 100 * share, previous.eta, previous.sigma_s,
                  lobe.eta, lobe.sigma_s)
@@ -298,7 +298,7 @@ def _worst_vertices(lobe: ClusterLobe, pool: _Pool, count: int, fit_settings: Fi
     return worst
 
 
-def _fit_pool(pool: _Pool, eta0: float, fit_settings: FitSettings, settings: AugmentSettings) -> ClusterLobe:
+def fit_pool(pool: _Pool, eta0: float, fit_settings: FitSettings, settings: AugmentSettings) -> ClusterLobe:
     """:func:`fit_cluster_lobe` on pooled samples."""
     from scipy.optimize import least_squares
 
@@ -312,7 +312,7 @@ def _fit_pool(pool: _Pool, eta0: float, fit_settings: FitSettings, settings: Aug
     free = _free_lobe_parameters(fit_settings)
     # Start: eta0 with the fit's roughness grid, the lowest loss.
     grid = np.asarray(fit_solver.ROUGHNESS_GRID)
-    starts = np.asarray(fit_parameterization._encode(jnp.full(len(grid), eta0, dtype), jnp.asarray(grid[:, 0], dtype),
+    starts = np.asarray(fit_parameterization.encode_parameters(jnp.full(len(grid), eta0, dtype), jnp.asarray(grid[:, 0], dtype),
                                     jnp.asarray(grid[:, 1], dtype), dtype))
     if fit_settings.lobes == "diffuse":  # no roughness to start from: one start
         starts = starts[:1]
@@ -374,7 +374,7 @@ def lobe_sample_losses(lobe: ClusterLobe, pool: _Pool, fit_settings: FitSettings
     dtype = samples.record.obs_d.dtype
     lambda_theta = jnp.asarray(settings.lambda_theta, dtype)
     max_delta = jnp.asarray(np.radians(settings.max_theta_error_deg), dtype)
-    z = fit_parameterization._encode(jnp.asarray(lobe.eta, dtype), jnp.asarray(lobe.sigma_s, dtype),
+    z = fit_parameterization.encode_parameters(jnp.asarray(lobe.eta, dtype), jnp.asarray(lobe.sigma_s, dtype),
                     jnp.asarray(max(lobe.sigma_ss, lobe.sigma_s + fit_records.LOBE_GAP), dtype), dtype)
     spec = jnp.asarray(np.concatenate([[lobe.rho_s], np.asarray(lobe.rho_ss)]) / pool.scale, dtype)
     delta = jnp.zeros(samples.normal.shape[0], dtype)
@@ -461,7 +461,7 @@ def cluster_medians(value, labels, use, fallback) -> np.ndarray:
 
 def material_or_own(value, value_std, labels, cluster_value, deviation_sigmas: float = 3.0, std_floor: float = 0.01,
                     neighbours=None, min_support: int = 0):
-    """A property of the material, not of the vertex (DESIGN §7: no more model than the scene needs): each
+    """A property of the material, not of the vertex (docs/design.md §7: no more model than the scene needs): each
     vertex takes its cluster's value unless its own fitted value differs from it by more than
     ``deviation_sigmas`` of its own uncertainty, and, with ``neighbours``, at least ``min_support`` of its
     neighbours differ from theirs the same way, by as much: a deviation the data demand is a spot, not one vertex.

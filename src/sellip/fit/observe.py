@@ -1,4 +1,4 @@
-"""Per-vertex, per-view observations for the pBRDF fit (DESIGN §2 observe, §5).
+"""Per-vertex, per-view observations for the pBRDF fit (docs/design.md §2 observe, §5).
 
 Public API::
 

@@ -1,4 +1,4 @@
-"""Observe a mesh in every view (DESIGN §2 observe; rule ``gather_observations``): pair the HDR views
+"""Observe a mesh in every view (docs/design.md §2 observe; rule ``gather_observations``): pair the HDR views
 with the cameras, check the scale, and write the observation store (:func:`observe_mesh`).
 """
 

@@ -33,7 +33,7 @@ def tangent_basis(normal):
     return t1, jnp.cross(normal, t1)
 
 
-class _Frame(NamedTuple):
+class Frame(NamedTuple):
     """Per-vertex constants of the reparameterization."""
 
     normal0: jnp.ndarray  # (3,)
@@ -54,12 +54,12 @@ def eta_at_bound(eta) -> np.ndarray:
     return (eta < ETA_BOUNDS[0] + margin) | (eta > ETA_BOUNDS[1] - margin)
 
 
-def _eta_from(z_eta):
-    """eta from its unconstrained coordinate z[..., 2] (the scaled sigmoid of :func:`_decode`)."""
+def eta_from(z_eta):
+    """eta from its unconstrained coordinate z[..., 2] (the scaled sigmoid of :func:`decode_parameters`)."""
     return ETA_BOUNDS[0] + (ETA_BOUNDS[1] - ETA_BOUNDS[0]) * jax.nn.sigmoid(z_eta)
 
 
-def _decode(z, frame: _Frame, sigma_ss_fixed):
+def decode_parameters(z, frame: Frame, sigma_ss_fixed):
     """Unconstrained z (5,) -> (normal (3,), eta, sigma_s, sigma_ss).
 
     sigma_s in [0.01, 1 - LOBE_GAP]; sigma_ss in [sigma_s + LOBE_GAP, 1]: single scattering is the
@@ -67,7 +67,7 @@ def _decode(z, frame: _Frame, sigma_ss_fixed):
     sigma_ss_fixed: None (free), a number, or a traced scalar (a vertex's model: NaN = free).
     """
     normal = polar.safe_normalize(frame.normal0 + z[0] * frame.t1 + z[1] * frame.t2, fallback=frame.normal0)
-    eta = _eta_from(z[2])
+    eta = eta_from(z[2])
     sigma_s = SIGMA_BOUNDS[0] + (SIGMA_BOUNDS[1] - LOBE_GAP - SIGMA_BOUNDS[0]) * jax.nn.sigmoid(z[3])
     if isinstance(sigma_ss_fixed, (int, float)):
         return normal, eta, sigma_s, jnp.asarray(sigma_ss_fixed, z.dtype)
@@ -79,8 +79,8 @@ def _decode(z, frame: _Frame, sigma_ss_fixed):
     return normal, eta, sigma_s, sigma_ss
 
 
-def _encode(eta, sigma_s, sigma_ss, dtype):
-    """Inverse of :func:`_decode` for the scalar parameters (the normal offset starts at 0)."""
+def encode_parameters(eta, sigma_s, sigma_ss, dtype):
+    """Inverse of :func:`decode_parameters` for the scalar parameters (the normal offset starts at 0)."""
     z_eta = _logit(_to_unit_interval(eta, *ETA_BOUNDS))
     z_s = _logit(_to_unit_interval(sigma_s, SIGMA_BOUNDS[0], SIGMA_BOUNDS[1] - LOBE_GAP))
     sigma_s = jnp.clip(sigma_s, SIGMA_BOUNDS[0], SIGMA_BOUNDS[1] - LOBE_GAP)
@@ -118,7 +118,7 @@ def virtual_reflectance(theta_h, eta, rho_s, sigma_s, rho_ss, sigma_ss):
     return lobe_s[..., None] * rho_s[..., None, None] + lobe_ss[..., None] * rho_ss[..., None, :]
 
 
-class _Virtual(NamedTuple):
+class Virtual(NamedTuple):
     """One vertex's virtual samples, prepared (M of them)."""
 
     geom: object  # pbrdf geometry record, each field (M,): coaxial views at the vertex's flash distance

@@ -23,7 +23,7 @@ ETA_BOUNDS = (1.05, 3.0)
 SIGMA_BOUNDS = (0.01, 1.0)
 LOBE_GAP = 0.1  # sigma_ss >= sigma_s + LOBE_GAP
 LOBE_SETS = ("diffuse", "specular", "full")
-"""The reflection lobes a fit may use (DESIGN §7 model selection): none, the specular lobe, or
+"""The reflection lobes a fit may use (docs/design.md §7 model selection): none, the specular lobe, or
 specular and single scattering (with sigma_ss free, or fixed by ``FitSettings.sigma_ss_fixed``)."""
 
 MODELS = (0, 1, 2, 3)
@@ -38,7 +38,7 @@ DEFAULT_FIXED_SIGMA_SS = 0.9
 class FitSettings:
     """Settings of the per-vertex fit (config section ``fit``)."""
 
-    lambda_psi: float = 100.0  # DESIGN §5 starts at 1; 100 with dimensionless residuals (docs/fit.md)
+    lambda_psi: float = 100.0  # docs/design.md §5 starts at 1; 100 with dimensionless residuals (docs/fit.md)
     lambda_d: float = 100.0
     lambda_s: float = 1.0
     lambda_phi: float = 100.0

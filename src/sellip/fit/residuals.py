@@ -1,4 +1,4 @@
-"""The residuals of one vertex (DESIGN §5): the linear parameters (rho_d RGB, rho_s, rho_ss RGB)
+"""The residuals of one vertex (docs/design.md §5): the linear parameters (rho_d RGB, rho_s, rho_ss RGB)
 solved in closed form with non-negativity inside the residual (variable projection), then
 
     lambda_psi  sum_k w_k (psi_hat(theta_o, eta) - psi_k)^2          (DoP)
@@ -8,7 +8,7 @@ solved in closed form with non-negativity inside the residual (variable projecti
 
 with view weights w_k = v_k / sum(v) and every intensity divided by the vertex's own diffuse level
 (dimensionless). psi_k = G_k / I_d,k with G = sqrt(I_alpha^2 + I_beta^2) on the colour-weighted mono signals,
-I_beta = I_s minus both predicted specular lobes (DESIGN §7). The azimuth term equals the paper's
+I_beta = I_s minus both predicted specular lobes (docs/design.md §7). The azimuth term equals the paper's
 2 w Gamma^2 (1 - cos(2 phi_hat - 2 phi_I)).
 """
 
@@ -19,7 +19,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from sellip.fit.parameterization import _decode, _Frame, _Virtual
+from sellip.fit.parameterization import decode_parameters, Frame, Virtual
 from sellip.fit.records import FitSettings
 from sellip.model import polar
 from sellip.model.conventions import observations_from_analyzers, stokes_to_analyzers
@@ -50,7 +50,7 @@ def solve_spd(matrix, rhs):
     return jnp.stack(x)
 
 
-def _nnls_specular(a, b, y, weight, prior, ridge):
+def nnls_specular(a, b, y, weight, prior, ridge):
     """Exact non-negative least squares for (rho_s, rho_ss RGB) with a small ridge towards ``prior``.
 
     Minimizes sum_k weight_k sum_c (rho_s a_k + rho_ss_c b_k - y_kc)^2 + ridge |x - prior|^2 over x >= 0.
@@ -66,7 +66,7 @@ def _nnls_specular(a, b, y, weight, prior, ridge):
 
 
 def _nnls_specular_gram(g_aa, g_ab, g_bb, y_a, y_b, prior, ridge):
-    """:func:`_nnls_specular` from its inner products: g_aa = sum w a^2, g_ab = sum w a b,
+    """:func:`nnls_specular` from its inner products: g_aa = sum w a^2, g_ab = sum w a b,
     g_bb = sum w b^2 (scalars), y_a = sum_k w_k a_k y_k, y_b = sum_k w_k b_k y_k ((3,) each)."""
     g00 = 3 * g_aa + ridge
     g0c = g_ab
@@ -91,7 +91,7 @@ def _nnls_specular_gram(g_aa, g_ab, g_bb, y_a, y_b, prior, ridge):
 
 # --- residuals ---------------------------------------------------------------------------
 
-class _Vertex(NamedTuple):
+class Vertex(NamedTuple):
     """One vertex's prepared data (K view slots)."""
 
     obs_d: jnp.ndarray  # (K, 3) I_d / scale
@@ -106,30 +106,30 @@ class _Vertex(NamedTuple):
     color: jnp.ndarray  # (3,) channel weights for the mono DoP / azimuth signals (sum 1)
     scale: jnp.ndarray  # () the vertex's diffuse level (intensity units)
     prior: jnp.ndarray  # (4,) rho_s, rho_ss RGB warm start (already divided by scale)
-    virtual: _Virtual | None = None  # virtual specular samples (augmentation), or none
+    virtual: Virtual | None = None  # virtual specular samples (augmentation), or none
     frames: ViewFrames | None = None  # (K,) the normal-independent frames (:func:`_prepare`), or computed on use
     lobe_mask: jnp.ndarray | None = None  # (2,) 1/0: the vertex's model has the specular, single-scattering lobe
     sigma_ss_fixed: jnp.ndarray | None = None  # () the model's fixed sigma_ss, NaN where it is free
     eta_diffuse: jnp.ndarray | None = None  # () eta of the diffuse intensity's transmissions (held), or the fitted eta
 
 
-def _fixed_sigma_ss(v: _Vertex, settings: FitSettings):
-    """sigma_ss_fixed for :func:`_decode`: the vertex's own model where it has one, else the settings'."""
+def fixed_sigma_ss(v: Vertex, settings: FitSettings):
+    """sigma_ss_fixed for :func:`decode_parameters`: the vertex's own model where it has one, else the settings'."""
     return settings.sigma_ss_fixed if v.sigma_ss_fixed is None else v.sigma_ss_fixed
 
 
-def _view_frames(v: _Vertex) -> ViewFrames:
+def _view_frames(v: Vertex) -> ViewFrames:
     if v.frames is not None:
         return v.frames
     return view_frames(v.to_light, v.to_camera, v.light_axis, v.camera_up)
 
 
-def _surface(normal, v: _Vertex):
+def _surface(normal, v: Vertex):
     """The normal-dependent geometry and frames (:class:`sellip.model.pbrdf.SurfaceTerms`) of the K views."""
     return surface_terms(normal, v.to_light, v.to_camera, v.light_distance, _view_frames(v))
 
 
-def _view_terms(normal, eta, v: _Vertex, theta_h_offset=None, surface=None, reflection=None):
+def view_terms(normal, eta, v: Vertex, theta_h_offset=None, surface=None, reflection=None):
     """The roughness-independent per-view terms for unit albedos, from the full model (exact frames,
     3.5 deg flash offset included): the observations (I_d, I_alpha, I_s) of the diffuse lobe
     (``d_*``) and of the reflection lobe (``r_*``), each (K,), the diffuse DoP and azimuth
@@ -170,8 +170,8 @@ def _view_terms(normal, eta, v: _Vertex, theta_h_offset=None, surface=None, refl
     return terms
 
 
-def _lobe_terms(terms, sigma_s, sigma_ss, v: _Vertex, lobes: str = "full"):
-    """``terms`` of :func:`_view_terms` with the two lobe factors D G / (4 cos_i cos_o) (K,) added
+def lobe_terms(terms, sigma_s, sigma_ss, v: Vertex, lobes: str = "full"):
+    """``terms`` of :func:`view_terms` with the two lobe factors D G / (4 cos_i cos_o) (K,) added
     (``lobe_s``, ``lobe_ss``; 0 for a lobe the model ``lobes`` leaves out), and for virtual
     samples the virtual I_s of unit rho_s / rho_ss (``virt_s``, ``virt_ss``, (M,) each)."""
     geom = terms["geom"]
@@ -187,12 +187,12 @@ def _lobe_terms(terms, sigma_s, sigma_ss, v: _Vertex, lobes: str = "full"):
     return out
 
 
-def _model_terms(normal, eta, sigma_s, sigma_ss, v: _Vertex, theta_h_offset=None, lobes: str = "full"):
-    """Per-view design terms for unit albedos (:func:`_view_terms` and :func:`_lobe_terms`), each (K,)."""
-    return _lobe_terms(_view_terms(normal, eta, v, theta_h_offset), sigma_s, sigma_ss, v, lobes)
+def model_terms(normal, eta, sigma_s, sigma_ss, v: Vertex, theta_h_offset=None, lobes: str = "full"):
+    """Per-view design terms for unit albedos (:func:`view_terms` and :func:`lobe_terms`), each (K,)."""
+    return lobe_terms(view_terms(normal, eta, v, theta_h_offset), sigma_s, sigma_ss, v, lobes)
 
 
-def _linear_solution(terms, v: _Vertex, settings: FitSettings):
+def linear_solution(terms, v: Vertex, settings: FitSettings):
     """Closed-form rho_d (3,) and (rho_s, rho_ss RGB) (4,) for given nonlinear parameters.
 
     rho_d from the diffuse loss (non-negative, per channel), rho_s and rho_ss from the specular
@@ -256,10 +256,10 @@ def measured_dop(terms, i_d, i_alpha, i_beta):
     return (i_alpha * terms["dir_a"] + i_beta * terms["dir_b"]) / jnp.maximum(i_d, 1e-6)
 
 
-def _residuals_from_terms(terms, v: _Vertex, settings: FitSettings):
+def residuals_from_terms(terms, v: Vertex, settings: FitSettings):
     """Weighted residual vector (9K,) (plus 3M with virtual samples) of one vertex from its
-    :func:`_model_terms`; the albedos are solved in closed form inside."""
-    rho_d, spec = _linear_solution(terms, v, settings)
+    :func:`model_terms`; the albedos are solved in closed form inside."""
+    rho_d, spec = linear_solution(terms, v, settings)
     (pred_d, _, pred_s), reflect = _predictions(terms, rho_d, spec)
     w = v.weight * terms["lit"]
     # Mono diffuse signals: the observations minus the predicted reflection lobes (paper Eq. 22).
@@ -281,10 +281,10 @@ def _residuals_from_terms(terms, v: _Vertex, settings: FitSettings):
     return jnp.concatenate(parts)
 
 
-def _residuals(z, v: _Vertex, frame: _Frame, settings: FitSettings):
+def vertex_residuals(z, v: Vertex, frame: Frame, settings: FitSettings):
     """Weighted residual vector (9K,) of one vertex; its squared norm is the loss."""
-    normal, eta, sigma_s, sigma_ss = _decode(z, frame, _fixed_sigma_ss(v, settings))
-    return _residuals_from_terms(_model_terms(normal, eta, sigma_s, sigma_ss, v, lobes=settings.lobes), v, settings)
+    normal, eta, sigma_s, sigma_ss = decode_parameters(z, frame, fixed_sigma_ss(v, settings))
+    return residuals_from_terms(model_terms(normal, eta, sigma_s, sigma_ss, v, lobes=settings.lobes), v, settings)
 
 
 DIFFERENCE_STEPS = (7e-4, 7e-4, 3e-3, 3e-3, 1e-2)
@@ -301,7 +301,7 @@ def _difference_steps(dtype) -> np.ndarray:
     return np.asarray(DIFFERENCE_STEPS) * scale
 
 
-def _residuals_and_jacobian(z, v: _Vertex, frame: _Frame, settings: FitSettings, free: tuple[int, ...]):
+def residuals_and_jacobian(z, v: Vertex, frame: Frame, settings: FitSettings, free: tuple[int, ...]):
     """Residuals r (R,) at z and their forward-difference Jacobian (R, F) over the columns ``free``.
 
     Exploits the model's structure. The normal moves the surface terms (:func:`_surface`), eta
@@ -319,24 +319,24 @@ def _residuals_and_jacobian(z, v: _Vertex, frame: _Frame, settings: FitSettings,
     shift = jnp.eye(5, dtype=z.dtype) * steps[:, None].astype(z.dtype)
 
     def decode(i):
-        return _decode(z if i is None else z + shift[i], frame, _fixed_sigma_ss(v, settings))
+        return decode_parameters(z if i is None else z + shift[i], frame, fixed_sigma_ss(v, settings))
 
     def residual(terms, sigma_s, sigma_ss):
-        return _residuals_from_terms(_lobe_terms(terms, sigma_s, sigma_ss, v, settings.lobes), v, settings)
+        return residuals_from_terms(lobe_terms(terms, sigma_s, sigma_ss, v, settings.lobes), v, settings)
 
     # Unrolled over the few points (a vmap over them measured 3x slower on CPU).
     frames = _view_frames(v)
     normal, eta, sigma_s, sigma_ss = decode(None)
     surface = _surface(normal, v)
     reflection = reflection_stokes(frames, eta)
-    base = _view_terms(normal, eta, v, surface=surface, reflection=reflection)
+    base = view_terms(normal, eta, v, surface=surface, reflection=reflection)
     rows = [residual(base, sigma_s, sigma_ss)]
     for i in normal_cols:
         normal_i, _, _, _ = decode(i)
-        rows.append(residual(_view_terms(normal_i, eta, v, reflection=reflection), sigma_s, sigma_ss))
+        rows.append(residual(view_terms(normal_i, eta, v, reflection=reflection), sigma_s, sigma_ss))
     for i in eta_cols:
         _, eta_i, _, _ = decode(i)
-        rows.append(residual(_view_terms(normal, eta_i, v, surface=surface, reflection=reflection_stokes(frames, eta_i)),
+        rows.append(residual(view_terms(normal, eta_i, v, surface=surface, reflection=reflection_stokes(frames, eta_i)),
                              sigma_s, sigma_ss))
     for i in roughness:
         _, _, sigma_s_i, sigma_ss_i = decode(i)
@@ -346,11 +346,11 @@ def _residuals_and_jacobian(z, v: _Vertex, frame: _Frame, settings: FitSettings,
     return r[0], (r[1:] - r[:1]).T / h
 
 
-def per_view_error(z, v: _Vertex, frame: _Frame, settings: FitSettings):
+def per_view_error(z, v: Vertex, frame: Frame, settings: FitSettings):
     """Relative RMS model error of each view (K,): diffuse and specular residuals over the diffuse level."""
-    normal, eta, sigma_s, sigma_ss = _decode(z, frame, _fixed_sigma_ss(v, settings))
-    terms = _model_terms(normal, eta, sigma_s, sigma_ss, v, lobes=settings.lobes)
-    rho_d, spec = _linear_solution(terms, v, settings)
+    normal, eta, sigma_s, sigma_ss = decode_parameters(z, frame, fixed_sigma_ss(v, settings))
+    terms = model_terms(normal, eta, sigma_s, sigma_ss, v, lobes=settings.lobes)
+    rho_d, spec = linear_solution(terms, v, settings)
     (pred_d, _, pred_s), _ = _predictions(terms, rho_d, spec)
     return jnp.sqrt(jnp.sum((pred_d - v.obs_d) ** 2 + (pred_s - v.obs_s) ** 2, -1) / 6)
 

@@ -1,4 +1,4 @@
-"""Model selection (DESIGN §7): which lobes a material cluster needs, and fitting vertices by model.
+"""Model selection (docs/design.md §7): which lobes a material cluster needs, and fitting vertices by model.
 
 The models (:data:`sellip.model.params.MODEL_NAMES`, the ``model`` of every vertex in model.ply), from
 the simplest:
@@ -276,7 +276,7 @@ def _held_out_losses(models, folds, eta0: float, fit_settings: FitSettings, sele
     model_2_sigma_ss = settings_for_model(fit_settings, 2, selection.sigma_ss_fixed).sigma_ss_fixed
     per_fold = {m: [] for m in models}
     for train_pool, held_pool, held in folds:
-        fits = nested_fits({m: fit_lobes._fit_pool(train_pool, eta0, settings[m], lobe_settings) for m in models},
+        fits = nested_fits({m: fit_lobes.fit_pool(train_pool, eta0, settings[m], lobe_settings) for m in models},
                            model_2_sigma_ss)
         for m in models:
             per_sample = fit_lobes.lobe_sample_losses(fits[m], held_pool, settings[m], lobe_settings, delta_rounds)
@@ -302,7 +302,7 @@ def _describe(chosen: int, best: int, table: dict, question: str) -> str:
 def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: FitSettings | None = None,
                  selection: SelectionSettings = SelectionSettings(),
                  augment_settings: clusters.AugmentSettings = clusters.AugmentSettings(), seed: int = 0) -> Selection:
-    """Choose the model of one cluster from the observations of its n vertices (DESIGN §7).
+    """Choose the model of one cluster from the observations of its n vertices (docs/design.md §7).
 
     obs: :class:`sellip.fit.records.Observations` (n, K); normals (n, 3), rho_d (n, 3): the vertices'
     fitted normals and albedos (held, as in :func:`sellip.fit.lobes.fit_cluster_lobe`); eta0: the
@@ -334,9 +334,9 @@ def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: F
     normals, rho_d = np.asarray(normals), np.asarray(rho_d)
     pools = []
     for fold, (train, held) in enumerate(splits):  # fold 0's generators are those of the single split
-        train_pool = fit_lobes._pool_samples(take(train), normals[train], rho_d[train], fit_settings,
+        train_pool = fit_lobes.pool_samples(take(train), normals[train], rho_d[train], fit_settings,
                                            selection.max_samples, np.random.default_rng(seed + 1 + 2 * fold))
-        held_pool = fit_lobes._pool_samples(take(held), normals[held], rho_d[held], fit_settings,
+        held_pool = fit_lobes.pool_samples(take(held), normals[held], rho_d[held], fit_settings,
                                           selection.max_samples, np.random.default_rng(seed + 2 + 2 * fold))
         pools.append((train_pool, held_pool, len(held)))
     held_samples = sum(held_pool.count for _, held_pool, _ in pools)

@@ -235,7 +235,7 @@ def fit_shard(observations: Path, shard: tuple[int, int], output: Path, prior: P
         raise ShardMemoryError(shard_memory_message(shard, stop - start, total, views, settings.chunk_size, budget,
                                                     source, chunk))
     try:
-        return _fit_rows(observations, group, total, start, stop, output, prior, dtype, settings, lobes,
+        return fit_rows(observations, group, total, start, stop, output, prior, dtype, settings, lobes,
                          fixed_sigma_ss)
     except Exception as error:
         # numpy raises MemoryError when an allocation fails, XLA an XlaRuntimeError "RESOURCE_EXHAUSTED: Out of
@@ -250,7 +250,7 @@ def fit_shard(observations: Path, shard: tuple[int, int], output: Path, prior: P
             source, chunk)) from error
 
 
-def _fit_rows(observations, group, total, start, stop, output, prior, dtype, settings, lobes, fixed_sigma_ss) -> dict:
+def fit_rows(observations, group, total, start, stop, output, prior, dtype, settings, lobes, fixed_sigma_ss) -> dict:
     """:func:`fit_shard` after the memory check: read the rows, start values, virtual samples, fit by model, write.
 
     Long: one job's steps in order (read, prior, virtual samples, fit by model, write), each a call."""

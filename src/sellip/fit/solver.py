@@ -1,6 +1,6 @@
 """The batched Levenberg-Marquardt of the per-vertex fit (JAX): damping, steps, rounds, the
 roughness starts, the diffuse eta hold's constants; each vertex an independent small problem (paper §4.3,
-DESIGN §5, §7) over 5 nonlinear unknowns (normal offset (2), eta, sigma_s, sigma_ss).
+docs/design.md §5, §7) over 5 nonlinear unknowns (normal offset (2), eta, sigma_s, sigma_ss).
 """
 
 from __future__ import annotations
@@ -12,15 +12,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from sellip.fit.kernels import kernel
-from sellip.fit.parameterization import _decode, _encode, _eta_from, _Frame
+from sellip.fit.parameterization import decode_parameters, encode_parameters, eta_from, Frame
 from sellip.fit.records import FitSettings
 from sellip.fit.residuals import (
-    _fixed_sigma_ss,
-    _lobe_terms,
-    _residuals_and_jacobian,
-    _residuals_from_terms,
-    _Vertex,
-    _view_terms,
+    fixed_sigma_ss,
+    lobe_terms,
+    residuals_and_jacobian,
+    residuals_from_terms,
+    Vertex,
+    view_terms,
     solve_spd,
 )
 
@@ -38,17 +38,17 @@ class _LMState(NamedTuple):
     done: jnp.ndarray  # (N,) bool
     hess: jnp.ndarray  # (N, F, F) J^T J over the free columns
     grad: jnp.ndarray  # (N, F) J^T r
-    mark: jnp.ndarray  # (N,) the loss PROGRESS_ITERATIONS iterations ago (see _lm_rounds)
-    fits: jnp.ndarray  # (N, F) 1 for the free columns this vertex moves in this stage (_fitted_columns)
+    mark: jnp.ndarray  # (N,) the loss PROGRESS_ITERATIONS iterations ago (see lm_rounds)
+    fits: jnp.ndarray  # (N, F) 1 for the free columns this vertex moves in this stage (fitted_columns)
     limit: jnp.ndarray  # (N,) int32 the stage's iteration cap
 
 
-def _free_parameters(settings: FitSettings) -> tuple[int, ...]:
+def free_parameters(settings: FitSettings) -> tuple[int, ...]:
     """Indices into z of the parameters LM may move: normal (0, 1), eta (2), sigma_s (3), sigma_ss (4).
 
     A fixed sigma_ss is never moved, nor the roughness of a lobe the model (``settings.lobes``)
     leaves out; with ``settings.fit_normal`` False the normal stays at normal0. Which of these
-    columns a vertex moves in a stage is data (:func:`_fitted_columns`).
+    columns a vertex moves in a stage is data (:func:`fitted_columns`).
     """
     normal = (0, 1) if settings.fit_normal else ()
     if settings.lobes == "diffuse":
@@ -63,7 +63,7 @@ Z_LIMIT = 6.0
 PROGRESS_ITERATIONS = 4
 STUCK_DAMPING = 10.0
 """LM stops a vertex whose loss fell by less than the tolerance over PROGRESS_ITERATIONS
-iterations with its damping above STUCK_DAMPING (:func:`_lm_rounds`)."""
+iterations with its damping above STUCK_DAMPING (:func:`lm_rounds`)."""
 
 
 def _loss_tolerance(settings: FitSettings, dtype) -> float:
@@ -72,17 +72,17 @@ def _loss_tolerance(settings: FitSettings, dtype) -> float:
     return max(settings.tolerance, 30 * float(jnp.finfo(dtype).eps))
 
 
-def _normal_equations(z, v: _Vertex, frame: _Frame, settings: FitSettings, free: tuple[int, ...], fits):
+def _normal_equations(z, v: Vertex, frame: Frame, settings: FitSettings, free: tuple[int, ...], fits):
     """(loss, J^T J (F, F), J^T r (F,)) of one vertex at z; the columns it does not move (``fits`` (F,) 0) are 0."""
-    r, jac = _residuals_and_jacobian(z, v, frame, settings, free)
+    r, jac = residuals_and_jacobian(z, v, frame, settings, free)
     jac = jac * fits
     return jnp.sum(r * r), jac.T @ jac, jac.T @ r
 
 
-def _lm_step(state: _LMState, v: _Vertex, frame: _Frame, settings: FitSettings, free: tuple[int, ...]):
+def _lm_step(state: _LMState, v: Vertex, frame: Frame, settings: FitSettings, free: tuple[int, ...]):
     """One Levenberg-Marquardt step of one vertex (unbatched ``state``) over the parameters ``free``.
 
-    A fresh state (loss +inf, :func:`_run_lm`) takes no step: its first "step" evaluates the normal
+    A fresh state (loss +inf, :func:`run_lm`) takes no step: its first "step" evaluates the normal
     equations at the start and always accepts them (and ends the fit if they are not finite), so
     that one compiled kernel serves the start and the iterations.
     Returns (z, loss, damping, hess, grad, converged, fresh)."""
@@ -130,7 +130,7 @@ def _lm_step(state: _LMState, v: _Vertex, frame: _Frame, settings: FitSettings, 
 
 
 @kernel(static_argnames=("settings", "steps", "free"))
-def _lm_rounds(state: _LMState, records: _Vertex, frames: _Frame, settings: FitSettings, steps: int,
+def lm_rounds(state: _LMState, records: Vertex, frames: Frame, settings: FitSettings, steps: int,
                free: tuple[int, ...]) -> _LMState:
     """Up to ``steps`` LM iterations for a batch, stopping early when every vertex is done. Which
     columns each vertex moves and its iteration cap are data (``state.fits``, ``state.limit``): both
@@ -174,21 +174,21 @@ non-convex in roughness."""
 
 
 @kernel(static_argnames=("settings",))
-def _best_start(z0, records: _Vertex, frames: _Frame, settings: FitSettings):
+def pick_best_start(z0, records: Vertex, frames: Frame, settings: FitSettings):
     """Per vertex, the lowest-loss start among the warm start and :data:`ROUGHNESS_GRID`. (N, 5).
 
     The starts differ in roughness only: the view terms are evaluated once per vertex."""
     grid = jnp.asarray(ROUGHNESS_GRID, z0.dtype)
-    eta = _eta_from(z0[:, 2])
-    grid_starts = jax.vmap(lambda e: _encode(jnp.full(len(ROUGHNESS_GRID), e), grid[:, 0], grid[:, 1], z0.dtype))(eta)
+    eta = eta_from(z0[:, 2])
+    grid_starts = jax.vmap(lambda e: encode_parameters(jnp.full(len(ROUGHNESS_GRID), e), grid[:, 0], grid[:, 1], z0.dtype))(eta)
     starts = jnp.concatenate([z0[:, None], grid_starts.at[:, :, :2].set(z0[:, None, :2])], axis=1)
 
     def losses(zs, v, f):
-        fixed = _fixed_sigma_ss(v, settings)
-        normal, eta, _, _ = _decode(zs[0], f, fixed)
-        view = _view_terms(normal, eta, v)
-        _, _, sigma_s, sigma_ss = jax.vmap(lambda zz: _decode(zz, f, fixed))(zs)
-        return jax.vmap(lambda s, ss: jnp.sum(_residuals_from_terms(_lobe_terms(view, s, ss, v, settings.lobes), v,
+        fixed = fixed_sigma_ss(v, settings)
+        normal, eta, _, _ = decode_parameters(zs[0], f, fixed)
+        view = view_terms(normal, eta, v)
+        _, _, sigma_s, sigma_ss = jax.vmap(lambda zz: decode_parameters(zz, f, fixed))(zs)
+        return jax.vmap(lambda s, ss: jnp.sum(residuals_from_terms(lobe_terms(view, s, ss, v, settings.lobes), v,
                                                                     settings) ** 2))(sigma_s, sigma_ss)
 
     loss = jax.vmap(losses)(starts, records, frames)
@@ -196,7 +196,7 @@ def _best_start(z0, records: _Vertex, frames: _Frame, settings: FitSettings):
     return jnp.take_along_axis(starts, jnp.argmin(loss, axis=1)[:, None, None], 1)[:, 0]
 
 
-def _bucket(count: int, minimum: int = 64) -> int:
+def bucket(count: int, minimum: int = 64) -> int:
     """Sizes are rounded up to powers of two so that a few compiled shapes serve every call."""
     return max(minimum, 1 << int(np.ceil(np.log2(max(count, 1)))))
 
@@ -205,7 +205,7 @@ def _take(tree, index):
     return jax.tree_util.tree_map(lambda x: x[index], tree)
 
 
-def _to_host(tree):
+def to_host(tree):
     """Every leaf of ``tree`` as a numpy array: the LM's per-batch gathers are then numpy indexing
     (microseconds), not one dispatched JAX gather per field and batch."""
     return jax.tree_util.tree_map(np.asarray, tree)
@@ -213,10 +213,10 @@ def _to_host(tree):
 
 _VIEW_FIELDS = ("obs_d", "obs_a", "obs_s", "to_light", "to_camera", "light_distance", "camera_up", "light_axis",
                 "weight", "frames")
-"""The fields of :class:`_Vertex` with a view axis (axis 1 of a batch)."""
+"""The fields of :class:`Vertex` with a view axis (axis 1 of a batch)."""
 
 
-def _view_bucket(count: int) -> int:
+def view_bucket(count: int) -> int:
     """16, 24, 32, 48, 64, 96, 128, ...: at most 50 % padding, few distinct shapes."""
     size = 16
     while size < count:
@@ -229,7 +229,7 @@ def _batches(active: np.ndarray, views: np.ndarray, batch: int):
 
     Vertices are ordered by their number of used views, so each batch can drop the slots none of
     its vertices uses (views are at the front, :func:`_compact_views`); widths are rounded by
-    :func:`_view_bucket` (few compiled shapes). A last batch of at most a quarter of ``batch`` is
+    :func:`view_bucket` (few compiled shapes). A last batch of at most a quarter of ``batch`` is
     padded to that quarter, any other to ``batch``: the vertices still running after most have
     converged are few, and two sizes compile half the kernels that every power of two down to 64
     would, for about 6 % more lanes stepped. Short batches repeat their vertices (identical work,
@@ -238,10 +238,10 @@ def _batches(active: np.ndarray, views: np.ndarray, batch: int):
     for start in range(0, order.size, batch):
         size = batch if order.size - start > batch // 4 else batch // 4
         index = np.resize(order[start:start + size], size)
-        yield index, _view_bucket(int(views[index].max(initial=1)))
+        yield index, view_bucket(int(views[index].max(initial=1)))
 
 
-def _take_records(records: _Vertex, index: np.ndarray, width: int) -> _Vertex:
+def _take_records(records: Vertex, index: np.ndarray, width: int) -> Vertex:
     """Rows ``index`` of a batch of records, with only the first ``width`` view slots."""
     rows = _take(records, index)
     if width >= rows.obs_d.shape[1]:
@@ -250,7 +250,7 @@ def _take_records(records: _Vertex, index: np.ndarray, width: int) -> _Vertex:
                             for name in _VIEW_FIELDS if getattr(rows, name) is not None})
 
 
-def _map_batches(kernel, rows: np.ndarray, records: _Vertex, frames: _Frame, batch: int, *per_vertex, out=None):
+def map_batches(kernel, rows: np.ndarray, records: Vertex, frames: Frame, batch: int, *per_vertex, out=None):
     """Apply a jitted batch ``kernel(*per_vertex_rows, records_rows, frames_rows)`` to the vertices
     ``rows``, in the view-width batches of :func:`_batches`, and scatter its outputs (a tuple or
     dict of per-vertex arrays) into ``out`` (same structure, full length; zeros when None). An output
@@ -270,7 +270,7 @@ def _map_batches(kernel, rows: np.ndarray, records: _Vertex, frames: _Frame, bat
     return out
 
 
-def _fitted_columns(records: _Vertex, free: tuple[int, ...], hold_lobes: bool = False) -> np.ndarray:
+def fitted_columns(records: Vertex, free: tuple[int, ...], hold_lobes: bool = False) -> np.ndarray:
     """(N, F) 1 for the columns of ``free`` each vertex moves: those its model fits (not the roughness
     of a lobe it lacks, nor a fixed sigma_ss; every column without per-vertex models), without the
     roughnesses when ``hold_lobes`` (the first stage, while the normal may still be a few degrees off:
@@ -287,9 +287,9 @@ def _fitted_columns(records: _Vertex, free: tuple[int, ...], hold_lobes: bool = 
     return np.stack([per_parameter[i] for i in free], -1).astype(dtype)
 
 
-def _run_lm(z, records: _Vertex, frames: _Frame, settings: FitSettings, run: np.ndarray, max_iterations: int,
+def run_lm(z, records: Vertex, frames: Frame, settings: FitSettings, run: np.ndarray, max_iterations: int,
             hold_lobes: bool = False):
-    """LM over the parameters :func:`_free_parameters` ``(settings)`` (the roughnesses held when
+    """LM over the parameters :func:`free_parameters` ``(settings)`` (the roughnesses held when
     ``hold_lobes``) to convergence for the vertices where ``run`` is set, with compaction.
 
     The vertices still running are gathered into batches of one fixed size (one compiled shape
@@ -298,26 +298,26 @@ def _run_lm(z, records: _Vertex, frames: _Frame, settings: FitSettings, run: np.
     of views each vertex uses, not the most any vertex uses. Returns (z, loss, iterations, hess)
     as numpy arrays; hess (N, F, F) is J^T J at z over the free columns (those held are 0).
     """
-    free = _free_parameters(settings)
+    free = free_parameters(settings)
     z = np.asarray(z)
     n = z.shape[0]
     dtype = z.dtype
     run = np.asarray(run, bool)
     views = np.sum(np.asarray(records.weight) > 0, axis=1)
-    batch = min(settings.lm_batch, _bucket(n))
+    batch = min(settings.lm_batch, bucket(n))
     # A fresh state (loss +inf): the first step of each vertex evaluates its normal equations (_lm_step).
     loss = np.full(n, np.inf, dtype)
     hess = np.zeros((n, len(free), len(free)), dtype)
     grad = np.zeros((n, len(free)), dtype)
     state = _LMState(z, loss, np.full(n, 1e-3, dtype), np.zeros(n, np.int32), ~run, hess, grad, loss.copy(),
-                     _fitted_columns(records, free, hold_lobes), np.full(n, max_iterations, np.int32))
+                     fitted_columns(records, free, hold_lobes), np.full(n, max_iterations, np.int32))
     while True:
         active = np.flatnonzero(~state.done)
         if active.size == 0:
             return state.z, state.loss, state.iterations, state.hess
         fields = [x.copy() for x in state]
         for index, width in _batches(active, views, batch):
-            part = _lm_rounds(_take(state, index), _take_records(records, index, width), _take(frames, index),
+            part = lm_rounds(_take(state, index), _take_records(records, index, width), _take(frames, index),
                               settings, steps=settings.round_iterations, free=free)
             for full, new in zip(fields, part):
                 full[index] = np.asarray(new)

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sellip.fit.kernels import kernel
-from sellip.fit.parameterization import _decode, _encode, _eta_from, _Frame, _Virtual, tangent_basis, virtual_geometry
+from sellip.fit.parameterization import decode_parameters, encode_parameters, eta_from, Frame, Virtual, tangent_basis, virtual_geometry
 from sellip.fit.records import (
     DEFAULT_FIXED_SIGMA_SS,
     ETA_BOUNDS,
@@ -29,25 +29,25 @@ from sellip.fit.records import (
     model_of,
 )
 from sellip.fit.residuals import (
-    _fixed_sigma_ss,
-    _linear_solution,
-    _model_terms,
-    _residuals_and_jacobian,
-    _Vertex,
+    fixed_sigma_ss,
+    linear_solution,
+    model_terms,
+    residuals_and_jacobian,
+    Vertex,
     per_view_error,
     solve_spd,
 )
 from sellip.fit.solver import (
     HOLD_ETA_TOLERANCE,
     HOLD_ROUNDS,
-    _best_start,
-    _bucket,
-    _fitted_columns,
-    _free_parameters,
-    _map_batches,
-    _run_lm,
-    _to_host,
-    _view_bucket,
+    pick_best_start,
+    bucket,
+    fitted_columns,
+    free_parameters,
+    map_batches,
+    run_lm,
+    to_host,
+    view_bucket,
 )
 from sellip.model import polar
 from sellip.model.pbrdf import PBRDFParams, view_frames
@@ -129,16 +129,16 @@ def _prepare(obs: Observations, keep, prior: PBRDFParams, virtual: VirtualSample
     if virtual is not None:
         distance = jnp.where(count > 0, _masked_median(obs.light_distance, keep), 1.0)
         geom = virtual_geometry(virtual.theta_h.astype(scale.dtype), distance)
-        prepared = _Virtual(geom, geom.shading[..., None] * virtual.reflectance / s,
+        prepared = Virtual(geom, geom.shading[..., None] * virtual.reflectance / s,
                             (lambda_g * virtual.weight).astype(scale.dtype))
-    return _Vertex(obs.diffuse / s, obs.diffuse_pol / s, obs.specular / s, obs.to_light, obs.to_camera,
+    return Vertex(obs.diffuse / s, obs.diffuse_pol / s, obs.specular / s, obs.to_light, obs.to_camera,
                    obs.light_distance, obs.camera_up, obs.light_axis, weight.astype(obs.diffuse.dtype), color,
                    scale, spec_prior, prepared,
                    frames=view_frames(obs.to_light, obs.to_camera, obs.light_axis, obs.camera_up),
                    eta_diffuse=jnp.clip(prior.eta, *ETA_BOUNDS).astype(obs.diffuse.dtype))
 
 
-def _robust_weights(z, v: _Vertex, frame: _Frame, settings: FitSettings):
+def robust_weights(z, v: Vertex, frame: Frame, settings: FitSettings):
     """View weights with outlier views removed: per-view error above the median by
     ``outlier_threshold`` robust sigmas (MAD) and above ``outlier_floor``. Returns (weight (K,), changed)."""
     err = per_view_error(z, v, frame, settings)
@@ -150,21 +150,21 @@ def _robust_weights(z, v: _Vertex, frame: _Frame, settings: FitSettings):
     return (keep / jnp.maximum(jnp.sum(keep), 1)).astype(v.weight.dtype), jnp.any(outlier)
 
 
-def _finalize(z, loss, hess, fitted, v: _Vertex, frame: _Frame, settings: FitSettings):
+def _finalize(z, loss, hess, fitted, v: Vertex, frame: Frame, settings: FitSettings):
     """Decoded parameters, linear solution and Gauss-Newton uncertainties at the solution of one vertex.
 
-    hess: J^T J at z over :func:`_free_parameters` ``(settings)`` as the LM carried it, used when the
+    hess: J^T J at z over :func:`free_parameters` ``(settings)`` as the LM carried it, used when the
     normal was fitted (those are then every column); otherwise the Jacobian is evaluated here.
-    fitted (F,): :func:`_fitted_columns` of the vertex over the columns with the normal free."""
-    normal, eta, sigma_s, sigma_ss = _decode(z, frame, _fixed_sigma_ss(v, settings))
-    terms = _model_terms(normal, eta, sigma_s, sigma_ss, v, lobes=settings.lobes)
-    rho_d, spec = _linear_solution(terms, v, settings)
+    fitted (F,): :func:`fitted_columns` of the vertex over the columns with the normal free."""
+    normal, eta, sigma_s, sigma_ss = decode_parameters(z, frame, fixed_sigma_ss(v, settings))
+    terms = model_terms(normal, eta, sigma_s, sigma_ss, v, lobes=settings.lobes)
+    rho_d, spec = linear_solution(terms, v, settings)
     # The uncertainties (hence the confidence) always treat the normal as unknown: holding it
     # fixed does not make it better known.
-    free = _free_parameters(dataclasses.replace(settings, fit_normal=True))
+    free = free_parameters(dataclasses.replace(settings, fit_normal=True))
     basis = jnp.eye(5, dtype=z.dtype)[np.asarray(free)]  # (F, 5)
     if not settings.fit_normal:
-        _, jac = _residuals_and_jacobian(z, v, frame, settings, free)
+        _, jac = residuals_and_jacobian(z, v, frame, settings, free)
         jac = jac * fitted
         hess = jac.T @ jac
     held = 1 - fitted @ basis  # (5,) 1 for the columns not fitted
@@ -186,7 +186,7 @@ def _finalize(z, loss, hess, fitted, v: _Vertex, frame: _Frame, settings: FitSet
 
 @kernel(static_argnames=("settings",))
 def _robust_weights_batch(z, records, frames, settings):
-    return jax.vmap(lambda zz, v, f: _robust_weights(zz, v, f, settings))(z, records, frames)
+    return jax.vmap(lambda zz, v, f: robust_weights(zz, v, f, settings))(z, records, frames)
 
 
 @kernel(static_argnames=("settings",))
@@ -196,7 +196,7 @@ def _finalize_batch(z, loss, hess, fitted, records, frames, settings):
 
 
 @kernel(static_argnames=("settings",))
-def _select(obs: Observations, normal0, settings: FitSettings):
+def select_for_normal(obs: Observations, normal0, settings: FitSettings):
     normal0 = polar.safe_normalize(normal0, fallback=jnp.array([0.0, 0.0, 1.0], obs.diffuse.dtype))
     return select_views(obs, normal0, settings)
 
@@ -207,17 +207,17 @@ def _prepare_batch(obs: Observations, keep, normal0, prior: PBRDFParams, virtual
     dtype = obs.diffuse.dtype
     normal0 = polar.safe_normalize(normal0, fallback=jnp.array([0.0, 0.0, 1.0], dtype))
     t1, t2 = tangent_basis(normal0)
-    z0 = _encode(prior.eta, prior.sigma_s, prior.sigma_ss, dtype)
-    return _prepare(obs, keep, prior, virtual, lambda_g), _Frame(normal0, t1, t2), z0
+    z0 = encode_parameters(prior.eta, prior.sigma_s, prior.sigma_ss, dtype)
+    return _prepare(obs, keep, prior, virtual, lambda_g), Frame(normal0, t1, t2), z0
 
 
-def _select_and_prepare(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings,
+def select_and_prepare(obs: Observations, normal0, prior: PBRDFParams, settings: FitSettings,
                         virtual: VirtualSamples | None = None):
     """Select each vertex's views once, move them to the front (:func:`_compact_views`) and build
     the per-vertex records. Returns (keep (N, K'), records, frames, z0) with K' <= K view slots."""
     dtype = np.asarray(obs.diffuse).dtype
     normal0 = jnp.asarray(normal0, dtype)
-    keep = np.asarray(_select(Observations(*[jnp.asarray(x) for x in obs]), normal0, settings))
+    keep = np.asarray(select_for_normal(Observations(*[jnp.asarray(x) for x in obs]), normal0, settings))
     obs = _compact_views(Observations(*[np.asarray(x) for x in obs]), keep)
     if virtual is not None:
         virtual = VirtualSamples(*[jnp.asarray(x, dtype) for x in virtual])
@@ -237,7 +237,7 @@ def _compact_views(obs: Observations, usable: np.ndarray) -> Observations:
     e.g. from 100 views to ~64 when each vertex sees half of them.
     """
     order = np.argsort(~usable, axis=1, kind="stable")
-    width = min(_view_bucket(int(usable.sum(1).max(initial=1))), usable.shape[1])
+    width = min(view_bucket(int(usable.sum(1).max(initial=1))), usable.shape[1])
     order = order[:, :width]
     gather = lambda x: np.take_along_axis(np.asarray(x), order.reshape(order.shape + (1,) * (np.ndim(x) - 2)), 1)  # noqa: E731
     return Observations(*[gather(x) for x in obs._replace(usable=usable)])
@@ -248,28 +248,28 @@ def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSett
     """Fit one chunk with per-vertex models (lobe_mask (N, 2), fixed (N,), :func:`model_arrays`); rows
     from ``valid`` on are padding (copies of a real row): LM skips them, and the vertices with too few
     usable views."""
-    keep, records, frames, z0 = _to_host(_select_and_prepare(obs, normal0, prior, settings, virtual))
+    keep, records, frames, z0 = to_host(select_and_prepare(obs, normal0, prior, settings, virtual))
     records = records._replace(lobe_mask=lobe_mask, sigma_ss_fixed=fixed)
 
     def hold(records, z):  # the diffuse transmissions at the eta of z (FitSettings.hold_diffuse_eta)
-        return records if records.eta_diffuse is None else records._replace(eta_diffuse=np.asarray(_eta_from(z[:, 2])))
+        return records if records.eta_diffuse is None else records._replace(eta_diffuse=np.asarray(eta_from(z[:, 2])))
 
     n = z0.shape[0]
     enough = np.asarray(keep).sum(1) >= settings.min_views
     rows = np.flatnonzero(enough & (np.arange(n) < (n if valid is None else valid)))
     active = np.zeros(n, bool)
     active[rows] = True
-    batch = min(settings.lm_batch, _bucket(n))
+    batch = min(settings.lm_batch, bucket(n))
     # Every per-vertex kernel runs on the vertices fitted, in batches of similar view counts.
-    best_start = lambda z: _map_batches(partial(_best_start, settings=settings), rows, records, frames, batch, z,  # noqa: E731
+    best_start = lambda z: map_batches(partial(pick_best_start, settings=settings), rows, records, frames, batch, z,  # noqa: E731
                                         out=np.array(z))
     z = best_start(z0)
     # Stage 1: normal and eta with the roughnesses held; stage 2: everything.
-    z, _, it_normal, _ = _run_lm(z, records, frames, settings, active, settings.normal_stage_iterations,
+    z, _, it_normal, _ = run_lm(z, records, frames, settings, active, settings.normal_stage_iterations,
                                  hold_lobes=True)
     records = hold(records, z)
     z = best_start(z)  # lobes again, now that the normal is close
-    z, loss, it_all, hess = _run_lm(z, records, frames, settings, active, settings.max_iterations)
+    z, loss, it_all, hess = run_lm(z, records, frames, settings, active, settings.max_iterations)
     iterations = it_normal + it_all
     for _ in range(HOLD_ROUNDS if records.eta_diffuse is not None else 0):  # again where eta moved from the held one
         held = records.eta_diffuse
@@ -277,23 +277,23 @@ def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSett
         moved = active & (np.abs(records.eta_diffuse - held) > HOLD_ETA_TOLERANCE)
         if not moved.any():
             break
-        z_new, loss_new, it_new, hess_new = _run_lm(z, records, frames, settings, moved, settings.max_iterations)
+        z_new, loss_new, it_new, hess_new = run_lm(z, records, frames, settings, moved, settings.max_iterations)
         z, loss = np.where(moved[:, None], z_new, z), np.where(moved, loss_new, loss)
         hess, iterations = np.where(moved[:, None, None], hess_new, hess), iterations + it_new
     # Robust pass: drop outlier views and continue only the vertices that had any.
-    weight, changed = _map_batches(partial(_robust_weights_batch, settings=settings), rows, records, frames, batch, z,
+    weight, changed = map_batches(partial(_robust_weights_batch, settings=settings), rows, records, frames, batch, z,
                                    out=(np.array(records.weight), np.zeros(n, bool)))
     records = records._replace(weight=weight)
     changed = changed & active
     if changed.any():
-        z_new, loss_new, it_robust, hess_new = _run_lm(z, records, frames, settings, changed, settings.max_iterations)
+        z_new, loss_new, it_robust, hess_new = run_lm(z, records, frames, settings, changed, settings.max_iterations)
         z = np.where(changed[:, None], z_new, z)
         loss = np.where(changed, loss_new, loss)
         hess = np.where(changed[:, None, None], hess_new, hess)
         iterations = iterations + it_robust
     records = hold(records, z)  # the loss and std below at the final eta, also after the last hold round's refit
-    fitted = _fitted_columns(records, _free_parameters(dataclasses.replace(settings, fit_normal=True)))
-    out = _map_batches(partial(_finalize_batch, settings=settings), rows, records, frames, batch, z, loss, hess,
+    fitted = fitted_columns(records, free_parameters(dataclasses.replace(settings, fit_normal=True)))
+    out = map_batches(partial(_finalize_batch, settings=settings), rows, records, frames, batch, z, loss, hess,
                        fitted)
     if out is None:  # no vertex to fit: placeholders (every vertex keeps its prior, see fit_vertices)
         out = {k: np.zeros((n,) + shape, z.dtype) for k, shape in
@@ -350,7 +350,7 @@ def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSe
     for start in range(0, n, settings.chunk_size):
         stop = min(n, start + settings.chunk_size)
         # Pad every chunk to a power of two (repeating its last vertex): few compiled shapes.
-        index = np.minimum(np.arange(start, start + _bucket(stop - start)), stop - 1)
+        index = np.minimum(np.arange(start, start + bucket(stop - start)), stop - 1)
         index = index[:min(index.size, settings.chunk_size)]
         out = _fit_chunk(Observations(*[np.asarray(x)[index] for x in obs]), normal0[index],
                          PBRDFParams(*[x[index] for x in prior]), settings, lobe_mask[index], fixed[index],
@@ -383,7 +383,7 @@ def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSe
 
 
 def default_prior(n, dtype=np.float32) -> PBRDFParams:
-    """The starting parameters of the first iteration (DESIGN §5: eta = 1.5)."""
+    """The starting parameters of the first iteration (docs/design.md §5: eta = 1.5)."""
     full = lambda value, *shape: jnp.full((n,) + shape, value, dtype)  # noqa: E731
     return PBRDFParams(eta=full(1.5), rho_d=full(0.5, 3), rho_s=full(0.0), sigma_s=full(0.3),
                        rho_ss=full(0.0, 3), sigma_ss=full(0.6))

@@ -1,4 +1,4 @@
-"""Sim(3) alignment of camera sets and pose errors (DESIGN §8: SfM poses are compared after a
+"""Sim(3) alignment of camera sets and pose errors (docs/design.md §8: SfM poses are compared after a
 similarity alignment).
 
 Poses are COLMAP cam_from_world ``x_cam = R x_world + t`` (:mod:`sellip.model.conventions`), metres.

@@ -41,11 +41,11 @@ def write_cameras(path: str | Path, view_ids: list[str], rotations: np.ndarray, 
 def read_cameras(path: str | Path) -> tuple[list[str], np.ndarray, np.ndarray]:
     """(view_ids, rotations (N, 3, 3), translations (N, 3)) of a cameras.csv / poses.csv file."""
     table = validate_poses(pd.read_csv(path, dtype={"view_id": str}, keep_default_na=False), str(path))
-    return _pose_arrays(table)
+    return pose_arrays(table)
 
 
 
-def _pose_arrays(table: pd.DataFrame) -> tuple[list[str], np.ndarray, np.ndarray]:
+def pose_arrays(table: pd.DataFrame) -> tuple[list[str], np.ndarray, np.ndarray]:
     rotations = quaternion_to_rotation(table[list(POSE_COLUMNS[1:5])].to_numpy(np.float64))
     return list(table["view_id"]), rotations, table[list(POSE_COLUMNS[5:])].to_numpy(np.float64)
 

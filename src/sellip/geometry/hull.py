@@ -1,4 +1,4 @@
-"""The visual hull and the initial mesh (DESIGN §2 mesh_init): voxel carving from the silhouettes,
+"""The visual hull and the initial mesh (docs/design.md §2 mesh_init): voxel carving from the silhouettes,
 the surface points of the occupancy, fusion with SfM's sparse points, screened Poisson at a depth and
 remeshing to a vertex count.
 """
@@ -110,7 +110,7 @@ def view_volume_bounds(intrinsics: np.ndarray, rotations: np.ndarray, translatio
     return target - half, target + half
 
 
-def _project(points: np.ndarray, intrinsics: np.ndarray, rotation: np.ndarray, translation: np.ndarray):
+def project(points: np.ndarray, intrinsics: np.ndarray, rotation: np.ndarray, translation: np.ndarray):
     """Pixel coordinates (N, 2) and depth (N,) of world points (N, 3) in one camera."""
     cam = points @ rotation.T.astype(points.dtype) + translation.astype(points.dtype)
     depth = cam[:, 2]
@@ -133,7 +133,7 @@ def silhouette_coverage(vertices: np.ndarray, faces: np.ndarray, masks: np.ndarr
     for view, mask in enumerate(masks):
         if not mask.any():
             continue
-        pixels, depth = _project(vertices, intrinsics, rotations[view], translations[view])
+        pixels, depth = project(vertices, intrinsics, rotations[view], translations[view])
         ahead = depth > 0
         lengths = np.linalg.norm(pixels[edges[:, 0]] - pixels[edges[:, 1]], axis=1)[ahead[edges].all(1)]
         reach = int(np.ceil(np.percentile(lengths, 99))) if len(lengths) else 1
@@ -176,7 +176,7 @@ def carve(masks: np.ndarray, intrinsics: np.ndarray, rotations: np.ndarray, tran
     in_frame = np.zeros(len(centers), np.int32)
     inside = np.zeros(len(centers), np.int32)
     for view in range(count):
-        pixels, depth = _project(centers, k[view], rotations[view], translations[view])
+        pixels, depth = project(centers, k[view], rotations[view], translations[view])
         col, row = np.rint(pixels[:, 0]).astype(np.int64), np.rint(pixels[:, 1]).astype(np.int64)
         seen = (depth > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
         in_frame += seen
@@ -186,7 +186,7 @@ def carve(masks: np.ndarray, intrinsics: np.ndarray, rotations: np.ndarray, tran
     disagreement = np.zeros(count)
     kept = centers[occupancy]
     for view in range(count):
-        pixels, depth = _project(kept, k[view], rotations[view], translations[view])
+        pixels, depth = project(kept, k[view], rotations[view], translations[view])
         col, row = np.rint(pixels[:, 0]).astype(np.int64), np.rint(pixels[:, 1]).astype(np.int64)
         seen = (depth > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
         if seen.any():
@@ -270,8 +270,8 @@ def occluding_points(points: np.ndarray, sparse_points: np.ndarray, sparse_views
         if not observed_in[view]:
             continue
         index = np.asarray(observed_in[view])
-        sparse_px, sparse_depth = _project(sparse_points[index], k[view], rotations[view], translations[view])
-        px, depth = _project(points, k[view], rotations[view], translations[view])
+        sparse_px, sparse_depth = project(sparse_points[index], k[view], rotations[view], translations[view])
+        px, depth = project(points, k[view], rotations[view], translations[view])
         tree = cKDTree(sparse_px)
         neighbours = tree.query_ball_point(px, radius_px)
         nearest_depth = np.array([sparse_depth[n].max() if n else -np.inf for n in neighbours])
@@ -284,7 +284,7 @@ def occluding_points(points: np.ndarray, sparse_points: np.ndarray, sparse_views
 
 @dataclass(frozen=True)
 class InitMeshOptions:
-    """Settings of :func:`initial_mesh` (config section ``init``).
+    """Settings of :func:`hull_mesh` (config section ``init``).
 
     hull_resolution: voxels along the longest side of the hull's box; min_inside_fraction: share of
     the in-frame views whose silhouette must contain a voxel; poisson_depth: octree depth of the
@@ -324,11 +324,11 @@ class InitialMesh:
     check: MeshCheck | None = None
 
 
-def initial_mesh(masks: np.ndarray, intrinsics: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
+def hull_mesh(masks: np.ndarray, intrinsics: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
                  options: InitMeshOptions = InitMeshOptions(), sparse_points: np.ndarray | None = None,
                  sparse_views: list[np.ndarray] | None = None, sparse_errors: np.ndarray | None = None,
                  extra_points: tuple[np.ndarray, np.ndarray] | None = None) -> InitialMesh:
-    """The initial mesh of DESIGN §2 mesh_init from silhouettes, fused with SfM points.
+    """The initial mesh of docs/design.md §2 mesh_init from silhouettes, fused with SfM points.
 
     1. visual hull (:func:`visual_hull`) and its oriented surface points (:func:`surface_points`);
     2. SfM points (``sparse_points`` (P, 3), observing view indices ``sparse_views``, reprojection

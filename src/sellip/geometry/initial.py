@@ -1,4 +1,4 @@
-"""The initial mesh (DESIGN §2 mesh_init; rule ``init_mesh``): the visual hull fused with SfM's sparse
+"""The initial mesh (docs/design.md §2 mesh_init; rule ``init_mesh``): the visual hull fused with SfM's sparse
 points, or multi-view stereo points, or a mesh the user supplies (a scan), checked against the silhouettes
 (:func:`make_initial_mesh`).
 """
@@ -190,7 +190,7 @@ def make_initial_mesh(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: s
         sparse = sparse_observations(sfm_dir, view_ids)
         extra = mvs_points(hdr, sfm_dir, view_ids, masks, options.threads) if mode == "mvs" else None
         try:
-            mesh = geometry_hull.initial_mesh(masks, intrinsics, rotations, translations, options,
+            mesh = geometry_hull.hull_mesh(masks, intrinsics, rotations, translations, options,
                                               *(sparse if sparse is not None else (None, None, None)),
                                               extra_points=extra)
         except geometry_hull.EmptyHullError as error:

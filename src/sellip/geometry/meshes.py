@@ -1,4 +1,4 @@
-"""Triangle-mesh utilities: surface samples and mesh-to-mesh distances (DESIGN §8 Chamfer and
+"""Triangle-mesh utilities: surface samples and mesh-to-mesh distances (docs/design.md §8 Chamfer and
 Hausdorff), point normals, screened Poisson, the largest component, isotropic remeshing to a vertex count,
 vertex normals, edges. open3d and pymeshlab as numerical libraries; metres; pure functions.
 """

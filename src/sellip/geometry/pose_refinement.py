@@ -15,7 +15,7 @@ reference, so no gauge is free: the poses stay in the model's world. Intrinsics 
     refine_view(renderer, camera, flash, analyzers, valid, settings) -> (Camera, report)      # render + align
 
 The stage (every view of a cameras table, written as the next iteration's) is
-:func:`sellip.fit.refine.refine_poses`.
+:func:`sellip.fit.geometry_jobs.refine_poses`.
 
 Poses are COLMAP cam_from_world (``x_cam = R x_world + t``), metres; pixel centres at integer coordinates
 (:mod:`sellip.model.render`).

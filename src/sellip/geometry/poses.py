@@ -1,4 +1,4 @@
-"""The poses of a capture (DESIGN §2 sfm; rule ``run_sfm``): known (poses.csv), SfM (pycolmap), or
+"""The poses of a capture (docs/design.md §2 sfm; rule ``run_sfm``): known (poses.csv), SfM (pycolmap), or
 SfM verified against poses.csv; SfM poses scaled to ``scene.distance_m``; ``cameras.csv`` and the
 comparison with known poses (rotation and centre errors after a similarity alignment).
 """
@@ -18,7 +18,7 @@ from sellip.capture.checks import check_pose_units
 from sellip.capture.files import POSES_CSV
 from sellip.capture.reader import read_capture
 from sellip.geometry import alignment, sfm
-from sellip.geometry.cameras import _pose_arrays, diffuse_view, intrinsics_matrix, view_masks, write_cameras
+from sellip.geometry.cameras import pose_arrays, diffuse_view, intrinsics_matrix, view_masks, write_cameras
 from sellip.model.ply import write_ply
 
 log = logging.getLogger(__name__)
@@ -78,7 +78,7 @@ def solve_poses(hdr_path: str | Path, capture_path: str | Path, cameras_path: st
         missing = [v for v, ok in zip(view_ids, poses["qw"].notna()) if not ok]
         if missing and mode != "sfm":
             log.warning("poses.csv has no pose for %d view(s): %s; they are left out", len(missing), missing[:20])
-        _, known_rotations, known_translations = _pose_arrays(poses.fillna({"qw": 1.0, "qx": 0.0, "qy": 0.0,
+        _, known_rotations, known_translations = pose_arrays(poses.fillna({"qw": 1.0, "qx": 0.0, "qy": 0.0,
                                                                             "qz": 0.0}))
         known_translations[poses["qw"].isna().to_numpy()] = np.nan
         known = (known_rotations, known_translations)

@@ -10,9 +10,9 @@ import time
 import numpy as np
 from scipy import ndimage
 
-from sellip.geometry.hull import Carving, InitialMesh, InitMeshOptions, MeshCheck, _project, visual_hull
+from sellip.geometry.hull import Carving, InitialMesh, InitMeshOptions, MeshCheck, project, visual_hull
 from sellip.geometry.meshes import largest_component, remesh_to_count, vertex_normals
-from sellip.geometry.silhouettes import _disk
+from sellip.geometry.silhouettes import disk
 
 # --------------------------------------------------------------------------- a mesh the user supplies
 
@@ -91,11 +91,11 @@ def check_against_silhouettes(vertices: np.ndarray, masks: np.ndarray, intrinsic
     """
     count, height, width = masks.shape
     k = np.broadcast_to(np.asarray(intrinsics, np.float64), (count, 3, 3))
-    grow = _disk(tolerance_px) if tolerance_px else None
+    grow = disk(tolerance_px) if tolerance_px else None
     inside = np.zeros(count)
     extent = np.full(count, np.nan)
     for view in range(count):
-        pixels, depth = _project(np.asarray(vertices, np.float64), k[view], rotations[view], translations[view])
+        pixels, depth = project(np.asarray(vertices, np.float64), k[view], rotations[view], translations[view])
         col, row = np.rint(pixels[:, 0]).astype(np.int64), np.rint(pixels[:, 1]).astype(np.int64)
         seen = (depth > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
         mask = ndimage.binary_dilation(masks[view], grow) if grow is not None else masks[view]
@@ -149,7 +149,7 @@ def user_initial_mesh(vertices: np.ndarray, faces: np.ndarray, masks: np.ndarray
                       rotations: np.ndarray, translations: np.ndarray, options: InitMeshOptions = InitMeshOptions(),
                       normals: np.ndarray | None = None) -> InitialMesh:
     """The initial mesh from a mesh the user supplies (a scan, in the cameras' world, metres), checked against
-    the silhouettes (DESIGN §2 mesh_init, ``init.mode: mesh``).
+    the silhouettes (docs/design.md §2 mesh_init, ``init.mode: mesh``).
 
     1. the largest connected component; faces wound consistently and outward (:func:`orient_outward`, by the
        scan's vertex ``normals`` (V, 3) when given);

@@ -1,4 +1,4 @@
-"""Structure from motion with pycolmap on the diffuse images I_d = 2 I90 (DESIGN §2 sfm, §3 notes).
+"""Structure from motion with pycolmap on the diffuse images I_d = 2 I90 (docs/design.md §2 sfm, §3 notes).
 
 Public API::
 
@@ -420,5 +420,5 @@ def check_registration(result: SfmResult, min_fraction: float) -> None:
     raise RegistrationError(
         f"SfM registered only {registered} of {count} views (need {min_fraction:.0%}); not registered: {shown}. "
         "Flash photographs need texture on the object and many overlapping views (70+ around 360 degrees, "
-        "DESIGN §3 notes). If the poses are known (a calibrated rig or turntable), supply them as poses.csv "
+        "docs/design.md §4 notes). If the poses are known (a calibrated rig or turntable), supply them as poses.csv "
         "in the capture folder and run with sfm.mode: known.", missing)

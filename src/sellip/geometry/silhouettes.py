@@ -16,7 +16,7 @@ from scipy import ndimage
 # --------------------------------------------------------------------------- silhouettes
 
 
-def _disk(radius: int) -> np.ndarray:
+def disk(radius: int) -> np.ndarray:
     r = np.arange(-radius, radius + 1)
     return (r[:, None] ** 2 + r[None, :] ** 2) <= radius * radius
 
@@ -28,7 +28,7 @@ BACKGROUND_BINS = 200  # histogram bins over the darker half of a view's pixels 
 def background_noise(luminance: np.ndarray, usable: np.ndarray) -> tuple[float, float]:
     """The background (the peak of the histogram of the darker half of the ``usable`` pixels of a (H, W)
     ``luminance``) and its noise sd, from the pixels below the peak (object pixels lie above it):
-    1.4826 times their median distance to it. A flash photograph's background is dark noise (DESIGN §2)."""
+    1.4826 times their median distance to it. A flash photograph's background is dark noise (docs/design.md §2)."""
     values = luminance[usable]
     if values.size == 0:
         return 0.0, 0.0
@@ -174,10 +174,10 @@ def _cut(luminance: np.ndarray, level: float, levels: np.ndarray, valid: np.ndar
     if valid is not None:
         mask |= ~np.asarray(valid, bool) & ndimage.binary_dilation(mask)
     if cut.open_px:
-        mask = ndimage.binary_opening(mask, _disk(cut.open_px))
+        mask = ndimage.binary_opening(mask, disk(cut.open_px))
     if cut.close_px:
         c = cut.close_px
-        mask = ndimage.binary_closing(np.pad(mask, c), _disk(c))[c:-c, c:-c]
+        mask = ndimage.binary_closing(np.pad(mask, c), disk(c))[c:-c, c:-c]
     return _clean_components(mask, cut.max_hole_fraction, cut.min_blob_fraction)
 
 

@@ -1,4 +1,4 @@
-"""The geometry update (DESIGN §2, docs/geometry_update.md): the surface moved to agree with the
+"""The geometry update (docs/design.md §2, docs/geometry_update.md): the surface moved to agree with the
 confident fitted normals by normal integration (a sparse least-squares problem), held by the photographs'
 silhouettes.
 """
@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from sellip.geometry.hull import _project
+from sellip.geometry.hull import project
 from sellip.geometry.meshes import blend_normals, mesh_edges, vertex_normals
 from sellip.geometry.silhouettes import Silhouette, boundary_distance, signed_distance
 
@@ -67,7 +67,7 @@ def silhouette_constraints(vertices: np.ndarray, normals: np.ndarray, intrinsics
     vertices, normals = np.asarray(vertices, np.float64), np.asarray(normals, np.float64)
     k, rotation = np.asarray(intrinsics, np.float64), np.asarray(rotation, np.float64)
     translation = np.asarray(translation, np.float64)
-    pixels, depth = _project(vertices, k, rotation, translation)
+    pixels, depth = project(vertices, k, rotation, translation)
     u, v = pixels[:, 0], pixels[:, 1]
     predicted_mask = predicted.mask if isinstance(predicted, Silhouette) else np.asarray(predicted, bool)
     height, width = predicted_mask.shape

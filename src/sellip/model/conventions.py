@@ -1,4 +1,4 @@
-"""The conventions every stage shares, stated and implemented once (DESIGN §3).
+"""The conventions every stage shares, stated and implemented once (docs/design.md §3).
 
 Camera axes
     OpenCV: x right, y down, z forward (into the scene). Poses are COLMAP's
@@ -84,7 +84,7 @@ def analyzers_to_stokes(analyzers, axis: int = -1):
 
 
 def observations_from_analyzers(analyzers, axis: int = -2):
-    """The three observations of DESIGN §5 from four analyzer intensities.
+    """The three observations of docs/design.md §5 from four analyzer intensities.
 
     analyzers: (..., 4, C) by default (``axis`` selects the analyzer axis).
     Returns ``(I_d, I_alpha, I_s)``, each (..., C):

@@ -1,6 +1,6 @@
 """Per-vertex parameter stores (``params.zarr``) and carrying parameters between meshes.
 
-A store holds, for N vertices (DESIGN §4 names, float32 unless noted), chunked by vertex:
+A store holds, for N vertices (docs/design.md §4 names, float32 unless noted), chunked by vertex:
 
     vertices (N, 3), normals (N, 3), eta (N,), rho_d (N, 3), rho_s (N,), sigma_s (N,),
     rho_ss (N, 3), sigma_ss (N,), confidence (N,), status (N,) int8, loss (N,),
@@ -12,7 +12,7 @@ A store holds, for N vertices (DESIGN §4 names, float32 unless noted), chunked 
 
 ``status`` is 0 fitted, 1 too few views, 2 failed (:data:`sellip.fit.records.STATUS_NAMES`). Vertices
 that could not be fitted hold parameters interpolated from their fitted neighbours and
-confidence 0 (DESIGN §7): never NaN, never another vertex's stale values.
+confidence 0 (docs/design.md §7): never NaN, never another vertex's stale values.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ EXTRA_FIELDS = {"confidence": np.float32, "status": np.int8, "loss": np.float32,
 
 MODEL_NAMES = {0: "diffuse", 1: "diffuse + specular", 2: "diffuse + specular + single scattering (sigma_ss fixed)",
                3: "diffuse + specular + single scattering"}
-"""Per-vertex ``model`` codes (DESIGN §4, §7): which lobes the vertex's material uses."""
+"""Per-vertex ``model`` codes (docs/design.md §4, §7): which lobes the vertex's material uses."""
 
 
 class ParamsError(ValueError):

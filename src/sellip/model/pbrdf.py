@@ -2,13 +2,13 @@
 
 Two forms:
 
-- :func:`full_mueller` / :func:`full_stokes`: the complete model of DESIGN §6
+- :func:`full_mueller` / :func:`full_stokes`: the complete model of docs/design.md §6
   (paper Eqs. 5-11): diffuse = exit transmission o depolarizer o entry
   transmission about the normal; specular and single scattering = Fresnel
   reflection about the half vector, each with its own GGX lobe. Exact
   incident and exitant frames, no coaxial shortcut. Used by the renderer and
   the simulator.
-- :func:`coaxial_observations`: the practical model of DESIGN §5 (paper
+- :func:`coaxial_observations`: the practical model of docs/design.md §5 (paper
   Eqs. 12-18) that the fit inverts: I_d, I_alpha, I_s.
 
 Geometry per (vertex, view): ``normal`` n, ``to_light`` w_i (surface -> flash),
@@ -47,7 +47,7 @@ class PBRDFParams(NamedTuple):
 
 
 class Observations(NamedTuple):
-    """The three observations of DESIGN §5, each (..., 3)."""
+    """The three observations of docs/design.md §5, each (..., 3)."""
 
     diffuse: jnp.ndarray  # I_d = 2 I90
     diffuse_pol: jnp.ndarray  # I_alpha = I135 - I45
@@ -277,7 +277,7 @@ def normal_azimuth_terms(normal, to_camera, camera_up):
 
 
 def coaxial_observations(normal, to_light, to_camera, light_distance, camera_up, params: PBRDFParams) -> Observations:
-    """The practical near-coaxial model of DESIGN §5 (paper Eqs. 15-18).
+    """The practical near-coaxial model of docs/design.md §5 (paper Eqs. 15-18).
 
     I_d = S rho_d T+_i T+_o;  I_alpha = S rho_d T-_o T+_i sin 2phi_o;
     I_s = S (kappa_s R+ + kappa_ss R+ - rho_d T-_o T+_i cos 2phi_o),

@@ -1,4 +1,4 @@
-"""PLY meshes with per-vertex parameters (DESIGN §4 ``final/model.ply``): a small binary PLY writer
+"""PLY meshes with per-vertex parameters (docs/design.md §4 ``final/model.ply``): a small binary PLY writer
 and reader, and the model's vertex properties (x y z nx ny nz eta rho_d_rgb rho_s sigma_s rho_ss_rgb
 sigma_ss, float32).
 """
@@ -21,7 +21,7 @@ class PlyError(ValueError):
 
 MODEL_VERTEX_PROPERTIES = ("x", "y", "z", "nx", "ny", "nz", "eta", "rho_d_r", "rho_d_g", "rho_d_b", "rho_s",
                            "sigma_s", "rho_ss_r", "rho_ss_g", "rho_ss_b", "sigma_ss")
-"""Vertex properties of a model PLY (DESIGN §4), all float32, in this order."""
+"""Vertex properties of a model PLY (docs/design.md §4), all float32, in this order."""
 
 _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
               "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",

@@ -11,7 +11,7 @@ Public API::
     render_stokes(mesh, camera, light, supersample=2, shadows=True) -> RenderResult
     pixel_rays(camera, supersample=1) -> (origin (3,), directions (H, W, s*s, 3))
 
-Image formation (DESIGN §6): for every sub-pixel sample, a primary ray finds
+Image formation (docs/design.md §6): for every sub-pixel sample, a primary ray finds
 the first surface (open3d ``RaycastingScene``); per-vertex normals and pBRDF
 parameters are interpolated with the hit's barycentric coordinates; a shadow
 ray towards the light decides whether the light reaches the point; the full

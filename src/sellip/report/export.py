@@ -7,7 +7,7 @@ Public API::
     write_glb(path, vertex, faces, up=None) -> Path              # final/model.glb
     write_map_plys(folder, vertex, faces, maps) -> [Path]         # final/maps/map_<name>.ply
 
-``vertex``: the vertex properties of a model PLY (:func:`sellip.io.read_ply`: name -> (V,) array; DESIGN §4).
+``vertex``: the vertex properties of a model PLY (:func:`sellip.io.read_ply`: name -> (V,) array; docs/design.md §4).
 
 **glTF** (KhronosGroup/glTF ``specification/2.0``): one mesh, one primitive of triangles (``indices`` uint32),
 ``POSITION`` and ``NORMAL`` (float32 VEC3, the model's own world and metres), ``COLOR_0`` (float32 VEC3, linear:

@@ -1,4 +1,4 @@
-"""The figures of merit of a reconstruction (DESIGN §8; rule ``evaluate_model``): normals, η per
+"""The figures of merit of a reconstruction (docs/design.md §8; rule ``evaluate_model``): normals, η per
 material and per vertex, albedo, roughness, Chamfer and Hausdorff, held-out and new-light PSNR, the geometry's
 convergence over the iterations -> ``metrics.json`` (:func:`evaluate_model`).
 """
@@ -21,7 +21,7 @@ from sellip.jobs import write_text
 from sellip.model.params import read_params
 from sellip.model.ply import read_param_mesh
 from sellip.model.render import Camera, Renderer, flash_light
-from sellip.report import evaluate
+from sellip.report import figures_of_merit
 from sellip.report.outputs import (
     NEW_LIGHT_OFFSET_M,
     OutputsError,
@@ -72,7 +72,7 @@ def _moved_camera(camera: Camera, similarity) -> Camera:
 
 
 def geometry_convergence(mesh_paths: list, fit_paths: list, truth, similarity) -> list[dict]:
-    """:func:`sellip.report.evaluate.geometry_series` of the loop's mesh files and first-pass fit stores."""
+    """:func:`sellip.report.figures_of_merit.geometry_series` of the loop's mesh files and first-pass fit stores."""
     from sellip.fit.observe import read_mesh
     from sellip.model.render import ParamMesh
 
@@ -84,7 +84,7 @@ def geometry_convergence(mesh_paths: list, fit_paths: list, truth, similarity) -
             store = read_params(fit_paths[index])
             counted = (store["status"] == 0) & (store["confidence"] > 0)
             fitted.append((store["normals"], counted))
-    rows = evaluate.geometry_series(meshes, fitted, truth, similarity)
+    rows = figures_of_merit.geometry_series(meshes, fitted, truth, similarity)
     for row in rows:
         log.info("mesh %d: moved %s mm, Chamfer to the truth %s mm, mesh normals %s deg, fitted %s deg", row["mesh"],
                  _rounded(row["chamfer_to_previous_mm"]), _rounded(row.get("chamfer_mm")),
@@ -106,12 +106,12 @@ def _mean_db(per_view: dict) -> float | None:
 
 
 def view_psnr(renderer, camera: Camera, light, hdr, view_id: str, supersample: int = 2) -> dict:
-    """:func:`sellip.report.evaluate.psnr` of ``renderer``'s image at ``camera`` under ``light`` against the HDR store's view
-    ``view_id``, inside :func:`sellip.report.evaluate.render_mask`: how a model (or the ground truth) scores at a captured
+    """:func:`sellip.report.figures_of_merit.psnr` of ``renderer``'s image at ``camera`` under ``light`` against the HDR store's view
+    ``view_id``, inside :func:`sellip.report.figures_of_merit.render_mask`: how a model (or the ground truth) scores at a captured
     view."""
     result = renderer.render(camera, light, supersample=supersample)
     analyzers, valid = hdr.view(view_id)
-    return evaluate.psnr(analyzers, result.analyzers, evaluate.render_mask(analyzers, valid, result.coverage))
+    return figures_of_merit.psnr(analyzers, result.analyzers, figures_of_merit.render_mask(analyzers, valid, result.coverage))
 
 
 
@@ -128,14 +128,14 @@ def _refined_alignment(model, truth, cameras: Similarity, mode: str, geometry_sa
 
     refined = refine_to_surface(model.vertices, truth.vertices, truth.faces, cameras)
     step = refined.compose(cameras.inverse())
-    normal_error, _ = evaluate.nearest_normal_errors(model, truth, cameras)
+    normal_error, _ = figures_of_merit.nearest_normal_errors(model, truth, cameras)
     record = {"method": "sim3+icp", "sfm_mode": mode,
               "source": "cameras.csv centres -> poses.csv centres, refined by ICP of the model's vertices onto the "
                         "true surface",
               "scale": refined.scale, "rotation": refined.rotation.tolist(), "translation": refined.translation.tolist(),
               "cameras": {"scale": cameras.scale, "rotation": cameras.rotation.tolist(),
                           "translation": cameras.translation.tolist(),
-                          "chamfer_mm": evaluate.geometry_errors(model, truth, cameras,
+                          "chamfer_mm": figures_of_merit.geometry_errors(model, truth, cameras,
                                                                  samples=geometry_samples)["chamfer_mm"],
                           "normal_median_deg": float(np.median(normal_error))},
               "refinement": {"rotation_deg": float(np.degrees(Rotation.from_matrix(step.rotation).magnitude())),
@@ -169,7 +169,7 @@ def _truth_and_alignment(truth_path: Path, ground_truth_keys, capture, capture_p
                 ref_ids = list(capture.poses["view_id"])
                 ref = [capture.pose(v) for v in ref_ids]
                 try:
-                    similarity = evaluate.camera_alignment(*own, ref_ids, np.stack([r for r, _ in ref]),
+                    similarity = figures_of_merit.camera_alignment(*own, ref_ids, np.stack([r for r, _ in ref]),
                                                            np.stack([t for _, t in ref]))
                 except ValueError as exc:
                     raise OutputsError(f"{cameras_path} vs {capture_path}/poses.csv: {exc}") from None
@@ -181,19 +181,19 @@ def _truth_and_alignment(truth_path: Path, ground_truth_keys, capture, capture_p
 
 
 def _pose_figures(cameras: dict, initial_cameras, hdr_path, capture, truth, similarity) -> dict | None:
-    """With SfM cameras (``similarity`` set) and poses.csv: :func:`sellip.report.evaluate.truth_reprojection` of
+    """With SfM cameras (``similarity`` set) and poses.csv: :func:`sellip.report.figures_of_merit.truth_reprojection` of
     the cameras (``final``) and, when given, of ``initial_cameras`` (the poses stage's, before the refinement against
     the object: ``initial``); None otherwise."""
     if similarity is None or capture.poses is None:
         return None
     true_poses = {view: capture.pose(view) for view in capture.poses["view_id"]}
     truth_renderer = Renderer(truth)
-    figures = {"final": evaluate.truth_reprojection(cameras, true_poses, truth_renderer, similarity),
+    figures = {"final": figures_of_merit.truth_reprojection(cameras, true_poses, truth_renderer, similarity),
                "unit": "reprojection_px: HDR pixels, median over the visible true surface, then median / p90 / max "
                        "over the views; centre_mm: millimetres"}
     if initial_cameras is not None:
         initial, _ = load_cameras(initial_cameras, hdr_path)
-        figures["initial"] = evaluate.truth_reprojection(initial, true_poses, truth_renderer, similarity)
+        figures["initial"] = figures_of_merit.truth_reprojection(initial, true_poses, truth_renderer, similarity)
     if figures["final"] is None:
         return None
     for key in ("final", "initial"):
@@ -217,17 +217,17 @@ def _ground_truth_figures(model, truth, similarity, renderer, cameras, hdr, held
         reasons["confident_vertices"] = note
     metrics["vertices"] = {"model": model.num_vertices, "confident": int(confident.sum()),
                            "ground_truth": truth.num_vertices}
-    metrics.update(evaluate.parameter_errors(model, truth, confident, similarity))
+    metrics.update(figures_of_merit.parameter_errors(model, truth, confident, similarity))
     for key in ("eta_relative_error_pct", "rho_d_relative_rmse", "sigma_s_abs_error", "sigma_ss_abs_error"):
         if metrics[key] is None:
             reasons[key] = "no confident vertex with this lobe in the ground truth"
-    metrics["geometry"] = evaluate.geometry_errors(model, truth, similarity, samples=geometry_samples)
+    metrics["geometry"] = figures_of_merit.geometry_errors(model, truth, similarity, samples=geometry_samples)
     log.info("normals: median %.2f deg (confident %s); chamfer %.3f mm, hausdorff %.3f mm",
              metrics["normal_error_deg"]["all"]["median"],
              (metrics["normal_error_deg"]["confident"] or {}).get("median"),
              metrics["geometry"]["chamfer_mm"], metrics["geometry"]["hausdorff_mm"])
     # New light: ground truth and model rendered under the same moved flash, ground-truth world.
-    moved_model = renderer if similarity is None else Renderer(evaluate.transform_mesh(model, similarity))
+    moved_model = renderer if similarity is None else Renderer(figures_of_merit.transform_mesh(model, similarity))
     truth_renderer = Renderer(truth)
     new_light = {}
     for view_id in [v for v in held_out if v in cameras] or [next(iter(cameras))]:
@@ -235,7 +235,7 @@ def _ground_truth_figures(model, truth, similarity, renderer, cameras, hdr, held
         lamp = moved_flash(camera, light["position_m"], new_light_offset_cam, float(light["polarizer_deg"]))
         reference = truth_renderer.render(camera, lamp, supersample=supersample)
         estimate = moved_model.render(camera, lamp, supersample=supersample)
-        new_light[view_id] = evaluate.psnr(reference.analyzers, estimate.analyzers,
+        new_light[view_id] = figures_of_merit.psnr(reference.analyzers, estimate.analyzers,
                                            (reference.coverage > 0) | (estimate.coverage > 0))
         log.info("new light at %s: PSNR %s dB", view_id, new_light[view_id]["psnr_db"])
     metrics["psnr_new_light"] = {"views": new_light, "mean_db": _mean_db(new_light)}
@@ -253,7 +253,7 @@ def _ground_truth_figures(model, truth, similarity, renderer, cameras, hdr, held
 
 
 def _timings(benchmarks, timings_plot, reasons: dict) -> dict | None:
-    """Per-rule wall times from the Snakemake benchmark files (:func:`sellip.report.evaluate.stage_timings`) and
+    """Per-rule wall times from the Snakemake benchmark files (:func:`sellip.report.figures_of_merit.stage_timings`) and
     their plot; None, with the reason, without the folder."""
     if benchmarks is None:
         reasons["timings"] = "no --benchmarks folder given"
@@ -261,7 +261,7 @@ def _timings(benchmarks, timings_plot, reasons: dict) -> dict | None:
     if not Path(benchmarks).is_dir():
         reasons["timings"] = f"{benchmarks} does not exist"
         return None
-    timings = evaluate.stage_timings(benchmarks)
+    timings = figures_of_merit.stage_timings(benchmarks)
     if timings_plot is not None and timings["rules"]:
         save_figure(timings_figure(timings["rules"]), timings_plot)
     return timings
@@ -290,8 +290,8 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
     held_out = list(held_out or [])
     reasons: dict[str, str] = {}
     metrics: dict = {"model": str(model_path), "cameras": str(cameras_path), "capture": str(capture_path),
-                     "settings": {"supersample": supersample, "psnr_peak_percentile": evaluate.PSNR_PEAK_PERCENTILE,
-                                  "psnr_max_db": evaluate.PSNR_MAX_DB, "geometry_samples": geometry_samples,
+                     "settings": {"supersample": supersample, "psnr_peak_percentile": figures_of_merit.PSNR_PEAK_PERCENTILE,
+                                  "psnr_max_db": figures_of_merit.PSNR_MAX_DB, "geometry_samples": geometry_samples,
                                   "new_light_offset_cam_m": list(map(float, new_light_offset_cam))}}
     renderer = Renderer(model)
 

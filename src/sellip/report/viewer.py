@@ -14,7 +14,7 @@ model of :mod:`sellip.pbrdf`, ``#include`` resolved here); ``model.js`` holds th
 base64 of little-endian binary. Everything is loaded with ``<script>`` tags, so the page also works opened
 from disk (``file://`` forbids fetching local files).
 
-Files read from ``results/NAME`` (only the first is required): ``final/model.ply`` (DESIGN §4; any map whose
+Files read from ``results/NAME`` (only the first is required): ``final/model.ply`` (docs/design.md §4; any map whose
 property is missing is disabled, with the reason on the page), ``final/params.zarr`` (``cluster``, the fit's
 ``eta_std``/``sigma_s_std``), ``cameras.csv`` (frusta, "snap to view"), ``hdr.zarr`` attrs ``intrinsics``
 (the virtual camera; else a 640x512 view with the capture's or a 25 mm lens), ``final/materials.csv``; the

@@ -1,4 +1,4 @@
-"""``sellip calibrate``: describe a real device once (DESIGN §3), step by step, into device.yaml.
+"""``sellip calibrate``: describe a real device once (docs/design.md §3), step by step, into device.yaml.
 
     sellip calibrate intrinsics FRAME... --device device.yaml --board 9x7 --square-mm 15 [--k3]
     sellip calibrate flash FRAME... --device device.yaml --sphere-radius-mm 20

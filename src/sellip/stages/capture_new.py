@@ -1,4 +1,4 @@
-"""``sellip capture new``: a capture folder (DESIGN §3) for a folder of raw frames and a calibrated device.
+"""``sellip capture new``: a capture folder (docs/design.md §3) for a folder of raw frames and a calibrated device.
 
     sellip capture new FRAMES_DIR --device device.yaml --distance-m 0.9 --pattern '{view}_f{level}.dng' \
         --exposure-s 0.005 [--out CAPTURE]

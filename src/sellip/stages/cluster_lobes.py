@@ -22,7 +22,7 @@ Writes the directory ``--output`` (built under a temporary name, then renamed) w
   the settings (``settings``: the clustering's; ``fit_settings``: the lobe fit's) and the seed, and under ``model_selection`` per cluster the chosen model, the held-out loss of
   every candidate and why.
 
-Model selection (DESIGN §7, :mod:`sellip.fit.selection`, on unless ``--no-model-selection``): per cluster,
+Model selection (docs/design.md §7, :mod:`sellip.fit.selection`, on unless ``--no-model-selection``): per cluster,
 the simplest model whose held-out loss is within the tolerance of the best; the cluster's lobe is
 then fitted with that model. Without it every cluster gets the model of the fit settings (3, or 2
 with ``--set sigma_ss_fixed=...``). The fit settings (``--set``) are also the most complex model allowed.

@@ -1,4 +1,4 @@
-"""``sellip evaluate``: figures of merit of the final model (DESIGN §8) -> metrics.json (rule ``evaluate_model``).
+"""``sellip evaluate``: figures of merit of the final model (docs/design.md §8) -> metrics.json (rule ``evaluate_model``).
 
     sellip evaluate --model results/NAME/final/model.ply --params results/NAME/final/params.zarr
                     --cameras results/NAME/cameras.csv --hdr results/NAME/hdr.zarr --capture CAPTURE
@@ -11,13 +11,13 @@ and the stage timings; the ground-truth figures are null and ``reasons`` says wh
 Frames: the model and cameras.csv share a world. When the cameras came from SfM (``--sim3-from-sfm``, or
 ``report.json`` of the sfm stage next to cameras.csv, ``<cameras dir>/sfm/report.json``, says mode "sfm"),
 the model is moved into the ground truth's world by the Sim(3) that maps the cameras.csv camera centres onto
-the capture's poses.csv ones (:func:`sellip.report.evaluate.camera_alignment`); otherwise (modes known, verify:
+the capture's poses.csv ones (:func:`sellip.report.figures_of_merit.camera_alignment`); otherwise (modes known, verify:
 cameras.csv holds poses.csv) no alignment is applied.
 
 Confident vertices: status 0 (fitted) and confidence > 0 in params.zarr; without --params, confidence > 0
 in model.ply; without either, every vertex (said in ``reasons``).
 
-The keys of metrics.json and the exact definitions: :mod:`sellip.report.evaluate` and docs/outputs.md.
+The keys of metrics.json and the exact definitions: :mod:`sellip.report.figures_of_merit` and docs/outputs.md.
 The file is written under a temporary name and renamed.
 """
 

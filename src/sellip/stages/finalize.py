@@ -1,4 +1,4 @@
-"""``sellip finalize``: the final model (rule ``finalize_model``, DESIGN §4).
+"""``sellip finalize``: the final model (rule ``finalize_model``, docs/design.md §4).
 
     sellip finalize --params results/NAME/iter/10/params.zarr --mesh results/NAME/iter/9/mesh.ply
                     --output-model results/NAME/final/model.ply --output-params results/NAME/final/params.zarr
@@ -6,10 +6,10 @@
 
 ``--params`` is the last pass of the loop: the pBRDF refitted with the normals of the final
 geometry (paper §4.4); its rows are the vertices of ``--mesh``, whose triangles the model keeps.
-Written (each atomically): ``model.ply`` with the vertex properties of DESIGN §4 (float32) plus
+Written (each atomically): ``model.ply`` with the vertex properties of docs/design.md §4 (float32) plus
 ``confidence`` (float32) and ``model`` (uint8, :data:`sellip.model.params.MODEL_NAMES`), and
 ``params.zarr`` with the same arrays (plus status, loss, views_used, iterations, cluster).
-``model`` is the store's own (the model each vertex was fitted with, DESIGN §7); ``--model``
+``model`` is the store's own (the model each vertex was fitted with, docs/design.md §7); ``--model``
 only fills it for a store without one.
 """
 

@@ -9,7 +9,7 @@
 The shard's vertex range is derived at run time from the store's vertex count and chunking
 (shard i of n takes an equal share of whole vertex chunks, so it reads only its own chunks).
 With ``--prior`` (a parameter store: the previous iteration's) every parameter is warm-started from
-the nearest previous vertex (DESIGN §7); without it the fit starts from eta = 1.5 and the
+the nearest previous vertex (docs/design.md §7); without it the fit starts from eta = 1.5 and the
 defaults of :func:`sellip.fit.vertex_fit.default_prior`. The starting normals are the mesh normals.
 ``--set`` overrides a field of :class:`sellip.fit.records.FitSettings`.
 
@@ -21,7 +21,7 @@ the fit starts from its normals as well as its parameters (and holds them with
 lobes and refit settings: its prior is then on another mesh, so it starts from the (final) mesh's
 normals, and it runs the refit's compiled program (one compilation fewer, docs/speed.md).
 
-Models (DESIGN §7, :mod:`sellip.fit.selection`): every vertex is fitted with its own model, from
+Models (docs/design.md §7, :mod:`sellip.fit.selection`): every vertex is fitted with its own model, from
 ``--lobes``'s models.npy, else from the prior store's ``model`` (nearest vertex, as its
 parameters), else the model of the settings (3, or 2 with ``sigma_ss_fixed``); never more
 complex than the settings allow. Vertices are grouped by model, one fit per group. Model 2's

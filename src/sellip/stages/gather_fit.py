@@ -6,7 +6,7 @@
 
 The shards must cover the store's vertices exactly once. Vertices that could not be fitted
 (too few views, failed) get parameters interpolated from their fitted neighbours and confidence 0
-(DESIGN §7); they keep their starting normal (the mesh's: a neighbour's normal belongs to another
+(docs/design.md §7); they keep their starting normal (the mesh's: a neighbour's normal belongs to another
 part of the surface; interpolating them left the demo's unlit underside 17 deg median off its own
 mesh) and their ``model`` (their cluster's, not fitted). The store
 layout is :mod:`sellip.model.params`; ``model`` (the model each vertex was fitted with) is written when

@@ -1,4 +1,4 @@
-"""``sellip init-mesh``: the initial mesh (rule ``init_mesh``, DESIGN §2 mesh_init).
+"""``sellip init-mesh``: the initial mesh (rule ``init_mesh``, docs/design.md §2 mesh_init).
 
     sellip init-mesh --hdr results/NAME/hdr.zarr --cameras results/NAME/cameras.csv --sfm results/NAME/sfm
                      --output results/NAME/mesh/init.ply [--mode hull|mvs|mesh] [--mesh-path scan.ply]
@@ -7,7 +7,7 @@
 ``hull`` (default, CPU): silhouettes of the flash-lit object (:func:`sellip.geometry.silhouettes.silhouette_masks`),
 a visual hull robust to a few bad masks, fused with the SfM points when ``sfm/sparse`` exists, screened
 Poisson at depth 7, cleaned, remeshed to the density of depth 9 (at most ``--max-vertices``), see
-:func:`sellip.geometry.hull.initial_mesh`. ``mvs`` (needs pycolmap built with CUDA and an SfM model): COLMAP
+:func:`sellip.geometry.hull.hull_mesh`. ``mvs`` (needs pycolmap built with CUDA and an SfM model): COLMAP
 PatchMatch stereo and fusion give the oriented points instead of the hull surface. ``mesh``: the mesh in
 ``--mesh-path`` (a scan in the cameras.csv world, metres; PLY or OBJ) is resampled to ``--max-vertices`` and
 checked against the silhouettes (:func:`sellip.geometry.scan.user_initial_mesh`); a mesh that does not fit them stops

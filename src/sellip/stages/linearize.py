@@ -41,7 +41,7 @@ log = logging.getLogger(__name__)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--capture", required=True, type=Path, help="capture folder (DESIGN §3)")
+    parser.add_argument("--capture", required=True, type=Path, help="capture folder (docs/design.md §3)")
     parser.add_argument("--output", required=True, type=Path, help="zarr store to write (a directory)")
     parser.add_argument("--threads", type=int, default=1, help="frames processed in parallel (default: 1)")
     parser.add_argument("--saturation", type=float, default=ingest.DEFAULT_SATURATION,

@@ -28,7 +28,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from sellip.fit.refine import refine_geometry
+from sellip.fit.geometry_jobs import refine_geometry
 
 log = logging.getLogger(__name__)
 

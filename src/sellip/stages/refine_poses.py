@@ -8,7 +8,7 @@
 
 The model (the params store on its mesh, shaded with its fitted normals) is rendered through each view's camera
 under the capture's flash, and the pose that best aligns the photograph with the render is the view's new pose
-(:func:`sellip.fit.refine.refine_poses`, :func:`sellip.geometry.pose_refinement.refine_view`); the intrinsics are
+(:func:`sellip.fit.geometry_jobs.refine_poses`, :func:`sellip.geometry.pose_refinement.refine_view`); the intrinsics are
 held. Writes the cameras table (atomically) and ``<output>.json``: each view's step, the robust cost before and
 after, and the views kept (too few pixels, a step too large to trust, or one too small to tell from the
 alignment's noise).
@@ -43,7 +43,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     from sellip.fit.observe import ObserveError
-    from sellip.fit.refine import refine_poses
+    from sellip.fit.geometry_jobs import refine_poses
     from sellip.geometry.pose_refinement import PoseRefinementSettings
     from sellip.model.params import ParamsError
 

@@ -1,4 +1,4 @@
-"""``sellip sfm``: camera poses for every view (rule ``run_sfm``, DESIGN §2 sfm).
+"""``sellip sfm``: camera poses for every view (rule ``run_sfm``, docs/design.md §2 sfm).
 
     sellip sfm --hdr results/NAME/hdr.zarr --capture CAPTURE --cameras results/NAME/cameras.csv
                --output results/NAME/sfm [--mode known|verify|sfm] [--threads 2] [options]

@@ -1,4 +1,4 @@
-"""``sellip synth``: generate a synthetic capture folder (DESIGN §3) with ground truth.
+"""``sellip synth``: generate a synthetic capture folder (docs/design.md §3) with ground truth.
 
     sellip synth --scene demo --out captures/demo [--views N --width W --height H --seed S] [--noise-scale K]
                  [--renderer sellip|mitsuba] [--mitsuba-variant V] [--device device.yaml] [--noise-seed S]

@@ -1,4 +1,4 @@
-// The three-lobe polarimetric BRDF of sellip.pbrdf (DESIGN section 6), per fragment, as sellip.render shades a
+// The three-lobe polarimetric BRDF of sellip.pbrdf (docs/design.md §6), per fragment, as sellip.render shades a
 // ray hit: exact incident and exitant Stokes frames (no coaxial shortcut), Fresnel transmission of the diffuse
 // lobe (entry o depolarizer o exit about the normal), GGX specular and single-scattering lobes that share the
 // Fresnel reflection about the half vector, shading S = cos_i / d^2. Linear Stokes (s0, s1, s2): s3 stays 0 for

@@ -1,4 +1,4 @@
-"""Figures of merit of a reconstructed model (DESIGN §8): parameters, geometry, re-render PSNR, stage timings.
+"""Figures of merit of a reconstructed model (docs/design.md §8): parameters, geometry, re-render PSNR, stage timings.
 
 Public API::
 

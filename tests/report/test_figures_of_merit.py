@@ -18,7 +18,7 @@ from sellip.geometry.cameras import read_cameras, write_cameras
 from sellip.model.params import write_params
 from sellip.model.ply import write_param_mesh
 from sellip.model.render import ParamMesh
-from sellip.report import evaluate
+from sellip.report import figures_of_merit
 from sellip.report import metrics as report_metrics
 
 
@@ -49,7 +49,7 @@ def _tilted(normals: np.ndarray, degrees: float) -> np.ndarray:
 
 
 def test_ground_truth_against_itself_has_zero_error(truth):
-    errors = evaluate.parameter_errors(truth, truth, np.ones(truth.num_vertices, bool))
+    errors = figures_of_merit.parameter_errors(truth, truth, np.ones(truth.num_vertices, bool))
     assert errors["normal_error_deg"]["all"]["mean"] == pytest.approx(0, abs=1e-6)
     assert errors["eta_relative_error_pct"]["mean"] == 0
     assert errors["rho_d_relative_rmse"]["relative_rmse"] == pytest.approx(0, abs=1e-12)
@@ -64,7 +64,7 @@ def test_known_perturbations_give_known_errors(truth):
     normals[~confident] = _tilted(truth.normals[~confident], 20.0)
     model = _with(truth, normals=normals, eta=1.1 * p.eta, rho_d=3 * p.rho_d, sigma_s=p.sigma_s + 0.05,
                   sigma_ss=p.sigma_ss - 0.02)
-    errors = evaluate.parameter_errors(model, truth, confident)
+    errors = figures_of_merit.parameter_errors(model, truth, confident)
     assert errors["normal_error_deg"]["confident"]["median"] == pytest.approx(5.0, abs=1e-6)
     assert errors["normal_error_deg"]["confident"]["mean"] == pytest.approx(5.0, abs=1e-6)
     expected_all = (5.0 * confident.sum() + 20.0 * (~confident).sum()) / truth.num_vertices
@@ -84,7 +84,7 @@ def test_albedo_rmse_after_the_global_scale_sees_relative_errors(truth):
     """Half the vertices 20 % brighter: the best scale cannot undo that, the RMSE is what least squares leaves."""
     rho = truth.params.rho_d.copy()
     rho[::2] *= 1.2
-    errors = evaluate.parameter_errors(_with(truth, rho_d=2.0 * rho), truth, np.ones(truth.num_vertices, bool))
+    errors = figures_of_merit.parameter_errors(_with(truth, rho_d=2.0 * rho), truth, np.ones(truth.num_vertices, bool))
     model, gt = 2.0 * rho, truth.params.rho_d
     k = np.sum(model * gt) / np.sum(model * model)
     expected = np.sqrt(np.mean((k * model - gt) ** 2)) / np.sqrt(np.mean(gt ** 2))
@@ -95,19 +95,19 @@ def test_albedo_rmse_after_the_global_scale_sees_relative_errors(truth):
 def test_a_similarity_transformed_model_evaluates_the_same_after_alignment(truth):
     sim = Similarity(1.7, Rotation.from_euler("xyz", [30, -50, 110], degrees=True).as_matrix(),
                      np.array([0.3, -1.2, 0.5]))
-    moved = evaluate.transform_mesh(truth, sim)
-    aligned = evaluate.parameter_errors(moved, truth, np.ones(truth.num_vertices, bool), sim.inverse())
+    moved = figures_of_merit.transform_mesh(truth, sim)
+    aligned = figures_of_merit.parameter_errors(moved, truth, np.ones(truth.num_vertices, bool), sim.inverse())
     assert aligned["normal_error_deg"]["all"]["mean"] == pytest.approx(0, abs=1e-5)
     assert aligned["correspondence_distance_mm"]["mean"] == pytest.approx(0, abs=1e-6)
-    geometry = evaluate.geometry_errors(moved, truth, sim.inverse(), samples=5000)
+    geometry = figures_of_merit.geometry_errors(moved, truth, sim.inverse(), samples=5000)
     assert geometry["chamfer_mm"] < 1e-3 and geometry["hausdorff_mm"] < 1e-3
-    unaligned = evaluate.geometry_errors(moved, truth, None, samples=5000)
+    unaligned = figures_of_merit.geometry_errors(moved, truth, None, samples=5000)
     assert unaligned["chamfer_mm"] > 100
 
 
 def test_geometry_errors_of_a_grown_sphere_are_the_radius_difference(truth):
     grown = ParamMesh(truth.vertices * 1.05, truth.faces, truth.normals, truth.params)
-    geometry = evaluate.geometry_errors(grown, truth, samples=20000)
+    geometry = figures_of_merit.geometry_errors(grown, truth, samples=20000)
     # 4 cm sphere scaled by 1.05: 2 mm everywhere (up to the facets' sagitta, well below 0.1 mm here).
     assert geometry["hausdorff_mm"] == pytest.approx(2.0, abs=0.15)
     assert geometry["chamfer_mm"] == pytest.approx(2.0, abs=0.15)
@@ -119,7 +119,7 @@ def test_geometry_series_follows_the_meshes_of_the_loop(truth):
     meshes = [ParamMesh(truth.vertices * scale, truth.faces, truth.normals, None) for scale in (1.05, 1.025, 1.0)]
     counted = np.arange(truth.num_vertices) % 2 == 0
     fitted = [(_tilted(truth.normals, 3.0), counted), None]
-    rows = evaluate.geometry_series(meshes, fitted, truth)
+    rows = figures_of_merit.geometry_series(meshes, fitted, truth)
     assert [row["mesh"] for row in rows] == [0, 1, 2] and rows[0]["chamfer_to_previous_mm"] is None
     for row, expected in zip(rows, (2.0, 1.0, 0.0)):
         assert row["chamfer_mm"] == pytest.approx(expected, abs=0.15)
@@ -127,18 +127,18 @@ def test_geometry_series_follows_the_meshes_of_the_loop(truth):
     assert rows[1]["chamfer_to_previous_mm"] == pytest.approx(1.0, abs=0.15)
     assert rows[0]["fitted_normal_deg"]["median"] == pytest.approx(3.0, abs=1e-6)
     assert rows[0]["fitted_normal_deg"]["vertices"] == counted.sum() and "fitted_normal_deg" not in rows[1]
-    assert "chamfer_mm" not in evaluate.geometry_series(meshes, fitted, None)[2]
+    assert "chamfer_mm" not in figures_of_merit.geometry_series(meshes, fitted, None)[2]
 
 
 def test_camera_alignment_recovers_the_similarity(tiny_run):
     view_ids, rotations, translations = read_cameras(tiny_run["cameras"])
     sim = Similarity(0.8, Rotation.from_euler("zyx", [10, 20, 30], degrees=True).as_matrix(), np.array([1.0, 2, 3]))
     moved_r, moved_t = sim.apply_to_poses(rotations, translations)
-    found = evaluate.camera_alignment(view_ids, moved_r, moved_t, view_ids, rotations, translations)
+    found = figures_of_merit.camera_alignment(view_ids, moved_r, moved_t, view_ids, rotations, translations)
     assert found.scale == pytest.approx(1 / 0.8)
     np.testing.assert_allclose(found.compose(sim).rotation, np.eye(3), atol=1e-9)
     with pytest.raises(ValueError, match="at least 3"):
-        evaluate.camera_alignment(view_ids[:2], moved_r[:2], moved_t[:2], view_ids, rotations, translations)
+        figures_of_merit.camera_alignment(view_ids[:2], moved_r[:2], moved_t[:2], view_ids, rotations, translations)
 
 
 # --------------------------------------------------------------------------- PSNR and timings
@@ -148,16 +148,16 @@ def test_psnr_follows_its_definition():
     rng = np.random.default_rng(0)
     reference = np.ones((6, 8, 4, 3))
     mask = rng.random((6, 8)) > 0.2
-    assert evaluate.psnr(reference, 0.25 * reference, mask)["psnr_db"] == evaluate.PSNR_MAX_DB
+    assert figures_of_merit.psnr(reference, 0.25 * reference, mask)["psnr_db"] == figures_of_merit.PSNR_MAX_DB
     sign = np.where(rng.random(reference.shape) > 0.5, 1.0, -1.0)
     estimate = 3.0 * (reference + 0.1 * sign)
-    result = evaluate.psnr(reference, estimate, mask)
+    result = figures_of_merit.psnr(reference, estimate, mask)
     k = np.sum(reference[mask] * estimate[mask]) / np.sum(estimate[mask] ** 2)
     mse = np.mean((k * estimate[mask] - 1.0) ** 2)
     assert result["scale"] == pytest.approx(k) and result["peak"] == 1.0
     assert result["psnr_db"] == pytest.approx(10 * np.log10(1 / mse))
     assert 19 < result["psnr_db"] < 21  # about 10 % noise
-    assert evaluate.psnr(reference, estimate, np.zeros((6, 8), bool))["psnr_db"] is None
+    assert figures_of_merit.psnr(reference, estimate, np.zeros((6, 8), bool))["psnr_db"] is None
 
 
 def _benchmark(path, seconds):
@@ -187,7 +187,7 @@ def test_stage_timings_sum_per_rule_and_count_vertex_fits(tmp_path):
     logs.mkdir(parents=True)
     for shard, (read, fit) in (("1-of-2", (0.25, 1.0)), ("2-of-2", (0.5, 1.25))):  # the job logs' phases lines
         (logs / f"{shard}.log").write_text(f"warning\n2026 INFO sellip: {format_report({'read': read, 'fit': fit})}\n")
-    timings = evaluate.stage_timings(bench)
+    timings = figures_of_merit.stage_timings(bench)
     assert timings["rules"]["fit_pbrdf"] == {"s": 4.0, "jobs": 2, "phases": {"read": 0.75, "fit": 2.25},
                                              "phases_jobs": 2}
     assert timings["rules"]["merge_hdr"] == {"s": 3.5, "jobs": 1, "phases": {}, "phases_jobs": 0}
@@ -222,7 +222,7 @@ def test_evaluate_cli_on_a_perfect_model(tiny_run, tmp_path):
         assert metrics["psnr_held_out"]["views"][view]["ground_truth_psnr_db"] == pytest.approx(
             metrics["psnr_held_out"]["views"][view]["psnr_db"])
     assert metrics["psnr_held_out"]["ground_truth_mean_db"] == pytest.approx(metrics["psnr_held_out"]["mean_db"])
-    assert metrics["psnr_new_light"]["mean_db"] == evaluate.PSNR_MAX_DB
+    assert metrics["psnr_new_light"]["mean_db"] == figures_of_merit.PSNR_MAX_DB
     assert metrics["timings"]["vertex_fits_per_s"] == pytest.approx(300.0)
     assert plot.stat().st_size > 1000
 
@@ -235,7 +235,7 @@ def test_evaluate_aligns_an_sfm_world_model_and_reports_nulls_without_ground_tru
     (run / "sfm" / "report.json").write_text(json.dumps({"mode": "sfm"}))
     view_ids, rotations, translations = read_cameras(tiny_run["cameras"])
     write_cameras(run / "cameras.csv", view_ids, *sim.apply_to_poses(rotations, translations))
-    model = evaluate.transform_mesh(tiny_run["truth"], sim)
+    model = figures_of_merit.transform_mesh(tiny_run["truth"], sim)
     tilted = _with(model, normals=_tilted(model.normals, 3.0))
     write_param_mesh(run / "model.ply", tilted)
     n = model.num_vertices
