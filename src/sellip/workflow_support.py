@@ -8,8 +8,11 @@ capture reports that, with file, row and column).
 - :func:`coerce_to_schema` -- ``--config 'augment={min_coherence: 0}'`` arrives as the string ``'0'``
   (Snakemake parses nested values with YAML's BaseLoader); this turns such strings into the number, boolean or
   null that the config schema expects at that key.
-- :func:`raw_frame_files`, :func:`optional_file` -- the files of a capture that are inputs of the DAG
-  (the raw frames frames.csv names, poses.csv, ground truth), so that changing one re-runs what reads it.
+- :func:`raw_frame_files`, :func:`optional_file` -- the files of a capture that a stage reads (the raw frames
+  frames.csv names, poses.csv, ground truth).
+- :class:`ContentDigests` -- one digest of those files' content (size and BLAKE2b), cached by path, size, mtime,
+  ctime and inode: a rule's ``params``, so that a change of content re-runs what reads the files whatever their
+  modification times say, and a file touched but unchanged re-runs nothing.
 - :func:`collect_warnings`, :func:`failed_job_logs`, :func:`error_lines` -- the run's warnings and a failed job's
   error message, read from the jobs' log files, for the console and the report.
 """
@@ -18,6 +21,9 @@ from __future__ import annotations
 
 import csv
 import errno
+import hashlib
+import json
+import os
 import re
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -140,6 +146,91 @@ def optional_file(capture: str | Path, relative: str) -> list[str]:
     """``[capture/relative]`` when that file exists, else ``[]`` (an optional input: poses.csv, the ground truth)."""
     path = Path(capture) / relative
     return [str(path)] if path.is_file() else []
+
+
+DIGEST_CACHE = ".snakemake/sellip/input_digests.json"
+"""Where the workflow keeps :class:`ContentDigests`' cache, relative to Snakemake's working directory."""
+
+
+def file_digest(path: str | Path, chunk: int = 1 << 20) -> str:
+    """``'SIZE:HEX'``: the file's size in bytes and the BLAKE2b (128-bit) digest of its content."""
+    hasher = hashlib.blake2b(digest_size=16)
+    size = 0
+    with open(path, "rb") as handle:
+        while block := handle.read(chunk):
+            hasher.update(block)
+            size += len(block)
+    return f"{size}:{hasher.hexdigest()}"
+
+
+class ContentDigests:
+    """Digests of files' content for the DAG (docs/reliability.md, "Every input is tracked by its content").
+
+    :meth:`digest` of a list of files is one short string that changes when, and only when, a file's content
+    changes, a file is added or one is removed: a rule carries it as a ``params`` value, and Snakemake's ``params``
+    rerun trigger then re-runs the rule for a changed content even when the file is older than the outputs (``cp
+    -p``, ``rsync -a``, a restored backup), while a file touched but unchanged has the same digest. Each file is
+    read once: its digest is kept in the JSON file ``cache_file`` under its absolute path with its size,
+    modification time, change time and inode (any write or ``utime`` changes the change time, which no user can set
+    back, so a cached digest is never taken for a file whose content may have changed). The cache is written
+    atomically; a cache that cannot be read or written is only slower."""
+
+    def __init__(self, cache_file: str | Path):
+        self.cache_file = Path(cache_file)
+        self._entries: dict[str, list] | None = None
+        self.computed = 0
+        """How many files this object has read (those not found in the cache): for tests."""
+
+    def _load(self) -> dict[str, list]:
+        if self._entries is None:
+            try:
+                entries = json.loads(self.cache_file.read_text(encoding="utf-8"))
+                self._entries = entries if isinstance(entries, dict) else {}
+            except (OSError, ValueError):
+                self._entries = {}
+        return self._entries
+
+    def _save(self) -> None:
+        tmp = self.cache_file.with_name(f".{self.cache_file.name}.tmp-{os.getpid()}")
+        try:
+            self.cache_file.parent.mkdir(parents=True, exist_ok=True)
+            tmp.write_text(json.dumps(self._entries, sort_keys=True), encoding="utf-8")
+            tmp.replace(self.cache_file)
+        except OSError:
+            tmp.unlink(missing_ok=True)
+
+    def file_digest(self, path: str | Path) -> str:
+        """``'SIZE:HEX'`` of :func:`file_digest`, from the cache when the file's stat matches the cached one."""
+        path = Path(path).absolute()
+        stat = path.stat()
+        key = [stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino]
+        entries = self._load()
+        cached = entries.get(str(path))
+        if isinstance(cached, list) and cached[:4] == key and len(cached) == 5:
+            return cached[4]
+        digest = file_digest(path)
+        self.computed += 1
+        entries[str(path)] = key + [digest]
+        return digest
+
+    def digest(self, files: Iterable[str | Path], root: str | Path = ".") -> str:
+        """One digest of ``files`` (names relative to ``root``, so that it does not depend on where the work folder
+        is), e.g. ``'3 file(s), blake2b 5c0f...'``: their names, sizes and contents. A file that does not exist
+        counts as ``missing``. ``''`` for no files."""
+        lines = []
+        before = self.computed
+        for path in files:
+            name = os.path.relpath(Path(path).absolute(), Path(root).absolute())
+            try:
+                lines.append(f"{name}\t{self.file_digest(path)}")
+            except OSError:
+                lines.append(f"{name}\tmissing")
+        if self.computed != before:
+            self._save()
+        if not lines:
+            return ""
+        total = hashlib.blake2b("\n".join(sorted(lines)).encode("utf-8"), digest_size=16).hexdigest()
+        return f"{len(lines)} file(s), blake2b {total}"
 
 
 # --------------------------------------------------------------------------- what the console shows

@@ -71,7 +71,6 @@ rule evaluate_model:
         renders=f"{RESULTS}/final/renders",  # evaluated last: its timings cover every other stage
         meshes=[mesh_of(it) for it in range(ITERATIONS + 1)],
         fits=[f"{RESULTS}/iter/{it}/fit.zarr" for it in range(ITERATIONS)],
-        truth=ground_truth_file(),
         poses=poses_file(),  # with sfm.mode sfm, the SfM cameras are aligned to poses.csv for the figures
         sfm=f"{RESULTS}/sfm",  # its report.json says where the cameras came from
         initial_cameras=f"{RESULTS}/cameras.csv",  # the poses stage's, measured beside the refined ones
@@ -85,6 +84,7 @@ rule evaluate_model:
         benchmarks=f"{RESULTS}/benchmarks",
         logs=f"{RESULTS}/logs",
         held_out=config["evaluate"]["held_out_views"],
+        content=content_of(ground_truth_file, poses_file),  # the ground truth, by its content
     conda:
         "../../envs/report.yaml"
     log:
