@@ -15,6 +15,11 @@ capture reports that, with file, row and column).
   modification times say, and a file touched but unchanged re-runs nothing.
 - :func:`collect_warnings`, :func:`failed_job_logs`, :func:`error_lines` -- the run's warnings and a failed job's
   error message, read from the jobs' log files, for the console and the report.
+- :func:`end_jobs_on_sigterm` -- SIGTERM ends the run and its jobs' processes within seconds (Snakemake's own
+  handler waits for running jobs, and can deadlock on its scheduler's lock).
+- :func:`record_run`, :func:`stale_model` -- a failed run's record in the results folder, and why the model on disk
+  no longer stands for the inputs (older than a failed job, or than a capture file): the run's closing summary
+  and ``sellip view`` say so.
 """
 
 from __future__ import annotations
@@ -25,7 +30,11 @@ import hashlib
 import json
 import os
 import re
+import signal
+import threading
+import time
 from collections.abc import Iterable, Mapping
+from datetime import datetime
 from pathlib import Path
 
 import yaml
@@ -340,6 +349,150 @@ def format_failures(snakemake_log, root: str | Path = ".") -> str:
     if out:
         out.append("sellip: fix that and run the same command again: finished jobs are kept (docs/reliability.md)")
     return "\n".join(out)
+
+
+def process_tree(pid: int) -> list[int]:
+    """``pid`` and all its descendants (from /proc on Linux; elsewhere ``[pid]``), parents first."""
+    children: dict[int, list[int]] = {}
+    try:
+        entries = os.listdir("/proc")
+    except OSError:
+        return [pid]
+    for entry in entries:
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat", encoding="utf-8", errors="replace") as handle:
+                parent = int(handle.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+        children.setdefault(parent, []).append(int(entry))
+    tree, todo = [], [pid]
+    while todo:
+        current = todo.pop(0)
+        tree.append(current)
+        todo += children.get(current, [])
+    return tree
+
+
+def start_time(pid: int) -> int | None:
+    """The process's start time in clock ticks since boot (/proc/PID/stat field 22), None when it is gone."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="utf-8", errors="replace") as handle:
+            return int(handle.read().rsplit(")", 1)[1].split()[19])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def signal_processes(pids: Mapping[int, int | None], signum: int) -> None:
+    """Send ``signum`` to each process of ``pids`` (pid -> its :func:`start_time`) that is still that process (not
+    gone, its pid not taken by another since)."""
+    for pid, started in pids.items():
+        if start_time(pid) != started:
+            continue
+        try:
+            os.kill(pid, signum)
+        except (ProcessLookupError, PermissionError):
+            continue
+
+
+def end_jobs_on_sigterm(scheduler, grace_s: float = 5.0) -> None:
+    """Make SIGTERM end a Snakemake run and its running jobs within seconds (the workflow's ``onstart``, after
+    Snakemake installed its own handler).
+
+    Snakemake's handler lets the running jobs finish (a fit job: minutes), and takes its scheduler's lock, which
+    the main thread may hold at that moment (the handler runs in the main thread): the run then hangs with no job
+    left. This handler takes no lock: it sends SIGTERM to every running local job's process and its descendants
+    (the shell and the ``sellip`` under it), SIGKILL to those left after ``grace_s``, and tells the scheduler to stop
+    as Snakemake's own handler would. The killed jobs fail, so Snakemake removes their outputs and the workflow's
+    ``onerror`` records the failed run. Without the attributes it needs (another Snakemake), it leaves the
+    previous handler in place."""
+    if not (hasattr(scheduler, "_user_kill") and hasattr(scheduler, "_open_jobs")):
+        return
+    try:
+        from snakemake.shell import shell
+    except ImportError:
+        return
+
+    def handler(signum, frame):
+        pids = {pid: start_time(pid) for process in list(getattr(shell, "_processes", {}).values())
+                for pid in process_tree(process.pid)}
+        signal_processes(pids, signal.SIGTERM)
+        timer = threading.Timer(grace_s, signal_processes, (pids, signal.SIGKILL))
+        timer.daemon = True
+        timer.start()
+        scheduler._user_kill = "graceful"  # what Snakemake's handler sets; one assignment, no lock needed
+        scheduler._open_jobs.release()
+
+    signal.signal(signal.SIGTERM, handler)
+
+
+LAST_RUN = "last_run.json"
+"""The record of the last run that ended (results/NAME/last_run.json): written by the workflow's onsuccess and onerror."""
+
+MODEL = "final/model.ply"
+"""The final model, the file whose age :func:`stale_model` compares."""
+
+
+def record_run(results: str | Path, snakemake_log=None, failed: bool = False, now: float | None = None) -> Path:
+    """Write ``results``/last_run.json: ``{"status": "failed" | "complete", "ended": epoch seconds, "failed":
+    [{"rule", "logs"}]}`` (the failed rules from Snakemake's log, :func:`failed_job_logs`). Atomic; a folder that
+    cannot be written is left as it is."""
+    record = {"status": "failed" if failed else "complete", "ended": time.time() if now is None else now,
+              "failed": [{"rule": rule, "logs": logs} for rule, logs in failed_job_logs(snakemake_log)] if failed
+              else []}
+    path = Path(results) / LAST_RUN
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_text(json.dumps(record, indent=1), encoding="utf-8")
+        tmp.replace(path)
+    except OSError:  # a read-only or full results folder: the run's own message says more
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def _when(epoch: float) -> str:
+    return datetime.fromtimestamp(epoch).strftime("%Y-%m-%d %H:%M:%S")
+
+
+def stale_model(results: str | Path, capture: str | Path | None = None) -> list[str]:
+    """Why the model in ``results`` (final/model.ply) does not stand for the current inputs, one sentence each
+    (empty when it does, or when there is no model): a run that failed after the model was written (last_run.json,
+    with the failed rules and their logs), and, given ``capture``, capture files (capture.yaml, frames.csv,
+    poses.csv, the raw frames) modified after it."""
+    results = Path(results)
+    model = results / MODEL
+    try:
+        made = model.stat().st_mtime
+    except OSError:
+        return []
+    reasons = []
+    try:
+        record = json.loads((results / LAST_RUN).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        record = {}
+    if isinstance(record, dict) and record.get("status") == "failed" and float(record.get("ended", 0)) > made:
+        rules = [f"{entry.get('rule')} (log: {', '.join(entry.get('logs') or []) or 'none'})"
+                 for entry in record.get("failed") or []]
+        reasons.append(f"the last run failed ({_when(float(record['ended']))}" + (f", rule {'; rule '.join(rules)})"
+                                                                                   if rules else ")"))
+    if capture is not None:
+        files = [Path(capture) / name for name in ("capture.yaml", FRAMES_CSV, "poses.csv")]
+        changed = []
+        for path in [*files, *map(Path, raw_frame_files(capture))]:
+            try:
+                if path.stat().st_mtime > made:
+                    changed.append(str(path))
+            except OSError:
+                continue
+        if changed:
+            reasons.append(f"{len(changed)} capture file(s) changed after it ({changed[0]}"
+                           + (f" and {len(changed) - 1} more)" if len(changed) > 1 else ")"))
+    if not reasons:
+        return []
+    return [f"{model} is out of date (made {_when(made)}): {'; '.join(reasons)}. Its metrics, renders and viewer are "
+            "those of an earlier run: fix that and run the same command again"]
 
 
 def load_yaml(path: str | Path):

@@ -128,7 +128,13 @@ rule export_viewer:
         SELLIP + " view {params.results:q} --capture {params.capture:q} > {log:q} 2>&1"
 
 
+onstart:
+    # SIGTERM (kill, a scheduler's time limit) ends the run and its jobs within seconds (docs/reliability.md).
+    workflow_support.end_jobs_on_sigterm(workflow.scheduler)
+
+
 onsuccess:
+    workflow_support.record_run(RESULTS)
     # The run's warnings (a frame left out, a view without a pose), from the jobs' logs (docs/reliability.md).
     if warnings := workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs")):
         print(warnings)
@@ -151,8 +157,11 @@ onsuccess:
 
 
 onerror:
-    # A failed job's own message (file, row, what was expected) on the console, not only in its log file.
+    # A failed job's own message (file, row, what was expected) on the console, not only in its log file; then,
+    # when a model from an earlier run is on disk, that it no longer stands for the inputs (docs/reliability.md).
+    workflow_support.record_run(RESULTS, log, failed=True)
     for text in (workflow_support.format_failures(log),
-                 workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs"))):
+                 workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs")),
+                 *(f"sellip: {line}" for line in workflow_support.stale_model(RESULTS, capture_dir()))):
         if text:
             print(text, file=sys.stderr)
