@@ -434,13 +434,16 @@ MODEL = "final/model.ply"
 """The final model, the file whose age :func:`stale_model` compares."""
 
 
-def record_run(results: str | Path, snakemake_log=None, failed: bool = False, now: float | None = None) -> Path:
-    """Write ``results``/last_run.json: ``{"status": "failed" | "complete", "ended": epoch seconds, "failed":
-    [{"rule", "logs"}]}`` (the failed rules from Snakemake's log, :func:`failed_job_logs`). Atomic; a folder that
-    cannot be written is left as it is."""
-    record = {"status": "failed" if failed else "complete", "ended": time.time() if now is None else now,
-              "failed": [{"rule": rule, "logs": logs} for rule, logs in failed_job_logs(snakemake_log)] if failed
-              else []}
+def record_run(results: str | Path, status: str, snakemake_log=None, started: float | None = None,
+               now: float | None = None) -> Path:
+    """Write ``results``/last_run.json at the end of a run: ``{"status": "failed" | "complete", "started": epoch
+    seconds, "ended": epoch seconds, "failed": [{"rule", "logs"}]}`` (the failed rules from Snakemake's log,
+    :func:`failed_job_logs`; an interrupted run fails too). Atomic; a folder that cannot be written is left as it
+    is."""
+    now = time.time() if now is None else now
+    record = {"status": status, "started": now if started is None else started, "ended": now,
+              "failed": [{"rule": rule, "logs": logs} for rule, logs in failed_job_logs(snakemake_log)]
+              if status == "failed" else []}
     path = Path(results) / LAST_RUN
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
@@ -457,42 +460,49 @@ def _when(epoch: float) -> str:
 
 
 def stale_model(results: str | Path, capture: str | Path | None = None) -> list[str]:
-    """Why the model in ``results`` (final/model.ply) does not stand for the current inputs, one sentence each
-    (empty when it does, or when there is no model): a run that failed after the model was written (last_run.json,
-    with the failed rules and their logs), and, given ``capture``, capture files (capture.yaml, frames.csv,
-    poses.csv, the raw frames) modified after it."""
+    """Why the model in ``results`` (final/model.ply) and what was made from it may not stand for the current
+    inputs, one sentence (empty when nothing says so, or when there is no model): the last run failed or was
+    interrupted (last_run.json) before it wrote a new model, or after (then its renders, metrics and viewer are
+    missing or an earlier run's); and, given ``capture``, capture files
+    (capture.yaml, frames.csv, poses.csv, the raw frames) modified after the model was made."""
     results = Path(results)
     model = results / MODEL
     try:
         made = model.stat().st_mtime
     except OSError:
         return []
-    reasons = []
     try:
         record = json.loads((results / LAST_RUN).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         record = {}
-    if isinstance(record, dict) and record.get("status") == "failed" and float(record.get("ended", 0)) > made:
-        rules = [f"{entry.get('rule')} (log: {', '.join(entry.get('logs') or []) or 'none'})"
+    record = record if isinstance(record, dict) else {}
+    reasons, after = [], False
+    if record.get("status") == "failed" and made < float(record.get("ended") or 0):  # else a later run made it
+        started = float(record.get("started") or 0)
+        rules = [f"rule {entry.get('rule')} (log: {', '.join(entry.get('logs') or []) or 'none'})"
                  for entry in record.get("failed") or []]
-        reasons.append(f"the last run failed ({_when(float(record['ended']))}" + (f", rule {'; rule '.join(rules)})"
-                                                                                   if rules else ")"))
+        what = f"the last run (started {_when(started)}) failed" + (f" at {'; '.join(rules)}" if rules else "")
+        after = made >= started
+        reasons.append(what + (" after it wrote the model: the renders, metrics and viewer are missing or an "
+                               "earlier run's" if after else ""))
     if capture is not None:
-        files = [Path(capture) / name for name in ("capture.yaml", FRAMES_CSV, "poses.csv")]
         changed = []
-        for path in [*files, *map(Path, raw_frame_files(capture))]:
+        for path in [*(Path(capture) / name for name in ("capture.yaml", FRAMES_CSV, "poses.csv")),
+                     *map(Path, raw_frame_files(capture))]:
             try:
                 if path.stat().st_mtime > made:
                     changed.append(str(path))
             except OSError:
                 continue
         if changed:
+            after = False
             reasons.append(f"{len(changed)} capture file(s) changed after it ({changed[0]}"
                            + (f" and {len(changed) - 1} more)" if len(changed) > 1 else ")"))
     if not reasons:
         return []
-    return [f"{model} is out of date (made {_when(made)}): {'; '.join(reasons)}. Its metrics, renders and viewer are "
-            "those of an earlier run: fix that and run the same command again"]
+    head = f"{model} (made {_when(made)})" + (" is this run's, but" if after else " is out of date:")
+    tail = ("" if after else ". Its metrics, renders and viewer are those of an earlier run")
+    return [f"{head} {'; '.join(reasons)}{tail}: fix that and run the same command again"]
 
 
 def load_yaml(path: str | Path):

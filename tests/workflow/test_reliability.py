@@ -394,3 +394,41 @@ def test_the_sfm_stage_stops_on_poses_in_millimetres(run, tmp_path, caplog):
                    "--output", str(tmp_path / "sfm"), "--mode", "known"])
     assert status == 1 and not (tmp_path / "cameras.csv").exists() and not (tmp_path / "sfm").exists()
     assert "translations look like millimetres" in caplog.text and "poses.csv" in caplog.text
+
+
+# --------------------------------------------------------------------------- a failed run is visible (issue 52)
+
+def test_stale_model_says_when_the_model_is_an_earlier_runs(tmp_path):
+    """stale_model on a results folder: nothing without a record or after a complete run; a failed run that
+    started after the model was made names the model out of date with the failed rule and its log; a failed run
+    that wrote the model and failed later says the renders are not complete; a later run's model is fine; a
+    capture file newer than the model is named."""
+    results, capture = tmp_path / "results" / "owl", tmp_path / "capture"
+    model = results / workflow_support.MODEL
+    model.parent.mkdir(parents=True)
+    model.write_text("ply")
+    capture.mkdir()
+    for name in ("capture.yaml", "frames.csv"):
+        (capture / name).write_text("x")
+        os.utime(capture / name, (OLD, OLD))
+    os.utime(model, (OLD + 100, OLD + 100))
+    assert workflow_support.stale_model(results, capture) == []
+    snake_log = tmp_path / "snake.log"
+    snake_log.write_text("Error in rule merge_hdr:\n    jobid: 2\n    log: results/owl/logs/merge_hdr.log (check log "
+                         "file(s) for error details)\n")
+    workflow_support.record_run(results, "complete", started=OLD + 50, now=OLD + 200)
+    assert workflow_support.stale_model(results, capture) == []
+    workflow_support.record_run(results, "failed", snake_log, started=OLD + 150, now=OLD + 200)
+    [line] = workflow_support.stale_model(results, capture)
+    assert line.startswith(f"{model} (made ") and " is out of date: the last run (started " in line
+    assert "failed at rule merge_hdr (log: results/owl/logs/merge_hdr.log)" in line
+    assert "those of an earlier run" in line and "run the same command again" in line
+    workflow_support.record_run(results, "failed", snake_log, started=OLD + 50, now=OLD + 200)
+    [line] = workflow_support.stale_model(results, capture)
+    assert "is this run's, but the last run" in line and "after it wrote the model" in line
+    workflow_support.record_run(results, "failed", snake_log, started=OLD, now=OLD + 60)
+    assert workflow_support.stale_model(results, capture) == []  # the model is a later run's
+    (capture / "frames.csv").touch()
+    [line] = workflow_support.stale_model(results, capture)
+    assert "1 capture file(s) changed after it" in line and str(capture / "frames.csv") in line
+    assert workflow_support.stale_model(tmp_path / "no results", capture) == []

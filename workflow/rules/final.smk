@@ -128,13 +128,18 @@ rule export_viewer:
         SELLIP + " view {params.results:q} --capture {params.capture:q} > {log:q} 2>&1"
 
 
+RUN_STARTED = []
+"""When the run's first job was about to start (onstart): last_run.json records it."""
+
+
 onstart:
     # SIGTERM (kill, a scheduler's time limit) ends the run and its jobs within seconds (docs/reliability.md).
     workflow_support.end_jobs_on_sigterm(workflow.scheduler)
+    RUN_STARTED.append(time.time())
 
 
 onsuccess:
-    workflow_support.record_run(RESULTS)
+    workflow_support.record_run(RESULTS, "complete", started=(RUN_STARTED or [None])[0])
     # The run's warnings (a frame left out, a view without a pose), from the jobs' logs (docs/reliability.md).
     if warnings := workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs")):
         print(warnings)
@@ -159,7 +164,7 @@ onsuccess:
 onerror:
     # A failed job's own message (file, row, what was expected) on the console, not only in its log file; then,
     # when a model from an earlier run is on disk, that it no longer stands for the inputs (docs/reliability.md).
-    workflow_support.record_run(RESULTS, log, failed=True)
+    workflow_support.record_run(RESULTS, "failed", log, started=(RUN_STARTED or [None])[0])
     for text in (workflow_support.format_failures(log),
                  workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs")),
                  *(f"sellip: {line}" for line in workflow_support.stale_model(RESULTS, capture_dir()))):
