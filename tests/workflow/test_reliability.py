@@ -432,3 +432,35 @@ def test_stale_model_says_when_the_model_is_an_earlier_runs(tmp_path):
     [line] = workflow_support.stale_model(results, capture)
     assert "1 capture file(s) changed after it" in line and str(capture / "frames.csv") in line
     assert workflow_support.stale_model(tmp_path / "no results", capture) == []
+
+
+def test_process_tree_and_signal_processes_reach_the_grandchild(tmp_path):
+    """A job's shell and the command under it (what a SIGTERM to the run must end): both found from the shell's
+    pid, both ended; a pid whose start time differs (taken by another process since) is not signalled."""
+    import signal
+    import time
+
+    shell = subprocess.Popen(["bash", "-c", "set -e; sleep 300; echo"], start_new_session=True)
+    try:
+        for _ in range(50):
+            tree = workflow_support.process_tree(shell.pid)
+            if len(tree) == 2:
+                break
+            time.sleep(0.1)
+        assert tree[0] == shell.pid and len(tree) == 2, tree
+        sleep = tree[1]
+        workflow_support.signal_processes({sleep: -1}, signal.SIGTERM)  # not that process: left alone
+        time.sleep(0.2)
+        assert shell.poll() is None
+        workflow_support.signal_processes({pid: workflow_support.start_time(pid) for pid in tree}, signal.SIGTERM)
+        assert shell.wait(timeout=10) == -signal.SIGTERM
+        for _ in range(50):
+            state = Path(f"/proc/{sleep}/stat").read_text().rsplit(")", 1)[1].split()[0] if Path(
+                f"/proc/{sleep}").exists() else "gone"
+            if state in ("Z", "gone"):
+                break
+            time.sleep(0.1)
+        assert state in ("Z", "gone")
+    finally:
+        if shell.poll() is None:
+            os.killpg(shell.pid, signal.SIGKILL)
