@@ -30,6 +30,15 @@ OLD = 946684800  # 2000-01-01: an mtime older than every output, so that only a 
 
 def snakemake(workdir: Path, capture: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess:
     """`snakemake` on the repository's workflow in ``workdir`` with the test's capture and settings."""
+    command, env = snakemake_command(workdir, capture, *args)
+    result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=900, check=False)
+    if check and result.returncode != 0:
+        raise AssertionError(f"snakemake {' '.join(args)} failed:\n{result.stdout[-3000:]}\n{result.stderr[-5000:]}")
+    return result
+
+
+def snakemake_command(workdir: Path, capture: Path, *args: str) -> tuple[list[str], dict]:
+    """The command line and environment of :func:`snakemake`."""
     override = workdir / "over ride.yaml"
     override.write_text(yaml.safe_dump({
         "capture": str(capture), "name": NAME,
@@ -40,10 +49,7 @@ def snakemake(workdir: Path, capture: Path, *args: str, check: bool = True) -> s
                "--configfile", str(REPO / "config" / "config.yaml"), str(override), "--cores", "2", *args]
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",
            "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO / "src"), os.environ.get("PYTHONPATH")]))}
-    result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=900, check=False)
-    if check and result.returncode != 0:
-        raise AssertionError(f"snakemake {' '.join(args)} failed:\n{result.stdout[-3000:]}\n{result.stderr[-5000:]}")
-    return result
+    return command, env
 
 
 def planned(result: subprocess.CompletedProcess) -> set[str]:
@@ -464,3 +470,64 @@ def test_process_tree_and_signal_processes_reach_the_grandchild(tmp_path):
     finally:
         if shell.poll() is None:
             os.killpg(shell.pid, signal.SIGKILL)
+
+
+def _session_processes(sid: int) -> list[str]:
+    """Command lines of the live (not zombie) processes of session ``sid``."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            fields = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
+            cmdline = Path(f"/proc/{entry}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if int(fields[3]) == sid and fields[0] != "Z":
+            found.append(f"{entry}: {cmdline}")
+    return found
+
+
+@pytest.mark.parametrize("target", ["snakemake", "process group"])
+def test_sigterm_ends_the_run_and_its_jobs_within_seconds(run, target):
+    """SIGTERM during a fit job (the run's first iteration, after its initial mesh), to Snakemake alone (`kill
+    PID`) or to its whole process group (a terminal, a batch system): Snakemake and every job process are gone
+    within 15 s (before: Snakemake let the running jobs finish, a fit taking minutes, and its handler could
+    deadlock on the scheduler's lock with no job left), and the run is recorded as failed."""
+    import json
+    import signal
+    import time
+
+    results = run["workdir"] / "results" / NAME
+    command, env = snakemake_command(run["workdir"], run["capture"], f"results/{NAME}/iter/0/fit.zarr",
+                                     "--rerun-incomplete")
+    console = run["workdir"] / f"sigterm {target}.log"
+    with open(console, "w") as sink:
+        process = subprocess.Popen(command, env=env, stdout=sink, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        began = time.monotonic()
+        while not any(" fit --observations" in line for line in _session_processes(process.pid)):
+            assert process.poll() is None, console.read_text()[-3000:]
+            assert time.monotonic() - began < 900, "no fit job started"
+            time.sleep(0.2)
+        time.sleep(2)  # inside the fit
+        sent = time.monotonic()
+        if target == "snakemake":
+            os.kill(process.pid, signal.SIGTERM)
+        else:
+            os.killpg(process.pid, signal.SIGTERM)
+        try:
+            process.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            pass
+        took = time.monotonic() - sent
+        left = [line for line in _session_processes(process.pid) if str(process.pid) != line.split(":")[0]]
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    output = console.read_text()
+    assert took < 15, f"snakemake took {took:.1f} s to end:\n{output[-3000:]}"
+    assert left == [], left
+    assert process.returncode != 0
+    assert json.loads((results / "last_run.json").read_text())["status"] == "failed", output[-3000:]
