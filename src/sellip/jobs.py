@@ -1,7 +1,9 @@
 """How a stage writes its outputs (every stage family uses it; it imports nothing of sellip): a file or a directory
 built under a temporary name and renamed when complete (:func:`atomic_file`, :func:`atomic_directory`; every writer
 of an output uses one of them, so a job killed mid-write leaves nothing at the output's path: docs/reliability.md),
-progress lines for long loops (:func:`progress_logger`), and an ordered thread map (:func:`map_in_threads`).
+progress lines for long loops (:func:`progress_logger`), an ordered thread map (:func:`map_in_threads`), and the
+guard of commands that write into a user's folder (:func:`refuse_to_replace`, :func:`refuse_to_replace_folder`:
+never replace what a user wrote unless told to, ``--force``).
 """
 
 from __future__ import annotations
@@ -64,6 +66,37 @@ def atomic_directory(output: str | Path) -> Iterator[Path]:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
 
+
+
+FORCE_HINT = "nothing was written; compare or move it aside, or run the same command with --force to replace it"
+
+
+class WouldReplaceError(FileExistsError):
+    """A command would replace a file or folder that a user may have written or edited; says which and what to do."""
+
+
+def refuse_to_replace(path: str | Path, content: str | bytes, command: str, force: bool = False) -> None:
+    """Raise WouldReplaceError when the file ``path`` exists with other content than ``content`` (str: UTF-8),
+    unless ``force``. The same content, or no file, passes: running a command twice is harmless."""
+    path = Path(path)
+    if force or not path.exists():
+        return
+    data = content.encode("utf-8") if isinstance(content, str) else content
+    if path.is_file() and path.read_bytes() == data:
+        return
+    raise WouldReplaceError(f"{path}: exists and differs from what {command} would write (edited since?); "
+                            f"{FORCE_HINT}")
+
+
+def refuse_to_replace_folder(path: str | Path, command: str, ours: Callable[[Path], bool],
+                             force: bool = False) -> None:
+    """Raise WouldReplaceError when the folder ``path`` exists, is not empty and ``ours(path)`` is false (it is not
+    a folder that ``command`` wrote, which it replaces as a whole), unless ``force``."""
+    path = Path(path)
+    if force or not path.exists() or (path.is_dir() and (not any(path.iterdir()) or ours(path))):
+        return
+    raise WouldReplaceError(f"{path}: exists and is not a folder {command} wrote; {command} replaces the whole "
+                            f"folder: give another --out, or {FORCE_HINT.split('; ', 1)[1]}")
 
 
 def progress_logger(total: int, what: str, logger: logging.Logger = log,

@@ -8,18 +8,33 @@ capture reports that, with file, row and column).
 - :func:`coerce_to_schema` -- ``--config 'augment={min_coherence: 0}'`` arrives as the string ``'0'``
   (Snakemake parses nested values with YAML's BaseLoader); this turns such strings into the number, boolean or
   null that the config schema expects at that key.
-- :func:`raw_frame_files`, :func:`optional_file` -- the files of a capture that are inputs of the DAG
-  (the raw frames frames.csv names, poses.csv, ground truth), so that changing one re-runs what reads it.
+- :func:`raw_frame_files`, :func:`optional_file` -- the files of a capture that a stage reads (the raw frames
+  frames.csv names, poses.csv, ground truth).
+- :class:`ContentDigests` -- one digest of those files' content (size and BLAKE2b), cached by path, size, mtime,
+  ctime and inode: a rule's ``params``, so that a change of content re-runs what reads the files whatever their
+  modification times say, and a file touched but unchanged re-runs nothing.
 - :func:`collect_warnings`, :func:`failed_job_logs`, :func:`error_lines` -- the run's warnings and a failed job's
   error message, read from the jobs' log files, for the console and the report.
+- :func:`end_jobs_on_sigterm` -- SIGTERM ends the run and its jobs' processes within seconds (Snakemake's own
+  handler waits for running jobs, and can deadlock on its scheduler's lock).
+- :func:`record_run`, :func:`stale_model` -- a failed run's record in the results folder, and why the model on disk
+  no longer stands for the inputs (older than a failed job, or than a capture file): the run's closing summary
+  and ``sellip view`` say so.
 """
 
 from __future__ import annotations
 
 import csv
 import errno
+import hashlib
+import json
+import os
 import re
+import signal
+import threading
+import time
 from collections.abc import Iterable, Mapping
+from datetime import datetime
 from pathlib import Path
 
 import yaml
@@ -142,6 +157,91 @@ def optional_file(capture: str | Path, relative: str) -> list[str]:
     return [str(path)] if path.is_file() else []
 
 
+DIGEST_CACHE = ".snakemake/sellip/input_digests.json"
+"""Where the workflow keeps :class:`ContentDigests`' cache, relative to Snakemake's working directory."""
+
+
+def file_digest(path: str | Path, chunk: int = 1 << 20) -> str:
+    """``'SIZE:HEX'``: the file's size in bytes and the BLAKE2b (128-bit) digest of its content."""
+    hasher = hashlib.blake2b(digest_size=16)
+    size = 0
+    with open(path, "rb") as handle:
+        while block := handle.read(chunk):
+            hasher.update(block)
+            size += len(block)
+    return f"{size}:{hasher.hexdigest()}"
+
+
+class ContentDigests:
+    """Digests of files' content for the DAG (docs/reliability.md, "Every input is tracked by its content").
+
+    :meth:`digest` of a list of files is one short string that changes when, and only when, a file's content
+    changes, a file is added or one is removed: a rule carries it as a ``params`` value, and Snakemake's ``params``
+    rerun trigger then re-runs the rule for a changed content even when the file is older than the outputs (``cp
+    -p``, ``rsync -a``, a restored backup), while a file touched but unchanged has the same digest. Each file is
+    read once: its digest is kept in the JSON file ``cache_file`` under its absolute path with its size,
+    modification time, change time and inode (any write or ``utime`` changes the change time, which no user can set
+    back, so a cached digest is never taken for a file whose content may have changed). The cache is written
+    atomically; a cache that cannot be read or written is only slower."""
+
+    def __init__(self, cache_file: str | Path):
+        self.cache_file = Path(cache_file)
+        self._entries: dict[str, list] | None = None
+        self.computed = 0
+        """How many files this object has read (those not found in the cache): for tests."""
+
+    def _load(self) -> dict[str, list]:
+        if self._entries is None:
+            try:
+                entries = json.loads(self.cache_file.read_text(encoding="utf-8"))
+                self._entries = entries if isinstance(entries, dict) else {}
+            except (OSError, ValueError):
+                self._entries = {}
+        return self._entries
+
+    def _save(self) -> None:
+        tmp = self.cache_file.with_name(f".{self.cache_file.name}.tmp-{os.getpid()}")
+        try:
+            self.cache_file.parent.mkdir(parents=True, exist_ok=True)
+            tmp.write_text(json.dumps(self._entries, sort_keys=True), encoding="utf-8")
+            tmp.replace(self.cache_file)
+        except OSError:
+            tmp.unlink(missing_ok=True)
+
+    def file_digest(self, path: str | Path) -> str:
+        """``'SIZE:HEX'`` of :func:`file_digest`, from the cache when the file's stat matches the cached one."""
+        path = Path(path).absolute()
+        stat = path.stat()
+        key = [stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino]
+        entries = self._load()
+        cached = entries.get(str(path))
+        if isinstance(cached, list) and cached[:4] == key and len(cached) == 5:
+            return cached[4]
+        digest = file_digest(path)
+        self.computed += 1
+        entries[str(path)] = key + [digest]
+        return digest
+
+    def digest(self, files: Iterable[str | Path], root: str | Path = ".") -> str:
+        """One digest of ``files`` (names relative to ``root``, so that it does not depend on where the work folder
+        is), e.g. ``'3 file(s), blake2b 5c0f...'``: their names, sizes and contents. A file that does not exist
+        counts as ``missing``. ``''`` for no files."""
+        lines = []
+        before = self.computed
+        for path in files:
+            name = os.path.relpath(Path(path).absolute(), Path(root).absolute())
+            try:
+                lines.append(f"{name}\t{self.file_digest(path)}")
+            except OSError:
+                lines.append(f"{name}\tmissing")
+        if self.computed != before:
+            self._save()
+        if not lines:
+            return ""
+        total = hashlib.blake2b("\n".join(sorted(lines)).encode("utf-8"), digest_size=16).hexdigest()
+        return f"{len(lines)} file(s), blake2b {total}"
+
+
 # --------------------------------------------------------------------------- what the console shows
 
 _LEVEL = re.compile(r"^\S+ \S+ (WARNING|ERROR|CRITICAL) (\S+): (.*)$")
@@ -249,6 +349,160 @@ def format_failures(snakemake_log, root: str | Path = ".") -> str:
     if out:
         out.append("sellip: fix that and run the same command again: finished jobs are kept (docs/reliability.md)")
     return "\n".join(out)
+
+
+def process_tree(pid: int) -> list[int]:
+    """``pid`` and all its descendants (from /proc on Linux; elsewhere ``[pid]``), parents first."""
+    children: dict[int, list[int]] = {}
+    try:
+        entries = os.listdir("/proc")
+    except OSError:
+        return [pid]
+    for entry in entries:
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat", encoding="utf-8", errors="replace") as handle:
+                parent = int(handle.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+        children.setdefault(parent, []).append(int(entry))
+    tree, todo = [], [pid]
+    while todo:
+        current = todo.pop(0)
+        tree.append(current)
+        todo += children.get(current, [])
+    return tree
+
+
+def start_time(pid: int) -> int | None:
+    """The process's start time in clock ticks since boot (/proc/PID/stat field 22), None when it is gone."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="utf-8", errors="replace") as handle:
+            return int(handle.read().rsplit(")", 1)[1].split()[19])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def signal_processes(pids: Mapping[int, int | None], signum: int) -> None:
+    """Send ``signum`` to each process of ``pids`` (pid -> its :func:`start_time`) that is still that process (not
+    gone, its pid not taken by another since)."""
+    for pid, started in pids.items():
+        if start_time(pid) != started:
+            continue
+        try:
+            os.kill(pid, signum)
+        except (ProcessLookupError, PermissionError):
+            continue
+
+
+def end_jobs_on_sigterm(scheduler, grace_s: float = 5.0) -> None:
+    """Make SIGTERM end a Snakemake run and its running jobs within seconds (the workflow's ``onstart``, after
+    Snakemake installed its own handler).
+
+    Snakemake's handler lets the running jobs finish (a fit job: minutes), and takes its scheduler's lock, which
+    the main thread may hold at that moment (the handler runs in the main thread): the run then hangs with no job
+    left. This handler takes no lock: it sends SIGTERM to every running local job's process and its descendants
+    (the shell and the ``sellip`` under it), SIGKILL to those left after ``grace_s``, and tells the scheduler to stop
+    as Snakemake's own handler would. The killed jobs fail, so Snakemake removes their outputs and the workflow's
+    ``onerror`` records the failed run. Without the attributes it needs (another Snakemake), it leaves the
+    previous handler in place."""
+    if not (hasattr(scheduler, "_user_kill") and hasattr(scheduler, "_open_jobs")):
+        return
+    try:
+        from snakemake.shell import shell
+    except ImportError:
+        return
+
+    def handler(signum, frame):
+        pids = {pid: start_time(pid) for process in list(getattr(shell, "_processes", {}).values())
+                for pid in process_tree(process.pid)}
+        signal_processes(pids, signal.SIGTERM)
+        timer = threading.Timer(grace_s, signal_processes, (pids, signal.SIGKILL))
+        timer.daemon = True
+        timer.start()
+        scheduler._user_kill = "graceful"  # what Snakemake's handler sets; one assignment, no lock needed
+        scheduler._open_jobs.release()
+
+    signal.signal(signal.SIGTERM, handler)
+
+
+LAST_RUN = "last_run.json"
+"""The record of the last run that ended (results/NAME/last_run.json): written by the workflow's onsuccess and onerror."""
+
+MODEL = "final/model.ply"
+"""The final model, the file whose age :func:`stale_model` compares."""
+
+
+def record_run(results: str | Path, status: str, snakemake_log=None, started: float | None = None,
+               now: float | None = None) -> Path:
+    """Write ``results``/last_run.json at the end of a run: ``{"status": "failed" | "complete", "started": epoch
+    seconds, "ended": epoch seconds, "failed": [{"rule", "logs"}]}`` (the failed rules from Snakemake's log,
+    :func:`failed_job_logs`; an interrupted run fails too). Atomic; a folder that cannot be written is left as it
+    is."""
+    now = time.time() if now is None else now
+    record = {"status": status, "started": now if started is None else started, "ended": now,
+              "failed": [{"rule": rule, "logs": logs} for rule, logs in failed_job_logs(snakemake_log)]
+              if status == "failed" else []}
+    path = Path(results) / LAST_RUN
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_text(json.dumps(record, indent=1), encoding="utf-8")
+        tmp.replace(path)
+    except OSError:  # a read-only or full results folder: the run's own message says more
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def _when(epoch: float) -> str:
+    return datetime.fromtimestamp(epoch).strftime("%Y-%m-%d %H:%M:%S")
+
+
+def stale_model(results: str | Path, capture: str | Path | None = None) -> list[str]:
+    """Why the model in ``results`` (final/model.ply) and what was made from it may not stand for the current
+    inputs, one sentence (empty when nothing says so, or when there is no model): the last run failed or was
+    interrupted (last_run.json) before it wrote a new model, or after (then its renders, metrics and viewer are
+    missing or an earlier run's); and, given ``capture``, capture files
+    (capture.yaml, frames.csv, poses.csv, the raw frames) modified after the model was made."""
+    results = Path(results)
+    model = results / MODEL
+    try:
+        made = model.stat().st_mtime
+    except OSError:
+        return []
+    try:
+        record = json.loads((results / LAST_RUN).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        record = {}
+    record = record if isinstance(record, dict) else {}
+    reasons, after = [], False
+    if record.get("status") == "failed" and made < float(record.get("ended") or 0):  # else a later run made it
+        started = float(record.get("started") or 0)
+        rules = [f"rule {entry.get('rule')} (log: {', '.join(entry.get('logs') or []) or 'none'})"
+                 for entry in record.get("failed") or []]
+        what = f"the last run (started {_when(started)}) failed" + (f" at {'; '.join(rules)}" if rules else "")
+        after = made >= started
+        reasons.append(what + (" after it wrote the model: the renders, metrics and viewer are missing or an "
+                               "earlier run's" if after else ""))
+    if capture is not None:
+        changed = []
+        for path in [*(Path(capture) / name for name in ("capture.yaml", FRAMES_CSV, "poses.csv")),
+                     *map(Path, raw_frame_files(capture))]:
+            try:
+                if path.stat().st_mtime > made:
+                    changed.append(str(path))
+            except OSError:
+                continue
+        if changed:
+            after = False
+            reasons.append(f"{len(changed)} capture file(s) changed after it ({changed[0]}"
+                           + (f" and {len(changed) - 1} more)" if len(changed) > 1 else ")"))
+    if not reasons:
+        return []
+    head = f"{model} (made {_when(made)})" + (" is this run's, but" if after else " is out of date:")
+    tail = ("" if after else ". Its metrics, renders and viewer are those of an earlier run")
+    return [f"{head} {'; '.join(reasons)}{tail}: fix that and run the same command again"]
 
 
 def load_yaml(path: str | Path):

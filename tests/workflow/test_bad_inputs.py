@@ -254,3 +254,86 @@ def test_a_full_file_system_is_a_clear_error_and_leaves_nothing(pristine, full_d
     assert "ERROR sellip: no room to write" in result.stderr and "No space left on device" in result.stderr
     assert "Traceback" not in result.stderr
     assert list(full_disk.iterdir()) == []
+
+
+# --------------------------------------------------------------------------- a user's files are never replaced
+
+def capture_new(raw_dir: Path, device: Path, *extra: str) -> None:
+    main(["capture", "new", str(raw_dir), "--device", str(device), "--distance-m", "0.9", "--pattern",
+          "{view}_f{level}.dng", "--exposure-s", "0.005", *extra])
+
+
+@pytest.fixture
+def frame_folder(pristine, tmp_path):
+    """A folder of the pristine capture's raw frames (renamed to a pattern) and a device.yaml that describes them."""
+    from sellip.calibrate import device as devices
+
+    raw_dir = tmp_path / "owl" / "raw"
+    raw_dir.mkdir(parents=True)
+    frames = pd.read_csv(pristine / "frames.csv", dtype=str)
+    for row in frames.itertuples():
+        shutil.copy(pristine / row.file, raw_dir / f"{row.view_id}_f{float(row.flash_level):g}.dng")
+    config = yaml.safe_load((pristine / "capture.yaml").read_text())
+    device = devices.write_device(tmp_path / "device.yaml", {key: config[key] for key in ("sensor", "camera", "light")})
+    return raw_dir, device
+
+
+def test_capture_new_never_replaces_an_edited_capture_yaml(frame_folder):
+    """`sellip capture new` twice: the same files again (exit 0); after the user edited capture.yaml it stops and
+    names the file and --force, leaving the edit (before: overwritten, exit 0); with --force it replaces it."""
+    raw_dir, device = frame_folder
+    capture_new(raw_dir, device)
+    written = raw_dir.parent / "capture.yaml"
+    first = written.read_text()
+    capture_new(raw_dir, device)  # the same content: fine
+    assert written.read_text() == first
+    edited = first.replace("distance_m: 0.9", "distance_m: 0.85")
+    assert edited != first
+    written.write_text(edited)
+    with pytest.raises(SystemExit) as info:
+        capture_new(raw_dir, device)
+    message = str(info.value.code)
+    assert message.startswith(f"sellip capture new: {written}: exists and differs from what sellip capture new "
+                              "would write"), message
+    assert "nothing was written" in message and "--force" in message
+    assert written.read_text() == edited
+    frames_csv = raw_dir.parent / "frames.csv"
+    frames_csv.write_text(frames_csv.read_text().replace("0.005", "0.004"))
+    written.write_text(first)
+    with pytest.raises(SystemExit, match="frames.csv: exists and differs"):
+        capture_new(raw_dir, device)
+    capture_new(raw_dir, device, "--force")
+    assert written.read_text() == first and "0.004" not in frames_csv.read_text()
+
+
+def test_synth_never_replaces_a_folder_it_did_not_write(pristine, tmp_path):
+    """`sellip synth --out` onto a user's capture (capture.yaml without a `synthetic` section) or a folder of other
+    files stops before rendering; the folder is left as it was (before: replaced as a whole)."""
+    capture = tmp_path / "capture"
+    shutil.copytree(pristine, capture)
+    config = yaml.safe_load((capture / "capture.yaml").read_text())
+    config.pop("synthetic")
+    (capture / "capture.yaml").write_text(yaml.safe_dump(config))
+    before = sorted(p.relative_to(capture) for p in capture.rglob("*"))
+    for out in (capture, tmp_path / "notes"):
+        out.mkdir(exist_ok=True)
+        if out.name == "notes":
+            (out / "todo.txt").write_text("mine")
+        with pytest.raises(SystemExit) as info:
+            main(["synth", "--scene", "tiny", "--out", str(out), "--views", "2", "--width", "32", "--height", "24"])
+        message = str(info.value.code)
+        assert message.startswith(f"sellip synth: {out}: exists and is not a folder sellip synth wrote"), message
+        assert "--force" in message and "another --out" in message
+    assert sorted(p.relative_to(capture) for p in capture.rglob("*")) == before
+    assert (tmp_path / "notes" / "todo.txt").read_text() == "mine"
+
+
+def test_synth_calibration_never_replaces_a_folder_it_did_not_write(tmp_path):
+    from sellip.calibrate.synthetic import synthesize_calibration
+    from sellip.jobs import WouldReplaceError
+
+    (tmp_path / "calib").mkdir()
+    (tmp_path / "calib" / "board_00.dng").write_bytes(b"a user's frame")
+    with pytest.raises(WouldReplaceError, match="calib: exists and is not a folder sellip synth-calibration wrote"):
+        synthesize_calibration(tmp_path / "calib", 64, 48, board_frames=1, sphere_frames=1)
+    assert (tmp_path / "calib" / "board_00.dng").read_bytes() == b"a user's frame"

@@ -30,6 +30,15 @@ OLD = 946684800  # 2000-01-01: an mtime older than every output, so that only a 
 
 def snakemake(workdir: Path, capture: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess:
     """`snakemake` on the repository's workflow in ``workdir`` with the test's capture and settings."""
+    command, env = snakemake_command(workdir, capture, *args)
+    result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=900, check=False)
+    if check and result.returncode != 0:
+        raise AssertionError(f"snakemake {' '.join(args)} failed:\n{result.stdout[-3000:]}\n{result.stderr[-5000:]}")
+    return result
+
+
+def snakemake_command(workdir: Path, capture: Path, *args: str) -> tuple[list[str], dict]:
+    """The command line and environment of :func:`snakemake`."""
     override = workdir / "over ride.yaml"
     override.write_text(yaml.safe_dump({
         "capture": str(capture), "name": NAME,
@@ -40,10 +49,7 @@ def snakemake(workdir: Path, capture: Path, *args: str, check: bool = True) -> s
                "--configfile", str(REPO / "config" / "config.yaml"), str(override), "--cores", "2", *args]
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",
            "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO / "src"), os.environ.get("PYTHONPATH")]))}
-    result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=900, check=False)
-    if check and result.returncode != 0:
-        raise AssertionError(f"snakemake {' '.join(args)} failed:\n{result.stdout[-3000:]}\n{result.stderr[-5000:]}")
-    return result
+    return command, env
 
 
 def planned(result: subprocess.CompletedProcess) -> set[str]:
@@ -108,6 +114,65 @@ def test_an_edited_capture_file_reruns_exactly_what_reads_it(run, edit, expected
     finally:
         path.write_bytes(original)
     assert dry_run(run) == set()
+
+
+@pytest.mark.parametrize("edit, expected", [
+    ("raw/v000_f0.dng", INGEST),
+    ("capture.yaml", INGEST),
+    ("poses.csv", {"run_sfm", "init_mesh"}),
+    ("scan.ply", {"init_mesh"}),
+])
+def test_a_changed_file_older_than_the_outputs_reruns_what_reads_it(run, edit, expected):
+    """Content changed but the file's mtime set back before the outputs (what `cp -p`, `rsync -a` or a restored
+    backup does): the content digest in the rule's params re-runs it (before: "Nothing to be done"). The original
+    put back, with the same old mtime, needs nothing again."""
+    path = run["capture"] / edit
+    original, stat = path.read_bytes(), path.stat()
+    changed = bytearray(original)
+    changed[-2] = (changed[-2] + 1) % 256 if path.suffix not in (".csv", ".yaml") else changed[-2]
+    path.write_bytes(bytes(changed) if path.suffix not in (".csv", ".yaml") else original + b"\n")
+    os.utime(path, ns=(OLD * 10**9, OLD * 10**9))
+    try:
+        assert dry_run(run) == expected
+    finally:
+        path.write_bytes(original)
+        os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert dry_run(run) == set()
+
+
+@pytest.mark.parametrize("edit", ["raw/v000_f0.dng", "raw/v005_f2.dng", "scan.ply", "poses.csv", "capture.yaml"])
+def test_a_touched_but_unchanged_file_reruns_nothing(run, edit):
+    """A newer mtime, the same content: nothing to be done, for files of any size (the raw frames and the scan are
+    tracked by their content digest only; Snakemake's own checksum covers only inputs under 1 MB)."""
+    path = run["capture"] / edit
+    path.touch()
+    assert dry_run(run) == set()
+
+
+def test_content_digests_are_read_once_and_follow_the_content(tmp_path):
+    """ContentDigests: a digest per file list that changes with content, name, or a file added or removed, not
+    with the mtime; each file read once while its stat is the cached one (also from a new process's cache)."""
+    files = [tmp_path / "a.dng", tmp_path / "b.dng"]
+    files[0].write_bytes(b"A" * 5000)
+    files[1].write_bytes(b"B" * 7000)
+    cache = tmp_path / "cache" / "digests.json"
+    digests = workflow_support.ContentDigests(cache)
+    first = digests.digest(files, tmp_path)
+    assert first.startswith("2 file(s), blake2b ") and digests.computed == 2 and cache.is_file()
+    assert digests.digest(files, tmp_path) == first and digests.computed == 2            # cached
+    again = workflow_support.ContentDigests(cache)
+    assert again.digest(files, tmp_path) == first and again.computed == 0                 # the cache file
+    os.utime(files[0], (OLD, OLD))
+    assert again.digest(files, tmp_path) == first and again.computed == 1                 # read again, same digest
+    files[0].write_bytes(b"A" * 4999 + b"a")
+    os.utime(files[0], (OLD, OLD))
+    changed = again.digest(files, tmp_path)
+    assert changed != first and again.computed == 2                                       # same size and mtime
+    assert again.digest(files[:1], tmp_path) != changed                                   # a file removed
+    assert again.digest([*files, tmp_path / "c.dng"], tmp_path).startswith("3 file(s)")   # missing counts
+    assert again.digest([], tmp_path) == ""
+    cache.write_text("not json")
+    assert workflow_support.ContentDigests(cache).digest(files, tmp_path) == changed     # a broken cache: re-read
 
 
 def test_a_frame_that_was_skipped_and_is_now_there_reruns_ingest(run):
@@ -335,3 +400,134 @@ def test_the_sfm_stage_stops_on_poses_in_millimetres(run, tmp_path, caplog):
                    "--output", str(tmp_path / "sfm"), "--mode", "known"])
     assert status == 1 and not (tmp_path / "cameras.csv").exists() and not (tmp_path / "sfm").exists()
     assert "translations look like millimetres" in caplog.text and "poses.csv" in caplog.text
+
+
+# --------------------------------------------------------------------------- a failed run is visible (issue 52)
+
+def test_stale_model_says_when_the_model_is_an_earlier_runs(tmp_path):
+    """stale_model on a results folder: nothing without a record or after a complete run; a failed run that
+    started after the model was made names the model out of date with the failed rule and its log; a failed run
+    that wrote the model and failed later says the renders are not complete; a later run's model is fine; a
+    capture file newer than the model is named."""
+    results, capture = tmp_path / "results" / "owl", tmp_path / "capture"
+    model = results / workflow_support.MODEL
+    model.parent.mkdir(parents=True)
+    model.write_text("ply")
+    capture.mkdir()
+    for name in ("capture.yaml", "frames.csv"):
+        (capture / name).write_text("x")
+        os.utime(capture / name, (OLD, OLD))
+    os.utime(model, (OLD + 100, OLD + 100))
+    assert workflow_support.stale_model(results, capture) == []
+    snake_log = tmp_path / "snake.log"
+    snake_log.write_text("Error in rule merge_hdr:\n    jobid: 2\n    log: results/owl/logs/merge_hdr.log (check log "
+                         "file(s) for error details)\n")
+    workflow_support.record_run(results, "complete", started=OLD + 50, now=OLD + 200)
+    assert workflow_support.stale_model(results, capture) == []
+    workflow_support.record_run(results, "failed", snake_log, started=OLD + 150, now=OLD + 200)
+    [line] = workflow_support.stale_model(results, capture)
+    assert line.startswith(f"{model} (made ") and " is out of date: the last run (started " in line
+    assert "failed at rule merge_hdr (log: results/owl/logs/merge_hdr.log)" in line
+    assert "those of an earlier run" in line and "run the same command again" in line
+    workflow_support.record_run(results, "failed", snake_log, started=OLD + 50, now=OLD + 200)
+    [line] = workflow_support.stale_model(results, capture)
+    assert "is this run's, but the last run" in line and "after it wrote the model" in line
+    workflow_support.record_run(results, "failed", snake_log, started=OLD, now=OLD + 60)
+    assert workflow_support.stale_model(results, capture) == []  # the model is a later run's
+    (capture / "frames.csv").touch()
+    [line] = workflow_support.stale_model(results, capture)
+    assert "1 capture file(s) changed after it" in line and str(capture / "frames.csv") in line
+    assert workflow_support.stale_model(tmp_path / "no results", capture) == []
+
+
+def test_process_tree_and_signal_processes_reach_the_grandchild(tmp_path):
+    """A job's shell and the command under it (what a SIGTERM to the run must end): both found from the shell's
+    pid, both ended; a pid whose start time differs (taken by another process since) is not signalled."""
+    import signal
+    import time
+
+    shell = subprocess.Popen(["bash", "-c", "set -e; sleep 300; echo"], start_new_session=True)
+    try:
+        for _ in range(50):
+            tree = workflow_support.process_tree(shell.pid)
+            if len(tree) == 2:
+                break
+            time.sleep(0.1)
+        assert tree[0] == shell.pid and len(tree) == 2, tree
+        sleep = tree[1]
+        workflow_support.signal_processes({sleep: -1}, signal.SIGTERM)  # not that process: left alone
+        time.sleep(0.2)
+        assert shell.poll() is None
+        workflow_support.signal_processes({pid: workflow_support.start_time(pid) for pid in tree}, signal.SIGTERM)
+        assert shell.wait(timeout=10) == -signal.SIGTERM
+        for _ in range(50):
+            state = Path(f"/proc/{sleep}/stat").read_text().rsplit(")", 1)[1].split()[0] if Path(
+                f"/proc/{sleep}").exists() else "gone"
+            if state in ("Z", "gone"):
+                break
+            time.sleep(0.1)
+        assert state in ("Z", "gone")
+    finally:
+        if shell.poll() is None:
+            os.killpg(shell.pid, signal.SIGKILL)
+
+
+def _session_processes(sid: int) -> list[str]:
+    """Command lines of the live (not zombie) processes of session ``sid``."""
+    found = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            fields = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
+            cmdline = Path(f"/proc/{entry}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if int(fields[3]) == sid and fields[0] != "Z":
+            found.append(f"{entry}: {cmdline}")
+    return found
+
+
+@pytest.mark.parametrize("target", ["snakemake", "process group"])
+def test_sigterm_ends_the_run_and_its_jobs_within_seconds(run, target):
+    """SIGTERM during a fit job (the run's first iteration, after its initial mesh), to Snakemake alone (`kill
+    PID`) or to its whole process group (a terminal, a batch system): Snakemake and every job process are gone
+    within 15 s (before: Snakemake let the running jobs finish, a fit taking minutes, and its handler could
+    deadlock on the scheduler's lock with no job left), and the run is recorded as failed."""
+    import json
+    import signal
+    import time
+
+    results = run["workdir"] / "results" / NAME
+    command, env = snakemake_command(run["workdir"], run["capture"], f"results/{NAME}/iter/0/fit.zarr",
+                                     "--rerun-incomplete")
+    console = run["workdir"] / f"sigterm {target}.log"
+    with open(console, "w") as sink:
+        process = subprocess.Popen(command, env=env, stdout=sink, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        began = time.monotonic()
+        while not any(" fit --observations" in line for line in _session_processes(process.pid)):
+            assert process.poll() is None, console.read_text()[-3000:]
+            assert time.monotonic() - began < 900, "no fit job started"
+            time.sleep(0.2)
+        time.sleep(2)  # inside the fit
+        sent = time.monotonic()
+        if target == "snakemake":
+            os.kill(process.pid, signal.SIGTERM)
+        else:
+            os.killpg(process.pid, signal.SIGTERM)
+        try:
+            process.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            pass
+        took = time.monotonic() - sent
+        left = [line for line in _session_processes(process.pid) if str(process.pid) != line.split(":")[0]]
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    output = console.read_text()
+    assert took < 15, f"snakemake took {took:.1f} s to end:\n{output[-3000:]}"
+    assert left == [], left
+    assert process.returncode != 0
+    assert json.loads((results / "last_run.json").read_text())["status"] == "failed", output[-3000:]

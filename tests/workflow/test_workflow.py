@@ -241,3 +241,32 @@ def test_pose_refinement_joins_the_loop_and_keeps_true_poses(tiny_run, tmp_path_
     # (0.35 the worst) when this was written: the model's own error. (The centres moved 15 mm in the median: the
     # weak direction of a narrow field of view, which the photographs do not pin; docs/geometry.md.)
     assert moved["reprojection_px"]["median"] < 0.25 and moved["reprojection_px"]["max"] < 0.6, moved
+
+
+# --------------------------------------------------------------------------- a failed or interrupted run is visible
+
+def test_a_failed_rerun_says_the_model_is_stale(tiny_run, tmp_path_factory):
+    """An input changed so that a job fails (capture.yaml's camera.fx in millimetres): the console says that the
+    model on disk is an earlier run's and which rule failed, and `sellip view` says so too (before: the previous
+    run's model, metrics and viewer in place, unmarked)."""
+    workdir = tmp_path_factory.mktemp("stale")
+    shutil.copytree(tiny_run, workdir, symlinks=True, dirs_exist_ok=True)
+    capture_yaml = workdir / "captures" / "tiny" / "capture.yaml"
+    config = yaml.safe_load(capture_yaml.read_text())
+    config["camera"]["fx"] = 2.0
+    capture_yaml.write_text(yaml.safe_dump(config))
+    command, env = _command(workdir, "--cores", "2")
+    failed = subprocess.run(command, capture_output=True, text=True, env=env, timeout=900, check=False)
+    text = failed.stdout + failed.stderr
+    assert failed.returncode != 0, text[-3000:]
+    assert "sellip: rule linearize_frames failed" in text
+    stale = [line for line in text.splitlines() if "final/model.ply is out of date" in line]
+    assert stale and "the last run failed" in stale[0], text[-3000:]
+    assert "rule linearize_frames (log: results/tiny/logs/linearize_frames.log)" in stale[0]
+    record = json.loads((workdir / "results" / "tiny" / "last_run.json").read_text())
+    assert record["status"] == "failed" and record["failed"][0]["rule"] == "linearize_frames"
+    view = subprocess.run([sys.executable, "-m", "sellip.cli", "view", "results/tiny"], cwd=workdir, env=env,
+                          capture_output=True, text=True, timeout=600, check=False)
+    warned = [line for line in view.stderr.splitlines() if "WARNING" in line and "is out of date" in line]
+    assert warned and "rule linearize_frames" in warned[0] and "capture file(s) changed after it" in warned[0], \
+        view.stderr[-3000:]

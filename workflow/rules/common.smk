@@ -3,6 +3,7 @@ import os
 import shlex
 import shutil
 import sys
+import time
 from pathlib import Path
 
 from snakemake.exceptions import WorkflowError
@@ -92,30 +93,44 @@ def capture_file(name):
 
 
 def raw_frames():
-    """The raw frames the capture's frames.csv names (those that exist: ingest reports the others): inputs of
-    linearize_frames, so that a replaced or added frame re-runs ingest and what follows. The built-in demo's
-    frames are made by synth_capture with its frames.csv, which is the input then."""
+    """The raw frames the capture's frames.csv names (those that exist: ingest reports the others). They are tracked
+    by their content (content_of), not as inputs: a frame touched but unchanged re-runs nothing, whatever its size.
+    The built-in demo's frames are made by synth_capture with its frames.csv, which is the input then."""
     return workflow_support.raw_frame_files(capture_dir()) if config["capture"] else []
 
 
 def poses_file():
-    """The capture's poses.csv as a list (empty when it has none): an input of run_sfm, so that adding, removing or
-    editing it re-runs the poses and what follows."""
+    """The capture's poses.csv as a list (empty when it has none): an input of run_sfm (and tracked by content), so
+    that adding, removing or editing it re-runs the poses and what follows."""
     return [capture_file("poses.csv")] if not config["capture"] else workflow_support.optional_file(
         capture_dir(), "poses.csv")
 
 
 def ground_truth_file():
-    """The capture's ground-truth mesh as a list (empty when it has none): an input of evaluate_model."""
+    """The capture's ground-truth mesh as a list (empty when it has none): tracked by content for evaluate_model."""
     return workflow_support.optional_file(capture_dir(), "ground_truth/model.ply") if config["capture"] else []
 
 
 def user_mesh():
     """The mesh file init.mode 'mesh' starts from (config init.mesh_path; a relative path lies in the capture
-    folder, an absolute one is used as is), as a list: empty in the other modes."""
+    folder, an absolute one is used as is), as a list: empty in the other modes. Tracked by content for init_mesh."""
     if config["init"]["mode"] != "mesh":
         return []
     return [capture_file(os.path.expanduser(config["init"]["mesh_path"]))]  # Path(capture) / absolute = absolute
+
+
+INPUT_DIGESTS = workflow_support.ContentDigests(workflow_support.DIGEST_CACHE)
+
+
+def content_of(*files):
+    """A `params:` value: the digest of the content of the capture's files that `files` (functions returning lists of
+    paths) name, so that Snakemake's params trigger re-runs the rule when any of them changes, whatever its mtime
+    (docs/reliability.md). Empty for the built-in demo, whose capture files are outputs of synth_capture."""
+    def digest(wildcards):
+        if not config["capture"]:
+            return ""
+        return INPUT_DIGESTS.digest([path for listed in files for path in listed()], capture_dir())
+    return digest
 
 
 RESULTS = f"results/{config['name']}"

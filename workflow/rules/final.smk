@@ -71,7 +71,6 @@ rule evaluate_model:
         renders=f"{RESULTS}/final/renders",  # evaluated last: its timings cover every other stage
         meshes=[mesh_of(it) for it in range(ITERATIONS + 1)],
         fits=[f"{RESULTS}/iter/{it}/fit.zarr" for it in range(ITERATIONS)],
-        truth=ground_truth_file(),
         poses=poses_file(),  # with sfm.mode sfm, the SfM cameras are aligned to poses.csv for the figures
         sfm=f"{RESULTS}/sfm",  # its report.json says where the cameras came from
         initial_cameras=f"{RESULTS}/cameras.csv",  # the poses stage's, measured beside the refined ones
@@ -85,6 +84,7 @@ rule evaluate_model:
         benchmarks=f"{RESULTS}/benchmarks",
         logs=f"{RESULTS}/logs",
         held_out=config["evaluate"]["held_out_views"],
+        content=content_of(ground_truth_file, poses_file),  # the ground truth, by its content
     conda:
         "../../envs/report.yaml"
     log:
@@ -128,7 +128,18 @@ rule export_viewer:
         SELLIP + " view {params.results:q} --capture {params.capture:q} > {log:q} 2>&1"
 
 
+RUN_STARTED = []
+"""When the run's first job was about to start (onstart): last_run.json records it."""
+
+
+onstart:
+    # SIGTERM (kill, a scheduler's time limit) ends the run and its jobs within seconds (docs/reliability.md).
+    workflow_support.end_jobs_on_sigterm(workflow.scheduler)
+    RUN_STARTED.append(time.time())
+
+
 onsuccess:
+    workflow_support.record_run(RESULTS, "complete", started=(RUN_STARTED or [None])[0])
     # The run's warnings (a frame left out, a view without a pose), from the jobs' logs (docs/reliability.md).
     if warnings := workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs")):
         print(warnings)
@@ -151,8 +162,11 @@ onsuccess:
 
 
 onerror:
-    # A failed job's own message (file, row, what was expected) on the console, not only in its log file.
+    # A failed job's own message (file, row, what was expected) on the console, not only in its log file; then,
+    # when a model from an earlier run is on disk, that it no longer stands for the inputs (docs/reliability.md).
+    workflow_support.record_run(RESULTS, "failed", log, started=(RUN_STARTED or [None])[0])
     for text in (workflow_support.format_failures(log),
-                 workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs"))):
+                 workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs")),
+                 *(f"sellip: {line}" for line in workflow_support.stale_model(RESULTS, capture_dir()))):
         if text:
             print(text, file=sys.stderr)

@@ -15,6 +15,7 @@ rule run_sfm:
         sfm=directory(f"{RESULTS}/sfm"),
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
+        content=content_of(poses_file),
         mode=config["sfm"]["mode"],
         matching=config["sfm"]["matching"],
         exhaustive_max_views=config["sfm"]["exhaustive_max_views"],
@@ -48,14 +49,14 @@ rule init_mesh:
         hdr=f"{RESULTS}/hdr.zarr",
         cameras=f"{RESULTS}/cameras.csv",
         sfm=f"{RESULTS}/sfm",
-        # init.mode mesh: the user's mesh is an input, so a changed scan re-runs what follows.
-        user_mesh=user_mesh(),
     output:
         mesh=f"{RESULTS}/mesh/init.ply",
         info=f"{RESULTS}/mesh/init.json",
     params:
         mode=config["init"]["mode"],
-        mesh_path=lambda wildcards, input: " ".join(f"--mesh-path {shlex.quote(p)}" for p in input.user_mesh),
+        mesh_path=" ".join(f"--mesh-path {shlex.quote(p)}" for p in user_mesh()),
+        # init.mode mesh: the user's mesh by its content, so a changed scan re-runs what follows.
+        content=content_of(user_mesh),
         hull_resolution=config["init"]["hull_resolution"],
         min_inside_fraction=config["init"]["min_inside_fraction"],
         poisson_depth=config["init"]["poisson_depth"],

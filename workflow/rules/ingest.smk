@@ -6,12 +6,12 @@ rule linearize_frames:
     input:
         capture=capture_file("capture.yaml"),
         frames=capture_file("frames.csv"),
-        # Every raw frame is an input: a replaced or added frame re-runs ingest and what follows.
-        raw=raw_frames(),
     output:
         temp(directory(f"{RESULTS}/ingest/linear.zarr")),
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
+        # The content of every file ingest reads: a replaced, added or removed frame re-runs ingest and what follows.
+        content=content_of(lambda: [capture_file("capture.yaml"), capture_file("frames.csv")], raw_frames),
         saturation=config["ingest"]["saturation"],
         black_level_from=config["ingest"]["black_level_from"],
         bad_frames=config["ingest"].get("bad_frames", "error"),

@@ -48,6 +48,7 @@ from scipy import ndimage
 from sellip.capture.scenes import DEVICE_FX_PX, DEVICE_WIDTH_PX
 from sellip.capture.sensor import SensorModel, sensor_from_device
 from sellip.capture.writer import write_raw_file
+from sellip.jobs import refuse_to_replace_folder
 from sellip.model.render import undistort_normalized
 
 DEVICE_DISTORTION = (-0.12, 0.25, 4e-4, -3e-4, 0.0)
@@ -489,9 +490,10 @@ def _burst_name(kind: str, pose: int, frame: int, burst: int, suffix: str) -> st
 def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 2048, seed: int = 0,
                            board_frames: int = 24, sphere_frames: int = 6, spheres_per_frame: int = 3,
                            spec: BoardSpec = BoardSpec(), raw_format: str = "dng", polarizer_deg: float = 0.0,
-                           progress: bool = False, burst: int = 1) -> Path:
+                           progress: bool = False, burst: int = 1, force: bool = False) -> Path:
     """Write a calibration folder (module docstring) for the synthetic device; returns it. Atomic: written to a
-    temporary sibling and renamed. The same seed gives the same files.
+    temporary sibling and renamed. The same seed gives the same files. An existing ``out`` without truth.yaml (not
+    one this function wrote) stops it with :class:`sellip.jobs.WouldReplaceError`, unless ``force``.
 
     ``burst``: frames per pose (board and sphere layouts alike), each with its own sensor noise, as a camera's
     burst of a still scene: ``board_07_b2.dng`` is pose 7's third frame (``board_07.dng`` when ``burst`` is 1).
@@ -499,6 +501,7 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
     ``board_frames=96`` (benchmarks/calibration_accuracy.py) and measures ``board_frames=48, burst=4`` too; the
     tests use the defaults or fewer frames."""
     out = Path(out)
+    refuse_to_replace_folder(out, "sellip synth-calibration", lambda path: (path / "truth.yaml").is_file(), force)
     device = true_device(width, height, polarizer_deg)
     suffix = {"dng": ".dng", "tiff": ".tiff", "png": ".png"}[raw_format]
     scale = width / 2448

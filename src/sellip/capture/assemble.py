@@ -6,14 +6,16 @@ Public API::
     flash_level(text, file_label) -> float         # '0.25' -> 0.25; '4' (a divisor, "1/4 power") -> 0.25
     frames_from_pattern(files, pattern, exposure_s) -> DataFrame   # frames.csv rows
     frames_from_csv(path, exposure_s=None) -> DataFrame
-    assemble_capture(frames_dir, device, out=None, pattern=None, csv=None, distance_m, exposure_s=None) -> Path
+    assemble_capture(frames_dir, device, out=None, pattern=None, csv=None, distance_m, exposure_s=None,
+                     force=False) -> Path
 
 The frames stay where they are: frames.csv names them relative to the capture folder (``out``, by default
 the parent of a frames folder called ``raw``, else the frames folder itself). capture.yaml is the device's
 sensor, camera and light sections, ``scene.distance_m`` from the user, and the device's ``calibration``
 record. Everything is validated as :func:`sellip.io.read_capture` does (every raw frame opened and checked)
 before anything is written; frames.csv and then capture.yaml (the file that marks a capture complete) are
-written to temporary names and renamed.
+written to temporary names and renamed. Either file already there with other content (the user's edits) stops it
+unless ``force``.
 """
 
 from __future__ import annotations
@@ -31,9 +33,14 @@ from sellip.capture import reader
 from sellip.capture import tables
 from sellip.capture import writer
 from sellip.capture import capture_yaml
+from sellip import jobs
 
 RAW_SUFFIXES = capture_files.RAWPY_SUFFIXES + capture_files.TIFF_SUFFIXES + capture_files.PNG_SUFFIXES
 FIELDS = {"view": r"(?P<view>[A-Za-z0-9._-]+?)", "level": r"(?P<level>[0-9]+(?:[.][0-9]+)?)"}
+
+
+class ExistingFileError(capture_files.CaptureError):
+    """capture.yaml or frames.csv exists with other content than ``sellip capture new`` would write (no --force)."""
 
 
 class AssembleError(capture_files.CaptureError):
@@ -114,10 +121,12 @@ def _relative(frames_dir: Path, out: Path) -> str:
 
 def assemble_capture(frames_dir: str | Path, device: Mapping, distance_m: float, out: str | Path | None = None,
                      pattern: str | None = None, csv: str | Path | None = None,
-                     exposure_s: float | None = None, check_raw: bool = True) -> Path:
+                     exposure_s: float | None = None, check_raw: bool = True, force: bool = False) -> Path:
     """Write capture.yaml and frames.csv for the raw frames in ``frames_dir`` (module docstring); returns the
     capture folder. ``device``: a complete device (:func:`sellip.calibrate.device.read_device`, complete=True).
-    Exactly one of ``pattern`` and ``csv``. Raises a CaptureError naming what is wrong; writes nothing then."""
+    Exactly one of ``pattern`` and ``csv``. Raises a CaptureError naming what is wrong; writes nothing then. A
+    capture.yaml or frames.csv already there with other content (a user's edits) is an ExistingFileError unless
+    ``force``; the same content is written again without a word."""
     frames_dir = Path(frames_dir)
     if not frames_dir.is_dir():
         raise AssembleError(str(frames_dir), None, "not a folder; expected the folder of raw frames")
@@ -145,17 +154,22 @@ def assemble_capture(frames_dir: str | Path, device: Mapping, distance_m: float,
             raise capture_files.MissingFileError(str(out / capture_files.FRAMES_CSV), f"frame {row.frame_id!r}", f"file {path} missing")
         if check_raw:
             reader.read_raw_file(path, checked["sensor"], file_label=f"{path} (frame {row.frame_id!r})")
+    texts = {capture_files.FRAMES_CSV: frames.to_csv(index=False, float_format="%.10g"),
+             capture_files.CAPTURE_YAML: yaml.safe_dump(writer.yaml_safe(checked), sort_keys=False,
+                                                        default_flow_style=None)}
+    for name, text in texts.items():  # a capture.yaml or frames.csv the user has edited is never replaced silently
+        try:
+            jobs.refuse_to_replace(out / name, text, "sellip capture new", force=force)
+        except jobs.WouldReplaceError as exc:
+            raise ExistingFileError(str(out / name), None, str(exc).split(": ", 1)[1]) from None
     out.mkdir(parents=True, exist_ok=True)
     written = []
     try:
-        for name, write in ((capture_files.FRAMES_CSV, lambda f: frames.to_csv(f, index=False, float_format="%.10g")),
-                            (capture_files.CAPTURE_YAML, lambda f: yaml.safe_dump(writer.yaml_safe(checked), f, sort_keys=False,
-                                                                       default_flow_style=None))):
+        for name, text in texts.items():  # frames.csv first: capture.yaml marks a capture complete
             tmp = out / f".{name}.tmp-{os.getpid()}"
             written.append(tmp)
-            with open(tmp, "w") as f:
-                write(f)
-        for tmp, name in zip(written, (capture_files.FRAMES_CSV, capture_files.CAPTURE_YAML)):
+            tmp.write_text(text, encoding="utf-8")
+        for tmp, name in zip(written, texts):
             tmp.replace(out / name)
     finally:
         for tmp in written:

@@ -13,10 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from sellip.capture.files import GROUND_TRUTH_MESH
+from sellip.capture.files import CAPTURE_YAML, FRAMES_CSV, GROUND_TRUTH_MESH, POSES_CSV, RAW_DIR
 from sellip.capture.scenes import build_scene, handheld_orbit
 from sellip.capture.sensor import SensorModel, sensor_from_device, simulate_raw
 from sellip.capture.writer import CaptureWriter
+from sellip.jobs import refuse_to_replace_folder
 from sellip.model.ply import write_param_mesh
 from sellip.model.render import Renderer, flash_light
 
@@ -43,12 +44,34 @@ EXPOSURE_S = 0.005
 
 
 
+SYNTH_ENTRIES = {CAPTURE_YAML, FRAMES_CSV, POSES_CSV, RAW_DIR, "ground_truth"}
+"""What a synthetic capture folder holds."""
+
+
+def is_synthetic_folder(path: Path) -> bool:
+    """Whether the folder ``path`` is one ``sellip synth`` wrote (so it may replace it): its capture.yaml has a
+    ``synthetic`` section, or it has no capture.yaml and nothing besides what synth writes (the workflow's
+    synth_capture job, whose capture.yaml Snakemake removed before re-running it)."""
+    import yaml
+
+    entries = {entry.name for entry in path.iterdir()}
+    if CAPTURE_YAML not in entries:
+        return entries <= SYNTH_ENTRIES
+    try:
+        document = yaml.safe_load((path / CAPTURE_YAML).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return False
+    return isinstance(document, dict) and isinstance(document.get("synthetic"), dict)
+
+
 def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width: int = 612, height: int = 512,
                        seed: int = 0, supersample: int = 2, raw_format: str = "dng", distortion=None,
                        flash_levels=FLASH_LEVELS, progress: bool = True, noise_scale: float = 1.0,
                        renderer: str = "sellip", mitsuba_variant: str | None = None, device=None,
-                       noise_seed: int | None = None) -> Path:
-    """Render and write a synthetic capture of ``scene_name`` to ``out``; returns the folder.
+                       noise_seed: int | None = None, force: bool = False) -> Path:
+    """Render and write a synthetic capture of ``scene_name`` to ``out``; returns the folder. ``out`` is replaced as
+    a whole: a folder there that is not a synthetic capture (:func:`is_synthetic_folder`) stops it with
+    :class:`sellip.jobs.WouldReplaceError` before anything is rendered, unless ``force``.
 
     width, height: raw mosaic size (multiples of 4); distortion: OpenCV (k1, k2, p1, p2, k3) or None;
     noise_scale: sensor noise standard deviations x this at the same signal
@@ -67,6 +90,7 @@ def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width:
     from tqdm import tqdm
 
     started = time.perf_counter()
+    refuse_to_replace_folder(out, "sellip synth", is_synthetic_folder, force=force)
     if renderer not in RENDERERS:
         raise ValueError(f"renderer must be one of {list(RENDERERS)}, got {renderer!r}")
     if renderer == "mitsuba":

@@ -6,8 +6,9 @@
 
 Writes capture.yaml (the device's sensor, camera and light sections, scene.distance_m, the calibration record)
 and frames.csv into the capture folder (default: the parent of a folder named ``raw``, else FRAMES_DIR) after
-checking every frame; then the folder runs with ``snakemake --config capture=CAPTURE name=NAME``. The library
-is :mod:`sellip.capture.assemble`.
+checking every frame (a capture.yaml or frames.csv already there that differs from what it would write, e.g.
+edited by the user, stops it unless --force); then the folder runs with ``snakemake --config capture=CAPTURE
+name=NAME``. The library is :mod:`sellip.capture.assemble`.
 """
 
 from __future__ import annotations
@@ -33,6 +34,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                                                  "exposure_s] instead of --pattern")
     parser.add_argument("--exposure-s", type=float, help="exposure time (s) of every frame")
     parser.add_argument("--out", type=Path, help="capture folder (default: see above)")
+    parser.add_argument("--force", action="store_true",
+                        help="replace a capture.yaml or frames.csv already there that differs from what would be written")
     parser.add_argument("--no-check-raw", action="store_true", help="do not open every frame to check it")
 
 
@@ -43,7 +46,8 @@ def main(args: argparse.Namespace) -> int:
     try:
         device = read_device(args.device, complete=True)
         out = assemble_capture(args.frames_dir, device, args.distance_m, out=args.out, pattern=args.pattern,
-                               csv=args.csv, exposure_s=args.exposure_s, check_raw=not args.no_check_raw)
+                               csv=args.csv, exposure_s=args.exposure_s, check_raw=not args.no_check_raw,
+                               force=args.force)
     except files.CaptureError as exc:
         raise SystemExit(f"sellip capture new: {exc}") from None
     capture = reader.read_capture(out)

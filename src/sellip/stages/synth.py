@@ -8,7 +8,8 @@ scene is rendered once with the full pBRDF (:mod:`sellip.model.render`) under th
 rig's polarized flash, then exposed at each flash level through the sensor
 model (:mod:`sellip.capture.sensor`) with independent noise. Written: capture.yaml,
 frames.csv, poses.csv, raw/ frames, ground_truth/model.ply. The same seed
-gives byte-identical files; the folder appears only when complete. ``--renderer mitsuba`` renders the
+gives byte-identical files; the folder appears only when complete. An existing --out that is not a synthetic capture
+(its capture.yaml has no ``synthetic`` section) is never replaced without --force. ``--renderer mitsuba`` renders the
 views with Mitsuba 3's pplastic instead (:mod:`sellip.capture.mitsuba_capture`; the ``test`` extra), the rest
 unchanged: an independent renderer for the validation set (docs/synthetic.md). ``--device`` shoots the frames
 with a described device (device.yaml, or ``sellip synth-calibration``'s truth.yaml): its sensor, lens, colour
@@ -54,11 +55,20 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "x --height)")
     parser.add_argument("--noise-seed", type=int, default=None,
                         help="seed of the sensor noise alone (default: --seed, which also sets the orbit)")
+    parser.add_argument("--force", action="store_true",
+                        help="replace --out even when it is not a synthetic capture (it is replaced as a whole)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def main(args: argparse.Namespace) -> int:
     logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)  # "no TPU" notices
+    from sellip.capture.synthetic import is_synthetic_folder
+    from sellip.jobs import WouldReplaceError, refuse_to_replace_folder
+
+    try:  # before anything is rendered
+        refuse_to_replace_folder(args.out, "sellip synth", is_synthetic_folder, force=args.force)
+    except WouldReplaceError as exc:
+        raise SystemExit(f"sellip synth: {exc}") from None
     if args.width % 4 or args.height % 4 or args.width < 24 or args.height < 24:
         raise SystemExit(f"--width and --height must be multiples of 4 and at least 24, "
                          f"got {args.width}x{args.height}")
@@ -84,5 +94,6 @@ def main(args: argparse.Namespace) -> int:
     synthesize_capture(args.scene, args.out, views=args.views, width=args.width, height=args.height, seed=args.seed,
                        supersample=args.supersample, raw_format=args.raw_format, distortion=args.distortion,
                        progress=not args.no_progress, noise_scale=args.noise_scale, renderer=args.renderer,
-                       mitsuba_variant=args.mitsuba_variant, device=device, noise_seed=args.noise_seed)
+                       mitsuba_variant=args.mitsuba_variant, device=device, noise_seed=args.noise_seed,
+                       force=args.force)
     return 0

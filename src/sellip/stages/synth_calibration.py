@@ -31,18 +31,24 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "a burst helps the flash a little, not the board: docs/calibration.md)")
     parser.add_argument("--polarizer-deg", type=float, default=0.0, help="the flash polarizer's angle (default: 0)")
     parser.add_argument("--raw-format", choices=["dng", "tiff", "png"], default="dng", help="frame files")
+    parser.add_argument("--force", action="store_true", help="replace --out even when it holds no truth.yaml")
 
 
 def main(args: argparse.Namespace) -> int:
     from sellip.calibrate.synthetic import BoardSpec, synthesize_calibration
+    from sellip.jobs import WouldReplaceError
 
     logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
     if args.width % 4 or args.height % 4 or args.width < 64 or args.height < 64:
         raise SystemExit(f"--width and --height must be multiples of 4, at least 64, got {args.width}x{args.height}")
     cols, rows = (int(v) for v in args.board.lower().split("x"))
     started = time.perf_counter()
-    out = synthesize_calibration(args.out, args.width, args.height, args.seed, board_frames=args.board_frames,
-                                 sphere_frames=args.sphere_frames, spec=BoardSpec(cols, rows, args.square_mm / 1000),
-                                 raw_format=args.raw_format, polarizer_deg=args.polarizer_deg, burst=args.burst)
+    try:
+        out = synthesize_calibration(args.out, args.width, args.height, args.seed, board_frames=args.board_frames,
+                                     sphere_frames=args.sphere_frames, spec=BoardSpec(cols, rows, args.square_mm / 1000),
+                                     raw_format=args.raw_format, polarizer_deg=args.polarizer_deg, burst=args.burst,
+                                     force=args.force)
+    except WouldReplaceError as exc:
+        raise SystemExit(f"sellip synth-calibration: {exc}") from None
     log.info("wrote %s in %.0f s", out, time.perf_counter() - started)
     return 0

@@ -13,6 +13,9 @@ the capture's own, not SfM's); ``--capture`` defaults to the one metrics.json na
 - ``final/maps/map_<name>.ply``: the mesh coloured by each map (MeshLab, Blender);
 - ``viewer/``: the static page (``viewer/index.html``, :mod:`sellip.report.viewer`), then, with ``--serve``,
   serves it on http://127.0.0.1:PORT/ until interrupted.
+
+A model older than a failed run (``last_run.json``) or than the capture's files is named in a WARNING first
+(:func:`sellip.workflow_support.stale_model`).
 """
 
 from __future__ import annotations
@@ -37,8 +40,13 @@ def main(args: argparse.Namespace) -> int:
     from sellip.report.viewer import export_results
     from sellip.report.viewer import ViewerError, serve
 
+    from sellip.report.viewer import find_capture
+    from sellip.workflow_support import stale_model
+
     logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
     try:
+        for line in stale_model(args.results, args.capture or find_capture(args.results)):
+            log.warning("%s", line)  # a failed or pending re-run: the page shows an earlier run's model
         written = export_results(args.results, args.capture)
     except (ViewerError, MaterialsError) as exc:
         log.error("%s", exc)
