@@ -252,9 +252,23 @@ def format_failures(snakemake_log, root: str | Path = ".") -> str:
 
 
 def load_yaml(path: str | Path):
-    """A YAML file (the config schema) as Python objects."""
-    with open(path, encoding="utf-8") as handle:
-        return yaml.safe_load(handle)
+    """A YAML file (the config schema) as Python objects; a key given twice is refused
+    (:class:`sellip.yaml_files.DuplicateKeyError`)."""
+    from sellip.yaml_files import load_yaml_file
+
+    return load_yaml_file(path)
+
+
+def check_config_files(paths: Iterable[str | Path]) -> None:
+    """Raise ValueError naming the file, the key and both lines when a config file (config/config.yaml, a
+    ``--configfile``) gives a key twice in one mapping: Snakemake's reader keeps the second value silently."""
+    from sellip.yaml_files import DuplicateKeyError
+
+    for path in paths:
+        try:
+            load_yaml(path)
+        except DuplicateKeyError as exc:
+            raise ValueError(f"{path}: {exc}") from None
 
 
 NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)

@@ -15,7 +15,8 @@ Modules and what they export (each name is importable from here too)::
         CONFIG_SCHEMA, MAX_FIELD_DEG, validate_config
     checks: Unit checks of a capture's numbers against each other (issue #38): lengths that are off by a factor of
       1000 must not pass silently
-        DISTANCE_TOLERANCE, UNIT_MATCH, PoseUnitsError, camera_distances, likely_unit, check_pose_units
+        DISTANCE_TOLERANCE, UNIT_MATCH, PoseUnitsError, SamePoseError, camera_distances, likely_unit,
+        check_pose_units
     files: The capture folder's file names and columns (DESIGN §3), and the errors every reader raises
       (:class:`CaptureError` and its kinds: each names the file, and where it applies the row, column or key)
         CAPTURE_YAML, FRAMES_CSV, POSES_CSV, RAW_DIR, GROUND_TRUTH_DIR, RAWPY_SUFFIXES, TIFF_SUFFIXES, PNG_SUFFIXES,
@@ -74,7 +75,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "assemble": ("RAW_SUFFIXES", "FIELDS", "AssembleError", "parse_pattern", "flash_level", "frames_from_pattern",
            "frames_from_csv", "assemble_capture"),
     "capture_yaml": ("CONFIG_SCHEMA", "MAX_FIELD_DEG", "validate_config"),
-    "checks": ("DISTANCE_TOLERANCE", "UNIT_MATCH", "PoseUnitsError", "camera_distances", "likely_unit",
+    "checks": ("DISTANCE_TOLERANCE", "UNIT_MATCH", "PoseUnitsError", "SamePoseError", "camera_distances", "likely_unit",
            "check_pose_units"),
     "files": ("CAPTURE_YAML", "FRAMES_CSV", "POSES_CSV", "RAW_DIR", "GROUND_TRUTH_DIR", "RAWPY_SUFFIXES",
            "TIFF_SUFFIXES", "PNG_SUFFIXES", "FRAME_COLUMNS", "POSE_COLUMNS", "CaptureError", "MissingFileError",
