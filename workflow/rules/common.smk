@@ -73,6 +73,14 @@ if (config.get("init") or {}).get("mode") == "mesh" and not (config.get("init") 
 
 validate(config, "../../config/config.schema.yaml")
 
+# Views named in the config must be the capture's: a wrong id would surface as a store problem in a later job.
+if config["capture"]:
+    try:
+        workflow_support.check_config_views(config["evaluate"], workflow_support.capture_view_ids(config["capture"]),
+                                            config["capture"])
+    except ValueError as exc:
+        raise WorkflowError(str(exc)) from None
+
 
 wildcard_constraints:
     name=r"[A-Za-z0-9_.-]+",
