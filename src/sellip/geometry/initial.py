@@ -149,10 +149,32 @@ scan) projects outside the silhouette: the cameras cannot be this capture's (a w
 cow, whose black patches fall below the silhouette level (its worst view 0.24; docs/reliability.md)."""
 
 
+OUTLIER_VIEW_Z = 6.0
+"""Default of config ``init.outlier_view_z``: a view whose silhouette disagreement with the initial mesh lies more
+than this many robust standard deviations (1.4826 x the median absolute deviation, at least OUTLIER_SPREAD_FLOOR)
+above the views' median, and above ``disagreement_warn``, is named as a likely swapped or misplaced view."""
+
+OUTLIER_SPREAD_FLOOR = 0.01
+"""The robust spread of the views' disagreements is taken as at least this (a fraction of the mesh): on a sphere
+every view agrees to 0.002-0.007, and a spread near 0 would make any small difference an outlier."""
+
+
+def outlier_views(disagreement: np.ndarray, z: float = OUTLIER_VIEW_Z, minimum: float = 0.05) -> np.ndarray:
+    """(V,) bool: views whose disagreement (V,) (fraction of the mesh outside their silhouette) is an outlier among
+    the views: above the median by more than ``z`` robust standard deviations (1.4826 MAD, at least
+    OUTLIER_SPREAD_FLOOR) and above ``minimum``. Fewer than 4 views: none (no rest to compare with)."""
+    values = np.asarray(disagreement, np.float64)
+    if len(values) < 4:
+        return np.zeros(len(values), bool)
+    median = float(np.median(values))
+    spread = max(1.4826 * float(np.median(np.abs(values - median))), OUTLIER_SPREAD_FLOOR)
+    return ((values - median) / spread > z) & (values > minimum)
+
+
 def make_initial_mesh(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: str | Path, output: str | Path,
               mode: str = "hull", options: geometry_hull.InitMeshOptions = geometry_hull.InitMeshOptions(),
               mask_options: dict | None = None, disagreement_warn: float = 0.05,
-              mesh_path: str | Path | None = None) -> dict:
+              mesh_path: str | Path | None = None, outlier_view_z: float = OUTLIER_VIEW_Z) -> dict:
     """Run the stage (see the module docstring); returns the report written beside the mesh.
 
     mesh_path: the mesh of mode ``mesh`` (required there, ignored otherwise), as given (the workflow resolves
@@ -216,7 +238,16 @@ def make_initial_mesh(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: s
         log.warning("%d of %d silhouettes disagree with %s (more than %.0f%% of it outside the mask): %s. Check "
                     "the poses of these views or the mask threshold (sfm.mask_threshold)%s.", len(disagreeing),
                     len(view_ids), against, 100 * disagreement_warn, ", ".join(disagreeing[:30]), advice)
-    report = dict(mesh.stats, mode=mode, views=len(view_ids), **extra_report,
+    outliers = [v for v, bad in zip(view_ids, outlier_views(disagreement, outlier_view_z, disagreement_warn)) if bad]
+    if outliers:
+        median = float(np.median(disagreement))
+        log.warning("view(s) %s: the silhouette disagrees with %s far more than the other views' (%s outside the "
+                    "mask, against a median %.0f%%; init.outlier_view_z %g): a swapped or misplaced view? Check "
+                    "these views' rows in frames.csv (the files) and poses.csv (their poses)", ", ".join(
+                        repr(v) for v in outliers[:30]), against, ", ".join(
+                        f"{100 * disagreement[view_ids.index(v)]:.0f}%" for v in outliers[:30]), 100 * median,
+                    outlier_view_z)
+    report = dict(mesh.stats, mode=mode, views=len(view_ids), **extra_report, outlier_views=outliers,
                   silhouette_disagreement={v: float(d) for v, d in zip(view_ids, disagreement)},
                   disagreeing_views=disagreeing, total_s=time.perf_counter() - started)
     output = Path(output)
