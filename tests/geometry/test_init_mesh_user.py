@@ -254,7 +254,7 @@ def test_one_misplaced_view_is_named_as_an_outlier(capture, tmp_path, caplog):
     with caplog.at_level(logging.WARNING):
         report = geometry_initial.make_initial_mesh(capture["hdr"], bad, capture["root"] / "sfm",
                                                     tmp_path / "out" / "init.ply", options=options)
-    print(report["silhouette_disagreement"])
+    print(report["others_disagreement"])
     assert report["outlier_views"] == [table.loc[3, "view_id"]]
     warning = [r.getMessage() for r in caplog.records if "far more than the other views" in r.getMessage()]
     assert warning and f"view(s) '{table.loc[3, 'view_id']}'" in warning[0] and "swapped or misplaced" in warning[0]

@@ -206,6 +206,7 @@ def make_initial_mesh(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: s
             raise InitMeshError(f"{mesh_path}: the mesh (init.mesh_path) does not fit the silhouettes of the "
                                 f"{len(view_ids)} views of {cameras_path}: " + "; ".join(mesh.check.problems))
         disagreement, against, advice = 1.0 - mesh.check.inside_fraction, "the supplied mesh", ""
+        majority = disagreement
         extra_report = {"mesh_path": str(mesh_path), "check": mesh.check.stats(view_ids)}
     else:
         sfm_dir = Path(sfm_dir)
@@ -218,6 +219,7 @@ def make_initial_mesh(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: s
         except geometry_hull.EmptyHullError as error:
             raise InitMeshError(f"{cameras_path}: {error}: " + CAMERAS_ADVICE) from None
         disagreement, against = mesh.carving.disagreement, "the visual hull"
+        majority = mesh.carving.others_disagreement
         advice = f"; min_inside_fraction {options.min_inside_fraction:.2f} tolerates a few bad masks"
         coverage = geometry_hull.silhouette_coverage(mesh.vertices, mesh.faces, masks, intrinsics, rotations,
                                                      translations)
@@ -238,17 +240,18 @@ def make_initial_mesh(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: s
         log.warning("%d of %d silhouettes disagree with %s (more than %.0f%% of it outside the mask): %s. Check "
                     "the poses of these views or the mask threshold (sfm.mask_threshold)%s.", len(disagreeing),
                     len(view_ids), against, 100 * disagreement_warn, ", ".join(disagreeing[:30]), advice)
-    outliers = [v for v, bad in zip(view_ids, outlier_views(disagreement, outlier_view_z, disagreement_warn)) if bad]
+    outliers = [v for v, bad in zip(view_ids, outlier_views(majority, outlier_view_z, disagreement_warn)) if bad]
     if outliers:
-        median = float(np.median(disagreement))
-        log.warning("view(s) %s: the silhouette disagrees with %s far more than the other views' (%s outside the "
-                    "mask, against a median %.0f%%; init.outlier_view_z %g): a swapped or misplaced view? Check "
-                    "these views' rows in frames.csv (the files) and poses.csv (their poses)", ", ".join(
-                        repr(v) for v in outliers[:30]), against, ", ".join(
-                        f"{100 * disagreement[view_ids.index(v)]:.0f}%" for v in outliers[:30]), 100 * median,
-                    outlier_view_z)
+        shared = "the other views' hull" if mode != "mesh" else against
+        log.warning("view(s) %s: the silhouette disagrees with %s far more than the other views do (%s of it "
+                    "outside the mask, against a median %.0f%%; init.outlier_view_z %g): a swapped or misplaced "
+                    "view? Check these views' rows in frames.csv (the files) and poses.csv (their poses)",
+                    ", ".join(repr(v) for v in outliers[:30]), shared, ", ".join(
+                        f"{100 * majority[view_ids.index(v)]:.0f}%" for v in outliers[:30]),
+                    100 * float(np.median(majority)), outlier_view_z)
     report = dict(mesh.stats, mode=mode, views=len(view_ids), **extra_report, outlier_views=outliers,
                   silhouette_disagreement={v: float(d) for v, d in zip(view_ids, disagreement)},
+                  others_disagreement={v: float(d) for v, d in zip(view_ids, majority)},
                   disagreeing_views=disagreeing, total_s=time.perf_counter() - started)
     output = Path(output)
     vertices, normals = mesh.vertices.astype(np.float32), mesh.normals.astype(np.float32)
