@@ -15,7 +15,7 @@ Modules and what they export (each name is importable from here too)::
         CONFIG_SCHEMA, MAX_FIELD_DEG, validate_config
     checks: Unit checks of a capture's numbers against each other (issue #38): lengths that are off by a factor of
       1000 must not pass silently
-        DISTANCE_TOLERANCE, UNIT_MATCH, PoseUnitsError, SamePoseError, camera_distances, likely_unit,
+        DISTANCE_TOLERANCE, UNIT_MATCH, PoseUnitsError, SamePoseError, SAME_PLACE, camera_distances, likely_unit,
         check_pose_units
     files: The capture folder's file names and columns (DESIGN §3), and the errors every reader raises
       (:class:`CaptureError` and its kinds: each names the file, and where it applies the row, column or key)
@@ -26,16 +26,18 @@ Modules and what they export (each name is importable from here too)::
     hdr: The HDR store ``hdr.zarr`` (DESIGN §2 hdr_merge): one HDR image per view and analyzer (I0, I45, I90, I135,
       RGB, float32, relative radiance) and its valid mask, merged from a view's flash levels (:func:`merge_capture`),
       and its reader (:func:`read_hdr` -> :class:`HDRImages`)
-        UNITS, HDR_CODEC, HDRImages, read_hdr, merge_capture
+        UNITS, HDR_CODEC, HDRImages, read_hdr, FlashLabelError, check_flash_labels, merge_capture
     ingest: Ingest kernels: raw mosaic frames -> linear analyzer images -> one HDR image per view (DESIGN §2, §3)
         CELL, DEFAULT_SATURATION, HDR_WEIGHT_FLOOR, HDR_WEIGHT_WINDOW, GUIDE_FLOOR, IngestError, black_level_map,
         rawpy_black_level, linearize, analyzer_phases, DemosaicPlan, make_demosaic_plan, analyzer_cells, demosaic,
         apply_color_matrix, output_intrinsics, source_positions, RemapTable, make_remap, remap, IngestPlan,
-        make_ingest_plan, process_frame, analyzer_plan, develop, hdr_weight, merge_hdr
+        make_ingest_plan, process_frame, analyzer_plan, develop, hdr_weight, merge_hdr, FLASH_RATIO_TOLERANCE,
+        RATIO_FLOOR, RATIO_MIN_SAMPLES, brightness_ratios, mislabelled_frames
     linearize: Linearize a capture's raw frames (DESIGN §2 linearize; docs/ingest.md): black and white level,
       saturation mask, demosaic into the four analyzer images, colour matrix, undistortion, one store for all frames
       (:func:`linearize_capture`); a bad frame stops with its file and row, or is left out with ``bad_frames: skip``
-        BLACK_LEVEL_SOURCES, BAD_FRAME_POLICIES, linearize_capture
+        BLACK_LEVEL_SOURCES, BAD_FRAME_POLICIES, DARK_FLOOR, MIN_USABLE_FRACTION, FrameContent, frame_content,
+        check_frame_contents, linearize_capture
     mitsuba_capture: An independent renderer for synthetic captures: Mitsuba 3's ``pplastic`` under the rig's
       polarized flash
         MITSUBA_VARIANTS, POLARIZER_OFFSET_M, POLARIZER_HALF_SIZE_M, MAX_DEPTH, ALBEDO_ATTRIBUTE, PPlasticError,
@@ -75,20 +77,22 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "assemble": ("RAW_SUFFIXES", "FIELDS", "AssembleError", "parse_pattern", "flash_level", "frames_from_pattern",
            "frames_from_csv", "assemble_capture"),
     "capture_yaml": ("CONFIG_SCHEMA", "MAX_FIELD_DEG", "validate_config"),
-    "checks": ("DISTANCE_TOLERANCE", "UNIT_MATCH", "PoseUnitsError", "SamePoseError", "camera_distances", "likely_unit",
+    "checks": ("DISTANCE_TOLERANCE", "UNIT_MATCH", "PoseUnitsError", "SamePoseError", "SAME_PLACE", "camera_distances", "likely_unit",
            "check_pose_units"),
     "files": ("CAPTURE_YAML", "FRAMES_CSV", "POSES_CSV", "RAW_DIR", "GROUND_TRUTH_DIR", "RAWPY_SUFFIXES",
            "TIFF_SUFFIXES", "PNG_SUFFIXES", "FRAME_COLUMNS", "POSE_COLUMNS", "CaptureError", "MissingFileError",
            "ConfigError", "UnknownLayoutError", "FramesError", "DuplicateFrameError", "FlashLevelError",
            "PosesError", "ViewWithoutFramesError", "RawFrameError", "GROUND_TRUTH_MESH", "MAX_LISTED_PROBLEMS",
            "more_problems"),
-    "hdr": ("UNITS", "HDR_CODEC", "HDRImages", "read_hdr", "merge_capture"),
+    "hdr": ("UNITS", "HDR_CODEC", "HDRImages", "read_hdr", "FlashLabelError", "check_flash_labels", "merge_capture"),
     "ingest": ("CELL", "DEFAULT_SATURATION", "HDR_WEIGHT_FLOOR", "HDR_WEIGHT_WINDOW", "GUIDE_FLOOR", "IngestError",
            "black_level_map", "rawpy_black_level", "linearize", "analyzer_phases", "DemosaicPlan",
            "make_demosaic_plan", "analyzer_cells", "demosaic", "apply_color_matrix", "output_intrinsics",
            "source_positions", "RemapTable", "make_remap", "remap", "IngestPlan", "make_ingest_plan",
-           "process_frame", "analyzer_plan", "develop", "hdr_weight", "merge_hdr"),
-    "linearize": ("BLACK_LEVEL_SOURCES", "BAD_FRAME_POLICIES", "linearize_capture"),
+           "process_frame", "analyzer_plan", "develop", "hdr_weight", "merge_hdr", "FLASH_RATIO_TOLERANCE",
+           "RATIO_FLOOR", "RATIO_MIN_SAMPLES", "brightness_ratios", "mislabelled_frames"),
+    "linearize": ("BLACK_LEVEL_SOURCES", "BAD_FRAME_POLICIES", "DARK_FLOOR", "MIN_USABLE_FRACTION", "FrameContent",
+           "frame_content", "check_frame_contents", "linearize_capture"),
     "mitsuba_capture": ("MITSUBA_VARIANTS", "POLARIZER_OFFSET_M", "POLARIZER_HALF_SIZE_M", "MAX_DEPTH", "ALBEDO_ATTRIBUTE",
            "PPlasticError", "mitsuba_available", "choose_variant", "PPlasticMaterial", "pplastic_materials",
            "mitsuba_camera", "MitsubaResult", "MitsubaRenderer", "render_in_subprocess"),

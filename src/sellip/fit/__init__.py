@@ -18,6 +18,9 @@ Modules and what they export (each name is importable from here too)::
         REGION_MIN_SAMPLES, REGION_FIT_POINTS, CUT_ALBEDO_SD, CUT_MODE_POINTS, CUT_ETA_SE, CUT_MODES_ALBEDO_SD,
         AugmentSettings, Clustering, cluster_features, kmeans, bic, choose_k, spatial_coherence, nearest_vertices,
         vertex_coherence, DEGENERATE_VARIANCE, cluster_materials
+    evidence: No result without evidence (DESIGN §9): a pass whose fit covers too little of the visible surface
+      stops the run with what is missing (views, coverage, exposure)
+        MIN_FITTED_SHARE, EvidenceError, fitted_share, check_evidence
     finalize: The final model (rule ``finalize_model``; DESIGN §4): per-material η and lobes with per-vertex
       deviations where a vertex's data demand them, unfitted vertices interpolated from their neighbours, confidence,
       ``model``: ``final/model.ply`` and ``final/params.zarr`` (:func:`finalize_model`)
@@ -91,6 +94,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "REGION_MIN_SAMPLES", "REGION_FIT_POINTS", "CUT_ALBEDO_SD", "CUT_MODE_POINTS", "CUT_ETA_SE",
            "CUT_MODES_ALBEDO_SD", "AugmentSettings", "Clustering", "cluster_features", "kmeans", "bic", "choose_k",
            "spatial_coherence", "nearest_vertices", "vertex_coherence", "DEGENERATE_VARIANCE", "cluster_materials"),
+    "evidence": ("MIN_FITTED_SHARE", "EvidenceError", "fitted_share", "check_evidence"),
     "finalize": ("finalize_model",),
     "kernels": ("code_version", "enable", "Kernel", "kernel"),
     "lobe_store": ("LOBE_COLUMNS", "lobes_schema", "read_lobes", "read_models", "recorded_fit_settings",

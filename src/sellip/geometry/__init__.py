@@ -24,7 +24,8 @@ Modules and what they export (each name is importable from here too)::
       points, or multi-view stereo points, or a mesh the user supplies (a scan), checked against the silhouettes
       (:func:`make_initial_mesh`)
         INIT_MODES, MESH_SUFFIXES, InitMeshError, read_user_mesh, sparse_observations, mvs_points, CAMERAS_ADVICE,
-        COVERAGE_STOP, DISAGREEMENT_STOP, make_initial_mesh
+        COVERAGE_STOP, DISAGREEMENT_STOP, OUTLIER_VIEW_Z, OUTLIER_SPREAD_FLOOR, outlier_views, warn_outlier_views,
+        make_initial_mesh
     meshes: Triangle-mesh utilities: surface samples and mesh-to-mesh distances (DESIGN §8 Chamfer and Hausdorff),
       point normals, screened Poisson, the largest component, isotropic remeshing to a vertex count, vertex normals,
       edges
@@ -62,7 +63,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "carve", "visual_hull", "surface_points", "occluding_points", "InitMeshOptions", "InitialMesh",
            "initial_mesh"),
     "initial": ("INIT_MODES", "MESH_SUFFIXES", "InitMeshError", "read_user_mesh", "sparse_observations", "mvs_points",
-           "CAMERAS_ADVICE", "COVERAGE_STOP", "DISAGREEMENT_STOP", "make_initial_mesh"),
+           "CAMERAS_ADVICE", "COVERAGE_STOP", "DISAGREEMENT_STOP", "OUTLIER_VIEW_Z", "OUTLIER_SPREAD_FLOOR",
+           "outlier_views", "warn_outlier_views", "make_initial_mesh"),
     "meshes": ("angular_error_deg", "surface_samples", "MeshDistances", "mesh_distances", "estimate_normals",
            "poisson_surface", "largest_component", "depth_vertex_count", "mesh_area", "remesh_to_count",
            "vertex_normals", "blend_normals", "mesh_edges"),

@@ -171,6 +171,21 @@ def outlier_views(disagreement: np.ndarray, z: float = OUTLIER_VIEW_Z, minimum: 
     return ((values - median) / spread > z) & (values > minimum)
 
 
+def warn_outlier_views(view_ids: list[str], disagreement: np.ndarray, against: str, z: float = OUTLIER_VIEW_Z,
+                       minimum: float = 0.05) -> list[str]:
+    """The ids of the :func:`outlier_views` of ``disagreement`` (V,), named in a WARNING (the run's summary) as
+    likely swapped or misplaced views; ``against``: what they were compared with, for the message."""
+    outliers = [v for v, bad in zip(view_ids, outlier_views(disagreement, z, minimum)) if bad]
+    if outliers:
+        log.warning("view(s) %s: the silhouette disagrees with %s far more than the other views do (%s of it "
+                    "outside the mask, against a median %.0f%%; init.outlier_view_z %g): a swapped or misplaced "
+                    "view? Check these views' rows in frames.csv (the files) and poses.csv (their poses)",
+                    ", ".join(repr(v) for v in outliers[:30]), against, ", ".join(
+                        f"{100 * disagreement[view_ids.index(v)]:.0f}%" for v in outliers[:30]),
+                    100 * float(np.median(disagreement)), z)
+    return outliers
+
+
 def make_initial_mesh(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: str | Path, output: str | Path,
               mode: str = "hull", options: geometry_hull.InitMeshOptions = geometry_hull.InitMeshOptions(),
               mask_options: dict | None = None, disagreement_warn: float = 0.05,
@@ -178,7 +193,9 @@ def make_initial_mesh(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: s
     """Run the stage (see the module docstring); returns the report written beside the mesh.
 
     mesh_path: the mesh of mode ``mesh`` (required there, ignored otherwise), as given (the workflow resolves
-    ``init.mesh_path`` against the capture folder).
+    ``init.mesh_path`` against the capture folder). outlier_view_z: config ``init.outlier_view_z``
+    (:func:`warn_outlier_views`).
+    Long: the checks of the silhouettes (coverage, disagreement, outlier views) share the mesh and the report.
     """
     from sellip.capture.hdr import read_hdr
 
@@ -206,7 +223,6 @@ def make_initial_mesh(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: s
             raise InitMeshError(f"{mesh_path}: the mesh (init.mesh_path) does not fit the silhouettes of the "
                                 f"{len(view_ids)} views of {cameras_path}: " + "; ".join(mesh.check.problems))
         disagreement, against, advice = 1.0 - mesh.check.inside_fraction, "the supplied mesh", ""
-        majority = disagreement
         extra_report = {"mesh_path": str(mesh_path), "check": mesh.check.stats(view_ids)}
     else:
         sfm_dir = Path(sfm_dir)
@@ -219,7 +235,6 @@ def make_initial_mesh(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: s
         except geometry_hull.EmptyHullError as error:
             raise InitMeshError(f"{cameras_path}: {error}: " + CAMERAS_ADVICE) from None
         disagreement, against = mesh.carving.disagreement, "the visual hull"
-        majority = mesh.carving.others_disagreement
         advice = f"; min_inside_fraction {options.min_inside_fraction:.2f} tolerates a few bad masks"
         coverage = geometry_hull.silhouette_coverage(mesh.vertices, mesh.faces, masks, intrinsics, rotations,
                                                      translations)
@@ -240,18 +255,11 @@ def make_initial_mesh(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: s
         log.warning("%d of %d silhouettes disagree with %s (more than %.0f%% of it outside the mask): %s. Check "
                     "the poses of these views or the mask threshold (sfm.mask_threshold)%s.", len(disagreeing),
                     len(view_ids), against, 100 * disagreement_warn, ", ".join(disagreeing[:30]), advice)
-    outliers = [v for v, bad in zip(view_ids, outlier_views(majority, outlier_view_z, disagreement_warn)) if bad]
-    if outliers:
-        shared = "the other views' hull" if mode != "mesh" else against
-        log.warning("view(s) %s: the silhouette disagrees with %s far more than the other views do (%s of it "
-                    "outside the mask, against a median %.0f%%; init.outlier_view_z %g): a swapped or misplaced "
-                    "view? Check these views' rows in frames.csv (the files) and poses.csv (their poses)",
-                    ", ".join(repr(v) for v in outliers[:30]), shared, ", ".join(
-                        f"{100 * majority[view_ids.index(v)]:.0f}%" for v in outliers[:30]),
-                    100 * float(np.median(majority)), outlier_view_z)
+    others = (mesh.carving.others_disagreement, "the other views' hull") if mode != "mesh" else (disagreement, against)
+    outliers = warn_outlier_views(view_ids, *others, outlier_view_z, disagreement_warn)
     report = dict(mesh.stats, mode=mode, views=len(view_ids), **extra_report, outlier_views=outliers,
+                  others_disagreement={v: float(d) for v, d in zip(view_ids, others[0])},
                   silhouette_disagreement={v: float(d) for v, d in zip(view_ids, disagreement)},
-                  others_disagreement={v: float(d) for v, d in zip(view_ids, majority)},
                   disagreeing_views=disagreeing, total_s=time.perf_counter() - started)
     output = Path(output)
     vertices, normals = mesh.vertices.astype(np.float32), mesh.normals.astype(np.float32)
