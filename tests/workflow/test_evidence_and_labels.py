@@ -59,8 +59,8 @@ def test_a_config_file_key_given_twice_stops_the_workflow(tmp_path):
     with pytest.raises(ValueError, match=r"my config.yaml: key 'fit.shards': given twice \(lines 3 and 4\)"):
         workflow_support.check_config_files([REPO / "config" / "config.yaml", user])
     result = snakemake(tmp_path, "-n", configfiles=(user,))
-    assert result.returncode != 0 and "key 'fit.shards': given twice (lines 3 and 4)" in result.stderr, \
-        result.stderr[-2000:]
+    text = result.stdout + result.stderr
+    assert result.returncode != 0 and "key 'fit.shards': given twice (lines 3 and 4)" in text, text[-2000:]
 
 
 # --------------------------------------------------------------------------- views named in the config
@@ -84,8 +84,8 @@ def test_config_views_that_the_capture_lacks_are_named_with_the_key(tmp_path):
                                         tmp_path)
     result = snakemake(tmp_path, "-n", "--config", f"capture={capture}", "name=x",
                        "evaluate={held_out_views: [v999]}")
-    assert result.returncode != 0 and "config: evaluate.held_out_views names view(s) ['v999']" in result.stderr, \
-        result.stderr[-2000:]
+    text = result.stdout + result.stderr
+    assert result.returncode != 0 and "config: evaluate.held_out_views names view(s) ['v999']" in text, text[-2000:]
 
 
 # --------------------------------------------------------------------------- one pose for every camera
@@ -124,6 +124,7 @@ def test_check_evidence_names_what_is_missing():
     status[:2] = STATUS_FITTED  # 2 of 6 = 0.33
     assert check_evidence(status, usable, ["v0", "v1", "v2"], 0.25) == pytest.approx(1 / 3)
     assert check_evidence(np.full(10, STATUS_TOO_FEW_VIEWS), usable, ["v0"], 0.0) == 0.0  # 0 turns it off
+    assert check_evidence(status, np.zeros((10, 3), bool), ["v0"], 0.0) == 0.0
     with pytest.raises(EvidenceError, match="no vertex is seen"):
         check_evidence(status, np.zeros((10, 3), bool), ["v0", "v1", "v2"], 0.25)
 
