@@ -63,9 +63,11 @@ def _frame_row(capture, index: int) -> str:
 
 
 
-DARK_FLOOR = 0.01
-"""A pixel whose signal (raw - black) is at most this fraction of its range (white - black) counts as dark: no more
-than noise (the sensor's read noise is a few raw units of 4095)."""
+DARK_FLOOR = 0.002
+"""A pixel whose signal (raw - black) is at most this fraction of its range (white - black) counts as dark: 8 raw
+units of 4095, about 9 times the rig sensor's read noise (2.4 e- at 2.58 e-/DN: 0.93 units, SensorModel), so a black
+frame's noise stays below it while a dim but real object (20 units, tests/capture/test_ingest.py's dark flat scene)
+is above it."""
 
 MIN_USABLE_FRACTION = 1e-3
 """Ingest stops when no frame of the capture has this fraction of its pixels usable (above DARK_FLOOR and below
