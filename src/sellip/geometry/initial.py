@@ -150,9 +150,10 @@ cow, whose black patches fall below the silhouette level (its worst view 0.24; d
 
 
 OUTLIER_VIEW_Z = 6.0
-"""Default of config ``init.outlier_view_z``: a view whose silhouette disagreement with the initial mesh lies more
-than this many robust standard deviations (1.4826 x the median absolute deviation, at least OUTLIER_SPREAD_FLOOR)
-above the views' median, and above ``disagreement_warn``, is named as a likely swapped or misplaced view."""
+"""Default of config ``init.outlier_view_z``: a view whose silhouette disagreement with the other views' hull
+(:attr:`sellip.geometry.hull.Carving.others_disagreement`; with init.mode mesh, with the scan) lies more than this
+many robust standard deviations (1.4826 x the median absolute deviation, at least OUTLIER_SPREAD_FLOOR) above the
+views' median, and above ``disagreement_warn``, is named as a likely swapped or misplaced view."""
 
 OUTLIER_SPREAD_FLOOR = 0.01
 """The robust spread of the views' disagreements is taken as at least this (a fraction of the mesh): on a sphere
