@@ -151,6 +151,39 @@ def raw_frame_files(capture: str | Path) -> list[str]:
     return list(dict.fromkeys(files))
 
 
+def capture_view_ids(capture: str | Path) -> list[str] | None:
+    """The view ids of ``capture``/frames.csv in order of first appearance, or None when it cannot be read (the
+    stage that reads it reports that)."""
+    try:
+        with open(Path(capture) / FRAMES_CSV, newline="", encoding="utf-8") as handle:
+            rows = list(csv.DictReader(handle, skipinitialspace=True))
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return None
+    if not rows or "view_id" not in rows[0]:
+        return None
+    return list(dict.fromkeys(row["view_id"] for row in rows if row.get("view_id") is not None))
+
+
+VIEW_LIST_KEYS = ("held_out_views", "render_views")
+"""The config keys of section ``evaluate`` that name views of the capture."""
+
+
+def check_config_views(evaluate: Mapping, view_ids: list[str] | None, capture: str | Path) -> None:
+    """ValueError naming the config key (``evaluate.held_out_views`` or ``evaluate.render_views``), the views it
+    names that ``capture``/frames.csv lacks (quoted, so white space shows) and the valid ids; nothing when frames.csv
+    could not be read (``view_ids`` None)."""
+    if view_ids is None:
+        return
+    known = set(view_ids)
+    for key in VIEW_LIST_KEYS:
+        unknown = [v for v in (evaluate.get(key) or []) if str(v) not in known]
+        if unknown:
+            shown = view_ids[:20] + (["..."] if len(view_ids) > 20 else [])
+            raise ValueError(f"config: evaluate.{key} names view(s) {unknown} that {Path(capture) / FRAMES_CSV} does "
+                             f"not have; expected some of its {len(view_ids)} view ids {shown} (or [] for none), "
+                             f"e.g. --config 'evaluate={{{key}: [{view_ids[0]}]}}'")
+
+
 def optional_file(capture: str | Path, relative: str) -> list[str]:
     """``[capture/relative]`` when that file exists, else ``[]`` (an optional input: poses.csv, the ground truth)."""
     path = Path(capture) / relative
@@ -506,9 +539,23 @@ def stale_model(results: str | Path, capture: str | Path | None = None) -> list[
 
 
 def load_yaml(path: str | Path):
-    """A YAML file (the config schema) as Python objects."""
-    with open(path, encoding="utf-8") as handle:
-        return yaml.safe_load(handle)
+    """A YAML file (the config schema) as Python objects; a key given twice is refused
+    (:class:`sellip.yaml_files.DuplicateKeyError`)."""
+    from sellip.yaml_files import load_yaml_file
+
+    return load_yaml_file(path)
+
+
+def check_config_files(paths: Iterable[str | Path]) -> None:
+    """Raise ValueError naming the file, the key and both lines when a config file (config/config.yaml, a
+    ``--configfile``) gives a key twice in one mapping: Snakemake's reader keeps the second value silently."""
+    from sellip.yaml_files import DuplicateKeyError
+
+    for path in paths:
+        try:
+            load_yaml(path)
+        except DuplicateKeyError as exc:
+            raise ValueError(f"{path}: {exc}") from None
 
 
 NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)

@@ -236,3 +236,38 @@ def test_cameras_that_disagree_with_the_silhouettes_stop_the_stage(capture, tmp_
     report = geometry_initial.make_initial_mesh(capture["hdr"], capture["root"] / "cameras.csv", capture["root"] / "sfm",
                                                 tmp_path / "good" / "init.ply", options=options)
     assert min(report["silhouette_coverage"].values()) > 0.95
+
+
+def test_one_misplaced_view_is_named_as_an_outlier(capture, tmp_path, caplog):
+    """Issue #52: one view's camera moved 3 cm sideways (its photograph belongs elsewhere: a swapped or misplaced
+    view). The robust hull keeps what the other views agree on, so the stage goes on, but a WARNING names that
+    view as disagreeing far more than the rest; the true cameras name none."""
+    import logging
+
+    import pandas as pd
+
+    table = pd.read_csv(capture["root"] / "cameras.csv", dtype={"view_id": str})
+    table.loc[3, "tx"] += 0.03
+    bad = tmp_path / "cameras.csv"
+    table.to_csv(bad, index=False)
+    options = geometry_hull.InitMeshOptions(max_vertices=2000)
+    with caplog.at_level(logging.WARNING):
+        report = geometry_initial.make_initial_mesh(capture["hdr"], bad, capture["root"] / "sfm",
+                                                    tmp_path / "out" / "init.ply", options=options)
+    print(report["others_disagreement"])
+    assert report["outlier_views"] == [table.loc[3, "view_id"]]
+    warning = [r.getMessage() for r in caplog.records if "far more than the other views" in r.getMessage()]
+    assert warning and f"view(s) '{table.loc[3, 'view_id']}'" in warning[0] and "swapped or misplaced" in warning[0]
+    report = geometry_initial.make_initial_mesh(capture["hdr"], capture["root"] / "cameras.csv",
+                                                capture["root"] / "sfm", tmp_path / "good" / "init.ply",
+                                                options=options)
+    assert report["outlier_views"] == []
+
+
+def test_outlier_views_are_robust_z_scores_above_a_floor():
+    values = np.array([0.004, 0.006, 0.005, 0.30, 0.007, 0.003])
+    assert geometry_initial.outlier_views(values).tolist() == [False, False, False, True, False, False]
+    # views that differ among themselves by a few percent: none stands out
+    assert not geometry_initial.outlier_views(np.array([0.02, 0.03, 0.04, 0.06, 0.03])).any()
+    assert not geometry_initial.outlier_views(np.array([0.004, 0.3, 0.005])).any()  # 3 views: no rest to compare
+    assert not geometry_initial.outlier_views(np.array([0.001, 0.002, 0.001, 0.04, 0.001]), minimum=0.05).any()

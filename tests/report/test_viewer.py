@@ -177,6 +177,24 @@ def test_no_finished_model_is_a_clear_error(tmp_path):
     assert out.returncode == 1 and "no finished model" in out.stderr
 
 
+def test_a_moved_capture_is_a_warning_that_names_it_and_the_default_flash(tmp_path, caplog):
+    """metrics.json names a capture folder that is gone (moved): load_inputs warns (a WARNING, so it reaches the
+    run's summary), naming the missing capture and saying the flash is a default (issue #52; before: an INFO note)."""
+    import logging
+
+    from sellip.report.viewer import DEFAULT_FLASH, find_capture, load_inputs
+
+    results = write_results(tmp_path)
+    (results / "metrics.json").write_text(json.dumps({"capture": str(tmp_path / "moved away")}))
+    with caplog.at_level(logging.INFO):
+        inputs = load_inputs(results, find_capture(results))
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1, caplog.text
+    assert f"the capture {str(tmp_path / 'moved away')!r} has no capture.yaml (moved or deleted?)" in warnings[0]
+    assert "flash is a DEFAULT" in warnings[0] and "--capture PATH" in warnings[0]
+    assert inputs.light == DEFAULT_FLASH
+
+
 def test_an_older_model_without_some_properties_disables_those_maps(tmp_path):
     from sellip.report.viewer import load_inputs, payload
 

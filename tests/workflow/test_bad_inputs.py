@@ -68,6 +68,30 @@ def truncate(relative: str, keep: int = 1000):
     return lambda capture: (capture / relative).write_bytes((capture / relative).read_bytes()[:keep])
 
 
+def duplicate_yaml_key(capture: Path):
+    """capture.yaml with sensor.width given twice (a corrected value written above the stale one)."""
+    text = (capture / "capture.yaml").read_text()
+    (capture / "capture.yaml").write_text(text.replace("sensor:\n", f"sensor:\n  width: {WIDTH * 2}\n", 1))
+
+
+def separator(name: str, sep: str):
+    def apply(capture: Path):
+        table = pd.read_csv(capture / name, dtype=str, keep_default_na=False)
+        table.to_csv(capture / name, index=False, sep=sep)
+    return apply
+
+
+def copy_file(source: str, target: str):
+    return lambda capture: shutil.copyfile(capture / source, capture / target)
+
+
+def every_raw_frame(value: int):
+    def apply(capture: Path):
+        for name in pd.read_csv(capture / "frames.csv")["file"]:
+            raw_array(name, np.full((HEIGHT, WIDTH), value, np.uint16))(capture)
+    return apply
+
+
 def several_frames_problems(table):
     table.loc[1, "flash_level"] = "0"
     table.loc[2, "exposure_s"] = "-1"
@@ -135,6 +159,28 @@ CASES = {
     "pose translation not a number": (set_cell("poses.csv", 2, "tx", "far"), ["poses.csv", "row 2 (line 4)",
                                                                               "column 'tx'"]),
     "duplicate pose": (set_cell("poses.csv", 2, "view_id", "v000"), ["poses.csv", "duplicate view_id"]),
+    # issue #52: files a user writes
+    "capture.yaml key given twice": (duplicate_yaml_key, ["capture.yaml: key 'sensor.width'", "given twice",
+                                                          "(lines 2 and "]),
+    "frames.csv separated by ';'": (separator("frames.csv", ";"), ["frames.csv: line 1 (the header)",
+                                                                   "uses ';' as separator", "expected ','"]),
+    "frames.csv separated by tabs": (separator("frames.csv", "\t"), ["frames.csv", "uses a tab as separator"]),
+    "poses.csv separated by ';'": (separator("poses.csv", ";"), ["poses.csv", "uses ';' as separator"]),
+    "trailing space in a view_id": (set_cell("frames.csv", 3, "view_id", "v001 "),
+                                    ["frames.csv: row 3 (line 5), column 'view_id'", "'v001 '", "white space"]),
+    "trailing space in a posed view_id": (set_cell("poses.csv", 1, "view_id", "v001 "),
+                                          ["poses.csv: row 1 (line 3), column 'view_id'", "'v001 '"]),
+    # issue #52: frames checked against their labels, from the data
+    "one raw file listed for two frames": (set_cell("frames.csv", 4, "file", "raw/v000_f0.dng"),
+                                           ["frames.csv: rows 0 (line 2) and 4 (line 6), column 'file'",
+                                            "'v000_f0' (view 'v000'", "'v001_f1' (view 'v001'", "same raw file"]),
+    "two frames with identical content": (copy_file("raw/v000_f0.dng", "raw/v001_f1.dng"),
+                                          ["frames.csv: rows 0 (line 2) and 4 (line 6)", "identical pixels",
+                                           "'v000_f0'", "'v001_f1'"]),
+    "every frame black": (every_raw_frame(64), ["frames.csv: all 12 frames are black", "0.00% of a frame's pixels "
+                                                "are usable", "lens cap"]),
+    "every frame saturated": (every_raw_frame(4095), ["frames.csv: all 12 frames are saturated", "usable",
+                                                      "white_level"]),
 }
 
 
@@ -160,6 +206,33 @@ def test_a_bad_input_stops_with_its_message_and_leaves_nothing(pristine, tmp_pat
     assert str(capture) in errors[-1]  # the file is named with its path
     leftovers = list((tmp_path / "out").iterdir()) if (tmp_path / "out").exists() else []
     assert leftovers == [], leftovers
+
+
+def test_mislabelled_flash_levels_stop_the_merge_naming_view_and_frames(pristine, tmp_path, caplog):
+    """All three frames of view v001 labelled with the same flash level (they are 1, 1/2 and 1/4 as bright): the
+    merge names the view, the two frames that disagree with the third and both ratios, and writes nothing."""
+    capture = tmp_path / "capture"
+    shutil.copytree(pristine, capture)
+    edit_csv("frames.csv", lambda t: t.assign(flash_level=t["flash_level"].where(t["view_id"] != "v001",
+                                                                                 "0.125")))(capture)
+    assert linearize(capture, tmp_path / "linear.zarr") == 0
+    with caplog.at_level(logging.INFO):
+        status = main(["merge-hdr", "--linear", str(tmp_path / "linear.zarr"), "--output", str(tmp_path / "hdr.zarr")])
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert status == 1 and errors, caplog.text[-2000:]
+    for piece in [f"{capture}/frames.csv: view 'v001'", "frame 'v001_f0' (frames.csv row 3, line 5) is 2x as bright "
+                  "as frame 'v001_f1' but labelled 1x", "frame 'v001_f2' (frames.csv row 5, line 7) is 0.4",
+                  "ingest.flash_ratio_tolerance"]:
+        assert piece in errors[-1], f"{piece!r} not in {errors[-1]!r}"
+    assert "v000" not in errors[-1] and not (tmp_path / "hdr.zarr").exists()
+    # the same labels within the tolerance: a factor 4 allowed
+    assert main(["merge-hdr", "--linear", str(tmp_path / "linear.zarr"), "--output", str(tmp_path / "hdr.zarr"),
+                 "--flash-ratio-tolerance", "4.5"]) == 0
+
+
+def test_the_pristine_merge_passes_the_flash_check(pristine, tmp_path):
+    assert linearize(pristine, tmp_path / "linear.zarr") == 0
+    assert main(["merge-hdr", "--linear", str(tmp_path / "linear.zarr"), "--output", str(tmp_path / "hdr.zarr")]) == 0
 
 
 @pytest.mark.parametrize("case", ["raw frame missing", "raw frame truncated", "raw frame not a raw file"])

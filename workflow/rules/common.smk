@@ -49,6 +49,13 @@ except ImportError:  # a Snakemake whose Python lacks sellip (e.g. --sdm conda):
 config.update(workflow_support.coerce_to_schema(
     dict(config), workflow_support.load_yaml(Path(workflow.basedir) / "config" / "config.schema.yaml")))
 
+# A key given twice in a config file: Snakemake's reader keeps the second value without a word.
+try:
+    workflow_support.check_config_files(dict.fromkeys([Path(workflow.basedir) / "config" / "config.yaml",
+                                                       *workflow.config_settings.configfiles]))
+except ValueError as exc:
+    raise WorkflowError(str(exc)) from None
+
 # results/NAME/ must be one folder inside results/: name=.. or name=a/b would write elsewhere.
 try:
     workflow_support.check_results_name(config.get("name"))
@@ -66,6 +73,14 @@ if (config.get("init") or {}).get("mode") == "mesh" and not (config.get("init") 
                         "in the world of the poses, metres; relative to the capture folder unless absolute)")
 
 validate(config, "../../config/config.schema.yaml")
+
+# Views named in the config must be the capture's: a wrong id would surface as a store problem in a later job.
+if config["capture"]:
+    try:
+        workflow_support.check_config_views(config["evaluate"], workflow_support.capture_view_ids(config["capture"]),
+                                            config["capture"])
+    except ValueError as exc:
+        raise WorkflowError(str(exc)) from None
 
 
 wildcard_constraints:

@@ -83,6 +83,8 @@ rule gather_fit:
         shards=gather.fit(f"{RESULTS}/iter/{{{{it}}}}/{{{{pass_}}}}/{{scatteritem}}.npz"),
     output:
         directory(f"{RESULTS}/iter/{{it}}/{{pass_}}.zarr"),
+    params:
+        min_fitted_share=config["fit"]["min_fitted_share"],
     conda:
         "../../envs/fit.yaml"
     log:
@@ -91,7 +93,7 @@ rule gather_fit:
         f"{RESULTS}/benchmarks/gather_fit/{{it}}/{{pass_}}.tsv"
     shell:
         SELLIP + " gather-fit --observations {input.observations:q} --shards {input.shards:q}"
-        " --output {output:q} > {log:q} 2>&1"
+        " --output {output:q} --min-fitted-share {params.min_fitted_share} > {log:q} 2>&1"
 
 
 rule cluster_lobes:

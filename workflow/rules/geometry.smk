@@ -62,6 +62,7 @@ rule init_mesh:
         poisson_depth=config["init"]["poisson_depth"],
         target_depth=config["init"]["target_depth"],
         max_vertices=config["init"]["max_vertices"],
+        outlier_view_z=config["init"]["outlier_view_z"],
         mask_threshold=config["sfm"]["mask_threshold"],
     threads: config["init"]["threads"]
     conda:
@@ -75,6 +76,7 @@ rule init_mesh:
         " --output {output.mesh:q} --mode {params.mode} {params.mesh_path} --hull-resolution {params.hull_resolution}"
         " --min-inside-fraction {params.min_inside_fraction} --poisson-depth {params.poisson_depth}"
         " --target-depth {params.target_depth} --max-vertices {params.max_vertices}"
+        " --outlier-view-z {params.outlier_view_z}"
         " --mask-threshold {params.mask_threshold} --threads {threads} > {log:q} 2>&1"
 
 

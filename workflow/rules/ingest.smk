@@ -33,6 +33,8 @@ rule merge_hdr:
         f"{RESULTS}/ingest/linear.zarr",
     output:
         directory(f"{RESULTS}/hdr.zarr"),
+    params:
+        flash_ratio_tolerance=config["ingest"]["flash_ratio_tolerance"],
     threads: config["ingest"]["threads"]
     conda:
         "../../envs/ingest.yaml"
@@ -41,7 +43,8 @@ rule merge_hdr:
     benchmark:
         f"{RESULTS}/benchmarks/merge_hdr.tsv"
     shell:
-        SELLIP + " merge-hdr --linear {input:q} --output {output:q} --threads {threads} > {log:q} 2>&1"
+        SELLIP + " merge-hdr --linear {input:q} --output {output:q} --threads {threads}"
+        " --flash-ratio-tolerance {params.flash_ratio_tolerance} > {log:q} 2>&1"
 
 
 rule plot_hdr_previews:

@@ -29,6 +29,7 @@ import yaml
 from sellip.capture import capture_yaml
 from sellip.capture import files
 from sellip.capture.writer import yaml_safe
+from sellip.yaml_files import DuplicateKeyError, load_yaml_file
 
 DEVICE_SECTIONS = ("sensor", "camera", "light")
 STEPS = ("intrinsics", "flash", "polarization", "color")
@@ -92,7 +93,9 @@ def read_device(path: str | Path, complete: bool = False) -> dict:
         raise files.MissingFileError(str(path), None, "missing; start from the sensor section of your camera's "
                                                    "datasheet (docs/calibration.md)")
     try:
-        device = yaml.safe_load(path.read_text())
+        device = load_yaml_file(path)
+    except DuplicateKeyError as exc:
+        raise DeviceError(str(path), f"key '{exc.key}'", exc.what) from None
     except yaml.YAMLError as exc:
         raise DeviceError(str(path), None, f"not valid YAML ({exc})") from None
     return validate_device(device, str(path), complete=complete)

@@ -14,7 +14,7 @@ Modules and what they export (each name is importable from here too)::
         CONFIG_SCHEMA, schema_problem, validate_config
     checks: Unit checks of a capture's numbers against each other (issue #38): lengths that are off by a factor of 1000
       must not pass silently
-        PoseUnitsError, camera_distances, check_pose_units
+        PoseUnitsError, camera_distances, check_pose_units, SamePoseError
     files: The capture folder's file names and columns (docs/design.md §3), and the errors every reader raises
       (:class:`CaptureError` and its kinds: each names the file, and where it applies the row, column or key)
         CAPTURE_YAML, FRAMES_CSV, POSES_CSV, POSE_COLUMNS, CaptureError, MissingFileError, ConfigError,
@@ -28,7 +28,7 @@ Modules and what they export (each name is importable from here too)::
       §3)
         CELL, DEFAULT_SATURATION, HDR_WEIGHT_FLOOR, IngestError, black_level_map, rawpy_black_level, linearize,
         make_demosaic_plan, demosaic, apply_color_matrix, output_intrinsics, source_positions, remap, make_ingest_plan,
-        process_frame, analyzer_plan, develop, hdr_weight, merge_hdr
+        process_frame, analyzer_plan, develop, hdr_weight, merge_hdr, FLASH_RATIO_TOLERANCE
     linearize: Linearize a capture's raw frames (docs/design.md §2 linearize; docs/ingest.md): black and white level,
       saturation mask, demosaic into the four analyzer images, colour matrix, undistortion, one store for all frames
       (:func:`linearize_capture`); a bad frame stops with its file and row, or is left out with ``bad_frames: skip``
@@ -52,7 +52,7 @@ Modules and what they export (each name is importable from here too)::
       with the full pBRDF under the polarized flash on a handheld orbit, through the sensor simulator (mosaic, noise,
       quantization) into raw files, frames.csv, capture.yaml, poses.csv and the ground-truth model
       (:func:`synthesize_capture`)
-        RENDERERS, synthesize_capture
+        RENDERERS, synthesize_capture, is_synthetic_folder
     tables: frames.csv and poses.csv (docs/design.md §3): pandera schemas and validation that names the file, row and
       column of every problem
         validate_poses
@@ -68,7 +68,7 @@ from sellip._exports import lazy_exports
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "assemble": ("parse_pattern", "flash_level", "assemble_capture"),
     "capture_yaml": ("CONFIG_SCHEMA", "schema_problem", "validate_config"),
-    "checks": ("PoseUnitsError", "camera_distances", "check_pose_units"),
+    "checks": ("PoseUnitsError", "camera_distances", "check_pose_units", "SamePoseError"),
     "files": ("CAPTURE_YAML", "FRAMES_CSV", "POSES_CSV", "POSE_COLUMNS", "CaptureError", "MissingFileError",
            "ConfigError", "UnknownLayoutError", "FramesError", "DuplicateFrameError", "FlashLevelError",
            "PosesError", "ViewWithoutFramesError", "RawFrameError", "GROUND_TRUTH_MESH", "MAX_LISTED_PROBLEMS"),
@@ -76,7 +76,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "ingest": ("CELL", "DEFAULT_SATURATION", "HDR_WEIGHT_FLOOR", "IngestError", "black_level_map",
            "rawpy_black_level", "linearize", "make_demosaic_plan", "demosaic", "apply_color_matrix",
            "output_intrinsics", "source_positions", "remap", "make_ingest_plan", "process_frame", "analyzer_plan",
-           "develop", "hdr_weight", "merge_hdr"),
+           "develop", "hdr_weight", "merge_hdr", "FLASH_RATIO_TOLERANCE"),
     "linearize": ("BLACK_LEVEL_SOURCES", "BAD_FRAME_POLICIES", "linearize_capture"),
     "mitsuba_capture": ("PPlasticError", "mitsuba_available", "pplastic_materials", "render_in_subprocess"),
     "mosaic": ("mosaic_layout",),
@@ -85,7 +85,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "TINY_MATERIALS", "build_scene", "device_intrinsics", "look_at_rotation", "handheld_orbit"),
     "sensor": ("DEFAULT_COLOR_MATRIX", "SensorModel", "sensor_from_device", "camera_rgb_from_srgb", "mosaic_sample",
            "sensor_mosaic", "sensor_colors", "simulate_raw"),
-    "synthetic": ("RENDERERS", "synthesize_capture"),
+    "synthetic": ("RENDERERS", "synthesize_capture", "is_synthetic_folder"),
     "tables": ("validate_poses",),
     "writer": ("write_raw_file", "RAW_FORMATS", "CaptureWriter", "yaml_safe", "write_capture"),
 })

@@ -31,6 +31,14 @@ class PoseUnitsError(CaptureError):
     """poses.csv and capture.yaml's scene.distance_m disagree about the scale of the scene."""
 
 
+class SamePoseError(CaptureError):
+    """poses.csv puts every camera at the same place (one pose copied to every view)."""
+
+
+SAME_PLACE = 1e-3
+"""Camera centres all within this fraction of scene.distance_m of their mean are one place: the poses are a copy."""
+
+
 def camera_distances(rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
     """(V,) distance of each camera centre from the point nearest to all optical axes (least squares).
 
@@ -71,6 +79,15 @@ def check_pose_units(rotations: np.ndarray, translations: np.ndarray, distance_m
     usable = np.isfinite(translations).all(axis=1) & np.isfinite(rotations).all(axis=(1, 2))
     if usable.sum() < 2:
         return float("nan")
+    centers = camera_center(rotations[usable], translations[usable])
+    spread = float(np.linalg.norm(centers - centers.mean(axis=0), axis=1).max())
+    if spread < SAME_PLACE * float(distance_m):
+        same = bool(np.allclose(rotations[usable], rotations[usable][0], atol=1e-6))
+        raise SamePoseError(file_label, "columns qw..qz, tx, ty, tz",
+                            f"all {int(usable.sum())} cameras are at the same place (within {spread:.3g} of each "
+                            f"other{', with the same rotation' if same else ''}): every view was given the same pose. "
+                            "Expected one pose per photograph, from a calibrated rig or sfm.mode: sfm (drop "
+                            "poses.csv to estimate the poses)")
     median = float(np.median(camera_distances(rotations[usable], translations[usable])))
     ratio = median / float(distance_m)
     if 1 / DISTANCE_TOLERANCE <= ratio <= DISTANCE_TOLERANCE:

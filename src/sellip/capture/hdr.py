@@ -59,8 +59,49 @@ def read_hdr(path: str | Path) -> HDRImages:
 
 
 
-def merge_capture(linear_path: str | Path, output: str | Path, threads: int = 1) -> Path:
-    """Merge the frames of every view of a ``sellip linearize`` store into ``output`` (layout above)."""
+class FlashLabelError(ingest.IngestError):
+    """The frames of a view are not as bright relative to each other as their flash_level * exposure_s say."""
+
+
+def check_flash_labels(view_id: str, frames: list, indices: list[int], attrs: dict,
+                       tolerance: float = ingest.FLASH_RATIO_TOLERANCE) -> None:
+    """Raise :class:`FlashLabelError` naming the view, each mislabelled frame (frame_id, frames.csv row) and its
+    measured against its labelled brightness ratio (:func:`sellip.capture.ingest.mislabelled_frames`). frames: the
+    view's linear frames, indices their rows in the store (= frames.csv rows), attrs the linearize store's."""
+    if len(frames) < 2:
+        return
+    gains = [attrs["flash_level"][i] * attrs["exposure_s"][i] for i in indices]
+    _, measured, labelled = ingest.brightness_ratios(frames, gains)
+    bad = np.flatnonzero(ingest.mislabelled_frames(measured, labelled, tolerance))
+    if not bad.size:
+        return
+    ids, levels, exposures = attrs["frame_id"], attrs["flash_level"], attrs["exposure_s"]
+    deviation = np.abs(np.log(measured / labelled) - np.median(np.log(measured / labelled)[np.isfinite(measured)]))
+    deviation[bad] = np.inf
+    anchor = int(np.nanargmin(deviation))  # the frame that agrees best with the view's consensus
+    measured, labelled = measured / measured[anchor], labelled / labelled[anchor]
+    r = indices[anchor]
+    bad = bad[bad != anchor]  # two frames that disagree: the second is named against the first
+
+    def label(i: int) -> str:
+        return f"flash_level {levels[i]:g} x exposure_s {exposures[i]:g}"
+
+    said = "; ".join(f"frame {ids[indices[f]]!r} (frames.csv row {indices[f]}, line {indices[f] + 2}) is "
+                     f"{measured[f]:.3g}x as bright as frame {ids[r]!r} but labelled {labelled[f]:.3g}x "
+                     f"({label(indices[f])} against {label(r)})" for f in bad)
+    raise FlashLabelError(
+        f"{attrs['capture']}/frames.csv: view {view_id!r}: the brightness of its frames contradicts their labels: "
+        f"{said}. Expected measured and labelled ratios within a factor {tolerance:g} (ingest.flash_ratio_tolerance):"
+        f" correct flash_level / exposure_s of these rows (or the files, if the photographs are swapped)")
+
+
+def merge_capture(linear_path: str | Path, output: str | Path, threads: int = 1,
+                  flash_ratio_tolerance: float = ingest.FLASH_RATIO_TOLERANCE) -> Path:
+    """Merge the frames of every view of a ``sellip linearize`` store into ``output`` (layout above).
+
+    Before merging a view, its frames' brightness ratios are checked against their labels (flash_level *
+    exposure_s; :func:`check_flash_labels`, ``flash_ratio_tolerance`` a factor > 1): a mislabelled frame stops
+    the stage (FlashLabelError) and nothing is written."""
     import zarr
 
     started = time.perf_counter()
@@ -93,7 +134,9 @@ def merge_capture(linear_path: str | Path, output: str | Path, threads: int = 1)
 
         def run(v: int) -> float:
             indices = frames_of[view_ids[v]]
-            merged, ok = ingest.merge_hdr((np.asarray(linear[i]) for i in indices), gains[indices])
+            frames = [np.asarray(linear[i]) for i in indices]
+            check_flash_labels(view_ids[v], frames, indices, attrs, flash_ratio_tolerance)
+            merged, ok = ingest.merge_hdr(frames, gains[indices])
             analyzers[v] = merged
             valid[v] = ok
             return float(ok.mean())

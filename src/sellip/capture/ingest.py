@@ -549,3 +549,53 @@ def merge_hdr(frames: Iterable[np.ndarray], gains: Iterable[float]) -> tuple[np.
     np.divide(num, den, out=num, where=has_data)
     num[~has_data] = 0
     return num, has_data.all(axis=(-2, -1))
+
+
+# --------------------------------------------------------------------------- flash levels against the data
+
+FLASH_RATIO_TOLERANCE = 1.5
+"""Default of config ``ingest.flash_ratio_tolerance``: a frame whose measured brightness relative to its view's
+other frames differs from its label's (flash_level * exposure_s) by more than this factor either way is mislabelled.
+A flash's output varies by a few percent from shot to shot; a wrong flash level is a factor of 2 or more."""
+
+RATIO_FLOOR = 0.02
+"""Samples (linear, 1 = full scale) at or below this in either frame are left out of a brightness ratio: there
+noise and the black level's error dominate."""
+
+RATIO_MIN_SAMPLES = 50
+"""Fewer samples lit and valid in both frames than this: the ratio is not measured."""
+
+
+def brightness_ratios(frames, gains) -> tuple[int, np.ndarray, np.ndarray]:
+    """Each frame's brightness measured against one reference frame of the same view, and as labelled.
+
+    frames: F arrays (..., 4, C) float32 linear values (NaN where invalid) of one view; gains: F labels
+    flash_level * exposure_s. The reference is the frame with the most samples valid and above RATIO_FLOOR.
+    Returns ``(reference, measured, labelled)``: measured (F,) the median over samples valid and above RATIO_FLOOR
+    in both frames of frame / reference (NaN where fewer than RATIO_MIN_SAMPLES), labelled (F,) gain / gain of the
+    reference. Both are 1 at the reference."""
+    frames = [np.asarray(f, np.float32) for f in frames]
+    gains = np.asarray(list(gains), np.float64)
+    lit = [np.nan_to_num(f, nan=0.0) > RATIO_FLOOR for f in frames]
+    reference = int(np.argmax([m.sum() for m in lit]))
+    measured = np.full(len(frames), np.nan)
+    for f, frame in enumerate(frames):
+        both = lit[f] & lit[reference]
+        if both.sum() >= RATIO_MIN_SAMPLES:
+            measured[f] = float(np.median(frame[both] / frames[reference][both]))
+    return reference, measured, gains / gains[reference]
+
+
+def mislabelled_frames(measured: np.ndarray, labelled: np.ndarray, tolerance: float = FLASH_RATIO_TOLERANCE
+                       ) -> np.ndarray:
+    """(F,) bool: frames whose measured / labelled brightness ratio lies more than ``tolerance`` (a factor > 1)
+    from the view's consensus (the median of that ratio over the measured frames, in log), so a mislabelled
+    reference frame does not make the others look wrong. Frames not measured (NaN) are never flagged."""
+    if not tolerance > 1:
+        raise IngestError(f"the flash ratio tolerance must be a factor > 1, got {tolerance}")
+    deviation = np.log(np.asarray(measured, np.float64) / np.asarray(labelled, np.float64))
+    known = np.isfinite(deviation)
+    if known.sum() < 2:
+        return np.zeros(len(deviation), bool)
+    centre = float(np.median(deviation[known]))
+    return known & (np.abs(deviation - centre) > np.log(tolerance))

@@ -6,8 +6,10 @@ frames (:func:`linearize_capture`); a bad frame stops with its file and row, or 
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -61,6 +63,83 @@ def _frame_row(capture, index: int) -> str:
 
 
 
+DARK_FLOOR = 0.002
+"""A pixel whose signal (raw - black) is at most this fraction of its range (white - black) counts as dark: 8 raw
+units of 4095, about 9 times the rig sensor's read noise (2.4 e- at 2.58 e-/DN: 0.93 units, SensorModel), so a black
+frame's noise stays below it while a dim but real object (20 units, tests/capture/test_ingest.py's dark flat scene)
+is above it."""
+
+MIN_USABLE_FRACTION = 1e-3
+"""Ingest stops when no frame of the capture has this fraction of its pixels usable (above DARK_FLOOR and below
+saturation): every frame black or saturated (a lens cap, a flash that did not fire, a wrong black or white level).
+An object that fills 0.1 % of the frame is far too small for the method anyway; a view whose frames are all below
+it is named in a warning."""
+
+
+@dataclass(frozen=True)
+class FrameContent:
+    """What ingest records of one raw frame: ``digest`` (BLAKE2b of its pixels), the fractions of its pixels that
+    are ``usable`` (neither dark nor saturated), ``saturated`` and ``dark``."""
+
+    digest: str
+    usable: float
+    saturated: float
+    dark: float
+
+
+def frame_content(raw: np.ndarray, plan: ingest.IngestPlan, black: np.ndarray | None = None) -> FrameContent:
+    """:class:`FrameContent` of one raw mosaic (H, W) (``black``: the frame's own black level, else the plan's)."""
+    black = plan.black if black is None else black
+    signal = raw.astype(np.float32) - black
+    headroom = np.float32(plan.white_level) - black
+    saturated = signal >= np.float32(plan.saturation) * headroom
+    dark = signal <= np.float32(DARK_FLOOR) * headroom
+    return FrameContent(digest=hashlib.blake2b(np.ascontiguousarray(raw).tobytes(), digest_size=16).hexdigest(),
+                        usable=float(1.0 - saturated.mean() - dark.mean()), saturated=float(saturated.mean()),
+                        dark=float(dark.mean()))
+
+
+def check_frame_contents(capture, content: list[FrameContent | None], saturation: float) -> None:
+    """Stop when the photographs cannot be what frames.csv says they are: every frame black or saturated
+    (:data:`MIN_USABLE_FRACTION`), or two frames with identical pixels (one photograph listed twice, under two
+    file names). ``content``: per frames.csv row, None for a frame left out. Warns about a view whose every frame
+    is black or saturated. Raises CaptureError naming the frames and rows."""
+    frames_csv = str(capture.root / FRAMES_CSV)
+    read = [(i, c) for i, c in enumerate(content) if c is not None]
+    best_index, best = max(read, key=lambda item: item[1].usable)
+    if best.usable < MIN_USABLE_FRACTION:
+        saturated = float(np.median([c.saturated for _, c in read])) > 0.5
+        what = ("saturated: raise sensor.white_level if it is below the data's, or shorten the exposure / lower the "
+                "flash" if saturated else
+                "black: check the lens cap and that the flash fired, and capture.yaml's sensor.black_level (at or "
+                "above the data's level it leaves nothing)")
+        raise CaptureError(frames_csv, None,
+                           f"all {len(read)} frames are {'saturated' if saturated else 'black'}: at most "
+                           f"{100 * best.usable:.2f}% of a frame's pixels are usable (above {100 * DARK_FLOOR:g}% of "
+                           f"the sensor's range and below saturation at {saturation:g} of it; best frame "
+                           f"{capture.frames['frame_id'].iloc[best_index]!r}), expected at least "
+                           f"{100 * MIN_USABLE_FRACTION:g}%. The photographs are {what}")
+    by_view: dict[str, list[float]] = {}
+    for i, c in read:
+        by_view.setdefault(capture.frames["view_id"].iloc[i], []).append(c.usable)
+    empty = [v for v, usable in by_view.items() if max(usable) < MIN_USABLE_FRACTION]
+    if empty:
+        log.warning("%d view(s) have no usable pixels in any frame (all black or saturated; at most %.2f%% usable): "
+                    "%s; check these photographs", len(empty), 100 * max(max(by_view[v]) for v in empty),
+                    ", ".join(repr(v) for v in empty[:30]))
+    seen: dict[str, int] = {}
+    for j, c in read:
+        if c.digest in seen:
+            i = seen[c.digest]
+            row = capture.frames.iloc
+            raise CaptureError(frames_csv, f"rows {i} (line {i + 2}) and {j} (line {j + 2})",
+                               f"frame_id {row[i]['frame_id']!r} (view {row[i]['view_id']!r}, {row[i]['file']!r}) and "
+                               f"frame_id {row[j]['frame_id']!r} (view {row[j]['view_id']!r}, {row[j]['file']!r}) "
+                               "have identical pixels: one photograph listed as two frames (a copied file?); "
+                               "expected a photograph of its own for each frame: correct the file of the wrong row")
+        seen[c.digest] = j
+
+
 def linearize_capture(capture_dir: str | Path, output: str | Path, threads: int = 1,
                       saturation: float = ingest.DEFAULT_SATURATION, black_level_from: str = "capture",
                       bad_frames: str = "error") -> Path:
@@ -101,6 +180,8 @@ def linearize_capture(capture_dir: str | Path, output: str | Path, threads: int 
         linear = group.create_array("linear", shape=shape, chunks=(1,) + shape[1:], dtype="float32",
                                     fill_value=np.nan, compressors=None)
 
+        content: list[FrameContent | None] = [None] * len(frames)
+
         def run(index: int) -> str | None:
             """Linearize frame ``index``; returns None, or (skip) why the frame was left out."""
             try:
@@ -114,6 +195,7 @@ def linearize_capture(capture_dir: str | Path, output: str | Path, threads: int 
                                     f"{exc.problem} (ingest.bad_frames: skip leaves such frames out)") from None
                 log.warning("skipping %s: %s", _frame_row(capture, index), exc)
                 return str(exc)
+            content[index] = frame_content(raw, plan, black)
             try:
                 linear[index] = ingest.process_frame(raw, plan, black)
             except ingest.IngestError as exc:
@@ -124,6 +206,7 @@ def linearize_capture(capture_dir: str | Path, output: str | Path, threads: int 
         if all(reason is not None for reason in skipped):
             raise CaptureError(str(capture.root / FRAMES_CSV), None,
                                f"none of its {len(frames)} raw frames could be read (first: {skipped[0]})")
+        check_frame_contents(capture, content, plan.saturation)
         group.attrs.update({
             "frame_id": frames["frame_id"].tolist(),
             "view_id": frames["view_id"].tolist(),

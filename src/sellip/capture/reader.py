@@ -28,6 +28,7 @@ from sellip.capture.files import (
 )
 from sellip.capture.mosaic import MosaicLayout, mosaic_layout
 from sellip.capture.tables import read_csv, validate_frames, validate_poses
+from sellip.yaml_files import DuplicateKeyError, load_yaml_file
 
 # --------------------------------------------------------------------------- reading
 
@@ -96,7 +97,9 @@ def read_capture(path: str | Path, check_raw: bool = False, check_files: bool = 
         if not needed.is_file():
             raise MissingFileError(str(needed), None, "missing; every capture folder needs it (docs/design.md §3)")
     try:
-        raw_config = yaml.safe_load(yaml_path.read_text())
+        raw_config = load_yaml_file(yaml_path)
+    except DuplicateKeyError as exc:
+        raise ConfigError(str(yaml_path), f"key '{exc.key}'", exc.what) from None
     except yaml.YAMLError as exc:
         raise ConfigError(str(yaml_path), None, f"not valid YAML ({exc})") from None
     config = validate_config(raw_config, str(yaml_path))

@@ -5,6 +5,7 @@ and column of every problem.
 from __future__ import annotations
 
 import math
+import posixpath
 from pathlib import Path
 
 import numpy as np
@@ -100,12 +101,47 @@ def validate_frames(frames: pd.DataFrame, file_label: str = FRAMES_CSV) -> pd.Da
 
     Raises FramesError, DuplicateFrameError or FlashLevelError naming row and column.
     """
-    return _validate_table(frames, FRAMES_SCHEMA, file_label, FramesError)
+    frames = _validate_table(frames, FRAMES_SCHEMA, file_label, FramesError)
+    _check_identifiers(frames, ("frame_id", "view_id", "file"), file_label, FramesError)
+    _check_distinct_files(frames, file_label)
+    return frames
+
+
+def _check_identifiers(table: pd.DataFrame, columns, file_label: str, error: type[CaptureError]) -> None:
+    """An identifier (or file name) with white space at either end is an error naming row, column and the value
+    quoted: 'v000 ' and 'v000' are different views, and a message that prints v000 hides why."""
+    for column in columns:
+        values = table[column].astype(str)
+        bad = np.flatnonzero((values != values.str.strip()).to_numpy())
+        if bad.size:
+            i = int(bad[0])
+            others = [f"row {j} (line {j + 2}): {values.iloc[j]!r}" for j in bad[1:]]
+            raise error(file_label, f"row {i} (line {i + 2}), column '{column}'",
+                        f"{values.iloc[i]!r} starts or ends with white space; {column} values are compared exactly "
+                        f"({values.iloc[i]!r} and {values.iloc[i].strip()!r} are different): remove the space"
+                        + more_problems(others))
+
+
+def _check_distinct_files(frames: pd.DataFrame, file_label: str) -> None:
+    """Two rows that name the same raw file (after normalizing the path) are an error naming both rows and frames:
+    one photograph cannot be two frames (a copy-paste slip in frames.csv)."""
+    normalized = [posixpath.normpath(str(f).replace("\\", "/")) for f in frames["file"]]
+    first: dict[str, int] = {}
+    for j, name in enumerate(normalized):
+        if name in first:
+            i = first[name]
+            raise DuplicateFrameError(
+                file_label, f"rows {i} (line {i + 2}) and {j} (line {j + 2}), column 'file'",
+                f"frame_id {frames['frame_id'].iloc[i]!r} (view {frames['view_id'].iloc[i]!r}) and frame_id "
+                f"{frames['frame_id'].iloc[j]!r} (view {frames['view_id'].iloc[j]!r}) name the same raw file "
+                f"{frames['file'].iloc[j]!r}; expected one photograph per frame: correct the file of the wrong row")
+        first[name] = j
 
 
 def validate_poses(poses: pd.DataFrame, file_label: str = POSES_CSV) -> pd.DataFrame:
     """Check a poses table; quaternions must have unit norm (to 1e-3). Raises PosesError."""
     poses = _validate_table(poses, POSES_SCHEMA, file_label, PosesError)
+    _check_identifiers(poses, ("view_id",), file_label, PosesError)
     norms = np.linalg.norm(poses[["qw", "qx", "qy", "qz"]].to_numpy(), axis=1)
     bad = np.flatnonzero(np.abs(norms - 1) > 1e-3)
     if bad.size:
@@ -115,11 +151,24 @@ def validate_poses(poses: pd.DataFrame, file_label: str = POSES_CSV) -> pd.DataF
     return poses
 
 
+OTHER_SEPARATORS = {";": "';'", "\t": "a tab", "|": "'|'"}
+"""Separators a spreadsheet may write instead of the comma (a locale with decimal commas writes ';'), named as such
+rather than reported as every column missing."""
+
+
 def read_csv(path: Path, label: str) -> pd.DataFrame:
+    error = FramesError if label.endswith(FRAMES_CSV) else PosesError
     try:
-        return pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
+        table = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise (FramesError if label.endswith(FRAMES_CSV) else PosesError)(
-            label, None, f"not a readable CSV file ({exc})") from None
+        raise error(label, None, f"not a readable CSV file ({exc})") from None
+    if len(table.columns) == 1:  # one column: the header was not split at commas
+        header = str(table.columns[0])
+        for separator, name in OTHER_SEPARATORS.items():
+            if separator in header:
+                raise error(label, "line 1 (the header)",
+                            f"uses {name} as separator ({header!r}); expected ',' (comma-separated values): save it "
+                            "as CSV with commas, and '.' as the decimal mark")
+    return table
 
 

@@ -17,6 +17,9 @@ Modules and what they export (each name is importable from here too)::
         ETA_SCALE, VARIANCE_FLOOR, AugmentSettings, Clustering, cluster_features, spatial_coherence, nearest_vertices,
         vertex_coherence, robust_mahalanobis, albedo_separation, one_mode, same_eta_by_albedo, find_eta_cut,
         cluster_materials
+    evidence: No result without evidence (docs/design.md §9): a pass whose fit covers too little of the visible
+      surface stops the run with what is missing (views, coverage, exposure)
+        MIN_FITTED_SHARE, EvidenceError, fitted_share, check_evidence
     finalize: The final model (rule ``finalize_model``; docs/design.md §4): per-material η and lobes with per-vertex
       deviations where a vertex's data demand them, unfitted vertices interpolated from their neighbours, confidence,
       ``model``: ``final/model.ply`` and ``final/params.zarr`` (:func:`finalize_model`)
@@ -46,7 +49,7 @@ Modules and what they export (each name is importable from here too)::
     records: The per-vertex fit's settings and records: :class:`FitSettings`, the status codes, the model codes (which
       lobes), :class:`Observations` (the fit's input), :class:`VirtualSamples`, :class:`FitResult`
         STATUS_FITTED, STATUS_TOO_FEW_VIEWS, ETA_BOUNDS, MODELS, FitSettings, model_of, Observations, VirtualSamples,
-        FitResult
+        FitResult, STATUS_FAILED
     residuals: The residuals of one vertex (docs/design.md §5): the linear parameters (rho_d RGB, rho_s, rho_ss RGB)
       solved in closed form with non-negativity inside the residual (variable projection), then
         solve_spd, nnls_specular, model_terms, linear_solution, measured_dop, vertex_residuals
@@ -81,6 +84,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "clusters": ("ETA_SCALE", "VARIANCE_FLOOR", "AugmentSettings", "Clustering", "cluster_features",
            "spatial_coherence", "nearest_vertices", "vertex_coherence", "robust_mahalanobis", "albedo_separation",
            "one_mode", "same_eta_by_albedo", "find_eta_cut", "cluster_materials"),
+    "evidence": ("MIN_FITTED_SHARE", "EvidenceError", "fitted_share", "check_evidence"),
     "finalize": ("finalize_model",),
     "geometry_jobs": ("raw_camera", "predicted_diffuse", "measure_silhouettes", "refine_geometry", "refine_poses"),
     "kernels": ("code_version", "enable", "kernel"),
@@ -93,7 +97,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "observe_mesh": ("MISSING_POSES", "pair_views", "spread_subset", "observe_mesh"),
     "parameterization": ("eta_at_bound", "decode_parameters", "encode_parameters", "virtual_reflectance"),
     "records": ("STATUS_FITTED", "STATUS_TOO_FEW_VIEWS", "ETA_BOUNDS", "MODELS", "FitSettings", "model_of",
-           "Observations", "VirtualSamples", "FitResult"),
+           "Observations", "VirtualSamples", "FitResult", "STATUS_FAILED"),
     "residuals": ("solve_spd", "nnls_specular", "model_terms", "linear_solution", "measured_dop",
            "vertex_residuals"),
     "selection": ("SelectionSettings", "settings_for_model", "allowed_models", "cap_models", "split_vertices",

@@ -115,7 +115,9 @@ def observe_mesh(mesh_path: str | Path, cameras_path: str | Path, hdr_path: str 
         log.warning("held-out view(s) %s were dropped at ingest (no readable frame)", ", ".join(dropped))
     unknown = sorted(set(exclude_views) - set(hdr.view_ids) - set(dropped))
     if unknown:
-        raise ObserveError(hdr_path, f"held-out view(s) {unknown[:10]} are not views of this store")
+        raise ObserveError(hdr_path, f"held-out view(s) {unknown[:10]} (config evaluate.held_out_views, "
+                                     f"--exclude-views) are not views of this capture; expected some of "
+                                     f"{hdr.view_ids[:20]}")
     pairs = [(index, row) for index, row in pairs if hdr.view_ids[index] not in set(exclude_views)]
     if not pairs:
         raise ObserveError(cameras_path, "every view is held out: nothing left to observe")

@@ -325,7 +325,11 @@ def fit_rows(observations, group, total, start, stop, output, prior, dtype, sett
     return summary
 
 
-def gather_shards(observations: Path, shards: list[Path], output: Path) -> dict:
+def gather_shards(observations: Path, shards: list[Path], output: Path, min_fitted_share: float = 0.0) -> dict:
+    """Assemble the shards of one pass into its params store (sellip.stages.gather_fit). Before writing, the fitted
+    share of the visible surface is checked against ``min_fitted_share`` (:func:`sellip.fit.evidence.check_evidence`;
+    EvidenceError, nothing written)."""
+    from sellip.fit.evidence import check_evidence
     from sellip.fit.observe import open_observations
     from sellip.fit.records import STATUS_FITTED, STATUS_NAMES
     from sellip.model.params import (
@@ -363,6 +367,9 @@ def gather_shards(observations: Path, shards: list[Path], output: Path) -> dict:
     arrays["normal"] /= np.maximum(np.linalg.norm(arrays["normal"], axis=1, keepdims=True), 1e-12)
     arrays["confidence"] = np.where(fitted, arrays["confidence"], 0.0)
     counts = {STATUS_NAMES[s]: int(np.sum(arrays["status"] == s)) for s in STATUS_NAMES}
+    share = check_evidence(arrays["status"], np.asarray(group["usable"][:]), list(group.attrs["view_ids"]),
+                           min_fitted_share, str(observations))
+    log.info("fitted share of the visible surface: %.3f (fit.min_fitted_share %g)", share, min_fitted_share)
     normals = arrays.pop("normal")
     attrs = {"status_counts": counts, "status_names": {str(k): v for k, v in STATUS_NAMES.items()}}
     if "model" in arrays:

@@ -6,7 +6,7 @@ remeshing to a vertex count.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage
@@ -154,33 +154,45 @@ class Carving:
     grid: the VoxelGrid; occupancy: (X, Y, Z) bool, kept voxels; inside_fraction: (X, Y, Z) float32,
     fraction of the views that see a voxel in frame and have it inside their silhouette;
     disagreement: (V,) float, per view the fraction of kept voxels it sees in frame but outside its mask.
+    others_disagreement: (V,) float, per view the fraction of the hull of the OTHER views (the same carving
+    without this view) that it sees in frame but outside its mask (computed on request, else zeros): a view whose
+    photograph is not where its camera says (swapped, misplaced) disagrees with what the others share, while the
+    kept voxels (``min_inside_fraction`` near 1) have already been carved by it, so ``disagreement`` cannot see it.
     """
 
     grid: VoxelGrid
     occupancy: np.ndarray
     inside_fraction: np.ndarray
     disagreement: np.ndarray
+    others_disagreement: np.ndarray
 
 
 def carve(masks: np.ndarray, intrinsics: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
-          grid: VoxelGrid, min_inside_fraction: float = 0.9, min_views: int = 3) -> Carving:
+          grid: VoxelGrid, min_inside_fraction: float = 0.9, min_views: int = 3, others: bool = False) -> Carving:
     """Keep the voxels whose centre projects inside the silhouette in at least ``min_inside_fraction``
     of the views that see it in frame (and that at least ``min_views`` views see in frame).
 
     masks (V, H, W) bool; intrinsics (V, 3, 3) or (3, 3); rotations (V, 3, 3); translations (V, 3).
     A fraction below 1 makes the hull robust to a few bad masks (a dark patch cut out of one view).
+    ``others``: also each view's disagreement with the other views' hull (``Carving.others_disagreement``; keeps
+    two (V, voxels) bool arrays: use it on a coarse grid).
     """
     count, height, width = masks.shape
     k = np.broadcast_to(np.asarray(intrinsics, np.float64), (count, 3, 3))
     centers = grid.centers().reshape(-1, 3).astype(np.float32)
     in_frame = np.zeros(len(centers), np.int32)
     inside = np.zeros(len(centers), np.int32)
+    per_view = []
     for view in range(count):
         pixels, depth = project(centers, k[view], rotations[view], translations[view])
         col, row = np.rint(pixels[:, 0]).astype(np.int64), np.rint(pixels[:, 1]).astype(np.int64)
         seen = (depth > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+        in_mask = np.zeros(len(centers), bool)
+        in_mask[seen] = masks[view][row[seen], col[seen]]
         in_frame += seen
-        inside[seen] += masks[view][row[seen], col[seen]]
+        inside += in_mask
+        if others:
+            per_view.append((seen, in_mask))
     fraction = inside / np.maximum(in_frame, 1)
     occupancy = (in_frame >= min(min_views, count)) & (fraction >= min_inside_fraction - 1e-9)
     disagreement = np.zeros(count)
@@ -191,8 +203,16 @@ def carve(masks: np.ndarray, intrinsics: np.ndarray, rotations: np.ndarray, tran
         seen = (depth > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
         if seen.any():
             disagreement[view] = 1.0 - masks[view][row[seen], col[seen]].mean()
+    others_disagreement = np.zeros(count)
+    for view, (seen, in_mask) in enumerate(per_view):
+        frame_rest, inside_rest = in_frame - seen, inside - in_mask
+        hull_rest = (frame_rest >= min(min_views, count - 1)) & (
+            inside_rest >= (min_inside_fraction - 1e-9) * np.maximum(frame_rest, 1))
+        looked = hull_rest & seen
+        if looked.any():
+            others_disagreement[view] = 1.0 - in_mask[looked].mean()
     return Carving(grid, occupancy.reshape(grid.shape), fraction.reshape(grid.shape).astype(np.float32),
-                   disagreement)
+                   disagreement, others_disagreement)
 
 
 def visual_hull(masks: np.ndarray, intrinsics: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
@@ -202,17 +222,20 @@ def visual_hull(masks: np.ndarray, intrinsics: np.ndarray, rotations: np.ndarray
     """Silhouette carving in two passes: a coarse grid over ``bounds`` (default: the cameras' common
     view volume), then ``resolution`` voxels along the longest side of the coarse hull's box.
 
-    See :func:`carve` for the arguments. Raises ValueError when nothing survives the coarse pass.
+    See :func:`carve` for the arguments. Raises ValueError when nothing survives the coarse pass. The
+    ``others_disagreement`` is the coarse pass's (the fine grid covers only the kept voxels' box).
     """
     height, width = masks.shape[1:]
     lo, hi = bounds if bounds is not None else view_volume_bounds(intrinsics, rotations, translations, width, height)
     coarse = carve(masks, intrinsics, rotations, translations, VoxelGrid.from_bounds(lo, hi, coarse_resolution),
-                   min_inside_fraction, min_views)
+                   min_inside_fraction, min_views, others=True)
     if not coarse.occupancy.any():
         raise EmptyHullError("silhouette carving removed every voxel: the masks and the poses disagree")
     lo, hi = coarse.grid.bounds_of(coarse.occupancy, margin_voxels)
-    return carve(masks, intrinsics, rotations, translations, VoxelGrid.from_bounds(lo, hi, resolution),
+    fine = carve(masks, intrinsics, rotations, translations, VoxelGrid.from_bounds(lo, hi, resolution),
                  min_inside_fraction, min_views)
+    # The other views' hull reaches beyond the kept voxels' box: its disagreement is the coarse grid's, which holds it.
+    return replace(fine, others_disagreement=coarse.others_disagreement)
 
 
 def surface_points(occupancy: np.ndarray, grid: VoxelGrid, smoothing_voxels: float = 1.0) -> tuple[np.ndarray,

@@ -149,14 +149,54 @@ scan) projects outside the silhouette: the cameras cannot be this capture's (a w
 cow, whose black patches fall below the silhouette level (its worst view 0.24; docs/reliability.md)."""
 
 
+OUTLIER_VIEW_Z = 6.0
+"""Default of config ``init.outlier_view_z``: a view whose silhouette disagreement with the other views' hull
+(:attr:`sellip.geometry.hull.Carving.others_disagreement`; with init.mode mesh, with the scan) lies more than this
+many robust standard deviations (1.4826 x the median absolute deviation, at least OUTLIER_SPREAD_FLOOR) above the
+views' median, and above ``disagreement_warn``, is named as a likely swapped or misplaced view."""
+
+OUTLIER_SPREAD_FLOOR = 0.01
+"""The robust spread of the views' disagreements is taken as at least this (a fraction of the mesh): on a sphere
+every view agrees to 0.002-0.007, and a spread near 0 would make any small difference an outlier."""
+
+
+def outlier_views(disagreement: np.ndarray, z: float = OUTLIER_VIEW_Z, minimum: float = 0.05) -> np.ndarray:
+    """(V,) bool: views whose disagreement (V,) (fraction of the mesh outside their silhouette) is an outlier among
+    the views: above the median by more than ``z`` robust standard deviations (1.4826 MAD, at least
+    OUTLIER_SPREAD_FLOOR) and above ``minimum``. Fewer than 4 views: none (no rest to compare with)."""
+    values = np.asarray(disagreement, np.float64)
+    if len(values) < 4:
+        return np.zeros(len(values), bool)
+    median = float(np.median(values))
+    spread = max(1.4826 * float(np.median(np.abs(values - median))), OUTLIER_SPREAD_FLOOR)
+    return ((values - median) / spread > z) & (values > minimum)
+
+
+def warn_outlier_views(view_ids: list[str], disagreement: np.ndarray, against: str, z: float = OUTLIER_VIEW_Z,
+                       minimum: float = 0.05) -> list[str]:
+    """The ids of the :func:`outlier_views` of ``disagreement`` (V,), named in a WARNING (the run's summary) as
+    likely swapped or misplaced views; ``against``: what they were compared with, for the message."""
+    outliers = [v for v, bad in zip(view_ids, outlier_views(disagreement, z, minimum)) if bad]
+    if outliers:
+        log.warning("view(s) %s: the silhouette disagrees with %s far more than the other views do (%s of it "
+                    "outside the mask, against a median %.0f%%; init.outlier_view_z %g): a swapped or misplaced "
+                    "view? Check these views' rows in frames.csv (the files) and poses.csv (their poses)",
+                    ", ".join(repr(v) for v in outliers[:30]), against, ", ".join(
+                        f"{100 * disagreement[view_ids.index(v)]:.0f}%" for v in outliers[:30]),
+                    100 * float(np.median(disagreement)), z)
+    return outliers
+
+
 def make_initial_mesh(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: str | Path, output: str | Path,
               mode: str = "hull", options: geometry_hull.InitMeshOptions = geometry_hull.InitMeshOptions(),
               mask_options: dict | None = None, disagreement_warn: float = 0.05,
-              mesh_path: str | Path | None = None) -> dict:
+              mesh_path: str | Path | None = None, outlier_view_z: float = OUTLIER_VIEW_Z) -> dict:
     """Run the stage (see the module docstring); returns the report written beside the mesh.
 
     mesh_path: the mesh of mode ``mesh`` (required there, ignored otherwise), as given (the workflow resolves
-    ``init.mesh_path`` against the capture folder).
+    ``init.mesh_path`` against the capture folder). outlier_view_z: config ``init.outlier_view_z``
+    (:func:`warn_outlier_views`).
+    Long: the checks of the silhouettes (coverage, disagreement, outlier views) share the mesh and the report.
     """
     from sellip.capture.hdr import read_hdr
 
@@ -216,7 +256,10 @@ def make_initial_mesh(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: s
         log.warning("%d of %d silhouettes disagree with %s (more than %.0f%% of it outside the mask): %s. Check "
                     "the poses of these views or the mask threshold (sfm.mask_threshold)%s.", len(disagreeing),
                     len(view_ids), against, 100 * disagreement_warn, ", ".join(disagreeing[:30]), advice)
-    report = dict(mesh.stats, mode=mode, views=len(view_ids), **extra_report,
+    others = (mesh.carving.others_disagreement, "the other views' hull") if mode != "mesh" else (disagreement, against)
+    outliers = warn_outlier_views(view_ids, *others, outlier_view_z, disagreement_warn)
+    report = dict(mesh.stats, mode=mode, views=len(view_ids), **extra_report, outlier_views=outliers,
+                  others_disagreement={v: float(d) for v, d in zip(view_ids, others[0])},
                   silhouette_disagreement={v: float(d) for v, d in zip(view_ids, disagreement)},
                   disagreeing_views=disagreeing, total_s=time.perf_counter() - started)
     output = Path(output)

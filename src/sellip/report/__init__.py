@@ -26,6 +26,7 @@ Modules and what they export (each name is importable from here too)::
     viewer: The interactive viewer of a final model: ``results/NAME/viewer/``, a static page that works offline (issue
       #40)
         ViewerError, read_pose_table, load_inputs, payload, write_viewer, serve, find_capture, export_results
+        DEFAULT_FLASH
 
 See docs/architecture.md for what this package owns and what it may import.
 """
@@ -43,5 +44,5 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "save_figure", "DEFAULT_VIEWS", "OutputsError", "default_views", "render_outputs"),
     "previews": ("PREVIEW_KINDS", "dolp_aolp", "preview_images", "write_previews"),
     "viewer": ("ViewerError", "read_pose_table", "load_inputs", "payload", "write_viewer", "serve", "find_capture",
-           "export_results"),
+           "export_results", "DEFAULT_FLASH"),
 })

@@ -134,8 +134,15 @@ def load_inputs(results: str | Path, capture: str | Path | None = None) -> Viewe
     if capture is not None and (Path(capture) / "capture.yaml").is_file():
         inputs.light = read_light(capture)
     else:
-        inputs.notes.append(f"no capture.yaml ({capture}): the flash is at {DEFAULT_FLASH['position_m']} m in camera "
-                            f"coordinates, polarizer 0 deg")
+        # A WARNING (in the summary of a run, on the console of `sellip view`): the page relights with a flash
+        # that is not the capture's, and nothing else on it says so.
+        where = (f"the capture {str(capture)!r} has no capture.yaml (moved or deleted?)" if capture is not None else
+                 f"no capture folder is known ({results / 'metrics.json'} names none that exists)")
+        log.warning("%s: the viewer's flash is a DEFAULT, not the capture's: at %s m in camera coordinates, polarizer "
+                    "0 deg. Give the capture's folder: sellip view %s --capture PATH", where,
+                    DEFAULT_FLASH["position_m"], results)
+        inputs.notes.append(f"{where}: the flash is a default, at {DEFAULT_FLASH['position_m']} m in camera "
+                            "coordinates, polarizer 0 deg")
     table = results / "final" / "materials.csv"
     if table.is_file():
         from sellip.report.materials import read_materials
@@ -274,11 +281,12 @@ def maps_of(inputs: ViewerInputs) -> dict[str, MapData]:
 
 
 def find_capture(results: Path) -> Path | None:
-    """The capture folder recorded in ``results/metrics.json`` (None when there is none)."""
+    """The capture folder recorded in ``results/metrics.json`` (None when there is none), also when it no longer
+    exists (the capture moved): :func:`load_inputs` then names it in its warning."""
     metrics = results / "metrics.json"
     if metrics.is_file():
         capture = json.loads(metrics.read_text()).get("capture")
-        if capture and Path(capture).is_dir():
+        if capture:
             return Path(capture)
     return None
 

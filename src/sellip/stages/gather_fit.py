@@ -4,7 +4,9 @@
                       --shards results/NAME/iter/0/fit/1-of-2.npz results/NAME/iter/0/fit/2-of-2.npz
                       --output results/NAME/iter/0/fit.zarr
 
-The shards must cover the store's vertices exactly once. Vertices that could not be fitted
+The shards must cover the store's vertices exactly once. When the fitted vertices are less than
+``--min-fitted-share`` of the vertices some view sees (config ``fit.min_fitted_share``), the stage stops with
+what is missing and writes nothing (:mod:`sellip.fit.evidence`). Vertices that could not be fitted
 (too few views, failed) get parameters interpolated from their fitted neighbours and confidence 0
 (docs/design.md §7); they keep their starting normal (the mesh's: a neighbour's normal belongs to another
 part of the surface; interpolating them left the demo's unlit underside 17 deg median off its own
@@ -19,6 +21,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from sellip.fit.evidence import MIN_FITTED_SHARE, EvidenceError
 from sellip.fit.shard import gather_shards
 
 log = logging.getLogger(__name__)
@@ -28,6 +31,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--observations", type=Path, required=True)
     parser.add_argument("--shards", type=Path, nargs="+", required=True)
     parser.add_argument("--output", type=Path, required=True)
+    parser.add_argument("--min-fitted-share", type=float, default=MIN_FITTED_SHARE,
+                        help="stop (nothing written) when the fitted vertices are less than this share of the "
+                             f"vertices seen in a usable view (default {MIN_FITTED_SHARE}; config fit.min_fitted_share)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -35,8 +41,8 @@ def main(args: argparse.Namespace) -> int:
     from sellip.model.params import ParamsError
 
     try:
-        gather_shards(args.observations, args.shards, args.output)
-    except (ObserveError, ParamsError) as error:
+        gather_shards(args.observations, args.shards, args.output, args.min_fitted_share)
+    except (ObserveError, ParamsError, EvidenceError) as error:
         log.error("%s", error)
         return 1
     return 0

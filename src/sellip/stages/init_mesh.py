@@ -26,7 +26,7 @@ import logging
 from pathlib import Path
 
 from sellip.geometry import hull as geometry_hull
-from sellip.geometry.initial import INIT_MODES, InitMeshError, make_initial_mesh
+from sellip.geometry.initial import INIT_MODES, OUTLIER_VIEW_Z, InitMeshError, make_initial_mesh
 from sellip.stages._arguments import add_image_arguments
 
 log = logging.getLogger(__name__)
@@ -46,6 +46,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--poisson-depth", type=int, default=defaults.poisson_depth)
     parser.add_argument("--target-depth", type=int, default=defaults.target_depth)
     parser.add_argument("--max-vertices", type=int, default=defaults.max_vertices)
+    parser.add_argument("--outlier-view-z", type=float, default=OUTLIER_VIEW_Z,
+                        help="warn about a view whose silhouette disagreement is this many robust standard "
+                             f"deviations above the views' median (default {OUTLIER_VIEW_Z})")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -55,7 +58,8 @@ def main(args: argparse.Namespace) -> int:
                                        max_vertices=args.max_vertices, threads=args.threads)
     try:
         make_initial_mesh(args.hdr, args.cameras, args.sfm, args.output, mode=args.mode, options=options,
-                  mask_options={"threshold": args.mask_threshold}, mesh_path=args.mesh_path)
+                  mask_options={"threshold": args.mask_threshold}, mesh_path=args.mesh_path,
+                  outlier_view_z=args.outlier_view_z)
     except (InitMeshError, ValueError) as exc:
         log.error("%s", exc)
         return 1

@@ -37,11 +37,16 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--linear", required=True, type=Path, help="store written by `sellip linearize`")
     parser.add_argument("--output", required=True, type=Path, help="hdr.zarr store to write (a directory)")
     parser.add_argument("--threads", type=int, default=1, help="views merged in parallel (default: 1)")
+    parser.add_argument("--flash-ratio-tolerance", type=float, default=ingest.FLASH_RATIO_TOLERANCE,
+                        help="a frame whose brightness relative to its view's other frames differs from its "
+                             "flash_level * exposure_s label by more than this factor stops the stage (default: "
+                             f"{ingest.FLASH_RATIO_TOLERANCE})")
 
 
 def main(args: argparse.Namespace) -> int:
     try:
-        merge_capture(args.linear, args.output, threads=args.threads)
+        merge_capture(args.linear, args.output, threads=args.threads,
+                      flash_ratio_tolerance=args.flash_ratio_tolerance)
     except ingest.IngestError as exc:
         log.error("%s", exc)
         return 1

@@ -83,9 +83,12 @@ def main(args: argparse.Namespace) -> int:
         raise SystemExit(f"--noise-scale must be positive, got {args.noise_scale}")
     device = None
     if args.device is not None:
-        import yaml
+        from sellip.yaml_files import DuplicateKeyError, load_yaml_file
 
-        document = yaml.safe_load(args.device.read_text()) or {}
+        try:
+            document = load_yaml_file(args.device) or {}
+        except DuplicateKeyError as exc:
+            raise SystemExit(f"{args.device}: {exc}") from None
         device = document.get("device", document)  # truth.yaml keeps the device under "device"
         missing = [key for key in ("sensor", "camera", "light") if not isinstance(device.get(key), dict)]
         if missing:
