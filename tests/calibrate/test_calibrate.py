@@ -300,13 +300,14 @@ def test_device_yaml_round_trip_and_errors(tmp_path):
         devices.read_device(tmp_path / "bad.yaml")
 
 
-def _frame_folder(tmp_path, names, width=64, height=48):
+def _frame_folder(tmp_path, names, width=64, height=48, exposure_s=None):
     device = synthetic.true_device(width, height)
     raw_dir = tmp_path / "owl" / "raw"
     raw_dir.mkdir(parents=True)
     rng = np.random.default_rng(0)
     for name in names:
-        writer.write_raw_file(raw_dir / name, rng.integers(64, 4000, (height, width)).astype(np.uint16), device["sensor"])
+        writer.write_raw_file(raw_dir / name, rng.integers(64, 4000, (height, width)).astype(np.uint16), device["sensor"],
+                              exposure_s=exposure_s)
     path = devices.write_device(tmp_path / "device.yaml", device)
     return raw_dir, devices.read_device(path, complete=True), path
 
@@ -345,8 +346,11 @@ def test_capture_new_says_what_it_cannot_infer(tmp_path):
     raw_dir, device, _ = _frame_folder(tmp_path, ["v000_f4.dng", "notes_view1.dng"])
     with pytest.raises(files.CaptureError, match=r"notes_view1.dng: does not match --pattern"):
         assemble.assemble_capture(raw_dir, device, 0.9, pattern="{view}_f{level}.dng", exposure_s=0.005)
-    with pytest.raises(files.CaptureError, match=r"--exposure-s: missing"):
-        assemble.assemble_capture(raw_dir, device, 0.9, pattern="{view}_f{level}.dng")
+    table = tmp_path / "frames_in.csv"
+    pd.DataFrame({"file": ["v000_f4.dng"], "view_id": ["v000"], "flash_level": [0.25]}).to_csv(table, index=False)
+    with pytest.raises(files.CaptureError, match=r"v000_f4.dng: ExposureTime: the file records no exposure time; "
+                                                 r"give it with .*frames_in.csv \(column exposure_s\) or --exposure-s"):
+        assemble.assemble_capture(raw_dir, device, 0.9, csv=table)
     with pytest.raises(files.CaptureError, match=r"\{level\} must appear exactly once"):
         assemble.parse_pattern("{view}.dng")
     assert not (raw_dir.parent / files.CAPTURE_YAML).exists() and not (raw_dir.parent / files.FRAMES_CSV).exists()
@@ -357,6 +361,47 @@ def test_capture_new_says_what_it_cannot_infer(tmp_path):
     with pytest.raises(files.RawFrameError, match="v001_f4.dng"):
         assemble.assemble_capture(raw_dir, device, 0.9, pattern="{view}_f{level}.dng", exposure_s=0.005)
     assert not (raw_dir.parent / files.CAPTURE_YAML).exists()
+
+
+def test_capture_new_reads_the_exposure_from_the_files(tmp_path):
+    """A DNG or TIFF that records its ExposureTime (tag 0x829A) needs no --exposure-s; a given time that disagrees
+    with the file's is an error naming the file; a PNG records none."""
+    names = [f"v{v:03d}_f{level}.dng" for v in range(2) for level in (4, 8)]
+    raw_dir, device, _ = _frame_folder(tmp_path, names, exposure_s=1 / 250)
+    assert reader.exposure_time(raw_dir / names[0]) == pytest.approx(0.004, rel=1e-9)
+    out = assemble.assemble_capture(raw_dir, device, 0.9, pattern="{view}_f{level}.dng")
+    assert reader.read_capture(out).frames["exposure_s"].tolist() == pytest.approx([0.004] * 4, rel=1e-9)
+    (out / files.CAPTURE_YAML).unlink()
+    (out / files.FRAMES_CSV).unlink()
+    with pytest.raises(files.CaptureError, match=r"v000_f4.dng: ExposureTime: the file records 0.004 s but "
+                                                 r"--exposure-s says 0.01 s"):
+        assemble.assemble_capture(raw_dir, device, 0.9, pattern="{view}_f{level}.dng", exposure_s=0.01)
+    assert not (out / files.CAPTURE_YAML).exists()
+    # within the rounding a camera's metadata has: accepted, the given value kept
+    out = assemble.assemble_capture(raw_dir, device, 0.9, pattern="{view}_f{level}.dng", exposure_s=0.00401)
+    assert reader.read_capture(out).frames["exposure_s"].iloc[0] == 0.00401
+    writer.write_raw_file(tmp_path / "x.tiff", np.full((48, 64), 100, np.uint16), device["sensor"], exposure_s=0.02)
+    writer.write_raw_file(tmp_path / "x.png", np.full((48, 64), 100, np.uint16), device["sensor"])
+    assert reader.exposure_time(tmp_path / "x.tiff") == pytest.approx(0.02) and reader.exposure_time(tmp_path / "x.png") is None
+
+
+def test_capture_new_refuses_a_failed_calibration(tmp_path):
+    """A device.yaml whose calibration records a failed step (calibration.polarization.ok: false) is refused,
+    naming the step, unless --accept-failed-calibration."""
+    raw_dir, device, device_path = _frame_folder(tmp_path, ["v000_f4.dng", "v000_f8.dng"], exposure_s=0.005)
+    devices.update_device(device_path, {}, "polarization", {"ok": False, "messages": ["polarizer_layout [[90, 135], "
+                                                                                      "[45, 0]] does NOT fit"]})
+    run = [sys.executable, "-m", "sellip.cli", "capture", "new", str(raw_dir), "--device", str(device_path),
+           "--distance-m", "0.8", "--pattern", "{view}_f{level}.dng"]
+    refused = subprocess.run(run, capture_output=True, text=True, check=False)
+    assert refused.returncode != 0
+    assert "key 'calibration.polarization.ok': false: the polarization step failed (polarizer_layout" in refused.stderr
+    assert "--accept-failed-calibration" in refused.stderr
+    assert not (raw_dir.parent / files.CAPTURE_YAML).exists()
+    subprocess.run(run + ["--accept-failed-calibration"], check=True, capture_output=True)
+    written = reader.read_capture(raw_dir.parent)
+    assert written.config["calibration"]["polarization"]["ok"] is False
+    assert written.frames["exposure_s"].tolist() == pytest.approx([0.005, 0.005])
 
 
 def test_flash_level_from_file_names():

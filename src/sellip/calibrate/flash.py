@@ -4,6 +4,7 @@ Public API::
 
     develop_frame(raw, device) -> (analyzers (H', W', 4, C), intrinsics)   # the ingest chain, undistorted
     find_spheres(s0, intrinsics, radius_m) -> list[Sphere]                  # outlines -> centres, or problems
+    find_spheres_or_why(s0, intrinsics, radius_m) -> (list[Sphere], why | None)   # no bright background: why
     find_highlight(s0, sphere) -> (centre (x, y) | None, problem | None)    # refine_highlight: a Gaussian fit
     mirror_ray(sphere, highlight_px, intrinsics) -> (point (3,), direction (3,))
     nearest_point(points (N, 3), directions (N, 3), scale_m=0.001) -> (X (3,), distances (N,), weights (N,))
@@ -51,6 +52,19 @@ HIGHLIGHT_REACH = 2.0
 
 MAX_OUTLINE_RMS_PX = 0.5
 """An outline farther than this (RMS, output pixels) from a sphere's silhouette: not a sphere, or occluded."""
+
+MIN_BACKGROUND_SNR = 20.0
+"""The background (the frame's median) must be this many times its own noise above black, or it is not bright."""
+
+MIN_SOLIDITY = 0.93
+"""A dark blob whose area is less than this share of its convex hull is two spheres touching (or a sphere and
+another object), not one sphere."""
+
+FIELD_SPREAD = 0.4
+"""Highlights spanning less than this share of the width or height: spheres all near the centre (depth poorly
+determined)."""
+
+NO_SPHERE = "no sphere found (expected dark spheres in front of a bright background)"
 
 
 @dataclass
@@ -118,10 +132,40 @@ def _fit_cone(rays: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     return axis, cos_alpha, residual
 
 
+def find_spheres_or_why(s0: np.ndarray, intrinsics: Mapping, radius_m: float) -> tuple[list[Sphere], str | None]:
+    """:func:`find_spheres`, or ([], why) when the frame shows no sphere against a bright background: the
+    background (the frame's median) must stand :data:`MIN_BACKGROUND_SNR` times its noise above black, else the
+    dark discs found would be the background's noise."""
+    finite = np.isfinite(s0)
+    values = s0[finite]
+    background = float(np.median(values))
+    # the background's noise: the MAD of the pixels brighter than half of it (the spheres' discs excluded)
+    bright = values[values > background / 2]
+    noise = 1.4826 * float(np.median(np.abs(bright - np.median(bright)))) if bright.size else np.inf
+    if not background > MIN_BACKGROUND_SNR * max(noise, 1e-12):
+        return [], (f"{NO_SPHERE}: the background reads {background:.3g} of full scale with noise {noise:.2g}, "
+                    f"at least {MIN_BACKGROUND_SNR:g}x its noise expected (light the panel or wall behind the spheres)")
+    spheres = find_spheres(s0, intrinsics, radius_m)
+    return spheres, (None if spheres else NO_SPHERE)
+
+
+def _solidity(blob: np.ndarray) -> float:
+    """A blob's area over its convex hull's (1 for a disc, < 0.9 for two touching discs)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    ys, xs = np.nonzero(blob)
+    # pixel corners, so that the hull encloses whole pixels
+    pts = np.concatenate([np.stack([xs + dx, ys + dy], axis=-1) for dx in (0, 1) for dy in (0, 1)])
+    try:
+        return float(blob.sum() / ConvexHull(pts).volume)
+    except QhullError:
+        return 1.0
+
+
 def find_spheres(s0: np.ndarray, intrinsics: Mapping, radius_m: float) -> list[Sphere]:
     """Spheres in an intensity image (H', W') on the undistorted output grid: dark discs on a bright background.
-    A disc touching the image border is returned with a problem (clipped), as is one whose outline is not a
-    sphere's."""
+    A disc touching the image border is returned with a problem (clipped), as is one that is two discs touching
+    (:data:`MIN_SOLIDITY`) or whose outline is not a sphere's."""
     finite = np.isfinite(s0)
     background = float(np.median(s0[finite]))
     level = background / 2
@@ -142,6 +186,12 @@ def find_spheres(s0: np.ndarray, intrinsics: Mapping, radius_m: float) -> list[S
         if clipped:
             spheres.append(Sphere(None, radius, centroid, problem="sphere clipped by the frame edge: its outline is "
                                                                   "not whole; expected every sphere wholly in view"))
+            continue
+        solidity = _solidity(blob)
+        if solidity < MIN_SOLIDITY:
+            spheres.append(Sphere(None, radius, centroid, problem=f"spheres touching: the dark blob fills "
+                                  f"{100 * solidity:.0f} % of its convex hull (a lone sphere: ~100 %); expected "
+                                  "spheres apart, each with background around it"))
             continue
         outline = _outline(s0, centroid, radius, level)
         if len(outline) < OUTLINE_SAMPLES // 2:
@@ -260,6 +310,39 @@ class FlashResult:
     rms_mm: float
     highlights: list[dict]
     left_out: dict[str, str] = field(default_factory=dict)
+    image_size: tuple[int, int] = (0, 0)
+
+    def uncertainty(self) -> dict[str, float]:
+        """What :mod:`sellip.calibrate.targets` gates the flash on: {flash_std_mm (largest axis), flash_rms_mm}."""
+        return {"flash_std_mm": float(np.max(self.std_m) * 1e3), "flash_rms_mm": self.rms_mm}
+
+    def causes(self) -> list[str]:
+        """Why the position may be uncertain, as far as the frames show it: spheres left out (clipped, touching,
+        saturated), too few highlights, highlights all near the image centre, large residuals."""
+        out = []
+        kinds = {"clipped": "clipped by the frame edge", "touching": "touching another sphere or object",
+                 "saturated": "with a saturated highlight (lower the flash)", "no sphere": "frames without a sphere "
+                 "against a bright background", "no mirror highlight": "without a mirror highlight"}
+        for key, words in kinds.items():
+            count = sum(key in why for why in self.left_out.values())
+            if count:
+                out.append(f"{count} sphere(s) {words}" if key != "no sphere" else f"{count} {words}")
+        count = len(self.highlights)
+        if count < 2 * MIN_HIGHLIGHTS:
+            out.append(f"only {count} highlights: take more frames, 2-3 spheres each ({3 * MIN_HIGHLIGHTS} recommended)")
+        if self.highlights and self.image_size[0]:
+            px = np.asarray([h["highlight_px"] for h in self.highlights])
+            extent = (px.max(axis=0) - px.min(axis=0)) / np.asarray(self.image_size, np.float64)
+            if np.min(extent) < FIELD_SPREAD:
+                out.append(f"the spheres were all near the image centre: their highlights span {100 * extent[0]:.0f} % "
+                           f"of the width and {100 * extent[1]:.0f} % of the height (at least {100 * FIELD_SPREAD:.0f} "
+                           "% expected): place them over the whole field")
+            worst = max(self.highlights, key=lambda h: h.get("residual_mm", 0.0))
+            if worst.get("residual_mm", 0.0) > 3 * max(np.median([h["residual_mm"] for h in self.highlights]), 0.1):
+                out.append(f"highlight residuals up to {worst['residual_mm']:.1f} mm ({worst['frame']} sphere "
+                           f"{worst['sphere']}): a sphere's outline or centre is wrong there (a bright rim "
+                           "reflection, a wrong --sphere-radius-mm)")
+        return out
 
 
 def intensity(analyzers: np.ndarray) -> np.ndarray:
@@ -273,12 +356,16 @@ def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m:
     docstring). ``device`` needs sensor and camera (intrinsics calibrated). Every sphere left out is named with
     why; fewer than ``min_highlights`` usable highlights raise CalibrationError saying how many more are needed."""
     points, directions, records, left_out = [], [], [], {}
+    image_size = (0, 0)
     for name, raw in frames.items():
         analyzers, intrinsics = develop_frame(raw, device)
         s0 = intensity(analyzers)
-        spheres = find_spheres(s0, intrinsics, radius_m)
-        if not spheres:
-            left_out[name] = "no sphere found (expected dark spheres in front of a bright background)"
+        image_size = (s0.shape[1], s0.shape[0])
+        spheres, problem = find_spheres_or_why(s0, intrinsics, radius_m)
+        if problem:
+            left_out[name] = problem
+            if log:
+                log(f"{name}: {problem}")
         for k, sphere in enumerate(spheres):
             label = f"{name}#{k} at ({sphere.centroid_px[0]:.0f}, {sphere.centroid_px[1]:.0f})"
             problem = sphere.problem
@@ -313,4 +400,5 @@ def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m:
     sigma2 = float(np.sum(weights * distances ** 2) / dof)
     cov = sigma2 * np.linalg.inv(np.einsum("n,nij->ij", weights, projectors))
     return FlashResult(position_m=position, std_m=np.sqrt(np.diag(cov)),
-                       rms_mm=float(np.sqrt(np.mean(distances ** 2)) * 1e3), highlights=records, left_out=left_out)
+                       rms_mm=float(np.sqrt(np.mean(distances ** 2)) * 1e3), highlights=records, left_out=left_out,
+                       image_size=image_size)

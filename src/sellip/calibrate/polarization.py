@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sellip.calibrate.flash import develop_frame, find_highlight, find_spheres, intensity, pixel_rays
+from sellip.calibrate.flash import develop_frame, find_highlight, find_spheres_or_why, intensity, pixel_rays
 from sellip.calibrate.intrinsics import CalibrationError
 from sellip.model.conventions import ANALYZER_ANGLES_DEG
 
@@ -142,12 +142,26 @@ class PolarizationReport:
                    f"{self.polarizer_deg:.2f} +- {self.polarizer_std_deg:.2f} deg on {self.highlights} highlights")
         return out
 
+    def uncertainty(self) -> dict[str, float]:
+        """What :mod:`sellip.calibrate.targets` gates the check on: {polarizer_std_deg}."""
+        return {"polarizer_std_deg": self.polarizer_std_deg}
+
+    def causes(self) -> list[str]:
+        """Why the flash polarizer's angle may be uncertain, as far as the frames show it."""
+        out = []
+        if self.highlights < 6:
+            out.append(f"only {self.highlights} highlights below the white level (6 or more expected)")
+        saturated = sum("saturated" in why for why in self.left_out.values())
+        if saturated:
+            out.append(f"{saturated} highlight(s) saturated: lower the flash")
+        return out
+
     def record(self) -> dict:
         return {"ok": self.ok, "claimed_layout": self.claimed_layout, "best_layout": self.best_layout,
                 "claimed_score": self.claimed_score, "best_score": self.best_score, "second_score": self.second_score,
                 "limb_pixels": self.limb_pixels, "polarizer_deg_measured": self.polarizer_deg,
                 "polarizer_std_deg": self.polarizer_std_deg, "polarizer_deg_claimed": self.claimed_polarizer_deg,
-                "highlights": self.highlights, "messages": self.messages(), "left_out": self.left_out}
+        "highlights": self.highlights, "messages": self.messages(), "left_out": self.left_out}
 
 
 def _describe(claimed, best) -> str:
@@ -174,7 +188,10 @@ def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius
     for name, raw in frames.items():
         analyzers, intrinsics = develop_frame(raw, device)
         s0 = intensity(analyzers)
-        for k, sphere in enumerate(find_spheres(s0, intrinsics, radius_m)):
+        spheres, problem = find_spheres_or_why(s0, intrinsics, radius_m)
+        if problem:
+            left_out[name] = problem
+        for k, sphere in enumerate(spheres):
             label = f"{name}#{k}"
             if sphere.problem:
                 left_out[label] = sphere.problem
