@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from sellip.calibrate import color, flash, intrinsics, polarization, synthetic
+from sellip.calibrate import color, flash, intrinsics, polarization, synthetic, targets
 from sellip.calibrate import device as devices
 from sellip.calibrate.intrinsics import CalibrationError
 from sellip.capture import assemble, files, ingest, reader, writer
@@ -199,6 +199,43 @@ def test_clipped_sphere_and_saturated_highlight_are_named():
     assert "2 usable sphere highlight(s), at least 6 needed: take 4 more" in message
     assert "clipped.tiff#" in message and "sphere clipped by the frame edge" in message
     assert message.count("bright.tiff#") == 3 and "highlight saturated" in message
+
+
+def test_dark_background_touching_spheres_and_spheres_near_the_centre_are_named():
+    """Without a bright background the frame is 'no sphere found (...)', not background noise taken for spheres;
+    two spheres touching in the image are named as such; highlights all near the image centre are a cause the
+    flash step names when its uncertainty misses the target."""
+    device = synthetic.true_device(W, H)
+    radius, cam = 0.012, device["camera"]
+    centres = synthetic.sphere_layouts(device, 1, np.random.default_rng(3), radius=radius)[0]
+    frames = {}
+    dark = synthetic.render_spheres(device, [(c, radius) for c in centres], panel=0.0)
+    frames["dark.tiff"] = synthetic.expose(dark, device, 3000, np.random.default_rng(1), reference=float(dark.max()))
+    z = 0.45
+    left = np.array([(W / 2 - cam["cx"]) / cam["fx"] * z - radius * 1.01, 0.0, z])
+    pair = [(left, radius), (left + [2.02 * radius, 0.0, 0.0], radius)]  # touching in the image
+    analyzers = synthetic.render_spheres(device, pair)
+    frames["touching.tiff"] = synthetic.expose(analyzers, device, 3000, np.random.default_rng(2),
+                                               reference=float(analyzers.max()))
+    with pytest.raises(CalibrationError) as error:
+        flash.calibrate_flash(frames, device, radius)
+    message = str(error.value)
+    assert "dark.tiff: no sphere found (expected dark spheres in front of a bright background)" in message
+    assert "dark.tiff#" not in message  # no noise blob reported as a sphere
+    assert "touching.tiff#0" in message and "spheres touching" in message
+    # the causes of an uncertain flash position, from the highlights' records
+    records = [{"frame": "f", "sphere": k, "highlight_px": [W / 4 + 3 * k, H / 4 + 2 * k], "residual_mm": 0.5}
+               for k in range(6)]
+    result = flash.FlashResult(np.zeros(3), np.array([1e-3, 1e-3, 0.05]), 0.5, records,
+                               left_out={"g#0": "highlight saturated (40 pixels at the white level) ..."},
+                               image_size=(W // 2, H // 2))
+    causes = result.causes()
+    assert result.uncertainty()["flash_std_mm"] == pytest.approx(50.0)
+    assert any("spheres were all near the image centre" in c for c in causes)
+    assert any("1 sphere(s) with a saturated highlight" in c for c in causes)
+    assert any("only 6 highlights" in c for c in causes)
+    assert targets.check("flash", result.uncertainty()) == [
+        "1-sigma of the flash position, largest of x, y, z is 50 mm, target <= 2 mm (--max-flash-std-mm)"]
 
 
 # --------------------------------------------------------------------------- polarization
@@ -420,8 +457,16 @@ def test_calibrate_commands_write_device_yaml(calib, tmp_path):
     run = [sys.executable, "-m", "sellip.cli", "calibrate"]
     boards = sorted(str(p) for p in (folder / "board").iterdir())
     spheres = sorted(str(p) for p in (folder / "spheres").iterdir())
-    subprocess.run(run + ["intrinsics", *boards, "--device", str(device_path), "--board", f"{SPEC.cols}x{SPEC.rows}",
-                          "--square-mm", str(SPEC.square_m * 1000)], check=True)
+    intrinsics_args = ["intrinsics", *boards, "--device", str(device_path), "--board", f"{SPEC.cols}x{SPEC.rows}",
+                       "--square-mm", str(SPEC.square_m * 1000)]
+    # at a quarter of the device's size the principal point's 1-sigma (2 px) misses the default target: the step
+    # fails, names why, and leaves device.yaml as it was
+    before = device_path.read_bytes()
+    failed = subprocess.run(run + intrinsics_args, check=False, capture_output=True, text=True)
+    assert failed.returncode != 0 and device_path.read_bytes() == before
+    assert "principal point cx, cy" in failed.stderr and "target <= 0.75 raw px (--max-c-std-px)" in failed.stderr
+    assert "24 board poses used" in failed.stderr
+    subprocess.run(run + intrinsics_args + ["--max-c-std-px", "3"], check=True)
     radius_mm = str(truth["spheres"]["radius_m"] * 1000)
     subprocess.run(run + ["flash", *spheres, "--device", str(device_path), "--sphere-radius-mm", radius_mm], check=True)
     subprocess.run(run + ["polarization", *spheres, "--device", str(device_path), "--sphere-radius-mm", radius_mm],
@@ -431,6 +476,12 @@ def test_calibrate_commands_write_device_yaml(calib, tmp_path):
                           "--corners", *corners], check=True)
     device = devices.read_device(device_path, complete=True)
     assert set(device["calibration"]) == {"intrinsics", "flash", "polarization", "color"}
+    # every step records its 1-sigma and the targets it met
+    record = device["calibration"]
+    assert record["intrinsics"]["targets"]["c_std_px"] == 3 and record["intrinsics"]["std_px"]["cx"] < 3
+    assert max(record["flash"]["std_mm"]) <= record["flash"]["targets"]["flash_std_mm"] == 2
+    assert record["polarization"]["polarizer_std_deg"] <= 0.5 and record["color"]["targets"]["delta_e_mean"] == 1.5
+    assert all(record[step]["ok"] for step in record)
     assert abs(device["camera"]["fx"] / truth["device"]["camera"]["fx"] - 1) < 5e-3
     assert np.linalg.norm(np.subtract(device["light"]["position_m"], truth["device"]["light"]["position_m"])) < 6e-3
     assert device["calibration"]["polarization"]["ok"]
@@ -440,6 +491,20 @@ def test_calibrate_commands_write_device_yaml(calib, tmp_path):
                                    f"{SPEC.cols}x{SPEC.rows}", "--square-mm", "10"], check=False,
                             capture_output=True, text=True)
     assert failed.returncode != 0 and "take 4 more" in failed.stderr
+    # a shell glob that matched nothing arrives as the pattern itself: named as such, not as a LibRaw error
+    failed = subprocess.run(run + ["flash", str(folder / "sphere" / "*.dng"), "--device", str(device_path),
+                                   "--sphere-radius-mm", radius_mm], check=False, capture_output=True, text=True)
+    assert failed.returncode != 0 and f"no file matches '{folder / 'sphere' / '*.dng'}'" in failed.stderr
+    assert "LibRaw" not in failed.stderr
+    # the chart's corners given counter-clockwise: ΔE far above the target, the step fails and names the order
+    before = device_path.read_bytes()
+    reverse = [corners[0], *corners[:0:-1]]
+    failed = subprocess.run(run + ["color", str(folder / "chart" / truth["chart"]["file"]), "--device",
+                                   str(device_path), "--corners", *reverse], check=False, capture_output=True, text=True)
+    assert failed.returncode != 0 and device_path.read_bytes() == before
+    assert "the corners were given in another order (counter-clockwise" in failed.stderr
+    expected = " ".join(f"{float(x):.1f},{float(y):.1f}" for x, y in (c.split(",") for c in corners))
+    assert f"give --corners {expected}" in failed.stderr
 
 
 def test_board_poses_fit_a_small_sensor_and_an_impossible_margin_is_an_error():

@@ -214,7 +214,7 @@ def corner_order_causes(raw: np.ndarray, device: Mapping, corners_px: np.ndarray
         if best is None or mean < best[0]:
             best = (mean, words, order)
     if best is not None and best[0] <= max_delta_e:
-        given = " ".join(f"{x:.0f},{y:.0f}" for x, y in best[2])
+        given = " ".join(f"{x:.1f},{y:.1f}" for x, y in best[2])
         causes.append(f"the corners were given in another order ({best[1]}): in that order the chart fits with "
                       f"ΔE2000 mean {best[0]:.2f}; give --corners {given} (dark skin's outer corner first, then "
                       "clockwise)")
