@@ -8,7 +8,8 @@ Public API::
     BoardSpec(cols=14, rows=10, square_m=0.010)        # inner corners, square side
     board_poses(spec, device, count, rng) -> list[(R (3, 3), t (3,))]   # board -> camera, board fully in view
     render_board(device, spec, rotation, translation, supersample=3, blur_px=0) -> analyzers (H, W, 4, 3)
-    render_spheres(device, spheres, supersample=2, panel=0.5) -> analyzers (H, W, 4, 3)
+    render_spheres(device, spheres, supersample=2, panel=0.5, reflect_panel=True) -> analyzers (H, W, 4, 3)
+    panel_reflection(points, normals, eta, panel) -> analyzers (N, 4)   # the panel mirrored, Fresnel-polarized
     render_chart(device, rotation, translation, supersample=2, shadow=1.0) -> analyzers (H, W, 4, 3)
     expose(analyzers, device, peak_fraction, rng) -> raw (H, W) uint16    # sellip.sensor.simulate_raw
     synthesize_calibration(out, width=2448, height=2048, seed=0, ...) -> Path   # folder, see below
@@ -20,7 +21,8 @@ project (:func:`sellip.pbrdf.full_stokes`) under the flash at ``light.position_m
 ``light.polarizer_deg``. A plane's shading is smooth and is evaluated on a grid of every 4th pixel
 (interpolated bilinearly), its printed texture (checkers, patches) per sample (3x3 per pixel); spheres are
 shaded per sample (2x2). The
-light panel behind the spheres is an unpolarized emitter (a backlit outline is what locates a sphere).
+light panel behind the spheres is an unpolarized emitter (a backlit outline is what locates a sphere), and the
+spheres mirror it (Fresnel-weighted, s-polarized), brightest at their limbs, as real glossy spheres do.
 Shadows are not traced (the board and chart are alone in their frames; spheres are placed apart).
 The analyzer images go through :func:`sellip.sensor.simulate_raw` (mosaic, colour, shot and read noise,
 12-bit rounding, saturation) with the device's sensor.
@@ -334,10 +336,51 @@ def render_board(device: dict, spec: BoardSpec, rotation: np.ndarray, translatio
 # --------------------------------------------------------------------------- spheres
 
 
+PANEL_DISTANCE_M = 1.0
+"""The light panel behind the spheres: the plane z = this (camera coordinates), 2 m x 2 m about the optical axis."""
+
+PANEL_HALF_SIZE_M = 1.0
+
+
+def panel_reflection(points: np.ndarray, normals: np.ndarray, eta: float, panel: float) -> np.ndarray:
+    """Analyzer intensities (N, 4) of the light panel mirrored by a glossy dielectric at surface points (N, 3)
+    with normals (N, 3) (camera coordinates): where the mirror ray of the camera ray meets the panel
+    (:data:`PANEL_DISTANCE_M`), the panel's unpolarized radiance ``panel`` (s0) times the Fresnel reflectance,
+    R+ = (Rs + Rp) / 2, polarized by R- = (Rs - Rp) / 2 across the plane of incidence (s-polarized: along d x n),
+    in the ray's Stokes frame (sellip.conventions). On a sphere's limb that is tangential, perpendicular to the
+    diffuse light's radial polarization; at grazing incidence Rs, Rp -> 1, so the limb mirrors the panel."""
+    from sellip.model.conventions import stokes_to_analyzers
+
+    d = points / np.linalg.norm(points, axis=-1, keepdims=True)
+    cos_i = np.clip(-np.sum(d * normals, axis=-1), 0.0, 1.0)
+    mirror = d + 2 * cos_i[:, None] * normals
+    t = (PANEL_DISTANCE_M - points[:, 2]) / np.where(mirror[:, 2] > 1e-9, mirror[:, 2], np.nan)
+    hit = points + t[:, None] * mirror
+    on_panel = (mirror[:, 2] > 1e-9) & (np.abs(hit[:, 0]) <= PANEL_HALF_SIZE_M) & (np.abs(hit[:, 1]) <= PANEL_HALF_SIZE_M)
+    sin2_t = (1 - cos_i ** 2) / eta ** 2
+    cos_t = np.sqrt(1 - sin2_t)
+    r_s = ((cos_i - eta * cos_t) / (cos_i + eta * cos_t)) ** 2
+    r_p = ((eta * cos_i - cos_t) / (eta * cos_i + cos_t)) ** 2
+    # the ray's Stokes frame: z towards the camera, y the camera's up without its z part, x = y x z
+    z = -d
+    up = np.array([0.0, -1.0, 0.0])
+    y_axis = up - (z @ up)[:, None] * z
+    y_axis /= np.linalg.norm(y_axis, axis=-1, keepdims=True)
+    x_axis = np.cross(y_axis, z)
+    s_dir = np.cross(d, normals)
+    s_dir /= np.maximum(np.linalg.norm(s_dir, axis=-1, keepdims=True), 1e-12)
+    psi = np.arctan2(np.sum(s_dir * y_axis, -1), np.sum(s_dir * x_axis, -1))
+    level = np.where(on_panel, panel, 0.0)
+    plus, minus = level * (r_s + r_p) / 2, level * (r_s - r_p) / 2
+    stokes = np.stack([plus, minus * np.cos(2 * psi), minus * np.sin(2 * psi)], axis=-1)
+    return np.asarray(stokes_to_analyzers(stokes, axis=-1), np.float32)
+
+
 def render_spheres(device: dict, spheres: list[tuple[np.ndarray, float]], supersample: int = 2,
-                   panel: float = 0.5, params: dict | None = None) -> np.ndarray:
+                   panel: float = 0.5, params: dict | None = None, reflect_panel: bool = True) -> np.ndarray:
     """Analyzer images (H, W, 4, 3) of glossy spheres (centre (3,) camera coordinates, radius) in front of an
-    unpolarized light panel of radiance ``panel`` (analyzer images read panel / 2 each)."""
+    unpolarized light panel of radiance ``panel`` (analyzer images read panel / 2 each). With ``reflect_panel``
+    the spheres mirror the panel (:func:`panel_reflection`), as real glossy spheres do at their limbs."""
     params = params or SPHERE_PARAMS
     sensor = device["sensor"]
     width, height = sensor["width"], sensor["height"]
@@ -365,7 +408,10 @@ def render_spheres(device: dict, spheres: list[tuple[np.ndarray, float]], supers
             centres = np.asarray([s[0] for s in spheres], np.float64)[which[hit]]
             radii = np.asarray([s[1] for s in spheres], np.float64)[which[hit]]
             normals = (points - centres) / radii[:, None]
-            samples[hit] = _shade(points, normals, device, params)
+            shaded = _shade(points, normals, device, params)
+            if reflect_panel and panel > 0:
+                shaded += panel_reflection(points, normals, float(params["eta"]), panel)[:, :, None]
+            samples[hit] = shaded
         out[rows] = samples.reshape(samples.shape[0], width, n_sub, 4, 3).mean(axis=2)
     return out
 
