@@ -64,6 +64,15 @@ FIELD_SPREAD = 0.4
 """Highlights spanning less than this share of the width or height: spheres all near the centre (depth poorly
 determined)."""
 
+RIM_ETA = 1.5
+"""Index of refraction assumed for the spheres' rim model (glass, glaze, phenolic resin: 1.45-1.6; the half-level
+crossing of the model moves by 0.03 % of the radius between those)."""
+
+RIM_BAND = (0.92, 1.08)
+"""The rim model is fitted on pixels whose ray makes this range of multiples of the outline's cone angle."""
+
+RIM_SECTORS = 8
+
 NO_SPHERE = "no sphere found (expected dark spheres in front of a bright background)"
 
 
@@ -132,7 +141,8 @@ def _fit_cone(rays: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     return axis, cos_alpha, residual
 
 
-def find_spheres_or_why(s0: np.ndarray, intrinsics: Mapping, radius_m: float) -> tuple[list[Sphere], str | None]:
+def find_spheres_or_why(s0: np.ndarray, intrinsics: Mapping, radius_m: float, rim_eta: float | None = RIM_ETA
+                        ) -> tuple[list[Sphere], str | None]:
     """:func:`find_spheres`, or ([], why) when the frame shows no sphere against a bright background: the
     background (the frame's median) must stand :data:`MIN_BACKGROUND_SNR` times its noise above black, else the
     dark discs found would be the background's noise."""
@@ -145,8 +155,90 @@ def find_spheres_or_why(s0: np.ndarray, intrinsics: Mapping, radius_m: float) ->
     if not background > MIN_BACKGROUND_SNR * max(noise, 1e-12):
         return [], (f"{NO_SPHERE}: the background reads {background:.3g} of full scale with noise {noise:.2g}, "
                     f"at least {MIN_BACKGROUND_SNR:g}x its noise expected (light the panel or wall behind the spheres)")
-    spheres = find_spheres(s0, intrinsics, radius_m)
+    spheres = find_spheres(s0, intrinsics, radius_m, rim_eta)
     return spheres, (None if spheres else NO_SPHERE)
+
+
+
+
+def _r_plus(cos_i: np.ndarray, eta: float) -> np.ndarray:
+    """Fresnel reflectance (Rs + Rp) / 2 of unpolarized light at incidence cos_i, air -> index eta."""
+    cos_i = np.clip(cos_i, 0.0, 1.0)
+    cos_t = np.sqrt(1 - (1 - cos_i ** 2) / eta ** 2)
+    r_s = ((cos_i - eta * cos_t) / (cos_i + eta * cos_t)) ** 2
+    r_p = ((eta * cos_i - cos_t) / (eta * cos_i + cos_t)) ** 2
+    return (r_s + r_p) / 2
+
+
+def rim_silhouette(s0: np.ndarray, intrinsics: Mapping, axis: np.ndarray, alpha: float, background: float,
+                   eta: float = RIM_ETA) -> float:
+    """The sphere's true silhouette cone angle (rad) from the intensity across its rim.
+
+    A glossy sphere mirrors the bright background at its rim: at grazing incidence the Fresnel reflectance goes
+    to 1, so the rim is as bright as the background and the dark disc (the half-level outline) is smaller than
+    the sphere -- on the synthetic spheres that mirror their panel, centres 11-13 mm too far at 0.45 m. Model of
+    s0 against the angle b between a pixel's ray and the cone ``axis``: the background ``background`` * g outside
+    (b > A), inside k * background * R+(theta) + c_sector + c1 (A - b) with sin(theta) = sin(b) / sin(A) (the normal's
+    zenith from the view ray), blurred by a Gaussian of width s; fitted by least squares for A, k in [0, 1.2],
+    s, g, c1 and one c per 45-degree sector (the flash's shading varies around the rim) on the pixels with b in
+    :data:`RIM_BAND` x ``alpha``. Returns ``alpha`` when the fit fails."""
+    from scipy.optimize import least_squares
+
+    height, width = s0.shape
+    f = float(np.sqrt(intrinsics["fx"] * intrinsics["fy"]))
+    u0 = intrinsics["fx"] * axis[0] / axis[2] + intrinsics["cx"]
+    v0 = intrinsics["fy"] * axis[1] / axis[2] + intrinsics["cy"]
+    reach = f * np.tan(alpha * RIM_BAND[1]) + 3
+    top, bottom = max(int(v0 - reach), 0), min(int(v0 + reach) + 2, height)
+    left, right = max(int(u0 - reach), 0), min(int(u0 + reach) + 2, width)
+    yy, xx = np.mgrid[top:bottom, left:right]
+    rays = pixel_rays(np.stack([xx, yy], axis=-1).astype(np.float64), intrinsics)
+    beta = np.arccos(np.clip(rays @ axis, -1, 1))
+    values = s0[top:bottom, left:right]
+    use = (beta > RIM_BAND[0] * alpha) & (beta < RIM_BAND[1] * alpha) & np.isfinite(values)
+    if use.sum() < 50:
+        return alpha
+    beta, values = beta[use], values[use].astype(np.float64)
+    # the sector of each pixel around the axis
+    e1 = np.cross(axis, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    r = rays[use]
+    sector = ((np.arctan2(r @ e2, r @ e1) + np.pi) / (2 * np.pi) * RIM_SECTORS).astype(int) % RIM_SECTORS
+    pixel = 1.0 / f  # one pixel in angle
+    grid_step = pixel / 8
+
+    def model(p):
+        a, k, sigma, gain, c1, *c = p
+        sigma = abs(sigma) + 0.2 * pixel
+        # a grid that moves with A, so that the step at the silhouette moves continuously with it
+        below = np.ceil((a - RIM_BAND[0] * alpha + 4 * sigma) / grid_step)
+        above = np.ceil((RIM_BAND[1] * alpha - a + 4 * sigma) / grid_step)
+        grid = a + np.arange(-below, above + 1) * grid_step
+        inside = grid < a
+        sin_theta = np.clip(np.sin(grid) / np.sin(a), 0, 1)
+        rim = np.where(inside, k * background * _r_plus(np.sqrt(1 - sin_theta ** 2), eta) + c1 * (a - grid),
+                       gain * background)
+        step = np.where(inside, 1.0, 0.0)
+        half = int(np.ceil(4 * sigma / grid_step))
+        kernel = np.exp(-0.5 * (np.arange(-half, half + 1) * grid_step / sigma) ** 2)
+        kernel /= kernel.sum()
+        rim_b = np.convolve(np.pad(rim, half, mode="edge"), kernel, mode="valid")
+        step_b = np.convolve(np.pad(step, half, mode="edge"), kernel, mode="valid")
+        at = np.interp(beta, grid, rim_b) + np.asarray(c)[sector] * np.interp(beta, grid, step_b)
+        return at - values
+
+    interior = [float(np.median(values[(sector == j) & (beta < 0.97 * alpha)])) if np.any((sector == j) &
+                (beta < 0.97 * alpha)) else 0.0 for j in range(RIM_SECTORS)]
+    start = [alpha, 0.5, 0.7 * pixel, 1.0, 0.0, *interior]
+    lower = [RIM_BAND[0] * alpha, 0.0, 0.0, 0.5, -np.inf] + [-np.inf] * RIM_SECTORS
+    upper = [RIM_BAND[1] * alpha, 1.2, 5 * pixel, 1.5, np.inf] + [np.inf] * RIM_SECTORS
+    scale = [pixel, 0.1, pixel, 0.1, background / alpha] + [0.1 * background] * RIM_SECTORS
+    try:
+        fit = least_squares(model, start, bounds=(lower, upper), x_scale=scale)
+    except ValueError:
+        return alpha
+    return float(fit.x[0]) if fit.success else alpha
 
 
 def _solidity(blob: np.ndarray) -> float:
@@ -162,10 +254,13 @@ def _solidity(blob: np.ndarray) -> float:
         return 1.0
 
 
-def find_spheres(s0: np.ndarray, intrinsics: Mapping, radius_m: float) -> list[Sphere]:
+def find_spheres(s0: np.ndarray, intrinsics: Mapping, radius_m: float, rim_eta: float | None = RIM_ETA
+                 ) -> list[Sphere]:
     """Spheres in an intensity image (H', W') on the undistorted output grid: dark discs on a bright background.
     A disc touching the image border is returned with a problem (clipped), as is one that is two discs touching
-    (:data:`MIN_SOLIDITY`) or whose outline is not a sphere's."""
+    (:data:`MIN_SOLIDITY`) or whose outline is not a sphere's. The outline (where s0 crosses half the background)
+    gives the cone's axis; its angle is then refined by :func:`rim_silhouette` (the background mirrored at the
+    rim, Fresnel for index ``rim_eta``), unless ``rim_eta`` is None."""
     finite = np.isfinite(s0)
     background = float(np.median(s0[finite]))
     level = background / 2
@@ -199,8 +294,10 @@ def find_spheres(s0: np.ndarray, intrinsics: Mapping, radius_m: float) -> list[S
             continue
         axis, cos_alpha, residual = _fit_cone(pixel_rays(outline, intrinsics))
         rms = float(np.sqrt(np.mean(residual ** 2)) / pixel_scale)
-        sin_alpha = np.sqrt(1 - cos_alpha ** 2)
-        sphere = Sphere(axis * radius_m / sin_alpha, radius, centroid, rms)
+        alpha = float(np.arccos(cos_alpha))
+        if rim_eta is not None:
+            alpha = rim_silhouette(s0, intrinsics, axis, alpha, background, rim_eta)
+        sphere = Sphere(axis * radius_m / np.sin(alpha), radius, centroid, rms)
         if rms > MAX_OUTLINE_RMS_PX:
             sphere.problem = (f"outline is {rms:.2f} px RMS from a sphere's silhouette (at most {MAX_OUTLINE_RMS_PX}"
                               " expected): occluded, touching another object, or not a sphere")

@@ -223,32 +223,31 @@ def _turned(layout) -> list:
 
 
 def _check_cues(report: "PolarizationReport", claimed, best, claimed_highlight_deg: float) -> None:
-    """Raise CalibrationError when the two independent cues disagree about a 90-degree turn: the limb (diffuse
-    light polarized radially; a mirrored bright background polarizes it tangentially and turns its verdict by 90
-    deg) and the highlights (the flash's polarization, kept by a mirror reflection) under the claimed layout.
-    Either the limb says "turned by 90" while the highlights, read with the claimed layout, show the claimed
-    flash polarizer; or the limb says the claimed layout fits while the highlights are 90 deg off the claimed
-    polarizer. Both are what a turned layout seen through a background reflection, or a flash polarizer
-    mounted 90 deg off, would give: the frames cannot tell which."""
+    """Raise CalibrationError when the two independent cues disagree about a 90-degree turn: the diffuse light
+    (polarized radially, :data:`DIFFUSE_ZENITH_DEG`) and the highlights (the flash's polarization, kept by a
+    mirror reflection) read with the claimed layout. Either the diffuse light says "turned by 90" while the
+    highlights, read with the claimed layout, show the claimed flash polarizer; or the diffuse light says the
+    claimed layout fits while the highlights are 90 deg off the claimed polarizer. A turned layout with a flash
+    polarizer mounted 90 deg off, or something bright on the camera's side mirrored in the spheres, would give
+    either: the frames cannot tell which, so the check names no layout."""
     if not np.isfinite(claimed_highlight_deg):
         return
     off = abs((claimed_highlight_deg - report.claimed_polarizer_deg + 90) % 180 - 90)
-    turned = np.array_equal(_turned(claimed), best)
-    if turned and off <= POLARIZER_TOLERANCE_DEG:
+    advice = ("something bright on the camera's side (a lit room, a white wall behind the camera) mirrored in the "
+              "spheres can turn the diffuse light's verdict: shoot them with only the flash on the camera's side; "
+              "else check how the flash polarizer is mounted")
+    if np.array_equal(_turned(claimed), best) and off <= POLARIZER_TOLERANCE_DEG:
         raise CalibrationError(
             f"the cues disagree: the diffuse light says polarizer_layout {claimed} is turned by 90 deg (the score of "
             f"{best} is {report.best_score:+.3f}), but the highlights, read with {claimed}, show the flash polarizer "
-            f"at {claimed_highlight_deg:.2f} deg, the claimed light.polarizer_deg {report.claimed_polarizer_deg:g}. "
-            "A bright background mirrored at the spheres' limbs polarizes them across the diffuse light's plane "
-            "and turns the limb's verdict: shoot the spheres for this check with a dark surround beside them "
-            "(the background bright only behind their centres), or confirm the flash polarizer's mounting")
+            f"at {claimed_highlight_deg:.2f} deg, the claimed light.polarizer_deg {report.claimed_polarizer_deg:g}: "
+            f"either the layout is turned and the flash polarizer 90 deg off, or {advice}")
     if np.array_equal(np.asarray(claimed), np.asarray(best)) and abs(off - 90) <= POLARIZER_TOLERANCE_DEG:
         raise CalibrationError(
-            f"the cues disagree: the diffuse light says polarizer_layout {claimed} fits (score {report.best_score:+.3f}), but "
-            f"the highlights show the flash polarizer at {claimed_highlight_deg:.2f} deg, 90 deg from the claimed "
-            f"light.polarizer_deg {report.claimed_polarizer_deg:g}: either the flash polarizer is mounted 90 deg off, "
-            f"or the layout is {_turned(claimed).tolist()} and a bright background mirrored at the limbs turned the "
-            "limb's verdict; shoot the spheres with a dark surround beside them, or confirm the flash polarizer")
+            f"the cues disagree: the diffuse light says polarizer_layout {claimed} fits (score "
+            f"{report.best_score:+.3f}), but the highlights show the flash polarizer at {claimed_highlight_deg:.2f} "
+            f"deg, 90 deg from the claimed light.polarizer_deg {report.claimed_polarizer_deg:g}: either the flash "
+            f"polarizer is mounted 90 deg off, or the layout is {_turned(claimed).tolist()} and {advice}")
 
 
 def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius_m: float,

@@ -535,7 +535,7 @@ def _burst_name(kind: str, pose: int, frame: int, burst: int, suffix: str) -> st
 def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 2048, seed: int = 0,
                            board_frames: int = 24, sphere_frames: int = 6, spheres_per_frame: int = 3,
                            spec: BoardSpec = BoardSpec(), raw_format: str = "dng", polarizer_deg: float = 0.0,
-                           progress: bool = False, burst: int = 1) -> Path:
+                           progress: bool = False, burst: int = 1, reflect_panel: bool = True) -> Path:
     """Write a calibration folder (module docstring) for the synthetic device; returns it. Atomic: written to a
     temporary sibling and renamed. The same seed gives the same files.
 
@@ -543,7 +543,8 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
     burst of a still scene: ``board_07_b2.dng`` is pose 7's third frame (``board_07.dng`` when ``burst`` is 1).
     The first frame of every pose is the same as with ``burst`` = 1. docs/calibration.md recommends
     ``board_frames=96`` (benchmarks/calibration_accuracy.py) and measures ``board_frames=48, burst=4`` too; the
-    tests use the defaults or fewer frames."""
+    tests use the defaults or fewer frames. ``reflect_panel``: the spheres mirror the light panel (as real glossy
+    spheres do; False: the panel is seen but not mirrored, as before 2026-11-27)."""
     out = Path(out)
     device = true_device(width, height, polarizer_deg)
     suffix = {"dng": ".dng", "tiff": ".tiff", "png": ".png"}[raw_format]
@@ -554,7 +555,8 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
         shutil.rmtree(tmp)
     truth = {"device": device, "board": {"cols": spec.cols, "rows": spec.rows, "square_m": spec.square_m,
                                           "poses": {}},
-             "spheres": {"radius_m": SPHERE_RADIUS_M, "centres_m": {}}, "chart": {}}
+             "spheres": {"radius_m": SPHERE_RADIUS_M, "centres_m": {}, "reflect_panel": bool(reflect_panel)},
+             "chart": {}}
     try:
         for sub in ("board", "spheres", "chart"):
             (tmp / sub).mkdir(parents=True)
@@ -574,7 +576,7 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
         truth["spheres"]["radius_m"] = radius
         for k, centres in enumerate(sphere_layouts(device, sphere_frames, rng, radius=radius,
                                                    per_frame=spheres_per_frame)):
-            analyzers = render_spheres(device, [(c, radius) for c in centres])
+            analyzers = render_spheres(device, [(c, radius) for c in centres], reflect_panel=reflect_panel)
             peak = float(np.max(analyzers))
             for b in range(burst):
                 raw = expose(analyzers, device, 0.75 * white, np.random.default_rng(_burst_seed([seed, 21, k], b)),
