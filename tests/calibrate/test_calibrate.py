@@ -262,6 +262,67 @@ def test_polarization_layout_and_flash_polarizer_checked(calib, claimed, polariz
         assert what in " ".join(report.messages())
 
 
+def test_polarization_cues_that_disagree_fail_instead_of_naming_a_layout(calib):
+    """The calibration set's spheres mirror their panel: the limbs (60-85 deg) alone would call the true layout
+    turned by 90 deg (score < 0); the diffuse band decides. A claim turned by 90 deg with the flash polarizer
+    claimed 90 deg off too agrees with the highlights but not with the diffuse light: the check fails, naming no
+    layout."""
+    folder, truth = calib
+    device = _calibrated(truth)
+    frames = _frames(folder / "spheres", device["sensor"])
+    report = polarization.check_polarization(frames, device, truth["spheres"]["radius_m"])
+    assert report.ok and report.best_score > 0.3 and report.rim_score < -0.5
+    assert "mirror the bright background and were not used" in " ".join(report.messages())
+    device["sensor"]["polarizer_layout"] = [[0, 135], [45, 90]]
+    device["light"]["polarizer_deg"] = 90.0
+    with pytest.raises(CalibrationError, match="the cues disagree: the diffuse light says polarizer_layout "
+                                               r"\[\[0, 135\], \[45, 90\]\] is turned by 90 deg"):
+        polarization.check_polarization(frames, device, truth["spheres"]["radius_m"])
+
+
+def test_panel_reflection_is_fresnel_and_s_polarized():
+    """The simulator's mirrored panel: s-polarized (across the plane of incidence: tangential on a sphere's limb,
+    AoLP = the normal's azimuth + 90 deg), its level R+ = (Rs + Rp) / 2 of the panel, 1 at grazing incidence;
+    nothing where the mirror ray turns back towards the camera (normal incidence)."""
+    z = 0.5
+    azimuth = np.radians(30.0)
+    points, normals, expected = [], [], []
+    for zenith_deg in (89.9, 70.0, 5.0):
+        zenith = np.radians(zenith_deg)
+        # a point on the optical axis with its normal at that zenith from the view ray, at that image azimuth
+        # (image up is -y): n = sin(z) (cos a, -sin a, 0) - cos(z) (0, 0, 1)
+        normals.append([np.sin(zenith) * np.cos(azimuth), -np.sin(zenith) * np.sin(azimuth), -np.cos(zenith)])
+        points.append([0.0, 0.0, z])
+    out = synthetic.panel_reflection(np.asarray(points), np.asarray(normals), 1.5, panel=2.0)
+    s0 = out.sum(axis=-1) / 2
+    s1, s2 = out[:, 0] - out[:, 2], out[:, 1] - out[:, 3]
+    aolp = np.degrees(0.5 * np.arctan2(s2, s1))
+    assert s0[0] == pytest.approx(2.0, rel=2e-2) and s0[2] == 0.0  # R+ = 0.99 at 89.9 deg
+    cos_i = np.cos(np.radians(70.0))
+    cos_t = np.sqrt(1 - (1 - cos_i ** 2) / 1.5 ** 2)
+    r_s = ((cos_i - 1.5 * cos_t) / (cos_i + 1.5 * cos_t)) ** 2
+    r_p = ((1.5 * cos_i - cos_t) / (1.5 * cos_i + cos_t)) ** 2
+    assert s0[1] == pytest.approx(2.0 * (r_s + r_p) / 2, rel=1e-5)
+    assert np.hypot(s1[1], s2[1]) == pytest.approx(2.0 * (r_s - r_p) / 2, rel=1e-4)  # polarized by R-
+    assert abs((aolp[1] - 30.0 - 90.0 + 90) % 180 - 90) < 1e-4  # tangential: the normal's azimuth + 90 deg
+
+
+def test_rim_model_finds_the_silhouette_of_a_sphere_that_mirrors_the_background():
+    """A glossy sphere mirrors the bright background at its rim, so the dark disc is smaller than the sphere:
+    the half-level outline puts the centre about 10 mm too far at 0.45 m (612x512); the rim model within 2 mm."""
+    device = synthetic.true_device(W, H)
+    radius, cam = 0.012, device["camera"]
+    centre = np.array([(W / 3 - cam["cx"]) / cam["fx"] * 0.45, 0.02, 0.45])
+    analyzers = synthetic.render_spheres(device, [(centre, radius)])
+    raw = synthetic.expose(analyzers, device, 3000, np.random.default_rng(4), reference=float(analyzers.max()))
+    analyzers, grid = flash.develop_frame(raw, device)
+    s0 = flash.intensity(analyzers)
+    plain, = flash.find_spheres(s0, grid, radius, rim_eta=None)
+    rim, = flash.find_spheres(s0, grid, radius)
+    assert np.linalg.norm(plain.centre - centre) > 5e-3
+    assert np.linalg.norm(rim.centre - centre) < 2e-3, np.linalg.norm(rim.centre - centre)
+
+
 def test_permutation_relabels_the_analyzer_axis():
     claimed, true = [[90, 45], [135, 0]], [[90, 135], [45, 0]]
     images = np.array([10.0, 45.0, 90.0, 135.0])  # developed with `claimed`: analyzer k holds "claimed angle k"
