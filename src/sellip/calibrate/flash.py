@@ -5,6 +5,7 @@ Public API::
     develop_frame(raw, device) -> (analyzers (H', W', 4, C), intrinsics)   # the ingest chain, undistorted
     find_spheres(s0, intrinsics, radius_m) -> list[Sphere]                  # outlines -> centres, or problems
     find_spheres_or_why(s0, intrinsics, radius_m) -> (list[Sphere], why | None)   # no bright background: why
+    rim_silhouette(s0, intrinsics, axis, alpha, background, eta) -> (axis, alpha)  # the rim's mirrored background
     find_highlight(s0, sphere) -> (centre (x, y) | None, problem | None)    # refine_highlight: a Gaussian fit
     mirror_ray(sphere, highlight_px, intrinsics) -> (point (3,), direction (3,))
     nearest_point(points (N, 3), directions (N, 3), scale_m=0.001) -> (X (3,), distances (N,), weights (N,))
@@ -171,8 +172,8 @@ def _r_plus(cos_i: np.ndarray, eta: float) -> np.ndarray:
 
 
 def rim_silhouette(s0: np.ndarray, intrinsics: Mapping, axis: np.ndarray, alpha: float, background: float,
-                   eta: float = RIM_ETA) -> float:
-    """The sphere's true silhouette cone angle (rad) from the intensity across its rim.
+                   eta: float = RIM_ETA) -> tuple[np.ndarray, float]:
+    """The sphere's silhouette cone, axis (3,) and angle (rad), from the intensity across its rim.
 
     A glossy sphere mirrors the bright background at its rim: at grazing incidence the Fresnel reflectance goes
     to 1, so the rim is as bright as the background and the dark disc (the half-level outline) is smaller than
@@ -180,8 +181,9 @@ def rim_silhouette(s0: np.ndarray, intrinsics: Mapping, axis: np.ndarray, alpha:
     s0 against the angle b between a pixel's ray and the cone ``axis``: the background ``background`` * g outside
     (b > A), inside k * background * R+(theta) + c_sector + c1 (A - b) with sin(theta) = sin(b) / sin(A) (the normal's
     zenith from the view ray), blurred by a Gaussian of width s; fitted by least squares for A, k in [0, 1.2],
-    s, g, c1 and one c per 45-degree sector (the flash's shading varies around the rim) on the pixels with b in
-    :data:`RIM_BAND` x ``alpha``. Returns ``alpha`` when the fit fails."""
+    s, g, c1, the axis' tilt (the half-level outline's axis leans where the flash lights the rim more) and one c
+    per 45-degree sector (the flash's shading varies around the rim) on the pixels with b in :data:`RIM_BAND` x
+    ``alpha``. Returns (``axis``, ``alpha``) when the fit fails."""
     from scipy.optimize import least_squares
 
     height, width = s0.shape
@@ -197,7 +199,7 @@ def rim_silhouette(s0: np.ndarray, intrinsics: Mapping, axis: np.ndarray, alpha:
     values = s0[top:bottom, left:right]
     use = (beta > RIM_BAND[0] * alpha) & (beta < RIM_BAND[1] * alpha) & np.isfinite(values)
     if use.sum() < 50:
-        return alpha
+        return axis, alpha
     beta, values = beta[use], values[use].astype(np.float64)
     # the sector of each pixel around the axis
     e1 = np.cross(axis, [0.0, 1.0, 0.0])
@@ -208,8 +210,13 @@ def rim_silhouette(s0: np.ndarray, intrinsics: Mapping, axis: np.ndarray, alpha:
     pixel = 1.0 / f  # one pixel in angle
     grid_step = pixel / 8
 
+    def tilted(dx, dy):
+        turned = axis + dx * e1 + dy * e2
+        return turned / np.linalg.norm(turned)
+
     def model(p):
-        a, k, sigma, gain, c1, *c = p
+        a, k, sigma, gain, c1, dx, dy, *c = p
+        beta = np.arccos(np.clip(r @ tilted(dx, dy), -1, 1))
         sigma = abs(sigma) + 0.2 * pixel
         # a grid that moves with A, so that the step at the silhouette moves continuously with it
         below = np.ceil((a - RIM_BAND[0] * alpha + 4 * sigma) / grid_step)
@@ -230,15 +237,18 @@ def rim_silhouette(s0: np.ndarray, intrinsics: Mapping, axis: np.ndarray, alpha:
 
     interior = [float(np.median(values[(sector == j) & (beta < 0.97 * alpha)])) if np.any((sector == j) &
                 (beta < 0.97 * alpha)) else 0.0 for j in range(RIM_SECTORS)]
-    start = [alpha, 0.5, 0.7 * pixel, 1.0, 0.0, *interior]
-    lower = [RIM_BAND[0] * alpha, 0.0, 0.0, 0.5, -np.inf] + [-np.inf] * RIM_SECTORS
-    upper = [RIM_BAND[1] * alpha, 1.2, 5 * pixel, 1.5, np.inf] + [np.inf] * RIM_SECTORS
-    scale = [pixel, 0.1, pixel, 0.1, background / alpha] + [0.1 * background] * RIM_SECTORS
+    start = [alpha, 0.5, 0.7 * pixel, 1.0, 0.0, 0.0, 0.0, *interior]
+    shift = 0.05 * alpha
+    lower = [RIM_BAND[0] * alpha, 0.0, 0.0, 0.5, -np.inf, -shift, -shift] + [-np.inf] * RIM_SECTORS
+    upper = [RIM_BAND[1] * alpha, 1.2, 5 * pixel, 1.5, np.inf, shift, shift] + [np.inf] * RIM_SECTORS
+    scale = [pixel, 0.1, pixel, 0.1, background / alpha, pixel, pixel] + [0.1 * background] * RIM_SECTORS
     try:
         fit = least_squares(model, start, bounds=(lower, upper), x_scale=scale)
     except ValueError:
-        return alpha
-    return float(fit.x[0]) if fit.success else alpha
+        return axis, alpha
+    if not fit.success:
+        return axis, alpha
+    return tilted(fit.x[5], fit.x[6]), float(fit.x[0])
 
 
 def _solidity(blob: np.ndarray) -> float:
@@ -296,7 +306,7 @@ def find_spheres(s0: np.ndarray, intrinsics: Mapping, radius_m: float, rim_eta: 
         rms = float(np.sqrt(np.mean(residual ** 2)) / pixel_scale)
         alpha = float(np.arccos(cos_alpha))
         if rim_eta is not None:
-            alpha = rim_silhouette(s0, intrinsics, axis, alpha, background, rim_eta)
+            axis, alpha = rim_silhouette(s0, intrinsics, axis, alpha, background, rim_eta)
         sphere = Sphere(axis * radius_m / np.sin(alpha), radius, centroid, rms)
         if rms > MAX_OUTLINE_RMS_PX:
             sphere.problem = (f"outline is {rms:.2f} px RMS from a sphere's silhouette (at most {MAX_OUTLINE_RMS_PX}"
