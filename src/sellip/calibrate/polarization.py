@@ -9,17 +9,21 @@ Public API::
 
 Two physical facts, on glossy dielectric spheres (camera-frame Stokes, sellip.conventions):
 
-* Diffuse light leaves a dielectric polarized in its plane of exitance: on the limb (normal zenith 60-85 deg
-  from the view ray) its AoLP is the normal's azimuth phi in the ray's Stokes frame (x image right, y image
-  up), known on a sphere, and its DoP grows with the Fresnel transmission. The score of a layout is
-  sum_w cos 2 (AoLP - phi) / sum_w (w = the polarized intensity): about +1 for the right layout, -1 when 0/90
-  (and 45/135) are exchanged (AoLP turned by 90 deg), about 0 for a mirrored (45 <-> 135) or rotated layout.
-  Before that, the pairing: orthogonal analyzers sum to s0 (I0 + I90 = I45 + I135), which only one of the
-  three ways to pair the cell's four positions satisfies; the 8 layouts with that pairing are scored.
-  All 24 arrangements are scored from ONE development of each frame: a layout only says which of the four
-  cell positions is which angle, so another layout is a permutation of the developed analyzer axis.
+* Diffuse light leaves a dielectric polarized in its plane of exitance: its AoLP is the normal's azimuth phi in
+  the ray's Stokes frame (x image right, y image up), known on a sphere. The score of a layout is
+  sum_w cos 2 (AoLP - phi) / sum_w (w = the polarized intensity): positive for the right layout, negative when
+  0/90 (and 45/135) are exchanged (AoLP turned by 90 deg), about 0 for a mirrored (45 <-> 135) or rotated
+  layout. It is taken where the normal is 25-45 deg from the view ray (DIFFUSE_ZENITH_DEG): on the limb a
+  glossy sphere mirrors the bright background, polarized tangentially, which turns the limb's verdict; the limb
+  (LIMB_ZENITH_DEG) is scored and reported only. Before that, the pairing: orthogonal analyzers sum to s0
+  (I0 + I90 = I45 + I135), which only one of the three ways to pair the cell's four positions satisfies; the 8
+  layouts with that pairing are scored. All 24 arrangements are scored from ONE development of each frame: a
+  layout only says which of the four cell positions is which angle, so another layout is a permutation of the
+  developed analyzer axis.
 * A mirror highlight keeps the flash's linear polarization (at 3.5 deg from normal incidence the Fresnel
   coefficients of s and p agree to 1e-3): under the right layout the highlight's AoLP is ``light.polarizer_deg``.
+  The two cues are checked against each other (:func:`_check_cues`): when they disagree about a 90-degree turn
+  the check fails and names no layout.
 """
 
 from __future__ import annotations
