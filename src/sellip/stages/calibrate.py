@@ -1,13 +1,15 @@
 """``sellip calibrate``: describe a real device once (DESIGN §3), step by step, into device.yaml.
 
     sellip calibrate intrinsics FRAME... --device device.yaml --board 9x7 --square-mm 15 [--k3]
-    sellip calibrate flash FRAME... --device device.yaml --sphere-radius-mm 20
+    sellip calibrate flash FRAME... --device device.yaml --sphere-radius-mm 20 [--max-flash-std-mm 2 ...]
     sellip calibrate polarization FRAME... --device device.yaml --sphere-radius-mm 20 [--write]
     sellip calibrate color FRAME --device device.yaml --corners X,Y X,Y X,Y X,Y
 
 device.yaml must exist with at least its ``sensor`` section (docs/calibration.md); each step reads raw frames
-(DNG / 16-bit TIFF / PNG, checked against the sensor), logs every frame it leaves out with why, and writes its
-result and residuals into device.yaml (:mod:`sellip.calibrate.device`). The library is
+(DNG / 16-bit TIFF / PNG, checked against the sensor), logs every frame it leaves out with why, gates on its own
+uncertainty (:mod:`sellip.calibrate.targets`: each target an option ``--max-...``; a step that misses one exits
+non-zero naming the causes it sees and writes nothing), and writes its result, residuals, 1-sigma and targets
+into device.yaml (:mod:`sellip.calibrate.device`). The library is
 :mod:`sellip.calibrate`; what each step logs and writes: :mod:`sellip.calibrate.report`.
 """
 
@@ -131,9 +133,9 @@ def _intrinsics(args, device) -> int:
     from sellip.calibrate.intrinsics import calibrate_intrinsics
     from sellip.calibrate.report import intrinsics_report
 
-    cols, rows = args.board
     from sellip.calibrate.intrinsics import intrinsics_uncertainty
 
+    cols, rows = args.board
     result = calibrate_intrinsics(_frames(args.frames, device["sensor"]), device["sensor"], cols, rows,
                                   args.square_mm / 1000, fix_k3=not args.k3, log=log.info)
     measured, causes = intrinsics_uncertainty(result)
@@ -167,10 +169,8 @@ def _polarization(args, device) -> int:
 
 
 def _color(args, device) -> int:
-    from sellip.calibrate.color import calibrate_color
+    from sellip.calibrate.color import calibrate_color, corner_order_causes
     from sellip.calibrate.report import color_report
-
-    from sellip.calibrate.color import corner_order_causes
 
     raw = reader.read_raw_file(_existing(args.frame), device["sensor"])
     corners = np.asarray(args.corners, np.float64)
