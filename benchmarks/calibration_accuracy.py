@@ -6,8 +6,9 @@ Writes the calibration folder with ``sellip synth-calibration`` (unless ``--fold
 protocol docs/calibration.md recommends: 48 poses of a 14x10-corner, 10 mm board; 6 layouts of 3 glossy 40 mm
 spheres before a light panel; every pose a burst of 4 frames (192 board frames, 24 sphere frames); a
 ColorChecker, then runs each step of ``sellip calibrate`` as a library call, the flash and the polarization
-check with the CALIBRATED intrinsics, and prints the error of each against truth.yaml, one line each, and a
-JSON summary on the last line (docs/calibration.md records the figures).
+check with the CALIBRATED intrinsics, and prints the error of each against truth.yaml and the targets it misses
+(sellip.calibrate.targets), one line each, and a JSON summary on the last line (docs/calibration.md records the
+figures). The spheres mirror their light panel unless ``--no-panel-reflection``.
 """
 
 from __future__ import annotations
@@ -22,7 +23,8 @@ import numpy as np
 import yaml
 
 from sellip.capture import reader
-from sellip.calibrate import color, flash, intrinsics, polarization
+from sellip.calibrate import color, flash, intrinsics, polarization, targets
+from sellip.calibrate.intrinsics import CalibrationError
 from sellip.calibrate.synthetic import BoardSpec, synthesize_calibration
 
 
@@ -35,11 +37,14 @@ def main() -> None:
     parser.add_argument("--board-frames", type=int, default=96, help="board poses (the recommended protocol: 96)")
     parser.add_argument("--sphere-frames", type=int, default=6, help="sphere layouts, 3 spheres each (6)")
     parser.add_argument("--burst", type=int, default=1, help="frames per pose and layout (default 1)")
+    parser.add_argument("--no-panel-reflection", action="store_true",
+                        help="spheres that do not mirror the light panel (the simulator before 2026-11-27)")
     args = parser.parse_args()
     if not (args.folder / "truth.yaml").is_file():
         started = time.perf_counter()
         synthesize_calibration(args.folder, args.width, args.height, seed=args.seed, board_frames=args.board_frames,
-                               sphere_frames=args.sphere_frames, burst=args.burst, progress=True)
+                               sphere_frames=args.sphere_frames, burst=args.burst, progress=True,
+                               reflect_panel=not args.no_panel_reflection)
         print(f"synthesized {args.folder} in {time.perf_counter() - started:.0f} s", flush=True)
     truth = yaml.safe_load((args.folder / "truth.yaml").read_text())
     true = truth["device"]
@@ -56,6 +61,8 @@ def main() -> None:
         "frames": len(k.per_frame), "fx_rel": k.fx / cam["fx"] - 1, "fy_rel": k.fy / cam["fy"] - 1,
         "cx_px": k.cx - cam["cx"], "cy_px": k.cy - cam["cy"], "std_px": k.std, "rms_px": k.rms_px,
         "distortion": k.distortion, "distortion_true": cam["distortion"], "seconds": time.perf_counter() - started}
+    measured, _ = intrinsics.intrinsics_uncertainty(k)
+    summary["intrinsics"]["missed_targets"] = targets.check("intrinsics", measured)
     print("intrinsics:", json.dumps(summary["intrinsics"]), flush=True)
 
     device = copy.deepcopy(true)
@@ -66,22 +73,28 @@ def main() -> None:
     error = f.position_m - np.asarray(true["light"]["position_m"])
     summary["flash"] = {"highlights": len(f.highlights), "error_mm": (error * 1e3).tolist(),
                         "error_norm_mm": float(np.linalg.norm(error) * 1e3), "std_mm": (f.std_m * 1e3).tolist(),
-                        "rms_mm": f.rms_mm, "seconds": time.perf_counter() - started}
+                        "rms_mm": f.rms_mm, "seconds": time.perf_counter() - started,
+                        "missed_targets": targets.check("flash", f.uncertainty())}
     print("flash:", json.dumps(summary["flash"]), flush=True)
 
     device["light"]["position_m"] = f.position_m.tolist()
-    report = polarization.check_polarization(frames("spheres"), device, radius)
-    summary["polarization"] = {"layout_ok": report.layout_ok, "score": report.best_score,
-                               "next_score": report.second_score,
-                               "polarizer_error_deg": report.polarizer_error_deg,
-                               "polarizer_std_deg": report.polarizer_std_deg}
+    try:
+        report = polarization.check_polarization(frames("spheres"), device, radius)
+        summary["polarization"] = {"layout_ok": report.layout_ok, "score": report.best_score,
+                                   "next_score": report.second_score, "rim_score": report.rim_score,
+                                   "polarizer_error_deg": report.polarizer_error_deg,
+                                   "polarizer_std_deg": report.polarizer_std_deg,
+                                   "missed_targets": targets.check("polarization", report.uncertainty())}
+    except CalibrationError as exc:
+        summary["polarization"] = {"failed": str(exc)}
     print("polarization:", json.dumps(summary["polarization"]), flush=True)
 
     raw = reader.read_raw_file(args.folder / "chart" / truth["chart"]["file"], sensor)
     c = color.calibrate_color(raw, device, np.asarray(truth["chart"]["corners_px"]))
     m_true = np.asarray(cam["color_matrix"])
     summary["color"] = {"delta_e2000_mean": float(np.nanmean(c.delta_e)), "delta_e2000_max": float(np.nanmax(c.delta_e)),
-                        "matrix_max_rel_error": float(np.abs(c.matrix - m_true).max() / np.abs(m_true).max())}
+                        "matrix_max_rel_error": float(np.abs(c.matrix - m_true).max() / np.abs(m_true).max()),
+                        "missed_targets": targets.check("color", {"delta_e_mean": float(np.nanmean(c.delta_e))})}
     print("color:", json.dumps(summary["color"]), flush=True)
     print(json.dumps(summary))
 

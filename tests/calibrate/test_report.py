@@ -69,3 +69,18 @@ def test_color_report_names_the_worst_patch_and_ignores_left_out_ones():
     assert level == logging.INFO and f"max 1.75 (patch {PATCH_NAMES[3]})" in line and "mean 0.55" in line
     assert step.sections == {"camera": {"color_matrix": (np.eye(3) * 1.5).tolist()}}
     assert step.record["patches_used"] == 23 and step.record["left_out"] == {PATCH_NAMES[18]: "clipped"}
+
+
+def test_targets_are_declared_once_and_a_missing_value_misses():
+    """Every target has one option and one step; check() names each target missed with its value, limit and
+    option, and a value not measured (NaN) misses rather than passes."""
+    from sellip.calibrate import targets
+
+    options = [t.option for t in targets.TARGETS]
+    assert len(set(options)) == len(options) and {t.step for t in targets.TARGETS} == {
+        "intrinsics", "flash", "polarization", "color"}
+    assert targets.check("color", {"delta_e_mean": 1.2}) == []
+    assert targets.check("color", {"delta_e_mean": 1.2}, {"delta_e_mean": 1.0}) == [
+        "mean CIEDE2000 of the chart's patches after the fit is 1.2 ΔE2000, target <= 1 ΔE2000 (--max-delta-e-mean)"]
+    missed = targets.check("polarization", {"polarizer_std_deg": float("nan")})
+    assert len(missed) == 1 and "is nan deg" in missed[0]

@@ -63,8 +63,11 @@ def test_calibrate_capture_new_snakemake_metrics(tmp_path, tmp_path_factory):
     boards = sorted(str(p) for p in (calib / "board").glob("*.dng"))
     spheres = sorted(str(p) for p in (calib / "spheres").glob("*.dng"))
     radius_mm = str(truth["spheres"]["radius_m"] * 1000)
-    _sellip("calibrate", "intrinsics", *boards, "--device", str(device), "--board", "14x10", "--square-mm", "10")
-    _sellip("calibrate", "flash", *spheres, "--device", str(device), "--sphere-radius-mm", radius_mm)
+    # a quarter of the device's size cannot meet the full-size targets (docs/calibration.md): relaxed, as the docs do
+    _sellip("calibrate", "intrinsics", *boards, "--device", str(device), "--board", "14x10", "--square-mm", "10",
+            "--max-c-std-px", "5")
+    _sellip("calibrate", "flash", *spheres, "--device", str(device), "--sphere-radius-mm", radius_mm,
+            "--max-flash-std-mm", "5")
     _sellip("calibrate", "polarization", *spheres, "--device", str(device), "--sphere-radius-mm", radius_mm)
     _sellip("calibrate", "color", str(calib / "chart" / truth["chart"]["file"]), "--device", str(device),
             "--corners", *(f"{x},{y}" for x, y in truth["chart"]["corners_px"]))
@@ -85,11 +88,12 @@ def test_calibrate_capture_new_snakemake_metrics(tmp_path, tmp_path_factory):
     shutil.copy(shot / "poses.csv", capture / "poses.csv")  # a calibrated rig's poses
     shutil.copytree(shot / "ground_truth", capture / "ground_truth")  # for metrics.json only
     _sellip("capture", "new", str(capture / "raw"), "--device", str(device), "--distance-m", "0.9",
-            "--pattern", "{view}_f{level}.dng", "--exposure-s", "0.005")
+            "--pattern", "{view}_f{level}.dng")  # the exposure time: the DNGs' ExposureTime tag
     written = yaml.safe_load((capture / "capture.yaml").read_text())
     assert written["camera"] == calibrated["camera"] and written["light"] == calibrated["light"]
     frames = pd.read_csv(capture / "frames.csv")
     assert len(frames) == 3 * VIEWS and sorted(frames["flash_level"].unique()) == [1 / 16, 1 / 8, 1 / 4]
+    assert np.allclose(frames["exposure_s"], 0.005)
 
     # 3. the workflow on it, to the end; its figures against the capture's ground truth
     work = tmp_path / "work"

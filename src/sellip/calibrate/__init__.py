@@ -11,6 +11,7 @@ Public API (raw frames are (H, W) uint16 mosaics; a device is device.yaml's mapp
     report.intrinsics_report / flash_report / polarization_report / color_report -> StepReport
                                                                   # each step's log lines, sections and record
     device.read_device / write_device / update_device            # device.yaml, validated, atomic
+    targets.TARGETS / check(step, measured, targets) -> [missed]  # each step's 1-sigma and residual targets
     synthetic.synthesize_calibration(out, width, height, seed)   # frames with known truth
     CalibrationError                                              # names the frames and what is wrong
 """

@@ -8,6 +8,8 @@ Public API::
     fit_color_matrix(camera (24, 3), reference (24, 3)) -> (M (3, 3), scale)
     delta_e_2000(srgb_a, srgb_b) -> (N,)              # CIEDE2000 between linear sRGB colours (colour-science)
     calibrate_color(raw, device, corners_px) -> ColorResult
+    corner_orders(corners_px) -> [(words, (4, 2))]    # the 7 other orders of four corners around the chart
+    corner_order_causes(raw, device, corners_px, max_delta_e) -> [str]   # why ΔE is high: the order that fits, sheen
 
 The chart: the four corners of its patch area in raw pixels, dark skin's outer corner first, then clockwise
 (along the top row to bluish green, down to black, back to white). Each patch is sampled in its central
@@ -178,3 +180,48 @@ def calibrate_color(raw: np.ndarray, device: Mapping, corners_px: np.ndarray,
     else:
         scale = float(np.mean(camera[used, 1]) / np.mean((camera[used] @ fitted.T)[:, 1]))
     return ColorResult(matrix=fitted * scale, delta_e=delta_e, left_out=left_out)
+
+
+def corner_orders(corners_px: np.ndarray) -> list[tuple[str, np.ndarray]]:
+    """The 8 ways four corners (4, 2) can be listed around a quadrilateral: (how it differs from the given order,
+    the corners in the documented order if that is how they were really given)."""
+    corners = np.asarray(corners_px, np.float64)
+    out = []
+    for reverse in (False, True):
+        ring = corners[::-1] if reverse else corners
+        for shift in range(4):
+            if not reverse and shift == 0:
+                continue
+            start = int(np.flatnonzero(np.all(corners == ring[shift], axis=1))[0]) + 1
+            words = f"{'counter-clockwise' if reverse else 'clockwise'}, dark skin's corner given as number {start}"
+            out.append((words, np.roll(ring, -shift, axis=0)))
+    return out
+
+
+def corner_order_causes(raw: np.ndarray, device: Mapping, corners_px: np.ndarray, max_delta_e: float) -> list[str]:
+    """Why a chart's ΔE2000 is far above its target, as far as the frame shows it: the corners given in another
+    order (all 8 orders around the patch area are tried; the one that fits is named with the --corners to give),
+    patches left out, patches whose samples spread (uneven light, sheen)."""
+    causes = []
+    image = camera_rgb_image(raw, device["sensor"])
+    best = None
+    for words, order in corner_orders(corners_px):
+        try:
+            result = calibrate_color(raw, device, order)
+        except CalibrationError:
+            continue
+        mean = float(np.nanmean(result.delta_e))
+        if best is None or mean < best[0]:
+            best = (mean, words, order)
+    if best is not None and best[0] <= max_delta_e:
+        given = " ".join(f"{x:.1f},{y:.1f}" for x, y in best[2])
+        causes.append(f"the corners were given in another order ({best[1]}): in that order the chart fits with "
+                      f"ΔE2000 mean {best[0]:.2f}; give --corners {given} (dark skin's outer corner first, then "
+                      "clockwise)")
+    _, spread, clipped = patch_means(image, np.asarray(corners_px))
+    uneven = [PATCH_NAMES[k] for k in range(24) if spread[k] > 0.05 and not clipped[k]]
+    if uneven and not causes:
+        causes.append(f"{len(uneven)} patch(es) vary by more than 5 % across their centre ({', '.join(uneven[:4])}"
+                      f"{' ...' if len(uneven) > 4 else ''}): sheen or uneven light; tilt the chart away from the "
+                      "flash's mirror direction")
+    return causes

@@ -4,6 +4,8 @@ Public API::
 
     develop_frame(raw, device) -> (analyzers (H', W', 4, C), intrinsics)   # the ingest chain, undistorted
     find_spheres(s0, intrinsics, radius_m) -> list[Sphere]                  # outlines -> centres, or problems
+    find_spheres_or_why(s0, intrinsics, radius_m) -> (list[Sphere], why | None)   # no bright background: why
+    rim_silhouette(s0, intrinsics, axis, alpha, background, eta) -> (axis, alpha)  # the rim's mirrored background
     find_highlight(s0, sphere) -> (centre (x, y) | None, problem | None)    # refine_highlight: a Gaussian fit
     mirror_ray(sphere, highlight_px, intrinsics) -> (point (3,), direction (3,))
     nearest_point(points (N, 3), directions (N, 3), scale_m=0.001) -> (X (3,), distances (N,), weights (N,))
@@ -51,6 +53,28 @@ HIGHLIGHT_REACH = 2.0
 
 MAX_OUTLINE_RMS_PX = 0.5
 """An outline farther than this (RMS, output pixels) from a sphere's silhouette: not a sphere, or occluded."""
+
+MIN_BACKGROUND_SNR = 20.0
+"""The background (the frame's median) must be this many times its own noise above black, or it is not bright."""
+
+MIN_SOLIDITY = 0.93
+"""A dark blob whose area is less than this share of its convex hull is two spheres touching (or a sphere and
+another object), not one sphere."""
+
+FIELD_SPREAD = 0.4
+"""Highlights spanning less than this share of the width or height: spheres all near the centre (depth poorly
+determined)."""
+
+RIM_ETA = 1.5
+"""Index of refraction assumed for the spheres' rim model (glass, glaze, phenolic resin: 1.45-1.6; the half-level
+crossing of the model moves by 0.03 % of the radius between those)."""
+
+RIM_BAND = (0.92, 1.08)
+"""The rim model is fitted on pixels whose ray makes this range of multiples of the outline's cone angle."""
+
+RIM_SECTORS = 8
+
+NO_SPHERE = "no sphere found (expected dark spheres in front of a bright background)"
 
 
 @dataclass
@@ -118,10 +142,135 @@ def _fit_cone(rays: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     return axis, cos_alpha, residual
 
 
-def find_spheres(s0: np.ndarray, intrinsics: Mapping, radius_m: float) -> list[Sphere]:
+def find_spheres_or_why(s0: np.ndarray, intrinsics: Mapping, radius_m: float, rim_eta: float | None = RIM_ETA
+                        ) -> tuple[list[Sphere], str | None]:
+    """:func:`find_spheres`, or ([], why) when the frame shows no sphere against a bright background: the
+    background (the frame's median) must stand :data:`MIN_BACKGROUND_SNR` times its noise above black, else the
+    dark discs found would be the background's noise."""
+    finite = np.isfinite(s0)
+    values = s0[finite]
+    background = float(np.median(values))
+    # the background's noise: the MAD of the pixels brighter than half of it (the spheres' discs excluded)
+    bright = values[values > background / 2]
+    noise = 1.4826 * float(np.median(np.abs(bright - np.median(bright)))) if bright.size else np.inf
+    if not background > MIN_BACKGROUND_SNR * max(noise, 1e-12):
+        return [], (f"{NO_SPHERE}: the background reads {background:.3g} of full scale with noise {noise:.2g}, "
+                    f"at least {MIN_BACKGROUND_SNR:g}x its noise expected (light the panel or wall behind the spheres)")
+    spheres = find_spheres(s0, intrinsics, radius_m, rim_eta)
+    return spheres, (None if spheres else NO_SPHERE)
+
+
+
+
+def _r_plus(cos_i: np.ndarray, eta: float) -> np.ndarray:
+    """Fresnel reflectance (Rs + Rp) / 2 of unpolarized light at incidence cos_i, air -> index eta."""
+    cos_i = np.clip(cos_i, 0.0, 1.0)
+    cos_t = np.sqrt(1 - (1 - cos_i ** 2) / eta ** 2)
+    r_s = ((cos_i - eta * cos_t) / (cos_i + eta * cos_t)) ** 2
+    r_p = ((eta * cos_i - cos_t) / (eta * cos_i + cos_t)) ** 2
+    return (r_s + r_p) / 2
+
+
+def rim_silhouette(s0: np.ndarray, intrinsics: Mapping, axis: np.ndarray, alpha: float, background: float,
+                   eta: float = RIM_ETA) -> tuple[np.ndarray, float]:
+    """The sphere's silhouette cone, axis (3,) and angle (rad), from the intensity across its rim.
+
+    A glossy sphere mirrors the bright background at its rim: at grazing incidence the Fresnel reflectance goes
+    to 1, so the rim is as bright as the background and the dark disc (the half-level outline) is smaller than
+    the sphere -- on the synthetic spheres that mirror their panel, centres 11-13 mm too far at 0.45 m. Model of
+    s0 against the angle b between a pixel's ray and the cone ``axis``: the background ``background`` * g outside
+    (b > A), inside k * background * R+(theta) + c_sector + c1 (A - b) with sin(theta) = sin(b) / sin(A) (the normal's
+    zenith from the view ray), blurred by a Gaussian of width s; fitted by least squares for A, k in [0, 1.2],
+    s, g, c1, the axis' tilt (the half-level outline's axis leans where the flash lights the rim more) and one c
+    per 45-degree sector (the flash's shading varies around the rim) on the pixels with b in :data:`RIM_BAND` x
+    ``alpha``. Returns (``axis``, ``alpha``) when the fit fails."""
+    from scipy.optimize import least_squares
+
+    height, width = s0.shape
+    f = float(np.sqrt(intrinsics["fx"] * intrinsics["fy"]))
+    u0 = intrinsics["fx"] * axis[0] / axis[2] + intrinsics["cx"]
+    v0 = intrinsics["fy"] * axis[1] / axis[2] + intrinsics["cy"]
+    reach = f * np.tan(alpha * RIM_BAND[1]) + 3
+    top, bottom = max(int(v0 - reach), 0), min(int(v0 + reach) + 2, height)
+    left, right = max(int(u0 - reach), 0), min(int(u0 + reach) + 2, width)
+    yy, xx = np.mgrid[top:bottom, left:right]
+    rays = pixel_rays(np.stack([xx, yy], axis=-1).astype(np.float64), intrinsics)
+    beta = np.arccos(np.clip(rays @ axis, -1, 1))
+    values = s0[top:bottom, left:right]
+    use = (beta > RIM_BAND[0] * alpha) & (beta < RIM_BAND[1] * alpha) & np.isfinite(values)
+    if use.sum() < 50:
+        return axis, alpha
+    beta, values = beta[use], values[use].astype(np.float64)
+    # the sector of each pixel around the axis
+    e1 = np.cross(axis, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    r = rays[use]
+    sector = ((np.arctan2(r @ e2, r @ e1) + np.pi) / (2 * np.pi) * RIM_SECTORS).astype(int) % RIM_SECTORS
+    pixel = 1.0 / f  # one pixel in angle
+    grid_step = pixel / 8
+
+    def tilted(dx, dy):
+        turned = axis + dx * e1 + dy * e2
+        return turned / np.linalg.norm(turned)
+
+    def model(p):
+        a, k, sigma, gain, c1, dx, dy, *c = p
+        beta = np.arccos(np.clip(r @ tilted(dx, dy), -1, 1))
+        sigma = abs(sigma) + 0.2 * pixel
+        # a grid that moves with A, so that the step at the silhouette moves continuously with it
+        below = np.ceil((a - RIM_BAND[0] * alpha + 4 * sigma) / grid_step)
+        above = np.ceil((RIM_BAND[1] * alpha - a + 4 * sigma) / grid_step)
+        grid = a + np.arange(-below, above + 1) * grid_step
+        inside = grid < a
+        sin_theta = np.clip(np.sin(grid) / np.sin(a), 0, 1)
+        rim = np.where(inside, k * background * _r_plus(np.sqrt(1 - sin_theta ** 2), eta) + c1 * (a - grid),
+                       gain * background)
+        step = np.where(inside, 1.0, 0.0)
+        half = int(np.ceil(4 * sigma / grid_step))
+        kernel = np.exp(-0.5 * (np.arange(-half, half + 1) * grid_step / sigma) ** 2)
+        kernel /= kernel.sum()
+        rim_b = np.convolve(np.pad(rim, half, mode="edge"), kernel, mode="valid")
+        step_b = np.convolve(np.pad(step, half, mode="edge"), kernel, mode="valid")
+        at = np.interp(beta, grid, rim_b) + np.asarray(c)[sector] * np.interp(beta, grid, step_b)
+        return at - values
+
+    interior = [float(np.median(values[(sector == j) & (beta < 0.97 * alpha)])) if np.any((sector == j) &
+                (beta < 0.97 * alpha)) else 0.0 for j in range(RIM_SECTORS)]
+    start = [alpha, 0.5, 0.7 * pixel, 1.0, 0.0, 0.0, 0.0, *interior]
+    shift = 0.05 * alpha
+    lower = [RIM_BAND[0] * alpha, 0.0, 0.0, 0.5, -np.inf, -shift, -shift] + [-np.inf] * RIM_SECTORS
+    upper = [RIM_BAND[1] * alpha, 1.2, 5 * pixel, 1.5, np.inf, shift, shift] + [np.inf] * RIM_SECTORS
+    scale = [pixel, 0.1, pixel, 0.1, background / alpha, pixel, pixel] + [0.1 * background] * RIM_SECTORS
+    try:
+        fit = least_squares(model, start, bounds=(lower, upper), x_scale=scale)
+    except ValueError:
+        return axis, alpha
+    if not fit.success:
+        return axis, alpha
+    return tilted(fit.x[5], fit.x[6]), float(fit.x[0])
+
+
+def _solidity(blob: np.ndarray) -> float:
+    """A blob's area over its convex hull's (1 for a disc, < 0.9 for two touching discs)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    ys, xs = np.nonzero(blob)
+    # pixel corners, so that the hull encloses whole pixels
+    pts = np.concatenate([np.stack([xs + dx, ys + dy], axis=-1) for dx in (0, 1) for dy in (0, 1)])
+    try:
+        return float(blob.sum() / ConvexHull(pts).volume)
+    except QhullError:
+        return 1.0
+
+
+def find_spheres(s0: np.ndarray, intrinsics: Mapping, radius_m: float, rim_eta: float | None = RIM_ETA
+                 ) -> list[Sphere]:
     """Spheres in an intensity image (H', W') on the undistorted output grid: dark discs on a bright background.
-    A disc touching the image border is returned with a problem (clipped), as is one whose outline is not a
-    sphere's."""
+    A disc touching the image border is returned with a problem (clipped), as is one that is two discs touching
+    (:data:`MIN_SOLIDITY`) or whose outline is not a sphere's. The outline (where s0 crosses half the background)
+    gives the cone's axis; its angle is then refined by :func:`rim_silhouette` (the background mirrored at the
+    rim, Fresnel for index ``rim_eta``), unless ``rim_eta`` is None."""
     finite = np.isfinite(s0)
     background = float(np.median(s0[finite]))
     level = background / 2
@@ -143,14 +292,22 @@ def find_spheres(s0: np.ndarray, intrinsics: Mapping, radius_m: float) -> list[S
             spheres.append(Sphere(None, radius, centroid, problem="sphere clipped by the frame edge: its outline is "
                                                                   "not whole; expected every sphere wholly in view"))
             continue
+        solidity = _solidity(blob)
+        if solidity < MIN_SOLIDITY:
+            spheres.append(Sphere(None, radius, centroid, problem=f"spheres touching: the dark blob fills "
+                                  f"{100 * solidity:.0f} % of its convex hull (a lone sphere: ~100 %); expected "
+                                  "spheres apart, each with background around it"))
+            continue
         outline = _outline(s0, centroid, radius, level)
         if len(outline) < OUTLINE_SAMPLES // 2:
             spheres.append(Sphere(None, radius, centroid, problem="outline not found against the background"))
             continue
         axis, cos_alpha, residual = _fit_cone(pixel_rays(outline, intrinsics))
         rms = float(np.sqrt(np.mean(residual ** 2)) / pixel_scale)
-        sin_alpha = np.sqrt(1 - cos_alpha ** 2)
-        sphere = Sphere(axis * radius_m / sin_alpha, radius, centroid, rms)
+        alpha = float(np.arccos(cos_alpha))
+        if rim_eta is not None:
+            axis, alpha = rim_silhouette(s0, intrinsics, axis, alpha, background, rim_eta)
+        sphere = Sphere(axis * radius_m / np.sin(alpha), radius, centroid, rms)
         if rms > MAX_OUTLINE_RMS_PX:
             sphere.problem = (f"outline is {rms:.2f} px RMS from a sphere's silhouette (at most {MAX_OUTLINE_RMS_PX}"
                               " expected): occluded, touching another object, or not a sphere")
@@ -260,6 +417,39 @@ class FlashResult:
     rms_mm: float
     highlights: list[dict]
     left_out: dict[str, str] = field(default_factory=dict)
+    image_size: tuple[int, int] = (0, 0)
+
+    def uncertainty(self) -> dict[str, float]:
+        """What :mod:`sellip.calibrate.targets` gates the flash on: {flash_std_mm (largest axis), flash_rms_mm}."""
+        return {"flash_std_mm": float(np.max(self.std_m) * 1e3), "flash_rms_mm": self.rms_mm}
+
+    def causes(self) -> list[str]:
+        """Why the position may be uncertain, as far as the frames show it: spheres left out (clipped, touching,
+        saturated), too few highlights, highlights all near the image centre, large residuals."""
+        out = []
+        kinds = {"clipped": "clipped by the frame edge", "touching": "touching another sphere or object",
+                 "saturated": "with a saturated highlight (lower the flash)", "no sphere": "frames without a sphere "
+                 "against a bright background", "no mirror highlight": "without a mirror highlight"}
+        for key, words in kinds.items():
+            count = sum(key in why for why in self.left_out.values())
+            if count:
+                out.append(f"{count} sphere(s) {words}" if key != "no sphere" else f"{count} {words}")
+        count = len(self.highlights)
+        if count < 2 * MIN_HIGHLIGHTS:
+            out.append(f"only {count} highlights: take more frames, 2-3 spheres each ({3 * MIN_HIGHLIGHTS} recommended)")
+        if self.highlights and self.image_size[0]:
+            px = np.asarray([h["highlight_px"] for h in self.highlights])
+            extent = (px.max(axis=0) - px.min(axis=0)) / np.asarray(self.image_size, np.float64)
+            if np.min(extent) < FIELD_SPREAD:
+                out.append(f"the spheres were all near the image centre: their highlights span {100 * extent[0]:.0f} % "
+                           f"of the width and {100 * extent[1]:.0f} % of the height (at least {100 * FIELD_SPREAD:.0f} "
+                           "% expected): place them over the whole field")
+            worst = max(self.highlights, key=lambda h: h.get("residual_mm", 0.0))
+            if worst.get("residual_mm", 0.0) > 3 * max(np.median([h["residual_mm"] for h in self.highlights]), 0.1):
+                out.append(f"highlight residuals up to {worst['residual_mm']:.1f} mm ({worst['frame']} sphere "
+                           f"{worst['sphere']}): a sphere's outline or centre is wrong there (a bright rim "
+                           "reflection, a wrong --sphere-radius-mm)")
+        return out
 
 
 def intensity(analyzers: np.ndarray) -> np.ndarray:
@@ -273,12 +463,16 @@ def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m:
     docstring). ``device`` needs sensor and camera (intrinsics calibrated). Every sphere left out is named with
     why; fewer than ``min_highlights`` usable highlights raise CalibrationError saying how many more are needed."""
     points, directions, records, left_out = [], [], [], {}
+    image_size = (0, 0)
     for name, raw in frames.items():
         analyzers, intrinsics = develop_frame(raw, device)
         s0 = intensity(analyzers)
-        spheres = find_spheres(s0, intrinsics, radius_m)
-        if not spheres:
-            left_out[name] = "no sphere found (expected dark spheres in front of a bright background)"
+        image_size = (s0.shape[1], s0.shape[0])
+        spheres, problem = find_spheres_or_why(s0, intrinsics, radius_m)
+        if problem:
+            left_out[name] = problem
+            if log:
+                log(f"{name}: {problem}")
         for k, sphere in enumerate(spheres):
             label = f"{name}#{k} at ({sphere.centroid_px[0]:.0f}, {sphere.centroid_px[1]:.0f})"
             problem = sphere.problem
@@ -313,4 +507,5 @@ def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m:
     sigma2 = float(np.sum(weights * distances ** 2) / dof)
     cov = sigma2 * np.linalg.inv(np.einsum("n,nij->ij", weights, projectors))
     return FlashResult(position_m=position, std_m=np.sqrt(np.diag(cov)),
-                       rms_mm=float(np.sqrt(np.mean(distances ** 2)) * 1e3), highlights=records, left_out=left_out)
+                       rms_mm=float(np.sqrt(np.mean(distances ** 2)) * 1e3), highlights=records, left_out=left_out,
+                       image_size=image_size)

@@ -179,10 +179,38 @@ class IntrinsicsResult:
     per_frame: dict[str, float]
     left_out: dict[str, str] = field(default_factory=dict)
     std: dict[str, float] = field(default_factory=dict)
+    field_coverage: float = float("nan")
 
     def camera(self) -> dict:
         """The intrinsics part of capture.yaml's ``camera`` section."""
         return {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "distortion": list(self.distortion)}
+
+
+COVERAGE_GRID = 8
+"""The field is cut into this many x this many cells to say how much of it the board's corners covered."""
+
+RECOMMENDED_POSES = 96
+"""Board poses of the recommended protocol (docs/calibration.md): the principal point's 1-sigma ~0.45-0.6 px."""
+
+
+def intrinsics_uncertainty(result: IntrinsicsResult) -> tuple[dict[str, float], list[str]]:
+    """What :mod:`sellip.calibrate.targets` gates the intrinsics on ({f_std_pct, c_std_px, reprojection_rms_px})
+    and the causes of a large uncertainty the frames show (too few poses, the field's corners not covered)."""
+    std = result.std
+    measured = {"f_std_pct": 100 * max(std.get("fx", np.nan) / result.fx, std.get("fy", np.nan) / result.fy),
+                "c_std_px": max(std.get("cx", np.nan), std.get("cy", np.nan)),
+                "reprojection_rms_px": result.rms_px}
+    causes = []
+    used = len(result.per_frame)
+    if used < RECOMMENDED_POSES:
+        causes.append(f"{used} board poses used: the principal point's 1-sigma falls only as 1/sqrt(poses); take "
+                      f"about {RECOMMENDED_POSES - used} more, each another pose, tilted 20-50 deg")
+    if result.field_coverage < 0.8:
+        causes.append(f"the board's corners covered {100 * result.field_coverage:.0f} % of the field "
+                      f"({COVERAGE_GRID}x{COVERAGE_GRID} cells): put the board in the image corners too")
+    if result.left_out:
+        causes.append(f"{len(result.left_out)} frame(s) left out (named above)")
+    return measured, causes
 
 
 def _too_few(usable: int, needed: int, left_out: Mapping[str, str]) -> CalibrationError:
@@ -239,7 +267,11 @@ def calibrate_intrinsics(frames: Mapping[str, np.ndarray], sensor: Mapping, cols
         del corners[names[worst]]
     dist = dist.ravel().tolist() + [0.0] * (5 - dist.size)
     std = std.ravel()
-    return IntrinsicsResult(fx=float(k[0, 0]), fy=float(k[1, 1]), cx=float(k[0, 2]), cy=float(k[1, 2]),
+    cells = np.zeros((COVERAGE_GRID, COVERAGE_GRID), bool)
+    for n in names:
+        ij = np.floor(corners[n] / [width, height] * COVERAGE_GRID).astype(int).clip(0, COVERAGE_GRID - 1)
+        cells[ij[:, 1], ij[:, 0]] = True
+    return IntrinsicsResult(field_coverage=float(cells.mean()), fx=float(k[0, 0]), fy=float(k[1, 1]), cx=float(k[0, 2]), cy=float(k[1, 2]),
                             distortion=[float(c) for c in dist[:5]], rms_px=float(rms),
                             per_frame={n: float(e) for n, e in zip(names, per_view)}, left_out=left_out,
                             std={"fx": float(std[0]), "fy": float(std[1]), "cx": float(std[2]), "cy": float(std[3])})

@@ -9,17 +9,21 @@ Public API::
 
 Two physical facts, on glossy dielectric spheres (camera-frame Stokes, sellip.conventions):
 
-* Diffuse light leaves a dielectric polarized in its plane of exitance: on the limb (normal zenith 60-85 deg
-  from the view ray) its AoLP is the normal's azimuth phi in the ray's Stokes frame (x image right, y image
-  up), known on a sphere, and its DoP grows with the Fresnel transmission. The score of a layout is
-  sum_w cos 2 (AoLP - phi) / sum_w (w = the polarized intensity): about +1 for the right layout, -1 when 0/90
-  (and 45/135) are exchanged (AoLP turned by 90 deg), about 0 for a mirrored (45 <-> 135) or rotated layout.
-  Before that, the pairing: orthogonal analyzers sum to s0 (I0 + I90 = I45 + I135), which only one of the
-  three ways to pair the cell's four positions satisfies; the 8 layouts with that pairing are scored.
-  All 24 arrangements are scored from ONE development of each frame: a layout only says which of the four
-  cell positions is which angle, so another layout is a permutation of the developed analyzer axis.
+* Diffuse light leaves a dielectric polarized in its plane of exitance: its AoLP is the normal's azimuth phi in
+  the ray's Stokes frame (x image right, y image up), known on a sphere. The score of a layout is
+  sum_w cos 2 (AoLP - phi) / sum_w (w = the polarized intensity): positive for the right layout, negative when
+  0/90 (and 45/135) are exchanged (AoLP turned by 90 deg), about 0 for a mirrored (45 <-> 135) or rotated
+  layout. It is taken where the normal is 25-45 deg from the view ray (DIFFUSE_ZENITH_DEG): on the limb a
+  glossy sphere mirrors the bright background, polarized tangentially, which turns the limb's verdict; the limb
+  (LIMB_ZENITH_DEG) is scored and reported only. Before that, the pairing: orthogonal analyzers sum to s0
+  (I0 + I90 = I45 + I135), which only one of the three ways to pair the cell's four positions satisfies; the 8
+  layouts with that pairing are scored. All 24 arrangements are scored from ONE development of each frame: a
+  layout only says which of the four cell positions is which angle, so another layout is a permutation of the
+  developed analyzer axis.
 * A mirror highlight keeps the flash's linear polarization (at 3.5 deg from normal incidence the Fresnel
   coefficients of s and p agree to 1e-3): under the right layout the highlight's AoLP is ``light.polarizer_deg``.
+  The two cues are checked against each other (:func:`_check_cues`): when they disagree about a 90-degree turn
+  the check fails and names no layout.
 """
 
 from __future__ import annotations
@@ -30,15 +34,24 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sellip.calibrate.flash import develop_frame, find_highlight, find_spheres, intensity, pixel_rays
+from sellip.calibrate.flash import develop_frame, find_highlight, find_spheres_or_why, intensity, pixel_rays
 from sellip.calibrate.intrinsics import CalibrationError
 from sellip.model.conventions import ANALYZER_ANGLES_DEG
 
 POLARIZER_TOLERANCE_DEG = 2.0
 """A flash polarizer this far from capture.yaml's ``light.polarizer_deg`` is reported."""
 
+DIFFUSE_ZENITH_DEG = (25.0, 45.0)
+"""Normal zenith angles (from the view ray) whose diffuse polarization decides the layout: there the camera ray's
+mirror direction turns back towards the camera's side (zenith < 45 deg), so a bright background behind the
+spheres is not mirrored; its diffuse DoP is small (0.5-2 %) but thousands of pixels decide (score about +0.6 for
+the right layout, -0.6 turned by 90 deg, on the synthetic spheres with and without the background mirrored)."""
+
 LIMB_ZENITH_DEG = (60.0, 85.0)
-"""Normal zenith angles (from the view ray) whose diffuse polarization is scored."""
+"""The limb (normal zenith from the view ray): its diffuse DoP is larger, but a glossy sphere mirrors the bright
+background there, polarized tangentially (across the diffuse light's plane), which can turn its verdict by 90
+deg (score -0.95 for the right layout on the synthetic spheres that mirror the panel). Scored and reported as a
+check; it does not decide."""
 
 MIN_SCORE_MARGIN = 0.3
 """The best layout must beat the second by this much in score, or the frames cannot decide."""
@@ -111,6 +124,7 @@ class PolarizationReport:
     highlights: int
     scores: dict = field(default_factory=dict)
     left_out: dict = field(default_factory=dict)
+    rim_score: float = float("nan")
 
     @property
     def layout_ok(self) -> bool:
@@ -131,23 +145,42 @@ class PolarizationReport:
     def messages(self) -> list[str]:
         out = []
         if self.layout_ok:
-            out.append(f"polarizer_layout {self.claimed_layout} fits: limb score {self.claimed_score:+.3f} "
-                       f"(next best layout {self.second_score:+.3f}) over {self.limb_pixels} limb pixels")
+            out.append(f"polarizer_layout {self.claimed_layout} fits: diffuse score {self.claimed_score:+.3f} "
+                       f"(next best layout {self.second_score:+.3f}) over {self.limb_pixels} pixels at "
+                       f"{DIFFUSE_ZENITH_DEG[0]:g}-{DIFFUSE_ZENITH_DEG[1]:g} deg")
         else:
-            out.append(f"polarizer_layout {self.claimed_layout} does NOT fit: limb score {self.claimed_score:+.3f} "
+            out.append(f"polarizer_layout {self.claimed_layout} does NOT fit: diffuse score {self.claimed_score:+.3f} "
                        f"({_describe(self.claimed_layout, self.best_layout)}); the layout that fits is "
                        f"{self.best_layout} (score {self.best_score:+.3f})")
+        if self.rim_score < 0:
+            out.append(f"the limbs ({LIMB_ZENITH_DEG[0]:g}-{LIMB_ZENITH_DEG[1]:g} deg) score {self.rim_score:+.3f} "
+                       "under that layout: polarized across the diffuse light's plane, they mirror the bright "
+                       "background and were not used")
         verdict = "fits" if self.polarizer_ok else f"is off by more than {POLARIZER_TOLERANCE_DEG} deg"
         out.append(f"light.polarizer_deg {self.claimed_polarizer_deg:g} {verdict}: measured "
                    f"{self.polarizer_deg:.2f} +- {self.polarizer_std_deg:.2f} deg on {self.highlights} highlights")
         return out
 
+    def uncertainty(self) -> dict[str, float]:
+        """What :mod:`sellip.calibrate.targets` gates the check on: {polarizer_std_deg}."""
+        return {"polarizer_std_deg": self.polarizer_std_deg}
+
+    def causes(self) -> list[str]:
+        """Why the flash polarizer's angle may be uncertain, as far as the frames show it."""
+        out = []
+        if self.highlights < 6:
+            out.append(f"only {self.highlights} highlights below the white level (6 or more expected)")
+        saturated = sum("saturated" in why for why in self.left_out.values())
+        if saturated:
+            out.append(f"{saturated} highlight(s) saturated: lower the flash")
+        return out
+
     def record(self) -> dict:
         return {"ok": self.ok, "claimed_layout": self.claimed_layout, "best_layout": self.best_layout,
                 "claimed_score": self.claimed_score, "best_score": self.best_score, "second_score": self.second_score,
-                "limb_pixels": self.limb_pixels, "polarizer_deg_measured": self.polarizer_deg,
+                "limb_pixels": self.limb_pixels, "rim_score": self.rim_score, "polarizer_deg_measured": self.polarizer_deg,
                 "polarizer_std_deg": self.polarizer_std_deg, "polarizer_deg_claimed": self.claimed_polarizer_deg,
-                "highlights": self.highlights, "messages": self.messages(), "left_out": self.left_out}
+        "highlights": self.highlights, "messages": self.messages(), "left_out": self.left_out}
 
 
 def _describe(claimed, best) -> str:
@@ -163,6 +196,64 @@ def _describe(claimed, best) -> str:
     return "another arrangement"
 
 
+SUM_RULE_Z = 5.0
+"""The right pairing's sum-rule misfit must be below the next pairing's by this many standard errors."""
+
+
+def _score(analyzers: np.ndarray, phi: np.ndarray) -> float:
+    """sum_w cos 2 (AoLP - phi) / sum_w (w the polarized intensity) of analyzers (N, 4) in ANALYZER_ANGLES_DEG
+    order against the normals' azimuths phi (N,): +1 radial, -1 tangential."""
+    s = _stokes(analyzers)
+    aolp = 0.5 * np.arctan2(s[:, 2], s[:, 1])
+    weight = np.hypot(s[:, 1], s[:, 2])
+    return float(np.sum(weight * np.cos(2 * (aolp - phi))) / max(np.sum(weight), 1e-12))
+
+
+def _highlight_angle(highlight_pixels: list, perm: np.ndarray) -> tuple[float, float]:
+    """(AoLP (deg, [0, 180)), its 1-sigma (deg)) of the highlights' pixels (list of (n, 4)) under the analyzer
+    permutation ``perm``; NaN without highlights."""
+    if not highlight_pixels:
+        return float("nan"), float("nan")
+    h = _stokes(np.concatenate(highlight_pixels)[:, perm])
+    angles = 0.5 * np.arctan2(h[:, 2], h[:, 1])
+    weight = np.hypot(h[:, 1], h[:, 2])
+    mean = 0.5 * np.arctan2(np.sum(weight * np.sin(2 * angles)), np.sum(weight * np.cos(2 * angles)))
+    spread = np.sqrt(np.sum(weight * ((angles - mean + np.pi / 2) % np.pi - np.pi / 2) ** 2) / np.sum(weight))
+    return float(np.degrees(mean) % 180), float(np.degrees(spread) / np.sqrt(len(highlight_pixels)))
+
+
+def _turned(layout) -> list:
+    return (np.asarray(layout) + 90) % 180
+
+
+def _check_cues(report: "PolarizationReport", claimed, best, claimed_highlight_deg: float) -> None:
+    """Raise CalibrationError when the two independent cues disagree about a 90-degree turn: the diffuse light
+    (polarized radially, :data:`DIFFUSE_ZENITH_DEG`) and the highlights (the flash's polarization, kept by a
+    mirror reflection) read with the claimed layout. Either the diffuse light says "turned by 90" while the
+    highlights, read with the claimed layout, show the claimed flash polarizer; or the diffuse light says the
+    claimed layout fits while the highlights are 90 deg off the claimed polarizer. A turned layout with a flash
+    polarizer mounted 90 deg off, or something bright on the camera's side mirrored in the spheres, would give
+    either: the frames cannot tell which, so the check names no layout."""
+    if not np.isfinite(claimed_highlight_deg):
+        return
+    off = abs((claimed_highlight_deg - report.claimed_polarizer_deg + 90) % 180 - 90)
+    advice = ("something bright on the camera's side (a lit room, a white wall behind the camera) mirrored in the "
+              "spheres can turn the diffuse light's verdict: shoot them with only the flash on the camera's side; "
+              "else check how the flash polarizer is mounted")
+    if np.array_equal(_turned(claimed), best) and off <= POLARIZER_TOLERANCE_DEG:
+        raise CalibrationError(
+            f"the cues disagree: the diffuse light says polarizer_layout {claimed} is turned by 90 deg (the score of "
+            f"{best} is {report.best_score:+.3f}), but the highlights, read with {claimed}, show the flash polarizer "
+            f"at {claimed_highlight_deg:.2f} deg, the claimed light.polarizer_deg {report.claimed_polarizer_deg:g}: "
+            f"either the layout is turned and the flash polarizer 90 deg off, or {advice}")
+    if np.array_equal(np.asarray(claimed), np.asarray(best)) and abs(off - 90) <= POLARIZER_TOLERANCE_DEG:
+        raise CalibrationError(
+            f"the cues disagree: the diffuse light says polarizer_layout {claimed} fits (score "
+            f"{report.best_score:+.3f}), but the highlights show the flash polarizer at {claimed_highlight_deg:.2f} "
+            f"deg, 90 deg from the claimed light.polarizer_deg {report.claimed_polarizer_deg:g}: either the flash "
+            f"polarizer is mounted 90 deg off, or the layout is {_turned(claimed).tolist()} and {advice}")
+
+
 def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius_m: float,
                        log=None) -> PolarizationReport:
     """Score every polarizer layout on the spheres' limbs and measure the flash polarizer on their highlights
@@ -170,18 +261,24 @@ def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius
     claimed = [list(map(int, row)) for row in device["sensor"]["polarizer_layout"]]
     layouts = candidate_layouts()
     perms = [permutation(claimed, layout) for layout in layouts]
-    limb_stokes, limb_phi, highlight_pixels, left_out = [], [], [], {}
+    limb_stokes, limb_phi, rim_stokes, rim_phi, highlight_pixels, left_out = [], [], [], [], [], {}
     for name, raw in frames.items():
         analyzers, intrinsics = develop_frame(raw, device)
         s0 = intensity(analyzers)
-        for k, sphere in enumerate(find_spheres(s0, intrinsics, radius_m)):
+        spheres, problem = find_spheres_or_why(s0, intrinsics, radius_m)
+        if problem:
+            left_out[name] = problem
+        for k, sphere in enumerate(spheres):
             label = f"{name}#{k}"
             if sphere.problem:
                 left_out[label] = sphere.problem
                 continue
-            values, phi, _ = limb_samples(analyzers, sphere.centre, radius_m, intrinsics)
+            values, phi, _ = limb_samples(analyzers, sphere.centre, radius_m, intrinsics, DIFFUSE_ZENITH_DEG)
             limb_stokes.append(values)
             limb_phi.append(phi)
+            values, phi, _ = limb_samples(analyzers, sphere.centre, radius_m, intrinsics)
+            rim_stokes.append(values)
+            rim_phi.append(phi)
             highlight, problem = find_highlight(s0, sphere)
             if problem:
                 left_out[label] = problem
@@ -193,14 +290,13 @@ def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius
         raise CalibrationError("no sphere gave a limb to check the polarizer layout on:" +
                                "".join(f"\n  {k}: {v}" for k, v in left_out.items()))
     values, phi = np.concatenate(limb_stokes), np.concatenate(limb_phi)
-    scores, consistency = [], []
-    for perm in perms:
-        a = values[:, perm]
-        s = _stokes(a)
-        aolp = 0.5 * np.arctan2(s[:, 2], s[:, 1])
-        weight = np.hypot(s[:, 1], s[:, 2])
-        scores.append(float(np.sum(weight * np.cos(2 * (aolp - phi))) / max(np.sum(weight), 1e-12)))
-        consistency.append(float(np.sum(np.abs(a[:, 0] + a[:, 2] - a[:, 1] - a[:, 3])) / np.sum(s[:, 0])))
+    rim_values, rim_phi = np.concatenate(rim_stokes), np.concatenate(rim_phi)
+    scores = [_score(values[:, perm], phi) for perm in perms]
+    rim_scores = [_score(rim_values[:, perm], rim_phi) for perm in perms]
+    everything = np.concatenate([values, rim_values])
+    misfit = [np.abs(a[:, 0] + a[:, 2] - a[:, 1] - a[:, 3]) / np.maximum(_stokes(a)[:, 0], 1e-12)
+              for a in (everything[:, perm] for perm in perms)]
+    consistency = [float(np.mean(m)) for m in misfit]
     # Orthogonal analyzers sum to s0: only the right pairing of the cell's positions into (0, 90) and
     # (45, 135) is consistent; among the 8 layouts with that pairing the radial diffuse AoLP decides.
     paired = np.isclose(consistency, min(consistency), rtol=1e-6)
@@ -208,25 +304,32 @@ def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius
     order = np.argsort(ranked)[::-1]
     best = int(order[0])
     claimed_index = next(i for i, layout in enumerate(layouts) if layout == claimed)
-    if highlight_pixels:
-        h = _stokes(np.concatenate(highlight_pixels)[:, perms[best]])
-        angles = 0.5 * np.arctan2(h[:, 2], h[:, 1])
-        weight = np.hypot(h[:, 1], h[:, 2])
-        mean = 0.5 * np.arctan2(np.sum(weight * np.sin(2 * angles)), np.sum(weight * np.cos(2 * angles)))
-        spread = np.sqrt(np.sum(weight * ((angles - mean + np.pi / 2) % np.pi - np.pi / 2) ** 2) / np.sum(weight))
-        polarizer, polarizer_std = float(np.degrees(mean) % 180), float(np.degrees(spread) / np.sqrt(len(highlight_pixels)))
-    else:
-        polarizer, polarizer_std = float("nan"), float("nan")
+    polarizer, polarizer_std = _highlight_angle(highlight_pixels, perms[best])
     report = PolarizationReport(
         claimed_layout=claimed, best_layout=layouts[best], claimed_score=scores[claimed_index],
         best_score=scores[best], second_score=float(ranked[order[1]]), polarizer_deg=polarizer,
         polarizer_std_deg=polarizer_std, claimed_polarizer_deg=float(device.get("light", {}).get("polarizer_deg", 0.0)),
         limb_pixels=len(values), highlights=len(highlight_pixels),
-        scores={str(layouts[i]): scores[i] for i in np.argsort(scores)[::-1]}, left_out=left_out)
+        scores={str(layouts[i]): scores[i] for i in np.argsort(scores)[::-1]}, left_out=left_out,
+        rim_score=rim_scores[best])
     if scores[best] - ranked[order[1]] < MIN_SCORE_MARGIN:
         raise CalibrationError(f"the sphere limbs cannot tell the polarizer layouts apart (best {layouts[best]} "
                                f"{scores[best]:+.3f}, next {layouts[order[1]]} {scores[order[1]]:+.3f}): expected "
                                "dielectric spheres whose limbs are lit and below the white level")
+    # the sum rule must pick the pairing clearly: the per-pixel misfit of the next pairing exceeds the best's by
+    # SUM_RULE_Z standard errors of their paired difference
+    other = [i for i in range(len(perms)) if not paired[i]]
+    if other:
+        runner = min(other, key=lambda i: consistency[i])
+        diff = misfit[runner] - misfit[best]
+        z = float(np.mean(diff) / max(np.std(diff) / np.sqrt(len(diff)), 1e-300))
+        if not z > SUM_RULE_Z:
+            raise CalibrationError(f"the analyzers' sum rule I0 + I90 = I45 + I135 cannot pick the pairing of the "
+                                   f"cell's positions (mean relative misfit {consistency[best]:.3g} for the best "
+                                   f"pairing, {consistency[runner]:.3g} for the next, {z:.1f} standard errors apart, "
+                                   f"{SUM_RULE_Z:g} needed): expected polarized light on the spheres, below the "
+                                   "white level")
+    _check_cues(report, claimed, layouts[best], _highlight_angle(highlight_pixels, perms[claimed_index])[0])
     if log:
         for line in report.messages():
             log(line)

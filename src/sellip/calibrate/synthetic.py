@@ -8,7 +8,8 @@ Public API::
     BoardSpec(cols=14, rows=10, square_m=0.010)        # inner corners, square side
     board_poses(spec, device, count, rng) -> list[(R (3, 3), t (3,))]   # board -> camera, board fully in view
     render_board(device, spec, rotation, translation, supersample=3, blur_px=0) -> analyzers (H, W, 4, 3)
-    render_spheres(device, spheres, supersample=2, panel=0.5) -> analyzers (H, W, 4, 3)
+    render_spheres(device, spheres, supersample=2, panel=0.5, reflect_panel=True) -> analyzers (H, W, 4, 3)
+    panel_reflection(points, normals, eta, panel) -> analyzers (N, 4)   # the panel mirrored, Fresnel-polarized
     render_chart(device, rotation, translation, supersample=2, shadow=1.0) -> analyzers (H, W, 4, 3)
     expose(analyzers, device, peak_fraction, rng) -> raw (H, W) uint16    # sellip.sensor.simulate_raw
     synthesize_calibration(out, width=2448, height=2048, seed=0, ...) -> Path   # folder, see below
@@ -20,7 +21,8 @@ project (:func:`sellip.pbrdf.full_stokes`) under the flash at ``light.position_m
 ``light.polarizer_deg``. A plane's shading is smooth and is evaluated on a grid of every 4th pixel
 (interpolated bilinearly), its printed texture (checkers, patches) per sample (3x3 per pixel); spheres are
 shaded per sample (2x2). The
-light panel behind the spheres is an unpolarized emitter (a backlit outline is what locates a sphere).
+light panel behind the spheres is an unpolarized emitter (a backlit outline is what locates a sphere), and the
+spheres mirror it (Fresnel-weighted, s-polarized), brightest at their limbs, as real glossy spheres do.
 Shadows are not traced (the board and chart are alone in their frames; spheres are placed apart).
 The analyzer images go through :func:`sellip.sensor.simulate_raw` (mosaic, colour, shot and read noise,
 12-bit rounding, saturation) with the device's sensor.
@@ -335,10 +337,51 @@ def render_board(device: dict, spec: BoardSpec, rotation: np.ndarray, translatio
 # --------------------------------------------------------------------------- spheres
 
 
+PANEL_DISTANCE_M = 1.0
+"""The light panel behind the spheres: the plane z = this (camera coordinates), 2 m x 2 m about the optical axis."""
+
+PANEL_HALF_SIZE_M = 1.0
+
+
+def panel_reflection(points: np.ndarray, normals: np.ndarray, eta: float, panel: float) -> np.ndarray:
+    """Analyzer intensities (N, 4) of the light panel mirrored by a glossy dielectric at surface points (N, 3)
+    with normals (N, 3) (camera coordinates): where the mirror ray of the camera ray meets the panel
+    (:data:`PANEL_DISTANCE_M`), the panel's unpolarized radiance ``panel`` (s0) times the Fresnel reflectance,
+    R+ = (Rs + Rp) / 2, polarized by R- = (Rs - Rp) / 2 across the plane of incidence (s-polarized: along d x n),
+    in the ray's Stokes frame (sellip.conventions). On a sphere's limb that is tangential, perpendicular to the
+    diffuse light's radial polarization; at grazing incidence Rs, Rp -> 1, so the limb mirrors the panel."""
+    from sellip.model.conventions import stokes_to_analyzers
+
+    d = points / np.linalg.norm(points, axis=-1, keepdims=True)
+    cos_i = np.clip(-np.sum(d * normals, axis=-1), 0.0, 1.0)
+    mirror = d + 2 * cos_i[:, None] * normals
+    t = (PANEL_DISTANCE_M - points[:, 2]) / np.where(mirror[:, 2] > 1e-9, mirror[:, 2], np.nan)
+    hit = points + t[:, None] * mirror
+    on_panel = (mirror[:, 2] > 1e-9) & (np.abs(hit[:, 0]) <= PANEL_HALF_SIZE_M) & (np.abs(hit[:, 1]) <= PANEL_HALF_SIZE_M)
+    sin2_t = (1 - cos_i ** 2) / eta ** 2
+    cos_t = np.sqrt(1 - sin2_t)
+    r_s = ((cos_i - eta * cos_t) / (cos_i + eta * cos_t)) ** 2
+    r_p = ((eta * cos_i - cos_t) / (eta * cos_i + cos_t)) ** 2
+    # the ray's Stokes frame: z towards the camera, y the camera's up without its z part, x = y x z
+    z = -d
+    up = np.array([0.0, -1.0, 0.0])
+    y_axis = up - (z @ up)[:, None] * z
+    y_axis /= np.linalg.norm(y_axis, axis=-1, keepdims=True)
+    x_axis = np.cross(y_axis, z)
+    s_dir = np.cross(d, normals)
+    s_dir /= np.maximum(np.linalg.norm(s_dir, axis=-1, keepdims=True), 1e-12)
+    psi = np.arctan2(np.sum(s_dir * y_axis, -1), np.sum(s_dir * x_axis, -1))
+    level = np.where(on_panel, panel, 0.0)
+    plus, minus = level * (r_s + r_p) / 2, level * (r_s - r_p) / 2
+    stokes = np.stack([plus, minus * np.cos(2 * psi), minus * np.sin(2 * psi)], axis=-1)
+    return np.asarray(stokes_to_analyzers(stokes, axis=-1), np.float32)
+
+
 def render_spheres(device: dict, spheres: list[tuple[np.ndarray, float]], supersample: int = 2,
-                   panel: float = 0.5, params: dict | None = None) -> np.ndarray:
+                   panel: float = 0.5, params: dict | None = None, reflect_panel: bool = True) -> np.ndarray:
     """Analyzer images (H, W, 4, 3) of glossy spheres (centre (3,) camera coordinates, radius) in front of an
-    unpolarized light panel of radiance ``panel`` (analyzer images read panel / 2 each)."""
+    unpolarized light panel of radiance ``panel`` (analyzer images read panel / 2 each). With ``reflect_panel``
+    the spheres mirror the panel (:func:`panel_reflection`), as real glossy spheres do at their limbs."""
     params = params or SPHERE_PARAMS
     sensor = device["sensor"]
     width, height = sensor["width"], sensor["height"]
@@ -366,7 +409,10 @@ def render_spheres(device: dict, spheres: list[tuple[np.ndarray, float]], supers
             centres = np.asarray([s[0] for s in spheres], np.float64)[which[hit]]
             radii = np.asarray([s[1] for s in spheres], np.float64)[which[hit]]
             normals = (points - centres) / radii[:, None]
-            samples[hit] = _shade(points, normals, device, params)
+            shaded = _shade(points, normals, device, params)
+            if reflect_panel and panel > 0:
+                shaded += panel_reflection(points, normals, float(params["eta"]), panel)[:, :, None]
+            samples[hit] = shaded
         out[rows] = samples.reshape(samples.shape[0], width, n_sub, 4, 3).mean(axis=2)
     return out
 
@@ -490,7 +536,8 @@ def _burst_name(kind: str, pose: int, frame: int, burst: int, suffix: str) -> st
 def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 2048, seed: int = 0,
                            board_frames: int = 24, sphere_frames: int = 6, spheres_per_frame: int = 3,
                            spec: BoardSpec = BoardSpec(), raw_format: str = "dng", polarizer_deg: float = 0.0,
-                           progress: bool = False, burst: int = 1, force: bool = False) -> Path:
+                           progress: bool = False, burst: int = 1, reflect_panel: bool = True,
+                           force: bool = False) -> Path:
     """Write a calibration folder (module docstring) for the synthetic device; returns it. Atomic: written to a
     temporary sibling and renamed. The same seed gives the same files. An existing ``out`` without truth.yaml (not
     one this function wrote) stops it with :class:`sellip.jobs.WouldReplaceError`, unless ``force``.
@@ -499,7 +546,8 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
     burst of a still scene: ``board_07_b2.dng`` is pose 7's third frame (``board_07.dng`` when ``burst`` is 1).
     The first frame of every pose is the same as with ``burst`` = 1. docs/calibration.md recommends
     ``board_frames=96`` (benchmarks/calibration_accuracy.py) and measures ``board_frames=48, burst=4`` too; the
-    tests use the defaults or fewer frames."""
+    tests use the defaults or fewer frames. ``reflect_panel``: the spheres mirror the light panel (as real glossy
+    spheres do; False: the panel is seen but not mirrored, as before 2026-11-27)."""
     out = Path(out)
     refuse_to_replace_folder(out, "sellip synth-calibration", lambda path: (path / "truth.yaml").is_file(), force)
     device = true_device(width, height, polarizer_deg)
@@ -511,7 +559,8 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
         shutil.rmtree(tmp)
     truth = {"device": device, "board": {"cols": spec.cols, "rows": spec.rows, "square_m": spec.square_m,
                                           "poses": {}},
-             "spheres": {"radius_m": SPHERE_RADIUS_M, "centres_m": {}}, "chart": {}}
+             "spheres": {"radius_m": SPHERE_RADIUS_M, "centres_m": {}, "reflect_panel": bool(reflect_panel)},
+             "chart": {}}
     try:
         for sub in ("board", "spheres", "chart"):
             (tmp / sub).mkdir(parents=True)
@@ -531,7 +580,7 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
         truth["spheres"]["radius_m"] = radius
         for k, centres in enumerate(sphere_layouts(device, sphere_frames, rng, radius=radius,
                                                    per_frame=spheres_per_frame)):
-            analyzers = render_spheres(device, [(c, radius) for c in centres])
+            analyzers = render_spheres(device, [(c, radius) for c in centres], reflect_panel=reflect_panel)
             peak = float(np.max(analyzers))
             for b in range(burst):
                 raw = expose(analyzers, device, 0.75 * white, np.random.default_rng(_burst_seed([seed, 21, k], b)),

@@ -40,7 +40,7 @@ Modules and what they export (each name is importable from here too)::
         mosaic_layout
     reader: Reading a capture folder (:func:`read_capture` -> :class:`Capture`) and its raw frames (DNG and camera RAW
       with rawpy, 16-bit TIFF/PNG as they are) as (H, W) mosaics in raw units
-        read_capture, read_raw_file, read_raw_frame
+        read_capture, read_raw_file, read_raw_frame, exposure_time
     scenes: Procedural test scenes with known ground truth (no downloads) and handheld camera orbits
         SCENES, DEVICE_WIDTH_PX, DEVICE_FX_PX, SPHERE_IOR_ETAS, icosphere, TINY_BUMPS, TINY_MATERIALS, build_scene,
         device_intrinsics, look_at_rotation, handheld_orbit
@@ -80,7 +80,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "linearize": ("BLACK_LEVEL_SOURCES", "BAD_FRAME_POLICIES", "linearize_capture"),
     "mitsuba_capture": ("PPlasticError", "mitsuba_available", "pplastic_materials", "render_in_subprocess"),
     "mosaic": ("mosaic_layout",),
-    "reader": ("read_capture", "read_raw_file", "read_raw_frame"),
+    "reader": ("read_capture", "read_raw_file", "read_raw_frame", "exposure_time"),
     "scenes": ("SCENES", "DEVICE_WIDTH_PX", "DEVICE_FX_PX", "SPHERE_IOR_ETAS", "icosphere", "TINY_BUMPS",
            "TINY_MATERIALS", "build_scene", "device_intrinsics", "look_at_rotation", "handheld_orbit"),
     "sensor": ("DEFAULT_COLOR_MATRIX", "SensorModel", "sensor_from_device", "camera_rgb_from_srgb", "mosaic_sample",

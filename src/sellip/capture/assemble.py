@@ -6,8 +6,10 @@ Public API::
     flash_level(text, file_label) -> float         # '0.25' -> 0.25; '4' (a divisor, "1/4 power") -> 0.25
     frames_from_pattern(files, pattern, exposure_s) -> DataFrame   # frames.csv rows
     frames_from_csv(path, exposure_s=None) -> DataFrame
+    fill_exposure(frames, frames_dir, given_by) -> DataFrame   # exposure_s from the files' ExposureTime tags
+    failed_steps(device) -> {step: why}            # calibration records with ok: false
     assemble_capture(frames_dir, device, out=None, pattern=None, csv=None, distance_m, exposure_s=None,
-                     force=False) -> Path
+                     accept_failed_calibration=False, force=False) -> Path
 
 The frames stay where they are: frames.csv names them relative to the capture folder (``out``, by default
 the parent of a frames folder called ``raw``, else the frames folder itself). capture.yaml is the device's
@@ -78,9 +80,6 @@ def flash_level(text: str, file_label: str) -> float:
 def frames_from_pattern(files: Iterable[str], pattern: str, exposure_s: float | None) -> pd.DataFrame:
     """frames.csv rows (frame_id = the file's stem) for file names matched by ``pattern``; every raw file must match."""
     regex = parse_pattern(pattern)
-    if exposure_s is None:
-        raise AssembleError("--exposure-s", None, "missing; the file-name pattern gives view and flash level, "
-                                                  "the exposure time must be given (seconds)")
     rows, unmatched = [], []
     for name in sorted(files):
         match = regex.match(name)
@@ -88,7 +87,8 @@ def frames_from_pattern(files: Iterable[str], pattern: str, exposure_s: float | 
             unmatched.append(name)
             continue
         rows.append({"frame_id": Path(name).stem, "view_id": match["view"], "file": name,
-                     "flash_level": flash_level(match["level"], name), "exposure_s": float(exposure_s)})
+                     "flash_level": flash_level(match["level"], name),
+                     "exposure_s": float("nan") if exposure_s is None else float(exposure_s)})
     if unmatched:
         raise AssembleError(unmatched[0], None, f"does not match --pattern {pattern!r} ({len(unmatched)} file(s) do "
                                                 f"not: {unmatched[:3]}); rename them, or give a CSV with --csv")
@@ -109,10 +109,48 @@ def frames_from_csv(path: str | Path, exposure_s: float | None = None) -> pd.Dat
     if "frame_id" not in table:
         table["frame_id"] = [Path(f).stem for f in table["file"]]
     if "exposure_s" not in table:
-        if exposure_s is None:
-            raise AssembleError(str(path), "column 'exposure_s'", "missing; add it or give --exposure-s")
-        table["exposure_s"] = float(exposure_s)
+        table["exposure_s"] = float("nan") if exposure_s is None else float(exposure_s)
     return table[list(capture_files.FRAME_COLUMNS)]
+
+
+EXPOSURE_RTOL = 0.02
+"""An exposure time given on the command line or in the CSV may differ from the one the file records by this
+much (relative; cameras round 1/3 stops: 1/250 s is recorded as 0.004)."""
+
+
+def fill_exposure(frames: pd.DataFrame, frames_dir: Path, given_by: str) -> pd.DataFrame:
+    """``frames`` (its ``file`` relative to ``frames_dir``) with every frame's ``exposure_s`` from the file's metadata
+    (:func:`sellip.capture.reader.exposure_time`) where none was given; a given time that disagrees with the file's
+    by more than :data:`EXPOSURE_RTOL`, or a frame with neither, is an error naming the file."""
+    frames = frames.copy()
+    times = []
+    for row in frames.itertuples(index=False):
+        path = frames_dir / row.file
+        recorded = reader.exposure_time(path) if path.is_file() else None
+        given = float(row.exposure_s)
+        if given == given:  # not NaN
+            if recorded is not None and abs(given - recorded) > EXPOSURE_RTOL * recorded:
+                raise AssembleError(str(path), "ExposureTime", f"the file records {recorded:g} s but {given_by} says "
+                                                               f"{given:g} s; leave the exposure out to use the file's, "
+                                                               "or correct it")
+            times.append(given)
+        elif recorded is not None:
+            times.append(recorded)
+        else:
+            raise AssembleError(str(path), "ExposureTime", f"the file records no exposure time; give it with "
+                                                           f"{given_by} (seconds)")
+    frames["exposure_s"] = times
+    return frames
+
+
+def failed_steps(device: Mapping) -> dict[str, str]:
+    """{step: why} for every ``calibration.<step>`` record of a device that says ``ok: false``."""
+    out = {}
+    for step, record in (device.get("calibration") or {}).items():
+        if isinstance(record, Mapping) and record.get("ok") is False:
+            messages = record.get("messages") or []
+            out[step] = "; ".join(map(str, messages)) or "the step recorded ok: false"
+    return out
 
 
 def _relative(frames_dir: Path, out: Path) -> str:
@@ -121,12 +159,23 @@ def _relative(frames_dir: Path, out: Path) -> str:
 
 def assemble_capture(frames_dir: str | Path, device: Mapping, distance_m: float, out: str | Path | None = None,
                      pattern: str | None = None, csv: str | Path | None = None,
-                     exposure_s: float | None = None, check_raw: bool = True, force: bool = False) -> Path:
+                     exposure_s: float | None = None, check_raw: bool = True,
+                     accept_failed_calibration: bool = False, device_label: str = "device.yaml",
+                     force: bool = False) -> Path:
     """Write capture.yaml and frames.csv for the raw frames in ``frames_dir`` (module docstring); returns the
-    capture folder. ``device``: a complete device (:func:`sellip.calibrate.device.read_device`, complete=True).
-    Exactly one of ``pattern`` and ``csv``. Raises a CaptureError naming what is wrong; writes nothing then. A
-    capture.yaml or frames.csv already there with other content (a user's edits) is an ExistingFileError unless
-    ``force``; the same content is written again without a word."""
+    capture folder. ``device``: a complete device (:func:`sellip.calibrate.device.read_device`, complete=True);
+    one whose calibration records a failed step is refused unless ``accept_failed_calibration``. Exactly one of
+    ``pattern`` and ``csv``. Each frame's exposure time is the one its file records unless given
+    (:func:`fill_exposure`). Raises a CaptureError naming what is wrong; writes nothing then. A capture.yaml or
+    frames.csv already there with other content (a user's edits) is an ExistingFileError unless ``force``; the
+    same content is written again without a word."""
+    failed = failed_steps(device)
+    if failed and not accept_failed_calibration:
+        step, why = next(iter(failed.items()))
+        raise AssembleError(device_label, f"key 'calibration.{step}.ok'",
+                            f"false: the {step} step failed ({why}); calibrate it again, or give "
+                            f"--accept-failed-calibration to use the device as it is"
+                            + (f" (failed too: {sorted(failed)[1:]})" if len(failed) > 1 else ""))
     frames_dir = Path(frames_dir)
     if not frames_dir.is_dir():
         raise AssembleError(str(frames_dir), None, "not a folder; expected the folder of raw frames")
@@ -140,6 +189,8 @@ def assemble_capture(frames_dir: str | Path, device: Mapping, distance_m: float,
     if not files:
         raise AssembleError(str(frames_dir), None, f"no raw frames (expected files ending in {list(RAW_SUFFIXES)})")
     frames = frames_from_pattern(files, pattern, exposure_s) if pattern else frames_from_csv(csv, exposure_s)
+    given_by = "--exposure-s" if exposure_s is not None or pattern else f"{csv} (column exposure_s) or --exposure-s"
+    frames = fill_exposure(frames, frames_dir, given_by)
     prefix = _relative(frames_dir, out)
     frames["file"] = [f if prefix == "." else f"{prefix}/{f}" for f in frames["file"]]
     config = {section: dict(device[section]) for section in ("sensor", "camera", "light")}

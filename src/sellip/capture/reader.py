@@ -1,5 +1,6 @@
 """Reading a capture folder (:func:`read_capture` -> :class:`Capture`) and its raw frames (DNG and
-camera RAW with rawpy, 16-bit TIFF/PNG as they are) as (H, W) mosaics in raw units.
+camera RAW with rawpy, 16-bit TIFF/PNG as they are) as (H, W) mosaics in raw units; a raw file's recorded
+exposure time (:func:`exposure_time`, tifffile).
 """
 
 from __future__ import annotations
@@ -122,6 +123,36 @@ def read_capture(path: str | Path, check_raw: bool = False, check_files: bool = 
         for _, row in frames.iterrows():
             read_raw_frame(capture, row)
     return capture
+
+
+EXPOSURE_TIME_TAG = 33434
+"""TIFF/EP and EXIF ExposureTime (0x829A): a RATIONAL, seconds."""
+
+
+def exposure_time(path: str | Path) -> float | None:
+    """The exposure time (s) a camera recorded in a raw file: the ExposureTime tag (0x829A) of the first IFD or
+    of its EXIF IFD, read with tifffile (DNG and the TIFF-based camera raws: NEF, ARW, CR2, ...). None when the
+    file has no such tag or is not TIFF-based (PNG, CR3)."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            tags = tif.pages[0].tags
+            tag = tags.get(EXPOSURE_TIME_TAG)
+            values = [None if tag is None else tag.value]
+            exif = tags.get(34665)  # ExifTag: tifffile reads the EXIF IFD into a dict
+            if exif is not None and isinstance(exif.value, dict):
+                values.append(exif.value.get("ExposureTime"))
+    except (tifffile.TiffFileError, OSError, ValueError, KeyError, IndexError):
+        return None
+    for value in values:
+        if value is None:
+            continue
+        if isinstance(value, (tuple, list)) and len(value) == 2:
+            value = value[0] / value[1] if value[1] else None
+        if value is not None and float(value) > 0:
+            return float(value)
+    return None
 
 
 def read_raw_file(path: str | Path, sensor: Mapping, file_label: str | None = None) -> np.ndarray:

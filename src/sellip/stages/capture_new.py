@@ -1,7 +1,7 @@
 """``sellip capture new``: a capture folder (docs/design.md §3) for a folder of raw frames and a calibrated device.
 
     sellip capture new FRAMES_DIR --device device.yaml --distance-m 0.9 --pattern '{view}_f{level}.dng' \
-        --exposure-s 0.005 [--out CAPTURE]
+        [--exposure-s 0.005] [--out CAPTURE] [--accept-failed-calibration]
     sellip capture new FRAMES_DIR --device device.yaml --distance-m 0.9 --csv frames_in.csv [--out CAPTURE]
 
 Writes capture.yaml (the device's sensor, camera and light sections, scene.distance_m, the calibration record)
@@ -32,7 +32,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                                           "(level: a flash level in (0, 1], or N of a '1/N power' setting)")
     parser.add_argument("--csv", type=Path, help="CSV with columns file, view_id, flash_level[, frame_id, "
                                                  "exposure_s] instead of --pattern")
-    parser.add_argument("--exposure-s", type=float, help="exposure time (s) of every frame")
+    parser.add_argument("--exposure-s", type=float, help="exposure time (s) of every frame (default: the one each "
+                                                         "raw file records, its ExposureTime tag)")
+    parser.add_argument("--accept-failed-calibration", action="store_true",
+                        help="use a device.yaml whose calibration records a failed step (ok: false)")
     parser.add_argument("--out", type=Path, help="capture folder (default: see above)")
     parser.add_argument("--force", action="store_true",
                         help="replace a capture.yaml or frames.csv already there that differs from what would be written")
@@ -47,7 +50,8 @@ def main(args: argparse.Namespace) -> int:
         device = read_device(args.device, complete=True)
         out = assemble_capture(args.frames_dir, device, args.distance_m, out=args.out, pattern=args.pattern,
                                csv=args.csv, exposure_s=args.exposure_s, check_raw=not args.no_check_raw,
-                               force=args.force)
+                               accept_failed_calibration=args.accept_failed_calibration,
+                               device_label=str(args.device), force=args.force)
     except files.CaptureError as exc:
         raise SystemExit(f"sellip capture new: {exc}") from None
     capture = reader.read_capture(out)
