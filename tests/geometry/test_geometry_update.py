@@ -403,3 +403,36 @@ def test_the_stage_moves_a_displaced_model_onto_the_silhouettes(tiny_capture, tm
     print("mm low: normals only %.3f, with silhouettes %.3f" % tuple(low))
     assert low[0] > 1.4 and low[1] < 0.15, low  # 1.500 and 0.082 mm
     assert summary["silhouette_constraints"] > 500 and len(summary["silhouette_offset_px"]) == 8
+
+
+def test_surface_defects_count_a_planted_fold_and_none_on_a_sphere():
+    """A sphere has no self-intersection, flip or degenerate triangle; a vertex pushed through the sphere to the
+    far side folds its fan through the surface there (self-intersecting pairs, the fan's triangles flipped against
+    the sphere's); a vertex slid sideways past its neighbours flips triangles without crossing any; a vertex moved
+    onto its neighbour's edge makes degenerate triangles."""
+    unit, faces = icosphere(4)
+    sphere = RADIUS * unit
+    clean = meshes.surface_defects(sphere, faces, sphere)
+    assert (clean.self_intersecting_pairs, clean.flipped, clean.degenerate, clean.folds) == (0, 0, 0, 0)
+    assert not clean.folding_faces.any()
+
+    through = sphere.copy()
+    through[100] = -1.2 * sphere[100]
+    fold = meshes.surface_defects(through, faces, sphere)
+    assert fold.self_intersecting_pairs > 0 and fold.flipped > 0 and fold.folds > 0
+    fan = np.any(faces == 100, axis=1)
+    assert fold.folding_faces[fan].any() and fold.folding_faces.sum() < 0.01 * len(faces)
+    assert meshes.surface_defects(through, faces).flipped == 0  # no reference: no flips counted
+
+    normals = meshes.vertex_normals(sphere, faces)
+    edge = np.median(np.linalg.norm(np.diff(sphere[faces[:, :2]], axis=1)[:, 0], axis=1))
+    tangent = np.cross(normals[100], [0.0, 0.0, 1.0])
+    slid = sphere.copy()
+    slid[100] += 2.5 * edge * tangent / np.linalg.norm(tangent)
+    sideways = meshes.surface_defects(slid, faces, sphere)
+    assert sideways.flipped > 0 and sideways.self_intersecting_pairs == 0
+
+    a, b, c = faces[0]
+    flat = sphere.copy()
+    flat[a] = 0.5 * (sphere[b] + sphere[c])
+    assert meshes.surface_defects(flat, faces, sphere).degenerate >= 1
