@@ -436,3 +436,33 @@ def test_surface_defects_count_a_planted_fold_and_none_on_a_sphere():
     flat = sphere.copy()
     flat[a] = 0.5 * (sphere[b] + sphere[c])
     assert meshes.surface_defects(flat, faces, sphere).degenerate >= 1
+
+
+def test_a_step_that_would_fold_is_shortened_only_where_it_folds():
+    """A step that pushes one vertex through the sphere and moves every other vertex 0.1 mm outward: the step is
+    halved at that vertex and its neighbours until nothing crosses or flips, and taken in full everywhere else."""
+    unit, faces = icosphere(4)
+    sphere = RADIUS * unit
+    step = 1e-4 * unit
+    step[100] = -2.2 * sphere[100]
+    assert meshes.surface_defects(sphere + step, faces, sphere).folds > 0
+    moved, share = geometry_update.step_without_folds(sphere, faces, step)
+    assert meshes.surface_defects(moved, faces, sphere).folds == 0
+    assert share[100] <= 0.5 and np.mean(share == 1) > 0.95
+    assert np.allclose(moved[share == 1], (sphere + step)[share == 1])
+
+
+def test_wrong_trusted_normals_do_not_fold_the_surface():
+    """A cap whose trusted normals all point sideways (a fit on the wrong surface) turns its triangles over and
+    through each other when integrated as they are; the update with keep_surface (the default) bends the cap as
+    far as it stays a surface."""
+    unit, faces = icosphere(4)
+    sphere = RADIUS * unit
+    fitted = unit.copy()
+    cap = unit[:, 2] > 0.7
+    fitted[cap] = [1.0, 0.0, 0.0]
+    free = geometry_update.refine_from_normals(sphere, faces, fitted, np.ones(len(unit)), keep_surface=False)
+    kept = geometry_update.refine_from_normals(sphere, faces, fitted, np.ones(len(unit)))
+    assert meshes.surface_defects(free, faces, sphere).folds > 10
+    assert meshes.surface_defects(kept, faces, sphere).folds == 0
+    assert np.mean(np.linalg.norm(kept[cap] - sphere[cap], axis=1)) > 1e-3  # the cap still bends
