@@ -147,6 +147,8 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
     written = json.loads((tmp_path / "mesh.ply.json").read_text())
     assert written["moved_chamfer_mm"] > 0.05
     assert written["fitted_vs_mesh_after_deg"] < written["fitted_vs_mesh_before_deg"]
+    assert written["keep_surface"] and written["surface_defects"] == {
+        "self_intersecting_pairs": 0, "flipped_triangles": 0, "degenerate_triangles": 0}
     assert not list(tmp_path.glob("*.tmp*"))
     # The reference mesh must be the same mesh (the loop keeps the initial mesh's faces).
     write_ply(tmp_path / "other.ply", {"x": vertices[:-3, 0], "y": vertices[:-3, 1], "z": vertices[:-3, 2],
