@@ -316,6 +316,11 @@ def _share_count(share, vertices) -> str:
     return f"{100 * share:.1f} %{count}"
 
 
+def _from_mesh(mesh) -> str:
+    """' (from mesh 2)': the first mesh that folds, or '' when none does."""
+    return "" if mesh is None or not np.isfinite(mesh) else f" (from mesh {mesh:.0f})"
+
+
 def _markdown(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     return lines + ["| " + " | ".join(row) + " |" for row in rows]
@@ -335,8 +340,7 @@ def stability_markdown(table) -> str:
             format_cell(row["rho_d_rmse"], 2), format_cell(row["sigma_s_median_err"], 2),
             f"{format_cell(row['chamfer_mm'], 2)} / {format_cell(row['hausdorff_mm'], 1)}",
             format_cell(row["truth_far_share"], percent=True),
-            format_cell(row["folds_max"], 0) + ("" if row["fold_first_mesh"] is None or not np.isfinite(row["fold_first_mesh"])
-                                         else f" (from mesh {row['fold_first_mesh']:.0f})"),
+            format_cell(row["folds_max"], 0) + _from_mesh(row["fold_first_mesh"]),
             format_cell(row["psnr_held_out_db"]),
             format_cell(row["psnr_new_light_db"]), f"{format_cell(row['wall_s'], 0)} / {format_cell(row['cpu_s'], 0)}"])
         finite = "yes" if row["outputs_finite"] else f"**no**: {row['nonfinite'][:120]}"
