@@ -246,7 +246,7 @@ def test_confidence_flagging_counts_recall_precision_and_ranking():
         stability_table.confidence_flagging(error, confidence[:-1], bad_above=10)
 
 
-def _fake_run(workdir: Path, case: stability_table.Case, nan: bool = False) -> None:
+def _fake_run(workdir: Path, case: stability_table.Case, nan: bool = False, folds: tuple[int, ...] = (0, 0)) -> None:
     """A finished run of ``case`` in ``workdir``: ground truth, a model whose normals are 30 deg off on a cap
     (and flagged there with confidence 0.1 except for a band), params.zarr, a renders npz and metrics.json."""
     from sellip.model.params import write_params
@@ -279,8 +279,10 @@ def _fake_run(workdir: Path, case: stability_table.Case, nan: bool = False) -> N
                "median": 1.0, "p90": 30.0}}, "eta_relative_error_pct": {"median": 3.0},
                "eta_per_material": {"mean_error_pct": 0.5, "max_error_pct": 0.8},
                "rho_d_relative_rmse": {"relative_rmse": 0.1}, "sigma_s_abs_error": None,
-               "geometry": {"chamfer_mm": 0.5, "hausdorff_mm": 2.0}, "psnr_held_out": {"mean_db": 25.0},
-               "psnr_new_light": None}
+               "geometry": {"chamfer_mm": 0.5, "hausdorff_mm": 2.0, "truth_farther_than_1mm": 0.02},
+               "psnr_held_out": {"mean_db": 25.0}, "psnr_new_light": None,
+               "geometry_iterations": [{"mesh": it, "self_intersecting_pairs": folds, "flipped_triangles": 0,
+                                        "degenerate_triangles": 0} for it, folds in enumerate(folds)]}
     (results / "metrics.json").write_text(json.dumps(metrics))
 
 
@@ -297,6 +299,14 @@ def test_case_row_reads_the_figures_the_flagging_and_finiteness(tmp_path):
     assert row["bad_flagged"] == pytest.approx(np.sum(cap > 0.6) / np.sum(cap > 0.5))
     assert row["flagged_bad"] == 1.0 and row["auc"] > 0.9 and row["worst_auc"] > 0.8
     assert row["eta_bad_share"] == 0.0 and row["eta_auc"] is None and row["eta_worst_auc"] is None  # all tied
+    assert row["truth_far_share"] == 0.02 and row["folds_max"] == 0 and row["fold_first_mesh"] is None
+
+    # A fold at any mesh of the loop fails the case, naming the mesh.
+    _fake_run(tmp_path / "folded", case, folds=(0, 3, 0))
+    row = stability_table.case_row(case, tmp_path / "folded", wall_s=12.0)
+    assert row["status"] == "failed" and row["folds_max"] == 3 and row["fold_first_mesh"] == 1
+    assert row["error"] == "the surface folds: mesh 1: 3 self-intersecting pairs, 0 flipped"
+    assert "3 (from mesh 1)" in stability_table.stability_markdown(stability_table.validate_table([row]))
 
     broken = stability_table.Case("broken", "capture", "x")
     _fake_run(tmp_path / "nan", broken, nan=True)

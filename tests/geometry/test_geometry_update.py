@@ -147,6 +147,8 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
     written = json.loads((tmp_path / "mesh.ply.json").read_text())
     assert written["moved_chamfer_mm"] > 0.05
     assert written["fitted_vs_mesh_after_deg"] < written["fitted_vs_mesh_before_deg"]
+    assert written["keep_surface"] and written["surface_defects"] == {
+        "self_intersecting_pairs": 0, "flipped_triangles": 0, "degenerate_triangles": 0}
     assert not list(tmp_path.glob("*.tmp*"))
     # The reference mesh must be the same mesh (the loop keeps the initial mesh's faces).
     write_ply(tmp_path / "other.ply", {"x": vertices[:-3, 0], "y": vertices[:-3, 1], "z": vertices[:-3, 2],
@@ -403,3 +405,66 @@ def test_the_stage_moves_a_displaced_model_onto_the_silhouettes(tiny_capture, tm
     print("mm low: normals only %.3f, with silhouettes %.3f" % tuple(low))
     assert low[0] > 1.4 and low[1] < 0.15, low  # 1.500 and 0.082 mm
     assert summary["silhouette_constraints"] > 500 and len(summary["silhouette_offset_px"]) == 8
+
+
+def test_surface_defects_count_a_planted_fold_and_none_on_a_sphere():
+    """A sphere has no self-intersection, flip or degenerate triangle; a vertex pushed through the sphere to the
+    far side folds its fan through the surface there (self-intersecting pairs, the fan's triangles flipped against
+    the sphere's); a vertex slid sideways past its neighbours flips triangles without crossing any; a vertex moved
+    onto its neighbour's edge makes degenerate triangles."""
+    unit, faces = icosphere(4)
+    sphere = RADIUS * unit
+    clean = meshes.surface_defects(sphere, faces, sphere)
+    assert (clean.self_intersecting_pairs, clean.flipped, clean.degenerate, clean.folds) == (0, 0, 0, 0)
+    assert not clean.folding_faces.any()
+
+    through = sphere.copy()
+    through[100] = -1.2 * sphere[100]
+    fold = meshes.surface_defects(through, faces, sphere)
+    assert fold.self_intersecting_pairs > 0 and fold.flipped > 0 and fold.folds > 0
+    fan = np.any(faces == 100, axis=1)
+    assert fold.folding_faces[fan].any() and fold.folding_faces.sum() < 0.01 * len(faces)
+    assert meshes.surface_defects(through, faces).flipped == 0  # no reference: no flips counted
+
+    normals = meshes.vertex_normals(sphere, faces)
+    edge = np.median(np.linalg.norm(np.diff(sphere[faces[:, :2]], axis=1)[:, 0], axis=1))
+    tangent = np.cross(normals[100], [0.0, 0.0, 1.0])
+    slid = sphere.copy()
+    slid[100] += 2.5 * edge * tangent / np.linalg.norm(tangent)
+    sideways = meshes.surface_defects(slid, faces, sphere)
+    assert sideways.flipped > 0 and sideways.self_intersecting_pairs == 0
+
+    a, b, c = faces[0]
+    flat = sphere.copy()
+    flat[a] = 0.5 * (sphere[b] + sphere[c])
+    assert meshes.surface_defects(flat, faces, sphere).degenerate >= 1
+
+
+def test_a_step_that_would_fold_is_shortened_only_where_it_folds():
+    """A step that pushes one vertex through the sphere and moves every other vertex 0.1 mm outward: the step is
+    halved at that vertex and its neighbours until nothing crosses or flips, and taken in full everywhere else."""
+    unit, faces = icosphere(4)
+    sphere = RADIUS * unit
+    step = 1e-4 * unit
+    step[100] = -2.2 * sphere[100]
+    assert meshes.surface_defects(sphere + step, faces, sphere).folds > 0
+    moved, share = geometry_update.step_without_folds(sphere, faces, step)
+    assert meshes.surface_defects(moved, faces, sphere).folds == 0
+    assert share[100] <= 0.5 and np.mean(share == 1) > 0.95
+    assert np.allclose(moved[share == 1], (sphere + step)[share == 1])
+
+
+def test_wrong_trusted_normals_do_not_fold_the_surface():
+    """A cap whose trusted normals all point sideways (a fit on the wrong surface) turns its triangles over and
+    through each other when integrated as they are; the update with keep_surface (the default) bends the cap as
+    far as it stays a surface."""
+    unit, faces = icosphere(4)
+    sphere = RADIUS * unit
+    fitted = unit.copy()
+    cap = unit[:, 2] > 0.7
+    fitted[cap] = [1.0, 0.0, 0.0]
+    free = geometry_update.refine_from_normals(sphere, faces, fitted, np.ones(len(unit)), keep_surface=False)
+    kept = geometry_update.refine_from_normals(sphere, faces, fitted, np.ones(len(unit)))
+    assert meshes.surface_defects(free, faces, sphere).folds > 10
+    assert meshes.surface_defects(kept, faces, sphere).folds == 0
+    assert np.mean(np.linalg.norm(kept[cap] - sphere[cap], axis=1)) > 1e-3  # the cap still bends

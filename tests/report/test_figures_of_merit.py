@@ -128,6 +128,22 @@ def test_geometry_series_follows_the_meshes_of_the_loop(truth):
     assert rows[0]["fitted_normal_deg"]["median"] == pytest.approx(3.0, abs=1e-6)
     assert rows[0]["fitted_normal_deg"]["vertices"] == counted.sum() and "fitted_normal_deg" not in rows[1]
     assert "chamfer_mm" not in figures_of_merit.geometry_series(meshes, fitted, None)[2]
+    assert all(row["self_intersecting_pairs"] == row["flipped_triangles"] == row["degenerate_triangles"] == 0
+               for row in rows)
+    # 5 % larger: the true surface lies 2 mm inside, all of it farther than 1 mm; 2.5 %: 1 mm, about half.
+    assert rows[0]["truth_farther_than_1mm"] > 0.99 and rows[2]["truth_farther_than_1mm"] < 0.01
+
+
+def test_geometry_series_counts_a_fold(truth):
+    """A vertex pushed through the surface to the far side: its mesh has self-intersecting pairs and triangles
+    flipped against the previous mesh's."""
+    folded = np.array(truth.vertices, np.float64)
+    folded[7] = -1.2 * folded[7]
+    meshes = [ParamMesh(truth.vertices, truth.faces, truth.normals, None),
+              ParamMesh(folded, truth.faces, truth.normals, None)]
+    rows = figures_of_merit.geometry_series(meshes, [], None)
+    assert rows[0]["self_intersecting_pairs"] == 0 and rows[0]["flipped_triangles"] == 0
+    assert rows[1]["self_intersecting_pairs"] > 0 and rows[1]["flipped_triangles"] > 0
 
 
 def test_camera_alignment_recovers_the_similarity(tiny_run):

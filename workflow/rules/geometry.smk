@@ -98,6 +98,7 @@ rule refine_geometry:
         anchor=lambda wildcards: at_iteration(config["refine_geometry"]["anchor"], wildcards.it),
         rounds=config["refine_geometry"]["rounds"],
         silhouette=lambda wildcards: at_iteration(config["refine_geometry"]["silhouette"], wildcards.it),
+        keep_surface="--keep-surface" if config["refine_geometry"]["keep_surface"] else "--no-keep-surface",
         capture=lambda wildcards, input: Path(input.capture).parent,
         held_out=config["evaluate"]["held_out_views"],
         mask_threshold=config["sfm"]["mask_threshold"],
@@ -111,7 +112,7 @@ rule refine_geometry:
         SELLIP + " refine-geometry --params {input.params:q} --mesh {input.mesh:q} --output {output.mesh:q}"
         " --reference-mesh {input.reference:q} --smoothness {params.smoothness}"
         " --smoothness-unconfident {params.smoothness_unconfident} --anchor {params.anchor} --rounds {params.rounds}"
-        " --silhouette {params.silhouette} --cameras {input.cameras:q} --hdr {input.hdr:q} --capture {params.capture:q}"
+        " --silhouette {params.silhouette} {params.keep_surface} --cameras {input.cameras:q} --hdr {input.hdr:q} --capture {params.capture:q}"
         " --exclude-views {params.held_out:q} --mask-threshold {params.mask_threshold} > {log:q} 2>&1"
 
 

@@ -68,7 +68,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "perturb_along_normals", "perturb_mesh_file", "miscalibrate_flash", "damage_frames", "snakemake_command",
            "failure_reason", "missing_packages", "run_suite"),
     "stability_table": ("Case", "rank_auc", "confidence_flagging", "nonfinite_outputs", "COLUMNS", "case_row",
-           "validate_table"),
+           "validate_table", "geometry_folds", "stability_markdown"),
     "sweep": ("UPSTREAM_RULES", "UPSTREAM_OUTPUTS", "link_upstream", "SnakemakeRunner", "xla_compile_seconds",
            "RECORD", "run_sweep"),
     "sweep_plan": ("SweepError", "Factor", "FACTORS", "PRESETS", "get_key", "set_key", "merge", "Variant",

@@ -182,13 +182,28 @@ COLUMNS: dict[str, str] = {
     "normal_mean_deg": "float", "normal_median_deg": "float", "normal_p90_deg": "float",
     "eta_median_pct": "float", "eta_material_mean_pct": "float", "eta_material_max_pct": "float",
     "rho_d_rmse": "float", "sigma_s_median_err": "float",
-    "chamfer_mm": "float", "hausdorff_mm": "float", "psnr_held_out_db": "float", "psnr_new_light_db": "float",
+    "chamfer_mm": "float", "hausdorff_mm": "float", "truth_far_share": "float", "folds_max": "float",
+    "fold_first_mesh": "float", "psnr_held_out_db": "float", "psnr_new_light_db": "float",
     "outputs_finite": "bool", "nonfinite": "str",
     "confidence_median": "float", "bad_share": "float", "flagged_share": "float", "bad_flagged": "float",
     "flagged_bad": "float", "auc": "float", "worst_auc": "float", "eta_bad_share": "float",
     "eta_bad_flagged": "float", "eta_flagged_bad": "float", "eta_auc": "float", "eta_worst_auc": "float",
 }
 """The columns of stability.csv, in order (definitions: docs/benchmarks.md)."""
+
+
+def geometry_folds(iterations: Sequence[Mapping]) -> tuple[int, int | None, str] | None:
+    """(the most folds of any mesh, the first mesh that folds or None, a one-line account) from metrics.json's
+    ``geometry_iterations``; folds = self-intersecting triangle pairs + flipped triangles. None: no row counts
+    them (a run from before they were measured)."""
+    counted = [row for row in iterations if row.get("self_intersecting_pairs") is not None]
+    if not counted:
+        return None
+    folds = [int(row["self_intersecting_pairs"]) + int(row.get("flipped_triangles") or 0) for row in counted]
+    first = next((row["mesh"] for row, count in zip(counted, folds) if count), None)
+    account = "; ".join(f"mesh {row['mesh']}: {row['self_intersecting_pairs']} self-intersecting pairs, "
+                        f"{row.get('flipped_triangles') or 0} flipped" for row, count in zip(counted, folds) if count)
+    return max(folds), first, account
 
 
 def empty_row(case: Case) -> dict:
@@ -234,8 +249,14 @@ def case_row(case: Case, workdir: str | Path, wall_s: float, error: str | None =
             rho_d_rmse=_get(m, "rho_d_relative_rmse", "relative_rmse"),
             sigma_s_median_err=_get(m, "sigma_s_abs_error", "median"),
             chamfer_mm=_get(m, "geometry", "chamfer_mm"), hausdorff_mm=_get(m, "geometry", "hausdorff_mm"),
+            truth_far_share=_get(m, "geometry", "truth_farther_than_1mm"),
             psnr_held_out_db=_get(m, "psnr_held_out", "mean_db"),
             psnr_new_light_db=_get(m, "psnr_new_light", "mean_db"))
+        folds = geometry_folds(m.get("geometry_iterations") or [])
+        if folds is not None:
+            row.update(folds_max=float(folds[0]), fold_first_mesh=None if folds[1] is None else float(folds[1]))
+            if folds[0] and not error:
+                row.update(status="failed", error=f"the surface folds: {folds[2]}")
     model_path = results / "final" / "model.ply"
     scene = (case.config.get("demo") or {}).get("scene", "tiny")
     truth_path = workdir / "captures" / scene / GROUND_TRUTH_MESH
@@ -263,7 +284,7 @@ def _schema():
     columns["case"] = pa.Column(str, unique=True)
     for name in ("bad_share", "flagged_share", "bad_flagged", "flagged_bad", "auc", "worst_auc", "eta_bad_share",
                  "eta_bad_flagged", "eta_flagged_bad", "eta_auc", "eta_worst_auc", "confident_share",
-                 "confidence_median"):
+                 "confidence_median", "truth_far_share"):
         columns[name] = pa.Column(float, [pa.Check.in_range(0, 1)], nullable=True)
     return pa.DataFrameSchema(columns, strict=True, ordered=True)
 
@@ -295,6 +316,11 @@ def _share_count(share, vertices) -> str:
     return f"{100 * share:.1f} %{count}"
 
 
+def _from_mesh(mesh) -> str:
+    """' (from mesh 2)': the first mesh that folds, or '' when none does."""
+    return "" if mesh is None or not np.isfinite(mesh) else f" (from mesh {mesh:.0f})"
+
+
 def _markdown(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     return lines + ["| " + " | ".join(row) + " |" for row in rows]
@@ -312,7 +338,10 @@ def stability_markdown(table) -> str:
             format_cell(row["eta_median_pct"]),
             " / ".join(format_cell(row[k], 2) for k in ("eta_material_mean_pct", "eta_material_max_pct")),
             format_cell(row["rho_d_rmse"], 2), format_cell(row["sigma_s_median_err"], 2),
-            f"{format_cell(row['chamfer_mm'], 2)} / {format_cell(row['hausdorff_mm'], 1)}", format_cell(row["psnr_held_out_db"]),
+            f"{format_cell(row['chamfer_mm'], 2)} / {format_cell(row['hausdorff_mm'], 1)}",
+            format_cell(row["truth_far_share"], percent=True),
+            format_cell(row["folds_max"], 0) + _from_mesh(row["fold_first_mesh"]),
+            format_cell(row["psnr_held_out_db"]),
             format_cell(row["psnr_new_light_db"]), f"{format_cell(row['wall_s'], 0)} / {format_cell(row['cpu_s'], 0)}"])
         finite = "yes" if row["outputs_finite"] else f"**no**: {row['nonfinite'][:120]}"
         flags.append([
@@ -327,7 +356,8 @@ def stability_markdown(table) -> str:
     lines = ["Figures of merit (metrics.json of each run):", ""]
     lines += _markdown(["case", "broken", "status", "views", "vertices", "normal mean / median / p90 (°)",
                         "η per vertex, median (%)", "η per material, mean / worst (%)", "ρ_d rel. RMSE",
-                        "σ_s err. (median)", "Chamfer / Hausdorff (mm)",
+                        "σ_s err. (median)", "Chamfer / Hausdorff (mm)", "truth > 1 mm away",
+                        "folds, most of any mesh",
                         "held-out PSNR (dB)", "new-light PSNR (dB)", "wall / CPU (s)"], merit)
     caption = (f"Outputs and confidence (bad: normal error > {BAD_NORMAL_DEG:g}°, η error > {BAD_ETA_PCT:g} %; "
                f"flagged: confidence < {LOW_CONFIDENCE:g}):")

@@ -143,16 +143,18 @@ def iteration_model(params_path: Path, mesh_path: Path):
 def refine_geometry(params_path: Path, mesh_path: Path, output: Path, smoothness: float = 0.01, anchor: float = 1e-3,
               rounds: int = 3, min_confidence: float = 0.5, reference_mesh: Path | None = None,
               smoothness_unconfident: float = 1.0,
-              silhouette: float = 0.0, cameras_path: Path | None = None, hdr_path: Path | None = None,
+              silhouette: float = 0.0, keep_surface: bool = True, cameras_path: Path | None = None,
+              hdr_path: Path | None = None,
               capture_path: Path | None = None, exclude_views=(), mask_options: dict | None = None) -> dict:
     """Write the next iteration's mesh ``output`` and ``<output>.json``; returns the summary written there.
     ``min_confidence``: the vertices whose normal agreement is reported. ``silhouette`` > 0: the weight of the
     silhouette constraints of the photographs (``cameras_path``, ``hdr_path``, ``capture_path`` needed; the
-    ``exclude_views`` not used; ``mask_options`` of :func:`sellip.geometry.silhouettes.silhouette_masks`).
+    ``exclude_views`` not used; ``mask_options`` of :func:`sellip.geometry.silhouettes.silhouette_masks`);
+    ``keep_surface``: steps that would fold the mesh are shortened (:func:`sellip.geometry.update.step_without_folds`).
 
     Long: one job's steps in order (read, blend, silhouettes, integrate, carry parameters, write), each a call."""
     from sellip.fit.observe import read_mesh
-    from sellip.geometry.meshes import angular_error_deg, blend_normals, mesh_distances, vertex_normals
+    from sellip.geometry.meshes import angular_error_deg, blend_normals, mesh_distances, surface_defects, vertex_normals
     from sellip.geometry.update import refine_from_normals
     from sellip.model.params import ParamsError
     from sellip.model.ply import write_param_mesh
@@ -186,7 +188,8 @@ def refine_geometry(params_path: Path, mesh_path: Path, output: Path, smoothness
                    if len(silhouettes) else (np.nan, np.nan)))
     new_vertices = refine_from_normals(mesh.vertices, mesh.faces, fitted, normal_confidence, smoothness=smoothness,
                                        smoothness_unconfident=smoothness_unconfident, anchor=anchor, rounds=rounds,
-                                       reference=reference, silhouettes=silhouettes, silhouette_weight=silhouette)
+                                       reference=reference, silhouettes=silhouettes, silhouette_weight=silhouette,
+                                       keep_surface=keep_surface)
     new_normals = vertex_normals(new_vertices, mesh.faces)
     output = Path(output)
     moved = mesh_distances(new_vertices, mesh.faces, mesh.vertices, mesh.faces, count=20000)
@@ -200,6 +203,8 @@ def refine_geometry(params_path: Path, mesh_path: Path, output: Path, smoothness
                "offset_median_mm": 1e3 * float(np.median(offsets)), "offset_max_mm": 1e3 * float(offsets.max()),
                "fitted_vs_mesh_before_deg": agreement(mesh_normals),
                "fitted_vs_mesh_after_deg": agreement(new_normals),
+               "surface_defects": surface_defects(new_vertices, mesh.faces, mesh.vertices).as_dict(),
+               "keep_surface": keep_surface,
                "silhouette_weight": silhouette,
                "silhouette_constraints": 0 if silhouettes is None else len(silhouettes),
                "silhouette_offset_px": per_view,

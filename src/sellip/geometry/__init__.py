@@ -62,7 +62,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "hull": ("visual_hull", "surface_points", "InitMeshOptions", "hull_mesh"),
     "initial": ("INIT_MODES", "InitMeshError", "make_initial_mesh", "OUTLIER_VIEW_Z", "outlier_views"),
     "meshes": ("angular_error_deg", "surface_samples", "mesh_distances", "poisson_surface", "depth_vertex_count",
-           "remesh_to_count", "vertex_normals", "blend_normals"),
+           "remesh_to_count", "vertex_normals", "blend_normals", "SurfaceDefects", "surface_defects"),
     "pose_refinement": ("PoseRefinementSettings", "moved_pose", "pose_change", "align_pose", "refine_view"),
     "poses": ("POSE_MODES", "compare_to_known", "solve_poses"),
     "scan": ("UNIT_SIZES", "resample_to_count", "check_against_silhouettes"),
@@ -71,5 +71,5 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "metric_normalization", "transform_result", "check_registration"),
     "silhouettes": ("background_noise", "DEFAULT_SILHOUETTE", "silhouette_level", "silhouette_masks",
            "signed_distance", "Silhouette", "boundary_distance"),
-    "update": ("SilhouetteConstraints", "silhouette_constraints", "refine_from_normals"),
+    "update": ("SilhouetteConstraints", "silhouette_constraints", "refine_from_normals", "step_without_folds"),
 })

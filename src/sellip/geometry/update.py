@@ -114,7 +114,8 @@ def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals:
                         confidence: np.ndarray, smoothness: float = 0.01, anchor: float = 1e-3,
                         rounds: int = 3, reference: np.ndarray | None = None,
                         silhouettes: SilhouetteConstraints | None = None,
-                        silhouette_weight: float = 0.01, smoothness_unconfident: float = 1.0) -> np.ndarray:
+                        silhouette_weight: float = 0.01, smoothness_unconfident: float = 1.0,
+                        keep_surface: bool = True) -> np.ndarray:
     """The geometry update of one iteration (paper §4.4): the mesh's vertices (V, 3) moved along its
     normals so that its surface agrees with the fitted normals (V, 3), as far as their ``confidence``
     (V,) in [0, 1] allows. Returns the new vertices (V, 3); the faces (F, 3) are kept.
@@ -148,6 +149,7 @@ def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals:
     ``silhouette_weight sum_k (g_k . (x_i + d_i m_i - x0_i) - offset_k)^2``: each contour vertex moves its
     view's silhouette onto the observed one. This is what fixes the mean offset and size that normals cannot tell,
     and that the anchor would otherwise keep from the initial mesh.
+    ``keep_surface``: each round's step is shortened where it would fold the mesh (:func:`step_without_folds`).
     Long: the rounds of one sparse least-squares problem (normal targets, smoothness, anchor, silhouettes).
     """
     from scipy import sparse
@@ -195,7 +197,39 @@ def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals:
                            M=sparse.diags(1.0 / matrix.diagonal()))
         if info != 0:
             offsets = spsolve(matrix.tocsc(), right)
-        vertices = vertices + offsets[:, None] * normals
+        step = offsets[:, None] * normals
+        vertices = vertices + step if not keep_surface else step_without_folds(vertices, faces, step, measured_at)[0]
     return vertices
+
+
+def step_without_folds(vertices: np.ndarray, faces: np.ndarray, step: np.ndarray, start: np.ndarray | None = None,
+                       max_halvings: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """``vertices + s_i step_i`` (V, 3) with each vertex's share s_i in [0, 1] as large as keeps the mesh a surface:
+    where the full step makes a triangle cross another, flip (against the triangle before the step) or degenerate
+    (:func:`sellip.geometry.meshes.surface_defects`), the step of that triangle's vertices and their neighbours is
+    halved, and so on (at most ``max_halvings`` times, then withheld). A flip is measured against ``start`` (V, 3),
+    the same mesh before the whole update (default: ``vertices``), so that rounds of small turns do not add up to
+    one. Triangles that were folded before the step do not count. Returns (the moved vertices, s (V,)).
+
+    A line search per vertex: a step that would fold the surface is longer than the local feature size (a thin
+    part, a concavity the normals fitted on another surface), and nothing the rest of the update does can undo a
+    fold once made."""
+    from sellip.geometry.meshes import surface_defects
+
+    faces = np.asarray(faces, np.int64)
+    start = vertices if start is None else start
+    folded_before = surface_defects(vertices, faces, start).folding_faces
+    share = np.ones(len(vertices))
+    for attempt in range(max_halvings + 2):
+        moved = vertices + share[:, None] * step
+        new = surface_defects(moved, faces, start).folding_faces & ~folded_before
+        if not new.any():
+            return moved, share
+        touched = np.zeros(len(vertices), bool)
+        touched[faces[new].ravel()] = True
+        ring = np.any(touched[faces], axis=1)
+        touched[faces[ring].ravel()] = True
+        share[touched] *= 0.5 if attempt < max_halvings else 0.0
+    return vertices + share[:, None] * step, share
 
 

@@ -41,7 +41,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from sellip.geometry.alignment import Similarity, align_cameras
-from sellip.geometry.meshes import angular_error_deg, mesh_distances
+from sellip.geometry.meshes import angular_error_deg, mesh_distances, surface_defects
 from sellip.geometry.silhouettes import silhouette_masks
 from sellip.model.render import ParamMesh
 from sellip.report.outputs import fit_scale
@@ -205,12 +205,14 @@ def parameter_errors(model: ParamMesh, truth: ParamMesh, confident: np.ndarray,
 
 def geometry_errors(model: ParamMesh, truth: ParamMesh, similarity: Similarity | None = None,
                     samples: int = 50000, seed: int = 0) -> dict:
-    """Chamfer and Hausdorff distance (mm) between the model (moved by ``similarity``) and the true surface."""
+    """Chamfer and Hausdorff distance (mm) between the model (moved by ``similarity``) and the true surface, and
+    ``truth_farther_than_1mm``: the share of the true surface farther than 1 mm from the model."""
     model = transform_mesh(model, similarity)
     d = mesh_distances(np.asarray(model.vertices), np.asarray(model.faces), np.asarray(truth.vertices),
                        np.asarray(truth.faces), count=samples, seed=seed)
     return {"chamfer_mm": 1000 * d.chamfer, "hausdorff_mm": 1000 * d.hausdorff,
-            "model_to_truth_mm": 1000 * d.a_to_b, "truth_to_model_mm": 1000 * d.b_to_a, "samples": samples}
+            "model_to_truth_mm": 1000 * d.a_to_b, "truth_to_model_mm": 1000 * d.b_to_a,
+            "truth_farther_than_1mm": d.b_far_share, "samples": samples}
 
 
 def nearest_normal_errors(mesh: ParamMesh, truth: ParamMesh,
@@ -229,21 +231,28 @@ def geometry_series(meshes: list[ParamMesh], fitted: list[tuple[np.ndarray, np.n
     """How the geometry converged: one row per mesh of the loop (the initial mesh, then each iteration's).
 
     ``fitted``: per mesh, the normals (N, 3) fitted at its vertices and the (N,) bool vertices to count
-    (confident), or None. Each row: ``chamfer_to_previous_mm``; against ``truth`` (None: left out)
-    ``chamfer_mm``, ``hausdorff_mm``, the mesh's normal error and the fitted normals' error at the
+    (confident), or None. Each row: ``chamfer_to_previous_mm``; the mesh's folds
+    (:func:`sellip.geometry.meshes.surface_defects`: ``self_intersecting_pairs``, ``flipped_triangles`` against
+    the previous mesh where it has the same faces, ``degenerate_triangles``); against ``truth`` (None: left out)
+    ``chamfer_mm``, ``hausdorff_mm``, ``truth_farther_than_1mm`` (the share of the true surface farther than 1 mm
+    from the mesh), the mesh's normal error and the fitted normals' error at the
     nearest ground-truth vertex (``mesh_normal_deg`` / ``fitted_normal_deg``: median and p90).
     """
     rows = []
     for index, mesh in enumerate(meshes):
         row: dict = {"mesh": index, "vertices": mesh.num_vertices, "chamfer_to_previous_mm": None}
+        previous = meshes[index - 1] if index else None
+        same_faces = previous is not None and np.array_equal(np.asarray(previous.faces), np.asarray(mesh.faces))
+        row.update(surface_defects(np.asarray(mesh.vertices), np.asarray(mesh.faces),
+                                   np.asarray(previous.vertices) if same_faces else None).as_dict())
         if index:
-            previous = meshes[index - 1]
             moved = mesh_distances(np.asarray(mesh.vertices), np.asarray(mesh.faces), np.asarray(previous.vertices),
                                    np.asarray(previous.faces), count=samples, seed=seed)
             row["chamfer_to_previous_mm"] = 1000 * moved.chamfer
         if truth is not None:
             geometry = geometry_errors(mesh, truth, similarity, samples=samples, seed=seed)
-            row.update(chamfer_mm=geometry["chamfer_mm"], hausdorff_mm=geometry["hausdorff_mm"])
+            row.update(chamfer_mm=geometry["chamfer_mm"], hausdorff_mm=geometry["hausdorff_mm"],
+                       truth_farther_than_1mm=geometry["truth_farther_than_1mm"])
             mesh_error, true_normals = nearest_normal_errors(mesh, truth, similarity)
             row["mesh_normal_deg"] = _summary(mesh_error, True)
             if index < len(fitted) and fitted[index] is not None:

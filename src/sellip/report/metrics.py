@@ -86,10 +86,12 @@ def geometry_convergence(mesh_paths: list, fit_paths: list, truth, similarity) -
             fitted.append((store["normals"], counted))
     rows = figures_of_merit.geometry_series(meshes, fitted, truth, similarity)
     for row in rows:
-        log.info("mesh %d: moved %s mm, Chamfer to the truth %s mm, mesh normals %s deg, fitted %s deg", row["mesh"],
+        log.info("mesh %d: moved %s mm, Chamfer to the truth %s mm, mesh normals %s deg, fitted %s deg; "
+                 "self-intersecting pairs %d, flipped %d, degenerate %d", row["mesh"],
                  _rounded(row["chamfer_to_previous_mm"]), _rounded(row.get("chamfer_mm")),
                  _rounded((row.get("mesh_normal_deg") or {}).get("median")),
-                 _rounded((row.get("fitted_normal_deg") or {}).get("median")))
+                 _rounded((row.get("fitted_normal_deg") or {}).get("median")), row["self_intersecting_pairs"],
+                 row["flipped_triangles"], row["degenerate_triangles"])
     return rows
 
 

@@ -3,6 +3,7 @@
     sellip refine-geometry --params results/NAME/iter/3/refit.zarr --mesh results/NAME/iter/2/mesh.ply
                            --output results/NAME/iter/3/mesh.ply [--reference-mesh results/NAME/mesh/init.ply]
                            [--smoothness 0.01] [--smoothness-unconfident 1] [--anchor 0.001] [--rounds 3]
+                           [--no-keep-surface]
                            [--silhouette 0.01 --cameras results/NAME/cameras.csv --hdr results/NAME/hdr.zarr
                             --capture CAPTURE --exclude-views v004 ... --mask-threshold 0.03]
 
@@ -49,6 +50,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--silhouette", type=float, default=0.0,
                         help="weight of the photographs' silhouettes (no units; 0: none; needs --cameras, --hdr, "
                              "--capture)")
+    parser.add_argument("--keep-surface", action=argparse.BooleanOptionalAction, default=True,
+                        help="shorten the steps that would make triangles cross, flip or degenerate")
     parser.add_argument("--cameras", type=Path, default=None, help="cameras.csv (for the silhouettes)")
     parser.add_argument("--hdr", type=Path, default=None, help="hdr.zarr (for the silhouettes)")
     parser.add_argument("--capture", type=Path, default=None, help="capture folder (capture.yaml light)")
@@ -65,7 +68,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         refine_geometry(args.params, args.mesh, args.output, args.smoothness, args.anchor, args.rounds,
                   reference_mesh=args.reference_mesh, smoothness_unconfident=args.smoothness_unconfident,
-                  silhouette=args.silhouette, cameras_path=args.cameras,
+                  silhouette=args.silhouette, keep_surface=args.keep_surface, cameras_path=args.cameras,
                   hdr_path=args.hdr, capture_path=args.capture, exclude_views=args.exclude_views,
                   mask_options={"threshold": args.mask_threshold})
     except (ParamsError, ObserveError, ValueError) as error:
