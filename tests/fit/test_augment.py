@@ -702,3 +702,22 @@ def test_clustering_support_is_one_for_clear_materials_and_measures_a_fragile_on
         assert 0 <= row["support"] <= 1 and row["support"] + row["alternative_share"] <= 1 + 1e-12
     with pytest.raises(ValueError, match="stability_resamples"):
         AugmentSettings(stability_resamples=-1)
+
+
+def test_finalize_reads_each_clusters_support_from_clusters_json(tmp_path):
+    """finalize's per-vertex cluster_support / cluster_alternative come from clusters.json's ``support`` record; NaN
+    and -1 without one."""
+    import json
+
+    from sellip.fit.finalize import _cluster_support
+
+    cluster = np.array([0, 0, 1, 1, 1])
+    (tmp_path / "clusters.json").write_text(json.dumps({"support": {"resamples": 10, "clusters": [
+        {"cluster": 0, "support": 1.0, "alternative": -1, "alternative_share": 0.0},
+        {"cluster": 1, "support": 0.7, "alternative": 0, "alternative_share": 0.3}]}}))
+    support, alternative = _cluster_support(tmp_path, cluster, 2)
+    np.testing.assert_allclose(support, [1, 1, 0.7, 0.7, 0.7])
+    np.testing.assert_array_equal(alternative, [-1, -1, 0, 0, 0])
+    (tmp_path / "clusters.json").write_text(json.dumps({"support": None}))
+    support, alternative = _cluster_support(tmp_path, cluster, 2)
+    assert np.isnan(support).all() and (alternative == -1).all()
