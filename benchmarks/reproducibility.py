@@ -8,7 +8,7 @@ no information (issue #49; docs/reproducibility.md).
 RUN is a workflow's results folder (``results/<name>``). Per pass (``iter/N``, every pass with a clusters.json by
 default) the run's clustering is replayed on its stored first-pass fit (``iter/N/fit.zarr``) with the run's own
 settings and seed (``clusters.json``; ``--set`` overrides AugmentSettings fields), once per replicate of each
-perturbation (:data:`sellip.bench.reproducibility.PERTURBATIONS`). It prints, per pass and perturbation, the
+perturbation (:data:`sellip.bench.reproducibility.KINDS`). It prints, per pass and perturbation, the
 distribution of K, of the merge sequence (by rule), of the regions added, and per true material the share of
 replays in which it has a cluster of its own and its eta error (min / median / max over replays, the cluster's
 median own eta). ``--json`` writes every replay's decisions and the summaries.

@@ -47,14 +47,14 @@ def test_replays_of_a_clear_clustering_agree_and_are_summarised():
     settings = AugmentSettings(min_coherence=0.5, min_cluster_vertices=20)
     reference, _, _ = rep.replay(arrays, settings, 0)
     rows = []
-    for kind in rep.PERTURBATIONS:
+    for kind in rep.KINDS:
         labels, clustering, used = rep.replay(arrays, settings, 0, kind, 1)
         assert len(np.unique(labels)) == 2
         assert np.array_equal(labels == labels[0], reference == reference[0])  # the same partition, store order
         rows.append({"kind": kind, "decisions": rep.decisions(clustering, labels, used, arrays["eta"], material,
                                                               np.where(material == 1, 1.62, 1.48))})
     summary = rep.summarise(rows)
-    assert summary["all"]["replays"] == len(rep.PERTURBATIONS) and summary["all"]["k"] == {2: len(rep.PERTURBATIONS)}
+    assert summary["all"]["replays"] == len(rep.KINDS) and summary["all"]["k"] == {2: len(rep.KINDS)}
     for label in ("0", "1"):
         assert summary["all"]["materials"][label]["own_share"] == 1.0
         assert summary["all"]["materials"][label]["error_pct"][2] < 1.0

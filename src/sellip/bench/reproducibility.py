@@ -2,7 +2,7 @@
 stored per-vertex fit replayed under perturbations that carry no information, and how often each decision came out
 the same (``benchmarks/reproducibility.py``; docs/reproducibility.md).
 
-A perturbation (:data:`PERTURBATIONS`) of the inputs of :func:`sellip.fit.clusters.cluster_materials`:
+A perturbation (:data:`KINDS`) of the inputs of :func:`sellip.fit.clusters.cluster_materials`:
 
 - ``exact``: none (the run's own clustering, to the bit: the reference);
 - ``noise``: eta, rho_d and the vertex positions times (1 + 1e-9 N(0, 1)), seeded per replicate: another CPU's or
@@ -15,7 +15,7 @@ A perturbation (:data:`PERTURBATIONS`) of the inputs of :func:`sellip.fit.cluste
 
 Public API::
 
-    PERTURBATIONS, SUBSAMPLE_KEEP
+    KINDS, NOISE_RELATIVE, SUBSAMPLE_KEEP
     perturbed_inputs(arrays, kind, replicate, seed) -> (arrays, order, seed)
     replay(arrays, settings, seed, kind, replicate) -> (labels (N,), Clustering, used (N,))  # store's order
     merge_rule(reason) -> str                                 # "size", "coherence", "eta_cut" or "other"
@@ -29,19 +29,19 @@ from collections import Counter
 
 import numpy as np
 
-PERTURBATIONS = ("exact", "noise", "permute", "subsample", "seed")
+KINDS = ("exact", "noise", "permute", "subsample", "seed")
 NOISE_RELATIVE = 1e-9
 SUBSAMPLE_KEEP = 0.9
 
 
 def perturbed_inputs(arrays: dict, kind: str, replicate: int, seed: int) -> tuple[dict, np.ndarray, int]:
     """The clustering's inputs ``arrays`` (eta (N,), rho_d (N, 3), status (N,), confidence (N,), vertices (N, 3))
-    under perturbation ``kind`` (:data:`PERTURBATIONS`), seeded by ``replicate``. Returns (arrays, order, seed):
+    under perturbation ``kind`` (:data:`KINDS`), seeded by ``replicate``. Returns (arrays, order, seed):
     the perturbed arrays are the originals' rows ``order`` (N,) (the identity but for ``permute``), and the seed the
     clustering runs with (the run's ``seed`` but for ``seed``)."""
-    if kind not in PERTURBATIONS:
-        raise ValueError(f"perturbation must be one of {PERTURBATIONS}, got {kind!r}")
-    rng = np.random.default_rng([20261127, PERTURBATIONS.index(kind), replicate])
+    if kind not in KINDS:
+        raise ValueError(f"perturbation must be one of {KINDS}, got {kind!r}")
+    rng = np.random.default_rng([20261127, KINDS.index(kind), replicate])
     n = len(arrays["eta"])
     out = {name: np.array(arrays[name], copy=True) for name in ("eta", "rho_d", "status", "confidence", "vertices")}
     order = np.arange(n)
