@@ -17,8 +17,8 @@ Modules and what they export (each name is importable from here too)::
         CHROMA_SCALE, LOG_BRIGHTNESS_SCALE, ETA_SCALE, VARIANCE_FLOOR, REGION_OUTLIER_P, REGION_EPS,
         REGION_MIN_SAMPLES, REGION_FIT_POINTS, CUT_ALBEDO_SD, CUT_MODE_POINTS, CUT_ETA_SE, CUT_MODES_ALBEDO_SD,
         AugmentSettings, Clustering, cluster_features, kmeans, bic, choose_k, spatial_coherence, nearest_vertices,
-        vertex_coherence, DEGENERATE_VARIANCE, cluster_materials, REGION_CORE_NEIGHBOURS, SUPPORT_KEEP,
-        RECOVERED_JACCARD, region_size_floor, cluster_support, clustering_support
+        vertex_coherence, DEGENERATE_VARIANCE, cluster_materials, REGION_CORE_NEIGHBOURS, REGION_CORE_SHARE,
+        SUPPORT_KEEP, RECOVERED_JACCARD, region_size_floor, cluster_support, clustering_support
     finalize: The final model (rule ``finalize_model``; DESIGN §4): per-material η and lobes with per-vertex
       deviations where a vertex's data demand them, unfitted vertices interpolated from their neighbours, confidence,
       ``model``: ``final/model.ply`` and ``final/params.zarr`` (:func:`finalize_model`)
@@ -92,8 +92,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "REGION_MIN_SAMPLES", "REGION_FIT_POINTS", "CUT_ALBEDO_SD", "CUT_MODE_POINTS", "CUT_ETA_SE",
            "CUT_MODES_ALBEDO_SD", "AugmentSettings", "Clustering", "cluster_features", "kmeans", "bic", "choose_k",
            "spatial_coherence", "nearest_vertices", "vertex_coherence", "DEGENERATE_VARIANCE", "cluster_materials",
-           "REGION_CORE_NEIGHBOURS", "SUPPORT_KEEP", "RECOVERED_JACCARD", "region_size_floor", "cluster_support",
-           "clustering_support"),
+           "REGION_CORE_NEIGHBOURS", "REGION_CORE_SHARE", "SUPPORT_KEEP", "RECOVERED_JACCARD", "region_size_floor",
+           "cluster_support", "clustering_support"),
     "finalize": ("finalize_model",),
     "kernels": ("code_version", "enable", "Kernel", "kernel"),
     "lobe_store": ("LOBE_COLUMNS", "lobes_schema", "read_lobes", "read_models", "recorded_fit_settings",
