@@ -223,9 +223,13 @@ def vertex_coherence(labels, near) -> np.ndarray:
 
 
 def _coherence(labels, near) -> np.ndarray:
+    """(K,) the mean of :func:`vertex_coherence` per cluster, from integer counts: the sum does not depend on the
+    vertices' order (the coherence test compares it with a threshold; docs/reproducibility.md)."""
     count = int(labels.max()) + 1 if labels.size else 0
-    same = vertex_coherence(labels, near)  # 1 for a vertex without neighbours
-    sums, members = np.bincount(labels, weights=same, minlength=count), np.bincount(labels, minlength=count)
+    m = near.shape[1]
+    same = (labels[near] == labels[:, None]).sum(1) if m else np.ones(len(labels), np.int64)  # no neighbours: 1
+    sums = np.bincount(labels, weights=same, minlength=count)  # integers below 2**53: exact in any order
+    members = np.bincount(labels, minlength=count) * max(m, 1)
     with np.errstate(invalid="ignore", divide="ignore"):
         return sums / members
 
