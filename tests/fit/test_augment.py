@@ -721,3 +721,15 @@ def test_finalize_reads_each_clusters_support_from_clusters_json(tmp_path):
     (tmp_path / "clusters.json").write_text(json.dumps({"support": None}))
     support, alternative = _cluster_support(tmp_path, cluster, 2)
     assert np.isnan(support).all() and (alternative == -1).all()
+
+
+def test_spatial_coherence_is_the_same_in_any_vertex_order():
+    """The coherence test's statistic comes from integer counts: bit-identical for the vertices in another order
+    (a float sum of shares was not), and equal to the mean of the vertices' own shares."""
+    rng = np.random.default_rng(0)
+    vertices, labels = rng.normal(size=(3000, 3)), rng.integers(0, 4, 3000)
+    coherence = fit_clusters.spatial_coherence(labels, vertices)
+    shares = fit_clusters.vertex_coherence(labels, fit_clusters.nearest_vertices(vertices, 6))
+    np.testing.assert_allclose(coherence, [shares[labels == k].mean() for k in range(4)], rtol=1e-12)
+    order = rng.permutation(3000)
+    np.testing.assert_array_equal(fit_clusters.spatial_coherence(labels[order], vertices[order]), coherence)
