@@ -230,6 +230,7 @@ def test_evaluate_cli_on_a_perfect_model(tiny_run, tmp_path):
     assert metrics["eta_relative_error_pct"]["mean"] == 0
     assert metrics["geometry"]["chamfer_mm"] < 1e-3
     assert metrics["reasons"]["confident_vertices"].startswith("neither --params")
+    assert metrics["material_support"] is None and "support" in metrics["reasons"]["material_support"]
     # hdr.zarr holds the ground truth rendered exactly as evaluate renders the model (7x the flash).
     for view in held_out:
         assert metrics["psnr_held_out"]["views"][view]["psnr_db"] > 60
@@ -313,3 +314,23 @@ def test_the_runs_warnings_are_in_metrics_json(tmp_path_factory):
                              tiny["results"] / "metrics.json", geometry_samples=500, supersample=1, logs=logs)
     assert metrics["warnings"] == [{"log": "sub/observe.log",
                                     "message": "poses.csv has no pose for 1 view(s): ['v002']"}]
+
+
+def test_material_support_lists_the_fragile_materials(tmp_path):
+    """metrics.json's material_support (issue #49): per cluster of the final store its support and alternative, and
+    the clusters below 1 as fragile; None (with a reason) where the store has no support."""
+    from sellip.model.params import write_params
+    from sellip.report.metrics import material_support
+
+    n = 6
+    base = {"vertices": np.zeros((n, 3), np.float32), "normals": np.tile([0, 0, 1.0], (n, 1)),
+            "eta": np.full(n, 1.5), "rho_d": np.full((n, 3), 0.3), "rho_s": np.full(n, 0.1), "sigma_s": np.full(n, 0.2),
+            "rho_ss": np.zeros((n, 3)), "sigma_ss": np.full(n, 0.5), "cluster": np.array([0, 0, 0, 1, 1, 2], np.int32)}
+    write_params(tmp_path / "with.zarr", {**base, "cluster_support": np.array([1, 1, 1, 0.7, 0.7, 1.0], np.float32),
+                                          "cluster_alternative": np.array([-1, -1, -1, 0, 0, -1], np.int32)})
+    record = material_support(tmp_path / "with.zarr")
+    assert record["fragile"] == [1] and record["clusters"]["1"]["alternative"] == 0
+    assert record["clusters"]["1"]["support"] == pytest.approx(0.7) and record["clusters"]["0"]["vertices"] == 3
+    write_params(tmp_path / "without.zarr", base)
+    reasons = {}
+    assert material_support(tmp_path / "without.zarr", reasons) is None and "material_support" in reasons

@@ -263,3 +263,26 @@ def test_materials_table_reports_each_materials_selection_margin(results):
     bad.loc[1, "selection_margin"] = 1.5
     with pytest.raises(materials.MaterialsError, match=r"row 1, column 'selection_margin'"):
         materials.validate_materials(bad)
+
+
+def test_materials_table_says_which_material_the_clustering_does_not_settle(results):
+    """cluster_support / cluster_alternative (issue #49): a material found again in 3 of 10 resamples of its clustering
+    and merged into material 0 in the others says so; one without a measured support has NaN and -1; out-of-range
+    support is rejected with the row and column."""
+    from sellip.capture.scenes import build_scene
+    from sellip.model.params import read_params
+    from sellip.report import materials
+
+    store = read_params(results / "final" / "params.zarr")
+    faces = build_scene("tiny").mesh.faces
+    plain = materials.material_table(store, faces)
+    assert plain["cluster_support"].isna().all() and list(plain["cluster_alternative"]) == [-1, -1]
+    cluster = np.asarray(store["cluster"])
+    store["cluster_support"] = np.where(cluster == 1, 0.3, 1.0).astype(np.float32)
+    store["cluster_alternative"] = np.where(cluster == 1, 0, -1).astype(np.int32)
+    table = materials.material_table(store, faces)
+    assert list(table["cluster_support"]) == pytest.approx([1.0, 0.3]) and list(table["cluster_alternative"]) == [-1, 0]
+    bad = table.copy()
+    bad.loc[1, "cluster_support"] = 1.5
+    with pytest.raises(materials.MaterialsError, match=r"row 1, column 'cluster_support'"):
+        materials.validate_materials(bad)

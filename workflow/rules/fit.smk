@@ -115,6 +115,7 @@ rule cluster_lobes:
         min_cluster_vertices=config["augment"]["min_cluster_vertices"],
         min_coherence=config["augment"]["min_coherence"],
         pool_min_coherence=config["augment"]["pool_min_coherence"],
+        resamples=lambda wildcards: config["augment"]["stability_resamples"] if int(wildcards.it) == ITERATIONS else 0,
         settings=cluster_settings_args,
         selection=model_selection_args,
         cache=config["fit"]["compilation_cache"],
@@ -129,6 +130,6 @@ rule cluster_lobes:
         SELLIP + " cluster-lobes --params {input.params:q} --observations {input.observations:q} --output {output:q}"
         " --seed {params.seed} --k-max {params.k_max} --max-samples {params.max_samples}"
         " --min-cluster-vertices {params.min_cluster_vertices} --min-coherence {params.min_coherence}"
-        " --pool-min-coherence {params.pool_min_coherence}"
+        " --pool-min-coherence {params.pool_min_coherence} --stability-resamples {params.resamples}"
         " {params.settings} {params.selection}"
         " --compilation-cache {params.cache:q} > {log:q} 2>&1"

@@ -21,6 +21,11 @@ Modules and what they export (each name is importable from here too)::
     replay: The command line shared by the replay benchmarks (``benchmarks/replay_*.py``): a run's results folder, one
       of its passes and the capture's ground truth
         replay_parser, ignore_snakemake_zarr_warnings
+    reproducibility: Reproducibility of the material clustering's discrete decisions (issue #49): the clustering of a
+      finished run's stored per-vertex fit replayed under perturbations that carry no information (1e-9 noise, vertex
+      order, seed, a 90 % subsample) and the distribution of each decision (``benchmarks/reproducibility.py``;
+      docs/reproducibility.md)
+        KINDS, perturbed_inputs, replay, decisions, summarise, merge_rule
     scale: How each stage's cost grows with the capture (issue #20): per-job costs of measured workflow runs, a cost
       model fitted to them, and the time it predicts for a capture that was not run (docs/speed.md, "Scale")
         CaptureSize, size_terms, job_costs, rule_costs, fit_cost_model, predict
@@ -62,6 +67,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "ladder": ("render_hdr", "fit_true_mesh", "figures", "resampled_truth", "psnr_ceiling"),
     "renderers": ("single_scattering_shares", "false_single_scattering", "renderer_markdown"),
     "replay": ("replay_parser", "ignore_snakemake_zarr_warnings"),
+    "reproducibility": ("KINDS", "perturbed_inputs", "replay", "decisions", "summarise", "merge_rule"),
     "scale": ("CaptureSize", "size_terms", "job_costs", "rule_costs", "fit_cost_model", "predict"),
     "silhouettes": ("agreement", "silhouette_agreement", "cut_difference"),
     "stability": ("BASE_VIEWS", "StabilityError", "CASES", "CASE_NAMES", "held_out_views", "case_config",

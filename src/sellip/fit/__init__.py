@@ -16,14 +16,14 @@ Modules and what they export (each name is importable from here too)::
       its eta merged
         ETA_SCALE, VARIANCE_FLOOR, AugmentSettings, Clustering, cluster_features, spatial_coherence, nearest_vertices,
         vertex_coherence, robust_mahalanobis, albedo_separation, one_mode, same_eta_by_albedo, find_eta_cut,
-        cluster_materials
+        cluster_materials, squared_distances, cluster_support, clustering_support
     evidence: No result without evidence (docs/design.md §9): a pass whose fit covers too little of the visible
       surface stops the run with what is missing (views, coverage, exposure)
         MIN_FITTED_SHARE, EvidenceError, fitted_share, check_evidence
     finalize: The final model (rule ``finalize_model``; docs/design.md §4): per-material η and lobes with per-vertex
       deviations where a vertex's data demand them, unfitted vertices interpolated from their neighbours, confidence,
       ``model``: ``final/model.ply`` and ``final/params.zarr`` (:func:`finalize_model`)
-        finalize_model
+        finalize_model, vertex_cluster_support
     geometry_jobs: The updates between iterations
         raw_camera, predicted_diffuse, measure_silhouettes, refine_geometry, refine_poses
     kernels: Compiled kernels that later processes load instead of tracing again (docs/speed.md)
@@ -83,9 +83,9 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "augment_pass": ("cluster_rows", "cluster_and_fit_lobes"),
     "clusters": ("ETA_SCALE", "VARIANCE_FLOOR", "AugmentSettings", "Clustering", "cluster_features",
            "spatial_coherence", "nearest_vertices", "vertex_coherence", "robust_mahalanobis", "albedo_separation",
-           "one_mode", "same_eta_by_albedo", "find_eta_cut", "cluster_materials"),
+           "one_mode", "same_eta_by_albedo", "find_eta_cut", "cluster_materials", "squared_distances", "cluster_support", "clustering_support"),
     "evidence": ("MIN_FITTED_SHARE", "EvidenceError", "fitted_share", "check_evidence"),
-    "finalize": ("finalize_model",),
+    "finalize": ("finalize_model", "vertex_cluster_support"),
     "geometry_jobs": ("raw_camera", "predicted_diffuse", "measure_silhouettes", "refine_geometry", "refine_poses"),
     "kernels": ("code_version", "enable", "kernel"),
     "lobe_store": ("LOBE_COLUMNS", "read_lobes", "read_models", "recorded_fit_settings", "clustering_settings",

@@ -132,7 +132,7 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
     enable_compilation_cache(compilation_cache)
     import pandas as pd
 
-    from sellip.fit.clusters import AugmentSettings, cluster_materials
+    from sellip.fit.clusters import AugmentSettings, cluster_materials, clustering_support
     from sellip.fit.lobes import fit_cluster_lobe
     from sellip.fit.observe import ObserveError, open_observations
     from sellip.fit.records import FitSettings
@@ -161,6 +161,13 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
     log.info("K = %d clusters (BIC over K: %s), %d merges, %d regions", k,
              {key: round(value, 1) for key, value in clustering.bic.items()}, len(clustering.merges),
              len(clustering.regions))
+    support = None
+    if settings.stability_resamples > 0:
+        mark("support")
+        support = clustering_support(store["eta"], store["rho_d"], store["status"], store["confidence"], clustering,
+                                     settings, seed, vertices=store["vertices"])
+        log.info("support of each cluster over %d resamples: %s (K over them: %s)", support["resamples"],
+                 [row["support"] for row in support["clusters"]], support["k"])
     allowed = allowed_models(fit_settings, selection.candidates)
     if selection.enabled:
         split = (f"{selection.folds}-fold cross-validation" if selection.folds > 1
@@ -210,7 +217,7 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
     log.info("vertices per model: %s", counts)
     summary = {"k": k, "bic": {str(key): value for key, value in clustering.bic.items()},
                "k_bic": int(min(clustering.bic, key=clustering.bic.get)) if clustering.bic else k,
-               "merges": clustering.merges, "regions": clustering.regions, "degenerate": notes,
+               "merges": clustering.merges, "regions": clustering.regions, "support": support, "degenerate": notes,
                "clustered_vertices": int(clustering.used.sum()), "vertices": n, "seed": seed,
                "settings": dataclasses.asdict(settings), "fit_settings": dataclasses.asdict(fit_settings),
                "model_selection": {"enabled": selection.enabled, "settings": dataclasses.asdict(selection),

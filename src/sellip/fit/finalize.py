@@ -30,7 +30,8 @@ def finalize_model(params_path: Path, mesh_path: Path, output_model: Path, outpu
     With ``clusters``, each vertex also carries its cluster's model-selection margin and runner-up
     (``selection_margin``, ``selection_runner_up``; :func:`sellip.fit.selection.cluster_margins`), and its confidence
     is multiplied by :func:`sellip.fit.selection.margin_confidence` (halved where the lobe choice sat on the rule's
-    boundary).
+    boundary), and its cluster's support (``cluster_support``, ``cluster_alternative``: how often repeats of the
+    clustering on resampled vertices found it again, and what it became otherwise; NaN, -1 where not measured).
 
     Long: one job's steps in order (read, per-material values, fill, confidence, write), each a call."""
     from sellip.fit.clusters import AugmentSettings, nearest_vertices
@@ -65,6 +66,7 @@ def finalize_model(params_path: Path, mesh_path: Path, output_model: Path, outpu
     sigma_s, rho_s = np.asarray(store["sigma_s"], np.float64), np.asarray(store["rho_s"], np.float64)
     lobe_source = np.ones(n, np.uint8)
     margin, runner_up = np.full(n, np.nan), np.full(n, -1, np.int64)
+    support, alternative = np.full(n, np.nan), np.full(n, -1, np.int64)
     if clusters is not None:
         try:
             labels, lobes = read_lobes(clusters)
@@ -93,6 +95,7 @@ def finalize_model(params_path: Path, mesh_path: Path, output_model: Path, outpu
                  "cluster's %s, with %d of their %d neighbours)", int(lobe_source.sum()), n, lobe_deviation_sigmas,
                  np.round([lobe.sigma_s for lobe in lobes], 3).tolist(), deviation_support, neighbours)
         margin, runner_up = _selection_margins(Path(clusters), cluster, len(lobes))
+        support, alternative = vertex_cluster_support(Path(clusters), cluster, len(lobes))
     if "model" in store:
         models = np.asarray(store["model"], np.uint8)
         if not np.isin(models, sorted(MODEL_NAMES)).all():
@@ -115,7 +118,8 @@ def finalize_model(params_path: Path, mesh_path: Path, output_model: Path, outpu
                   sigma_s_vertex=np.asarray(store["sigma_s"], np.float32),
                   rho_s_vertex=np.asarray(store["rho_s"], np.float32), confidence=confidence,
                   confidence_fit=confidence_fit.astype(np.float32),
-                  selection_margin=margin.astype(np.float32), selection_runner_up=runner_up)
+                  selection_margin=margin.astype(np.float32), selection_runner_up=runner_up,
+                  cluster_support=support.astype(np.float32), cluster_alternative=alternative)
     write_params(output_params, arrays, attrs={**store["attrs"], "model_names": {str(k): v for k, v in
                                                                                   MODEL_NAMES.items()}})
     summary = {"vertices": n, "faces": len(mesh.faces), "confidence_median": float(np.median(confidence)),
@@ -145,3 +149,21 @@ def _selection_margins(clusters: Path, cluster: np.ndarray, k: int) -> tuple[np.
     log.info("model-selection margin per cluster: %s (runner-up %s; below %s the confidence is lowered)",
              np.round(margins, 2).tolist(), runner_up.tolist(), MARGIN_FULL_CONFIDENCE)
     return margins[cluster], runner_up[cluster]
+
+
+def vertex_cluster_support(clusters: Path, cluster: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per vertex, its cluster's support and the cluster it became otherwise (NaN, -1: not measured) from
+    ``clusters/clusters.json``'s ``support`` (:func:`sellip.fit.clusters.clustering_support`)."""
+    import json
+
+    path = clusters / "clusters.json"
+    support, alternative = np.full(k, np.nan), np.full(k, -1, np.int64)
+    record = json.loads(path.read_text()).get("support") if path.is_file() else None
+    for row in (record or {}).get("clusters", []):
+        c = int(row["cluster"])
+        if 0 <= c < k and row.get("support") is not None:
+            support[c], alternative[c] = float(row["support"]), int(row["alternative"])
+    if record:
+        log.info("support of each material over %d resamples: %s (otherwise into %s)", record["resamples"],
+                 support.tolist(), alternative.tolist())
+    return support[cluster], alternative[cluster]

@@ -29,7 +29,7 @@ from sellip.model.pbrdf import PBRDFParams
 PARAM_FIELDS = ("eta", "rho_d", "rho_s", "sigma_s", "rho_ss", "sigma_ss")
 EXTRA_FIELDS = {"confidence": np.float32, "status": np.int8, "loss": np.float32, "views_used": np.int16,
                 "iterations": np.int16, "model": np.uint8, "cluster": np.int32, "eta_source": np.uint8,
-                "lobe_source": np.uint8, "selection_runner_up": np.int8}
+                "lobe_source": np.uint8, "selection_runner_up": np.int8, "cluster_alternative": np.int32}
 
 MODEL_NAMES = {0: "diffuse", 1: "diffuse + specular", 2: "diffuse + specular + single scattering (sigma_ss fixed)",
                3: "diffuse + specular + single scattering"}

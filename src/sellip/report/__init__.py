@@ -16,7 +16,7 @@ Modules and what they export (each name is importable from here too)::
     metrics: The figures of merit of a reconstruction (docs/design.md §8; rule ``evaluate_model``): normals, η per
       material and per vertex, albedo, roughness, Chamfer and Hausdorff, held-out and new-light PSNR, the geometry's
       convergence over the iterations -> ``metrics.json`` (:func:`evaluate_model`)
-        confident_vertices, view_psnr, evaluate_model, headline_figures
+        confident_vertices, view_psnr, evaluate_model, headline_figures, material_support
     outputs: Renders, Mueller-matrix images, AoLP/DoP images and parameter maps of a model (docs/design.md §1 outputs,
       paper Fig. 10)
         MAP_SPECS, novel_camera, mueller_image, polarization_images, parameter_maps, fit_scale, save_figure,
@@ -39,7 +39,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "eta_per_material", "parameter_errors", "geometry_errors", "geometry_series", "psnr", "stage_timings",
            "vertex_errors"),
     "materials": ("MaterialsError", "validate_materials", "median_interval", "material_table", "read_materials"),
-    "metrics": ("confident_vertices", "view_psnr", "evaluate_model", "headline_figures"),
+    "metrics": ("confident_vertices", "view_psnr", "evaluate_model", "headline_figures", "material_support"),
     "outputs": ("MAP_SPECS", "novel_camera", "mueller_image", "polarization_images", "parameter_maps", "fit_scale",
            "save_figure", "DEFAULT_VIEWS", "OutputsError", "default_views", "render_outputs"),
     "previews": ("PREVIEW_KINDS", "dolp_aolp", "preview_images", "write_previews"),

@@ -5,7 +5,7 @@ One row per material cluster of ``final/params.zarr`` (``cluster``; a store with
     cluster, vertices, area_share, confident_vertices,
     eta, eta_ci_low, eta_ci_high, eta_spread, eta_fit_std, eta_own_vertices,
     rho_d_r, rho_d_g, rho_d_b, rho_s, sigma_s, rho_ss_r, rho_ss_g, rho_ss_b, sigma_ss,
-    model, model_name, lobe_own_vertices, selection_margin, runner_up_model
+    model, model_name, lobe_own_vertices, selection_margin, runner_up_model, cluster_support, cluster_alternative
     [+ with a ground truth: gt_material, gt_eta, gt_rho_d_r, gt_rho_d_g, gt_rho_d_b, gt_sigma_s, gt_sigma_ss]
 
 Definitions (the cluster's vertices are those with its label; "estimating" vertices are the confident ones,
@@ -30,6 +30,11 @@ confidence > 0, whose own eta is not pinned at a bound of the fit, :func:`sellip
   ``clusters.json``, carried per vertex as ``selection_margin`` / ``selection_runner_up``); NaN and -1 where the
   pass scored no candidates (or the store predates them). Below 0.5 the vertices' ``confidence`` is lowered
   (:func:`sellip.fit.selection.margin_confidence`): a fragile lobe choice says so in both places.
+- ``cluster_support``, ``cluster_alternative``: the share of repeats of the final pass's clustering on resampled
+  vertices (:func:`sellip.fit.clusters.clustering_support`, config ``augment.stability_resamples``) that found this
+  material again, and the material it was merged into most often in the others (-1: none, or never lost); NaN and
+  -1 where not measured. Below 1 the data do not settle whether this material is one of its own: a fragile
+  material says so here, with its alternative.
 - ``area_share``: the cluster's share of the surface, each vertex carrying a third of its triangles' area.
 - Ground truth (``gt_*``): each model vertex's nearest ground-truth vertex (same world: a run on known poses) votes;
   ``gt_material`` is the most common true material label (-1: none), ``gt_eta`` etc. the medians of the true values
@@ -53,7 +58,7 @@ MAD_TO_SD = 1.4826
 COLUMNS = ("cluster", "vertices", "area_share", "confident_vertices", "eta", "eta_ci_low", "eta_ci_high",
            "eta_spread", "eta_fit_std", "eta_own_vertices", "rho_d_r", "rho_d_g", "rho_d_b", "rho_s", "sigma_s",
            "rho_ss_r", "rho_ss_g", "rho_ss_b", "sigma_ss", "model", "model_name", "lobe_own_vertices",
-           "selection_margin", "runner_up_model")
+           "selection_margin", "runner_up_model", "cluster_support", "cluster_alternative")
 GT_COLUMNS = ("gt_material", "gt_eta", "gt_rho_d_r", "gt_rho_d_g", "gt_rho_d_b", "gt_sigma_s", "gt_sigma_ss")
 
 
@@ -88,6 +93,8 @@ def materials_schema(ground_truth: bool = False):
         "lobe_own_vertices": count,
         "selection_margin": pa.Column(float, [pa.Check.ge(0), pa.Check.le(1)], nullable=True, coerce=True),
         "runner_up_model": pa.Column(int, pa.Check.isin([-1, *sorted(MODEL_NAMES)]), coerce=True),
+        "cluster_support": pa.Column(float, [pa.Check.ge(0), pa.Check.le(1)], nullable=True, coerce=True),
+        "cluster_alternative": pa.Column(int, pa.Check.ge(-1), coerce=True),
     }
     if ground_truth:
         columns.update({
@@ -150,7 +157,8 @@ def material_table(arrays: dict, faces: np.ndarray, ground_truth=None) -> pd.Dat
 
     arrays: name -> (N, ...) arrays of final/params.zarr (:func:`sellip.params.read_params`); needs
     ``vertices`` and the pBRDF fields; uses ``cluster``, ``confidence``, ``eta_vertex``, ``eta_std``, ``model``,
-    ``eta_source``, ``lobe_source``, ``selection_margin``, ``selection_runner_up`` where present. faces (F, 3) of the
+    ``eta_source``, ``lobe_source``, ``selection_margin``, ``selection_runner_up``, ``cluster_support``,
+    ``cluster_alternative`` where present. faces (F, 3) of the
     model (for the area shares).
     ground_truth: a :class:`sellip.render.ParamMesh` in the same world (its ``material`` labels used if present).
     """
@@ -172,6 +180,8 @@ def material_table(arrays: dict, faces: np.ndarray, ground_truth=None) -> pd.Dat
     models = column("model", 3).astype(np.int64)
     margin = column("selection_margin", np.nan).astype(np.float64)
     runner_up = column("selection_runner_up", -1).astype(np.int64)
+    support = column("cluster_support", np.nan).astype(np.float64)
+    alternative = column("cluster_alternative", -1).astype(np.int64)
     estimating = (confidence > 0) & ~eta_at_bound(eta_own) & np.isfinite(eta_own)
     area = vertex_areas(vertices, faces)
     total_area = area.sum() or 1.0
@@ -204,7 +214,9 @@ def material_table(arrays: dict, faces: np.ndarray, ground_truth=None) -> pd.Dat
                "model": model, "model_name": MODEL_NAMES[model],
                "lobe_own_vertices": int(column("lobe_source", 0)[member].astype(np.int64).sum()),
                "selection_margin": float(np.median(margin[member])) if np.isfinite(margin[member]).all() else np.nan,
-               "runner_up_model": _mode(runner_up[member])}
+               "runner_up_model": _mode(runner_up[member]),
+               "cluster_support": float(np.median(support[member])) if np.isfinite(support[member]).all() else np.nan,
+               "cluster_alternative": _mode(alternative[member])}
         if truth is not None:
             row.update(_truth_row(truth, member))
         rows.append(row)

@@ -269,6 +269,31 @@ def _timings(benchmarks, timings_plot, reasons: dict) -> dict | None:
     return timings
 
 
+def material_support(params_path, reasons: dict | None = None) -> dict | None:
+    """Per material cluster of the final store ``params_path``: how often repeats of the final clustering on
+    resampled vertices found it again (``support``) and what it became in the others (``alternative``: the cluster
+    it was merged into most often, -1 none; :func:`sellip.fit.clusters.clustering_support`), and ``fragile``: the
+    clusters with support below 1. None without a store or where the support was not measured (said in ``reasons``)."""
+    from sellip.model.params import read_params
+
+    store = read_params(params_path) if params_path is not None and Path(params_path).exists() else {}
+    support = np.asarray(store.get("cluster_support", []), np.float64)
+    if "cluster" not in store or not np.isfinite(support).any():
+        if reasons is not None:
+            reasons["material_support"] = "no params store, or its clustering's support was not measured"
+        return None
+    cluster = np.asarray(store["cluster"], np.int64)
+    alternative = np.asarray(store.get("cluster_alternative", np.full(len(cluster), -1)), np.int64)
+    rows = {}
+    for k in np.unique(cluster):
+        first = int(np.flatnonzero(cluster == k)[0])
+        value = float(support[first])
+        rows[str(int(k))] = {"support": value if np.isfinite(value) else None,
+                             "alternative": int(alternative[first]), "vertices": int(np.sum(cluster == k))}
+    return {"clusters": rows,
+            "fragile": [int(k) for k, row in rows.items() if row["support"] is not None and row["support"] < 1]}
+
+
 def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: str | Path, capture_path: str | Path,
               output: str | Path, params_path: str | Path | None = None, benchmarks: str | Path | None = None,
               held_out: list[str] | None = None, sim3_from_sfm: bool = False, sfm_report: str | Path | None = None,
@@ -339,6 +364,7 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
     else:
         reasons["geometry_iterations"] = "no --iteration-meshes given"
 
+    metrics["material_support"] = material_support(params_path, reasons)
     metrics["timings"] = _timings(benchmarks, timings_plot, reasons)
     # The run's warnings (a frame left out, views without a pose: docs/reliability.md), from the jobs' logs.
     metrics["warnings"] = [{"log": name, "message": message} for name, message in

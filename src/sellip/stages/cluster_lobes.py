@@ -17,6 +17,8 @@ Writes the directory ``--output`` (built under a temporary name, then renamed) w
   sigma_ss, rho_s, rho_ss_r, rho_ss_g, rho_ss_b, samples, loss, model;
 - ``lobes.png``: each cluster's lobe against its samples as a function of theta_h (paper Fig. 7b);
 - ``clusters.json``: K, the BIC per K, the merges, the regions added (:func:`sellip.fit.clusters.cluster_materials`),
+  ``support`` (with ``--stability-resamples``; :func:`sellip.fit.clusters.clustering_support`): per cluster the
+  share of repeats on resampled vertices that found it again, and what it became otherwise;
   ``degenerate``: what could not be computed on these data and what was done instead (a cluster without a
   confident vertex or a usable sample, albedos without spread; the run goes on, lower in confidence),
   the settings (``settings``: the clustering's; ``fit_settings``: the lobe fit's) and the seed, and under ``model_selection`` per cluster the chosen model, the held-out loss of
@@ -65,6 +67,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pool-min-coherence", type=float, default=defaults.pool_min_coherence,
                         help="pool only a cluster's vertices whose nearest neighbours lie in it at least this often "
                              "in its lobe fit and model selection, where half of them do (0: every vertex)")
+    parser.add_argument("--stability-resamples", type=int, default=defaults.stability_resamples,
+                        help="repeat the clustering on this many seeded 90 %% subsamples and record each cluster's "
+                             "support (clusters.json 'support'; 0: not measured)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a FitSettings field (repeatable)")
     parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
@@ -103,7 +108,8 @@ def main(args: argparse.Namespace) -> int:
             raise ValueError("--k-max, --max-samples, --min-cluster-vertices and --selection-max-samples must be >= 1")
         settings = AugmentSettings(k_max=args.k_max, max_samples=args.max_samples,
                                    min_cluster_vertices=args.min_cluster_vertices, min_coherence=args.min_coherence,
-                                   pool_min_coherence=args.pool_min_coherence)
+                                   pool_min_coherence=args.pool_min_coherence,
+                                   stability_resamples=args.stability_resamples)
         selection = SelectionSettings(enabled=args.model_selection, candidates=tuple(args.candidates),
                                       held_out_fraction=args.held_out_fraction, folds=args.selection_folds,
                                       tolerance=args.selection_tolerance,
