@@ -62,11 +62,12 @@ Modules and what they export (each name is importable from here too)::
         SelectionSettings, settings_for_model, allowed_models, cap_models, Selection, split_vertices, choose,
         decision_margin, MARGIN_FULL_CONFIDENCE, margin_confidence, cluster_margins, select_model, fit_by_model
     shard: One fit shard (rule ``fit_pbrdf``) and the gather of an iteration's shards into ``fit.zarr`` (rule
-      ``gather_fit``): the shard's vertex rows, the fit settings from ``--set KEY=VALUE`` pairs, XLA's persistent
-      compilation cache, :func:`fit_shard` and :func:`gather_shards`; the memory a shard needs (:data:`SHARD_MEMORY`),
+      ``gather_fit``): the shard's vertex rows, settings records from ``key=value`` pairs (the benchmarks' replay
+      tools), XLA's persistent compilation cache, :func:`fit_shard` and :func:`gather_shards`; the memory a shard needs
+      (:data:`SHARD_MEMORY`),
       what the job may use (:func:`memory_budget`) and the error that names the shard count that fits
       (:class:`ShardMemoryError`)
-        parse_shard, shard_rows, settings_from_pairs, overrides_from_pairs, enable_compilation_cache, largest_shard,
+        parse_shard, shard_rows, overrides_from_pairs, enable_compilation_cache, largest_shard,
         ShardMemory, SHARD_MEMORY, ShardMemoryError, available_memory, memory_budget, shard_memory_message,
         fit_shard, gather_shards
     simulate: Per-vertex observations simulated with the full forward model: inputs with known answers for the fit's
@@ -112,7 +113,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "selection": ("SelectionSettings", "settings_for_model", "allowed_models", "cap_models", "Selection",
            "split_vertices", "choose", "decision_margin", "MARGIN_FULL_CONFIDENCE", "margin_confidence",
            "cluster_margins", "select_model", "fit_by_model"),
-    "shard": ("parse_shard", "shard_rows", "settings_from_pairs", "overrides_from_pairs", "enable_compilation_cache",
+    "shard": ("parse_shard", "shard_rows", "overrides_from_pairs", "enable_compilation_cache",
            "largest_shard", "ShardMemory", "SHARD_MEMORY", "ShardMemoryError", "available_memory", "memory_budget",
            "shard_memory_message", "fit_shard", "gather_shards"),
     "simulate": ("vertex_observations",),
