@@ -24,7 +24,7 @@ rule run_sfm:
         max_upscale=config["sfm"]["max_upscale"],
         refine_intrinsics="--refine-intrinsics" if config["sfm"]["refine_intrinsics"] else "",
         min_registered_fraction=config["sfm"]["min_registered_fraction"],
-        mask_threshold=config["sfm"]["mask_threshold"],
+        silhouette_settings=settings_json(config["silhouette"]),
         seed=config["seed"],
     threads: config["sfm"]["threads"]
     conda:
@@ -39,7 +39,7 @@ rule run_sfm:
         " --exhaustive-max-views {params.exhaustive_max_views} --retrieval-neighbors {params.retrieval_neighbors}"
         " --max-features {params.max_features} --feature-object-px {params.feature_object_px}"
         " --max-upscale {params.max_upscale} {params.refine_intrinsics}"
-        " --min-registered-fraction {params.min_registered_fraction} --mask-threshold {params.mask_threshold}"
+        " --min-registered-fraction {params.min_registered_fraction} --silhouette-settings {params.silhouette_settings}"
         " --seed {params.seed} --threads {threads} > {log:q} 2>&1"
 
 
@@ -61,7 +61,7 @@ rule init_mesh:
         poisson_depth=config["init"]["poisson_depth"],
         target_depth=config["init"]["target_depth"],
         max_vertices=config["init"]["max_vertices"],
-        mask_threshold=config["sfm"]["mask_threshold"],
+        silhouette_settings=settings_json(config["silhouette"]),
     threads: config["init"]["threads"]
     conda:
         "../../envs/geometry.yaml"
@@ -74,7 +74,7 @@ rule init_mesh:
         " --output {output.mesh:q} --mode {params.mode} {params.mesh_path} --hull-resolution {params.hull_resolution}"
         " --min-inside-fraction {params.min_inside_fraction} --poisson-depth {params.poisson_depth}"
         " --target-depth {params.target_depth} --max-vertices {params.max_vertices}"
-        " --mask-threshold {params.mask_threshold} --threads {threads} > {log:q} 2>&1"
+        " --silhouette-settings {params.silhouette_settings} --threads {threads} > {log:q} 2>&1"
 
 
 rule refine_geometry:
@@ -97,7 +97,7 @@ rule refine_geometry:
         silhouette=lambda wildcards: at_iteration(config["refine_geometry"]["silhouette"], wildcards.it),
         capture=lambda wildcards, input: Path(input.capture).parent,
         held_out=config["evaluate"]["held_out_views"],
-        mask_threshold=config["sfm"]["mask_threshold"],
+        silhouette_settings=settings_json(config["silhouette"]),
     conda:
         "../../envs/geometry.yaml"
     log:
@@ -109,7 +109,7 @@ rule refine_geometry:
         " --reference-mesh {input.reference:q} --smoothness {params.smoothness}"
         " --smoothness-unconfident {params.smoothness_unconfident} --anchor {params.anchor} --rounds {params.rounds}"
         " --silhouette {params.silhouette} --cameras {input.cameras:q} --hdr {input.hdr:q} --capture {params.capture:q}"
-        " --exclude-views {params.held_out:q} --mask-threshold {params.mask_threshold} > {log:q} 2>&1"
+        " --exclude-views {params.held_out:q} --silhouette-settings {params.silhouette_settings} > {log:q} 2>&1"
 
 
 rule refine_poses:
@@ -128,11 +128,9 @@ rule refine_poses:
         it=r"[1-9]\d*",
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
-        blur_px=" ".join(str(float(b)) for b in config["refine_poses"]["blur_px"]),
-        rounds=config["refine_poses"]["rounds"],
-        max_rotation_deg=config["refine_poses"]["max_rotation_deg"],
-        max_shift_fraction=config["refine_poses"]["max_shift_fraction"],
-        min_motion_px=config["refine_poses"]["min_motion_px"],
+        # The PoseRefinementSettings fields of config refine_poses (enabled, after_iteration: cameras_of).
+        settings=settings_json({key: value for key, value in config["refine_poses"].items()
+                                if key not in ("enabled", "after_iteration")}),
     conda:
         "../../envs/geometry.yaml"
     log:
@@ -141,6 +139,5 @@ rule refine_poses:
         f"{RESULTS}/benchmarks/refine_poses/{{it}}.tsv"
     shell:
         SELLIP + " refine-poses --params {input.params:q} --mesh {input.mesh:q} --cameras {input.cameras:q}"
-        " --hdr {input.hdr:q} --capture {params.capture:q} --output {output.cameras:q} --blur-px {params.blur_px}"
-        " --rounds {params.rounds} --max-rotation-deg {params.max_rotation_deg}"
-        " --max-shift-fraction {params.max_shift_fraction} --min-motion-px {params.min_motion_px} > {log:q} 2>&1"
+        " --hdr {input.hdr:q} --capture {params.capture:q} --output {output.cameras:q} --settings {params.settings}"
+        " > {log:q} 2>&1"
