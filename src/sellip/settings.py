@@ -199,3 +199,13 @@ def add_settings_argument(parser: argparse.ArgumentParser, record: type, flag: s
     parser.add_argument(flag, type=parse, default=record(), metavar="JSON",
                         help=f"{record.__name__} as one JSON object (config {section or 'section'}; keys left out take "
                              f"their declared defaults): {names}")
+
+
+def add_renamed_argument(parser: argparse.ArgumentParser, old: str, new: str) -> None:
+    """``old``, an option that was renamed or replaced: given, it is an argument error naming ``new``."""
+
+    class Renamed(argparse.Action):
+        def __call__(self, parser, namespace, values, option_string=None):
+            parser.error(f"{old} was replaced by {new}")
+
+    parser.add_argument(old, action=Renamed, nargs="*", help=argparse.SUPPRESS)

@@ -90,3 +90,16 @@ def test_a_declared_default_is_not_written_again_in_the_workflow():
             assert field is None or value != field.default, f"{section}.{key}: the declared default, written again"
     rules = "".join(p.read_text() for p in sorted((REPO / "workflow" / "rules").glob("*.smk")))
     assert "mask_threshold" not in rules and "sigma_ss_fixed" not in rules.replace("`sigma_ss_fixed`", "")
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["fit", "--observations", "o", "--output", "x", "--fixed-sigma-ss", "0.8"], "--fixed-sigma-ss was replaced by "
+                                                                                  "--model2-sigma-ss"),
+    (["cluster-lobes", "--params", "p", "--observations", "o", "--output", "x", "--set", "lobes=full"],
+     "--set was replaced by --settings"),
+    (["observe", "--mask-threshold", "0.05"], "--mask-threshold was replaced by --silhouette-settings"),
+])
+def test_a_replaced_command_line_option_names_its_replacement(argv, message, capsys):
+    with pytest.raises(SystemExit) as stop:
+        cli.main(argv)
+    assert stop.value.code == 2 and message in capsys.readouterr().err

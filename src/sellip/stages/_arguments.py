@@ -19,6 +19,7 @@ def add_silhouette_argument(parser: argparse.ArgumentParser) -> None:
     ``silhouette``), for the stages that cut the photographs' silhouettes (sfm, init-mesh, observe, refine-geometry).
     ``args.silhouette_settings`` is the record."""
     from sellip.geometry.silhouettes import SilhouetteOptions
-    from sellip.settings import add_settings_argument
+    from sellip.settings import add_renamed_argument, add_settings_argument
 
     add_settings_argument(parser, SilhouetteOptions, "--silhouette-settings", "silhouette")
+    add_renamed_argument(parser, "--mask-threshold", "--silhouette-settings '{\"threshold\": ...}'")

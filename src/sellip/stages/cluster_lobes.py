@@ -51,7 +51,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     from sellip.fit.clusters import AugmentSettings
     from sellip.fit.records import FitSettings
     from sellip.fit.selection import SelectionSettings
-    from sellip.settings import add_settings_argument
+    from sellip.settings import add_renamed_argument, add_settings_argument
 
     defaults = AugmentSettings()
     parser.add_argument("--params", type=Path, required=True, help="this iteration's first-pass params store")
@@ -70,6 +70,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     add_settings_argument(parser, FitSettings, "--settings", "fit.settings")
     parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
     add_settings_argument(parser, SelectionSettings, "--model-selection", "model_selection")
+    add_renamed_argument(parser, "--set", "--settings (FitSettings as one JSON object)")
+    add_renamed_argument(parser, "--fixed-sigma-ss", "--model-selection '{\"model2_sigma_ss\": ...}'")
     parser.add_argument("--inherit-models", action="store_true",
                         help="no candidate fits: each cluster takes its vertices' most common model in --params")
 

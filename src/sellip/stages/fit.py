@@ -3,7 +3,7 @@
     sellip fit --observations results/NAME/iter/0/observations.zarr --shard 2-of-4
                --output results/NAME/iter/0/fit/2-of-4.npz
                [--prior results/NAME/iter/1/refit.zarr] [--dtype float32]
-               [--settings '{"lambda_d": 100, "min_views": 4}'] [--model2-sigma-ss 0.9]
+               [--settings '{"lambda_d": 100, "min_views": 4}'] [--model2-sigma-ss 1.0]
                [--compilation-cache DIR] [--lobes results/NAME/iter/0/clusters] [--mem-mb 4000]
 
 The shard's vertex range is derived at run time from the store's vertex count and chunking
@@ -50,9 +50,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="a parameter store to warm-start from (the previous iteration's, or this one's first pass)")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     from sellip.fit.records import FitSettings
-    from sellip.settings import add_settings_argument
+    from sellip.settings import add_renamed_argument, add_settings_argument
 
     add_settings_argument(parser, FitSettings, "--settings", "fit.settings")
+    add_renamed_argument(parser, "--set", "--settings (FitSettings as one JSON object)")
+    add_renamed_argument(parser, "--fixed-sigma-ss", "--model2-sigma-ss")
     parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
     parser.add_argument("--lobes", type=Path, default=None,
                         help="cluster-lobes output directory: the augmented refit (virtual specular samples)")

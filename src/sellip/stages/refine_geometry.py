@@ -5,7 +5,7 @@
                            [--smoothness 0.01] [--smoothness-unconfident 1] [--anchor 0.001] [--rounds 3]
                            [--silhouette 0.01 --cameras results/NAME/cameras.csv --hdr results/NAME/hdr.zarr
                             --capture CAPTURE --exclude-views v004 ...
-                            --silhouette-settings '{"threshold": 0.03}']
+                            --silhouette-settings '{"threshold": 0.02}']
 
 The mesh's vertices move along its normals until its surface agrees with the iteration's fitted normals, as far
 as the fit's normal confidence allows (:func:`sellip.geometry.update.refine_from_normals`, docs/geometry_update.md);
