@@ -26,7 +26,7 @@ def test_shard_argument_and_settings_overrides():
     settings = record_from_mapping(FitSettings, {"lambda_d": 10, "max_iterations": 12, "sigma_ss_fixed": None})
     assert settings.lambda_d == 10.0 and settings.max_iterations == 12 and settings.sigma_ss_fixed is None
     assert record_from_mapping(FitSettings, {"sigma_ss_fixed": 0.9}).sigma_ss_fixed == 0.9
-    with pytest.raises(SettingsError, match="unknown setting 'fit.settings.lambda_q'; did you mean 'fit.settings.lambda_"):
+    with pytest.raises(SettingsError, match="unknown setting 'fit.settings.lambda_q'; did you mean 'fit.settings.lambda"):
         record_from_mapping(FitSettings, {"lambda_q": 1}, "fit.settings")
 
 

@@ -219,7 +219,8 @@ CONFIG_TYPOS = [
     ("fit={shard: 3}", "config: unknown setting 'fit.shard'; did you mean 'fit.shards'?"),
     ("fit={settings: {min_veiws: 3}}", "config: unknown setting 'fit.settings.min_veiws'; did you mean "
                                         "'fit.settings.min_views'?"),
-    ("refine_poses={blur: [1, 0]}", "config: unknown setting 'refine_poses.blur'; did you mean 'refine_poses.blur_px'?"),
+    ("refine_poses={blur: [1, 0]}", "config: unknown setting 'refine_poses.blur'; did you mean "
+                                    "'refine_poses.blur_px'?"),
     ("sfm={mask_threshold: 0.05}", "config: 'sfm.mask_threshold' was renamed 'silhouette.threshold': set "
                                    "silhouette.threshold instead"),
     ("model_selection={sigma_ss_fixed: 1.0}", "config: 'model_selection.sigma_ss_fixed' was renamed "

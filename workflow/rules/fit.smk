@@ -23,7 +23,8 @@ def fit_settings(wildcards):
 def cluster_settings(wildcards):
     """`--settings` of the cluster lobe fits of this iteration: config `fit.settings` (its loss weights, view
     selection, and the most complex model allowed: `lobes`, `sigma_ss_fixed`)."""
-    return settings_json({key: at_iteration(value, int(wildcards.it)) for key, value in config["fit"]["settings"].items()})
+    it = int(wildcards.it)
+    return settings_json({key: at_iteration(value, it) for key, value in config["fit"]["settings"].items()})
 
 
 MODEL_SELECTION_WORKFLOW_KEYS = ("every",)

@@ -24,7 +24,8 @@ log = logging.getLogger(__name__)
 SCHEMA = Path("config/config.schema.yaml")
 HEADER = ("# sellip workflow configuration schema (config/config.yaml). Sections marked x-record are written from the\n"
           "# settings records' declarations by `sellip config-schema` (src/sellip/settings.py); edit the record, not\n"
-          "# them. Every object rejects unknown keys (additionalProperties: false); x-renamed names a key's new name.\n")
+          "# them. Every object rejects unknown keys (additionalProperties: false); x-renamed names a key's new\n"
+          "# name.\n")
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
