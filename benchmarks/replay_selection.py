@@ -54,7 +54,9 @@ def main(argv=None) -> int:
     info = json.loads((folder / "clusters" / "clusters.json").read_text())
     settings = clustering_settings(info)
     fit_settings = recorded_fit_settings(info, folder / "clusters" / "clusters.json")
-    recorded = info["model_selection"]["settings"]
+    recorded = dict(info["model_selection"]["settings"])
+    if "sigma_ss_fixed" in recorded:  # written before the key was renamed model2_sigma_ss
+        recorded["model2_sigma_ss"] = recorded.pop("sigma_ss_fixed")
     known = {f.name for f in dataclasses.fields(fit_selection.SelectionSettings)}
     selection = fit_selection.SelectionSettings(**{k: tuple(v) if isinstance(v, list) else v
                                                    for k, v in recorded.items() if k in known})

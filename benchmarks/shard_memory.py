@@ -16,6 +16,7 @@ peak, the model's prediction and their ratio, then the least-squares constants o
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
 import tempfile
@@ -52,7 +53,7 @@ def write_store(path: Path, vertices: int, views: int, seed: int = 0) -> None:
 def peak_of_fit(store: Path, output: Path, chunk_size: int, cache: Path, iterations: int) -> tuple[float, float]:
     """(peak resident bytes, seconds) of ``sellip fit`` on the whole store, in a fresh process."""
     command = [sys.executable, "-m", "sellip.cli", "fit", "--observations", str(store), "--output", str(output),
-               "--set", f"chunk_size={chunk_size}", "--set", f"max_iterations={iterations}",
+               "--settings", json.dumps({"chunk_size": chunk_size, "max_iterations": iterations}),
                "--compilation-cache", str(cache)]
     # getrusage(RUSAGE_CHILDREN) is the maximum over every child waited for: one measuring process per fit.
     probe = ("import resource, subprocess, sys, time; t = time.perf_counter(); "

@@ -39,6 +39,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "view": ("view", "materials table, glTF and map-PLY exports, and the offline browser viewer of a final model"),
     "bench-sweep": ("bench_sweep", "speed-accuracy sweep of the whole workflow: chart, CSV and tables"),
     "bench-stability": ("bench_stability", "the stability suite: failure-mode cases run end to end, one table"),
+    "config-schema": ("config_schema", "write config/config.schema.yaml's settings sections from their declarations"),
 }
 
 

@@ -5,6 +5,9 @@ nothing heavy (no numpy, pandas or JAX) and never raises on a capture it cannot 
 capture reports that, with file, row and column).
 
 - :func:`check_results_name` -- config ``name`` must be one plain path component (``results/NAME/``).
+- :func:`check_config_keys` -- every config key, at every level, is a setting of the schema: a typo
+  (``iteratons=2``, ``fit={shard: 3}``) is an error naming the key and the nearest valid one, a renamed key an error
+  naming its new name.
 - :func:`coerce_to_schema` -- ``--config 'augment={min_coherence: 0}'`` arrives as the string ``'0'``
   (Snakemake parses nested values with YAML's BaseLoader); this turns such strings into the number, boolean or
   null that the config schema expects at that key.
@@ -128,6 +131,40 @@ def coerce_to_schema(value, schema: Mapping):
     if value is None and kinds == ["string"]:
         return ""  # `--config capture=` (Snakemake gives None for an empty value)
     return value
+
+
+class ConfigKeyError(ValueError):
+    """A config key that is not a setting (a typo), or one that was renamed."""
+
+
+def config_key_errors(value, schema: Mapping, path: str = "") -> list[str]:
+    """What is wrong with the keys of ``value`` (the config, or a section of it at ``path``) at every level: a key
+    that ``schema`` (the config schema) does not declare where it admits no other (``additionalProperties:
+    false``), named with the nearest valid key (:func:`sellip.settings.unknown_key_message`), or a key that was
+    renamed (the section's ``x-renamed``: old key -> new dotted name). Empty when every key is known."""
+    from sellip.settings import unknown_key_message
+
+    if not isinstance(value, Mapping) or not isinstance(schema, Mapping):
+        return []
+    properties = schema.get("properties") or {}
+    renamed = schema.get("x-renamed") or {}
+    found = []
+    for key, item in value.items():
+        where = f"{path}.{key}" if path else str(key)
+        if key in properties:
+            found += config_key_errors(item, properties[key], where)
+        elif key in renamed:
+            found.append(f"config: '{where}' was renamed '{renamed[key]}': set {renamed[key]} instead")
+        elif schema.get("additionalProperties") is False:
+            found.append("config: " + unknown_key_message(where, properties))
+    return found
+
+
+def check_config_keys(config: Mapping, schema: Mapping) -> None:
+    """ConfigKeyError listing every unknown or renamed key of ``config`` (:func:`config_key_errors`)."""
+    found = config_key_errors(config, schema)
+    if found:
+        raise ConfigKeyError("\n".join(found))
 
 
 # --------------------------------------------------------------------------- capture files as inputs

@@ -318,7 +318,7 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
     output = tmp_path / "refit.npz"
     assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--prior", str(tmp_path / "fit.zarr"),
                      "--lobes", str(clusters), "--output", str(output), "--dtype", "float64",
-                     "--set", "fit_normal=false"]) == 0
+                     "--settings", '{"fit_normal": false}']) == 0
     with np.load(output) as refit:
         unseen = ~scene["facing"]
         assert np.median(_relative(refit["sigma_s"], scene["params"].sigma_s)[unseen]) < 0.1

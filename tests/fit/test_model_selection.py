@@ -78,7 +78,7 @@ def test_every_candidate_model_runs_one_compiled_program(scene):
 
 
 def test_model_codes_settings_and_caps():
-    from sellip.fit.shard import settings_from_pairs
+    from sellip.settings import SettingsError, record_from_mapping
 
     for code in records.MODELS:
         assert records.model_of(fit_selection.settings_for_model(HELD, code)) == code
@@ -89,11 +89,12 @@ def test_model_codes_settings_and_caps():
     assert fit_selection.allowed_models(fixed) == [0, 1, 2]
     assert fit_selection.allowed_models(FitSettings(lobes="specular"), (0, 1, 3)) == [0, 1]
     np.testing.assert_array_equal(fit_selection.cap_models([0, 1, 2, 3], fixed), [0, 1, 2, 2])
-    assert settings_from_pairs(["lobes=specular", "fit_normal=false"]) == FitSettings(lobes="specular", fit_normal=False)
-    with pytest.raises(ValueError, match="lobes"):
-        settings_from_pairs(["lobes=mirror"])
-    with pytest.raises(ValueError, match="max_iterations expects an integer"):
-        settings_from_pairs(["max_iterations=many"])
+    assert record_from_mapping(FitSettings, {"lobes": "specular", "fit_normal": False}) == FitSettings(
+        lobes="specular", fit_normal=False)
+    with pytest.raises(SettingsError, match="lobes"):
+        record_from_mapping(FitSettings, {"lobes": "mirror"})
+    with pytest.raises(SettingsError, match="'fit.settings.max_iterations': 'many' is not"):
+        record_from_mapping(FitSettings, {"max_iterations": "many"}, "fit.settings")
     with pytest.raises(ValueError, match="candidates"):
         fit_selection.SelectionSettings(candidates=(1, 4))
     with pytest.raises(ValueError, match="held_out_fraction"):
@@ -308,11 +309,11 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     _write_stores(tmp_path, scene)
     stores = ["--params", str(tmp_path / "fit.zarr"), "--observations", str(tmp_path / "observations.zarr")]
     # Surface points placed without regard to their material (not regions): the coherence test is off.
-    small = ["--max-samples", "1000", "--selection-max-samples", "1000", "--min-cluster-vertices", "10",
-             "--min-coherence", "0"]
-    # At most model 1 (--set lobes=specular): the scattering cluster may not keep its lobe.
-    assert cli.main(["cluster-lobes", *stores, "--output", str(tmp_path / "clusters"), *small,
-                     "--set", "lobes=specular"]) == 0
+    small = ["--max-samples", "1000", "--min-cluster-vertices", "10", "--min-coherence", "0"]
+    selection = ["--model-selection", '{"max_samples": 1000}']
+    # At most model 1 (lobes specular): the scattering cluster may not keep its lobe.
+    assert cli.main(["cluster-lobes", *stores, "--output", str(tmp_path / "clusters"), *small, *selection,
+                     "--settings", '{"lobes": "specular"}']) == 0
     labels, vertex_models = np.load(tmp_path / "clusters" / "labels.npy"), np.load(tmp_path / "clusters" / "models.npy")
     info = json.loads((tmp_path / "clusters" / "clusters.json").read_text())["model_selection"]
     assert vertex_models.dtype == np.uint8 and info["allowed"] == [0, 1] and info["enabled"]
@@ -328,7 +329,7 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     # The refit: every vertex with its cluster's model (the grouped fit's compiled shapes above).
     assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--prior", str(tmp_path / "fit.zarr"),
                      "--lobes", str(tmp_path / "clusters"), "--output", str(tmp_path / "refit.npz"),
-                     "--dtype", "float64", "--set", "fit_normal=false"]) == 0
+                     "--dtype", "float64", "--settings", '{"fit_normal": false}']) == 0
     with np.load(tmp_path / "refit.npz") as refit:
         np.testing.assert_array_equal(refit["model"], vertex_models)
         assert np.all(refit["rho_ss"] == 0) and np.all(refit["rho_s"][vertex_models == 0] == 0)
@@ -338,10 +339,10 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     store = read_params(tmp_path / "refit.zarr")
     np.testing.assert_array_equal(store["model"], vertex_models)
     # An iteration between selections inherits the models (no candidate fitted), as many as allowed.
-    for extra, top in (([], 1), (["--set", "lobes=diffuse"], 0)):
+    for lobes, top in (("specular", 1), ("diffuse", 0)):
         assert cli.main(["cluster-lobes", "--params", str(tmp_path / "refit.zarr"), "--observations",
                          str(tmp_path / "observations.zarr"), "--output", str(tmp_path / "inherited"), *small,
-                         "--set", "lobes=specular", *extra, "--inherit-models"]) == 0
+                         *selection, "--settings", json.dumps({"lobes": lobes}), "--inherit-models"]) == 0
         inherited = json.loads((tmp_path / "inherited" / "clusters.json").read_text())["model_selection"]
         assert inherited["inherited"] and all(c["inherited"] and not c["candidates"] for c in inherited["clusters"])
         np.testing.assert_array_equal(np.load(tmp_path / "inherited" / "models.npy"), np.minimum(vertex_models, top))
@@ -379,9 +380,9 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
                                 normal_std_deg=np.ones(k), eta_std=np.ones(k), sigma_s_std=np.ones(k))
 
     monkeypatch.setattr(fit_selection, "fit_by_model", fake_fit)
-    for extra, expected in (([], vertex_models), (["--set", "lobes=diffuse"], np.zeros(n))):
+    for extra, expected in (([], vertex_models), (["--settings", '{"lobes": "diffuse"}'], np.zeros(n))):
         assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--prior",
-                         str(tmp_path / "refit.zarr"), "--output", str(tmp_path / "next.npz"), "--fixed-sigma-ss",
+                         str(tmp_path / "refit.zarr"), "--output", str(tmp_path / "next.npz"), "--model2-sigma-ss",
                          "0.8", *extra]) == 0
         np.testing.assert_array_equal(given[-1][0], expected)
         assert given[-1][2] == 0.8 and given[-1][3] is None
@@ -390,8 +391,8 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     monkeypatch.undo()
 
     # Without model selection: every cluster gets the fit settings' model.
-    assert cli.main(["cluster-lobes", *stores, "--output", str(tmp_path / "plain"), *small, "--set", "lobes=specular",
-                     "--no-model-selection"]) == 0
+    assert cli.main(["cluster-lobes", *stores, "--output", str(tmp_path / "plain"), *small,
+                     "--settings", '{"lobes": "specular"}', "--model-selection", '{"enabled": false}']) == 0
     assert np.all(np.load(tmp_path / "plain" / "models.npy") == 1)
     assert json.loads((tmp_path / "plain" / "clusters.json").read_text())["model_selection"]["clusters"] == []
 

@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sellip.fit.shard import parse_shard, settings_from_pairs, shard_rows
+from sellip.fit.records import FitSettings
+from sellip.fit.shard import parse_shard, shard_rows
 from sellip.model.params import ParamsError, fill_from_neighbours, read_params, transfer_nearest, write_params
+from sellip.settings import SettingsError, record_from_mapping
 
 
 @pytest.mark.parametrize("total,chunk,shards", [(10, 4, 3), (29169, 4096, 2), (5, 4096, 4), (100, 7, 100)])
@@ -21,11 +23,11 @@ def test_shard_argument_and_settings_overrides():
     assert parse_shard("2-of-4") == (1, 4)
     with pytest.raises(Exception):
         parse_shard("5-of-4")
-    settings = settings_from_pairs(["lambda_d=10", "max_iterations=12", "sigma_ss_fixed=null"])
+    settings = record_from_mapping(FitSettings, {"lambda_d": 10, "max_iterations": 12, "sigma_ss_fixed": None})
     assert settings.lambda_d == 10.0 and settings.max_iterations == 12 and settings.sigma_ss_fixed is None
-    assert settings_from_pairs(["sigma_ss_fixed=0.9"]).sigma_ss_fixed == 0.9
-    with pytest.raises(ValueError, match="lambda_q"):
-        settings_from_pairs(["lambda_q=1"])
+    assert record_from_mapping(FitSettings, {"sigma_ss_fixed": 0.9}).sigma_ss_fixed == 0.9
+    with pytest.raises(SettingsError, match="unknown setting 'fit.settings.lambda_q'; did you mean 'fit.settings.lambda"):
+        record_from_mapping(FitSettings, {"lambda_q": 1}, "fit.settings")
 
 
 def test_unfitted_vertices_take_their_neighbours_values():

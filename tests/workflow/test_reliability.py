@@ -201,7 +201,7 @@ def test_a_removed_poses_csv_reruns_the_poses(run):
 def test_a_changed_config_value_reruns_exactly_the_rules_that_use_it(run):
     """Nested overrides of each type (item 6) re-run the rules whose params hold them."""
     assert dry_run(run, "init={max_vertices: 700}") == {"init_mesh"}            # integer
-    assert dry_run(run, "sfm={mask_threshold: 0.05}") == {"run_sfm", "init_mesh"}  # number
+    assert dry_run(run, "silhouette={threshold: 0.05}") == {"run_sfm", "init_mesh"}  # number (a record's setting)
     assert dry_run(run, "ingest={saturation: 0.9}") == INGEST                    # number, first stage
     assert dry_run(run, "sfm={refine_intrinsics: true}") == {"run_sfm", "init_mesh"}  # boolean
     assert dry_run(run, "init={max_vertices: 600}") == set()                    # the run's own value
@@ -276,6 +276,59 @@ def test_nested_overrides_take_the_schema_types():
     assert workflow_support.coerce_to_schema({"capture": None}, schema) == {"capture": ""}  # `--config capture=`
     # A value of the wrong kind stays a string, for the schema to report.
     assert workflow_support.coerce_to_schema({"augment": {"k_max": "many"}}, schema)["augment"]["k_max"] == "many"
+
+
+CONFIG_TYPOS = [
+    # (--config value, the message that names the key and what to do)
+    ("iteratons=2", "config: unknown setting 'iteratons'; did you mean 'iterations'?"),
+    ("fit={shard: 3}", "config: unknown setting 'fit.shard'; did you mean 'fit.shards'?"),
+    ("fit={settings: {min_veiws: 3}}", "config: unknown setting 'fit.settings.min_veiws'; did you mean "
+                                        "'fit.settings.min_views'?"),
+    ("refine_poses={blur: [1, 0]}", "config: unknown setting 'refine_poses.blur'; did you mean "
+                                    "'refine_poses.blur_px'?"),
+    ("sfm={mask_threshold: 0.05}", "config: 'sfm.mask_threshold' was renamed 'silhouette.threshold': set "
+                                   "silhouette.threshold instead"),
+    ("model_selection={sigma_ss_fixed: 1.0}", "config: 'model_selection.sigma_ss_fixed' was renamed "
+                                              "'model_selection.model2_sigma_ss'"),
+]
+
+
+@pytest.mark.parametrize("override, message", CONFIG_TYPOS)
+def test_an_unknown_or_renamed_config_key_is_named_with_the_valid_one(override, message):
+    """Every config key, at every level, must be a setting (the schema's additionalProperties: false): a typo stops
+    the workflow naming the key and the nearest valid one, a renamed key naming its new name."""
+    schema = workflow_support.load_yaml(REPO / "config" / "config.schema.yaml")
+    key, _, value = override.partition("=")
+    config = {**workflow_support.load_yaml(REPO / "config" / "config.yaml"), key: yaml.safe_load(value)}
+    with pytest.raises(workflow_support.ConfigKeyError) as error:
+        workflow_support.check_config_keys(config, schema)
+    assert str(error.value).startswith(message), str(error.value)
+
+
+@pytest.mark.parametrize("override, message", CONFIG_TYPOS[:2])
+def test_a_config_typo_stops_the_workflow_before_any_job(tmp_path, override, message):
+    """The two typos of the bad-input table through Snakemake itself: an error, no job, nothing written."""
+    result = snakemake(tmp_path, tmp_path / "none", "-n", "--config", "capture=", override, check=False)
+    assert result.returncode != 0
+    assert message in result.stderr + result.stdout, (result.stderr + result.stdout)[-3000:]
+    assert not (tmp_path / "results").exists()
+
+
+def test_every_config_section_rejects_unknown_keys():
+    """additionalProperties: false on every object of the schema (demo.overrides, which holds other settings and is
+    checked once merged, excepted)."""
+    schema = workflow_support.load_yaml(REPO / "config" / "config.schema.yaml")
+    open_objects = []
+
+    def visit(node, path):
+        if isinstance(node, dict):
+            if node.get("type") == "object" and node.get("additionalProperties") is not False:
+                open_objects.append(path)
+            for key, value in (node.get("properties") or {}).items():
+                visit(value, f"{path}.{key}" if path else key)
+
+    visit(schema, "")
+    assert open_objects == ["demo.overrides"]
 
 
 def test_nested_overrides_of_each_type_pass_the_workflow(tmp_path):

@@ -1,4 +1,5 @@
 # Config validation, wildcard constraints and the input functions every rule family shares.
+import json
 import os
 import shlex
 import shutil
@@ -44,10 +45,18 @@ except ImportError:  # a Snakemake whose Python lacks sellip (e.g. --sdm conda):
     sys.path.append(str(Path(workflow.basedir) / "src"))
     from sellip import workflow_support
 
+CONFIG_SCHEMA = workflow_support.load_yaml(Path(workflow.basedir) / "config" / "config.schema.yaml")
+
+# Every key, at every level, must be a setting: a typo (`iteratons=2`, `fit={shard: 3}`) or a renamed key stops here,
+# naming the key and the nearest valid one (docs/reliability.md), instead of running with the default.
+try:
+    workflow_support.check_config_keys(config, CONFIG_SCHEMA)
+except ValueError as exc:
+    raise WorkflowError(str(exc)) from None
+
 # --config values nested in a mapping arrive as strings (`augment={min_coherence: 0}` gives '0'): read them as the
 # numbers, booleans and nulls the schema expects there (docs/reliability.md).
-config.update(workflow_support.coerce_to_schema(
-    dict(config), workflow_support.load_yaml(Path(workflow.basedir) / "config" / "config.schema.yaml")))
+config.update(workflow_support.coerce_to_schema(dict(config), CONFIG_SCHEMA))
 
 # A key given twice in a config file: Snakemake's reader keeps the second value without a word.
 try:
@@ -157,6 +166,12 @@ SELLIP = "sellip" if _CONDA or shutil.which("sellip") else f"{shlex.quote(sys.ex
 
 # The env files (envs/*.yaml) install sellip from ${SELLIP_ROOT}: this checkout.
 os.environ.setdefault("SELLIP_ROOT", str(Path(workflow.basedir).resolve()))
+
+
+def settings_json(settings):
+    """A config section (or the part of it a job takes) as one shell-quoted JSON argument: the job parses it into its
+    settings record, whose declarations give every key left out its default (sellip.settings)."""
+    return shlex.quote(json.dumps(dict(settings), sort_keys=True))
 
 
 def at_iteration(value, it):

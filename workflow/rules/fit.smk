@@ -6,45 +6,49 @@
 # The numerics live in sellip.fit and sellip.fit; each rule calls one `sellip` command.
 
 
-def settings_args(settings):
-    """`--set KEY=VALUE ...` of a dict of FitSettings fields."""
-    return " ".join(f"--set {key}={'null' if value is None else value}" for key, value in settings.items())
-
-
-def fit_settings_args(wildcards):
-    """`--set KEY=VALUE` for the FitSettings of this iteration and pass: config `fit.settings`
-    (lists are per iteration), then `augment.settings` for a pass with virtual samples (a refit, and the
-    final pass's first fit: get_lobes), then `final.settings` for the final pass (iteration ITERATIONS:
-    normals from the final geometry, pBRDF only)."""
+def fit_settings(wildcards):
+    """`--settings` (sellip.fit.records.FitSettings as JSON) of this iteration and pass: config `fit.settings`
+    (lists are per iteration), then `augment.settings` for a pass with virtual samples (a refit, and the final
+    pass's first fit: get_lobes), then `final.settings` for the final pass (iteration ITERATIONS: normals from the
+    final geometry, pBRDF only)."""
     it = int(wildcards.it)
     settings = {key: at_iteration(value, it) for key, value in config["fit"]["settings"].items()}
     if get_lobes(wildcards):
         settings.update(config["augment"]["settings"])
     if it == ITERATIONS:
         settings.update(config["final"]["settings"])
-    return settings_args(settings)
+    return settings_json(settings)
 
 
-def cluster_settings_args(wildcards):
-    """`--set KEY=VALUE` for the cluster lobe fits of this iteration: config `fit.settings` (its loss
-    weights, view selection, and the most complex model allowed: `lobes`, `sigma_ss_fixed`)."""
-    return settings_args({key: at_iteration(value, int(wildcards.it)) for key, value in config["fit"]["settings"].items()})
-
-
-def model_selection_args(wildcards):
-    """The model-selection options of `sellip cluster-lobes` from config `model_selection` (docs/design.md §7):
-    candidates are fitted at iteration 0, every `every`-th iteration and the final pass; the others
-    inherit their vertices' models (`--inherit-models`)."""
-    selection = config["model_selection"]
+def cluster_settings(wildcards):
+    """`--settings` of the cluster lobe fits of this iteration: config `fit.settings` (its loss weights, view
+    selection, and the most complex model allowed: `lobes`, `sigma_ss_fixed`)."""
     it = int(wildcards.it)
-    inherit = " --inherit-models" if it % int(selection["every"]) and it != ITERATIONS else ""
-    return (f"--{'' if selection['enabled'] else 'no-'}model-selection{inherit}"
-            f" --candidates {' '.join(str(m) for m in selection['candidates'])}"
-            f" --held-out-fraction {selection['held_out_fraction']} --selection-folds {selection['folds']}"
-            f" --selection-tolerance {selection['tolerance']}"
-            f" --selection-standard-errors {selection['standard_errors']}"
-            f" --fixed-sigma-ss {selection['sigma_ss_fixed']} --selection-max-samples {selection['max_samples']}"
-            f" --selection-max-theta-error-deg {selection['max_theta_error_deg']}")
+    return settings_json({key: at_iteration(value, it) for key, value in config["fit"]["settings"].items()})
+
+
+MODEL_SELECTION_WORKFLOW_KEYS = ("every",)
+"""Keys of config `model_selection` that the workflow reads itself; the others are SelectionSettings fields."""
+
+
+def model_selection_settings():
+    """`--model-selection` (sellip.fit.selection.SelectionSettings as JSON): config `model_selection`."""
+    return settings_json({key: value for key, value in config["model_selection"].items()
+                          if key not in MODEL_SELECTION_WORKFLOW_KEYS})
+
+
+def inherit_models(wildcards):
+    """`--inherit-models` where cluster_lobes fits no candidate: candidates are fitted at iteration 0, every
+    `model_selection.every`-th iteration and the final pass; the others inherit their vertices' models."""
+    it = int(wildcards.it)
+    return "--inherit-models" if it % int(config["model_selection"]["every"]) and it != ITERATIONS else ""
+
+
+def model2_sigma_ss():
+    """`--model2-sigma-ss` of the fit jobs where config `model_selection.model2_sigma_ss` is set (else the job takes
+    its declared default)."""
+    value = config["model_selection"].get("model2_sigma_ss")
+    return "" if value is None else f"--model2-sigma-ss {float(value)}"
 
 
 rule fit_pbrdf:
@@ -57,8 +61,8 @@ rule fit_pbrdf:
     params:
         prior=lambda wildcards, input: f"--prior {shlex.join(input.prior)}" if input.prior else "",
         lobes=lambda wildcards, input: f"--lobes {shlex.join(input.lobes)}" if input.lobes else "",
-        settings=fit_settings_args,
-        fixed_sigma_ss=config["model_selection"]["sigma_ss_fixed"],
+        settings=fit_settings,
+        model2_sigma_ss=model2_sigma_ss(),
         dtype=config["fit"]["dtype"],
         cache=config["fit"]["compilation_cache"],
     threads: config["fit"]["threads"]
@@ -72,8 +76,8 @@ rule fit_pbrdf:
         f"{RESULTS}/benchmarks/fit_pbrdf/{{it}}/{{pass_}}/{{scatteritem}}.tsv"
     shell:
         SELLIP + " fit --observations {input.observations:q} --shard {wildcards.scatteritem}"
-        " --output {output:q} {params.prior} {params.lobes} --dtype {params.dtype} {params.settings}"
-        " --fixed-sigma-ss {params.fixed_sigma_ss} --compilation-cache {params.cache:q} --mem-mb {resources.mem_mb}"
+        " --output {output:q} {params.prior} {params.lobes} --dtype {params.dtype} --settings {params.settings}"
+        " {params.model2_sigma_ss} --compilation-cache {params.cache:q} --mem-mb {resources.mem_mb}"
         " > {log:q} 2>&1"
 
 
@@ -116,8 +120,9 @@ rule cluster_lobes:
         min_coherence=config["augment"]["min_coherence"],
         pool_min_coherence=config["augment"]["pool_min_coherence"],
         resamples=lambda wildcards: config["augment"]["stability_resamples"] if int(wildcards.it) == ITERATIONS else 0,
-        settings=cluster_settings_args,
-        selection=model_selection_args,
+        settings=cluster_settings,
+        selection=model_selection_settings(),
+        inherit=inherit_models,
         cache=config["fit"]["compilation_cache"],
     threads: config["fit"]["threads"]
     conda:
@@ -131,5 +136,5 @@ rule cluster_lobes:
         " --seed {params.seed} --k-max {params.k_max} --max-samples {params.max_samples}"
         " --min-cluster-vertices {params.min_cluster_vertices} --min-coherence {params.min_coherence}"
         " --pool-min-coherence {params.pool_min_coherence} --stability-resamples {params.resamples}"
-        " {params.settings} {params.selection}"
+        " --settings {params.settings} --model-selection {params.selection} {params.inherit}"
         " --compilation-cache {params.cache:q} > {log:q} 2>&1"

@@ -25,7 +25,7 @@ rule run_sfm:
         max_upscale=config["sfm"]["max_upscale"],
         refine_intrinsics="--refine-intrinsics" if config["sfm"]["refine_intrinsics"] else "",
         min_registered_fraction=config["sfm"]["min_registered_fraction"],
-        mask_threshold=config["sfm"]["mask_threshold"],
+        silhouette_settings=settings_json(config["silhouette"]),
         seed=config["seed"],
     threads: config["sfm"]["threads"]
     conda:
@@ -40,7 +40,7 @@ rule run_sfm:
         " --exhaustive-max-views {params.exhaustive_max_views} --retrieval-neighbors {params.retrieval_neighbors}"
         " --max-features {params.max_features} --feature-object-px {params.feature_object_px}"
         " --max-upscale {params.max_upscale} {params.refine_intrinsics}"
-        " --min-registered-fraction {params.min_registered_fraction} --mask-threshold {params.mask_threshold}"
+        " --min-registered-fraction {params.min_registered_fraction} --silhouette-settings {params.silhouette_settings}"
         " --seed {params.seed} --threads {threads} > {log:q} 2>&1"
 
 
@@ -63,7 +63,7 @@ rule init_mesh:
         target_depth=config["init"]["target_depth"],
         max_vertices=config["init"]["max_vertices"],
         outlier_view_z=config["init"]["outlier_view_z"],
-        mask_threshold=config["sfm"]["mask_threshold"],
+        silhouette_settings=settings_json(config["silhouette"]),
     threads: config["init"]["threads"]
     conda:
         "../../envs/geometry.yaml"
@@ -77,7 +77,7 @@ rule init_mesh:
         " --min-inside-fraction {params.min_inside_fraction} --poisson-depth {params.poisson_depth}"
         " --target-depth {params.target_depth} --max-vertices {params.max_vertices}"
         " --outlier-view-z {params.outlier_view_z}"
-        " --mask-threshold {params.mask_threshold} --threads {threads} > {log:q} 2>&1"
+        " --silhouette-settings {params.silhouette_settings} --threads {threads} > {log:q} 2>&1"
 
 
 rule refine_geometry:
@@ -101,7 +101,7 @@ rule refine_geometry:
         keep_surface="--keep-surface" if config["refine_geometry"]["keep_surface"] else "--no-keep-surface",
         capture=lambda wildcards, input: Path(input.capture).parent,
         held_out=config["evaluate"]["held_out_views"],
-        mask_threshold=config["sfm"]["mask_threshold"],
+        silhouette_settings=settings_json(config["silhouette"]),
     conda:
         "../../envs/geometry.yaml"
     log:
@@ -113,7 +113,7 @@ rule refine_geometry:
         " --reference-mesh {input.reference:q} --smoothness {params.smoothness}"
         " --smoothness-unconfident {params.smoothness_unconfident} --anchor {params.anchor} --rounds {params.rounds}"
         " --silhouette {params.silhouette} {params.keep_surface} --cameras {input.cameras:q} --hdr {input.hdr:q} --capture {params.capture:q}"
-        " --exclude-views {params.held_out:q} --mask-threshold {params.mask_threshold} > {log:q} 2>&1"
+        " --exclude-views {params.held_out:q} --silhouette-settings {params.silhouette_settings} > {log:q} 2>&1"
 
 
 rule refine_poses:
@@ -132,11 +132,9 @@ rule refine_poses:
         it=r"[1-9]\d*",
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
-        blur_px=" ".join(str(float(b)) for b in config["refine_poses"]["blur_px"]),
-        rounds=config["refine_poses"]["rounds"],
-        max_rotation_deg=config["refine_poses"]["max_rotation_deg"],
-        max_shift_fraction=config["refine_poses"]["max_shift_fraction"],
-        min_motion_px=config["refine_poses"]["min_motion_px"],
+        # The PoseRefinementSettings fields of config refine_poses (enabled, after_iteration: cameras_of).
+        settings=settings_json({key: value for key, value in config["refine_poses"].items()
+                                if key not in ("enabled", "after_iteration")}),
     conda:
         "../../envs/geometry.yaml"
     log:
@@ -145,6 +143,5 @@ rule refine_poses:
         f"{RESULTS}/benchmarks/refine_poses/{{it}}.tsv"
     shell:
         SELLIP + " refine-poses --params {input.params:q} --mesh {input.mesh:q} --cameras {input.cameras:q}"
-        " --hdr {input.hdr:q} --capture {params.capture:q} --output {output.cameras:q} --blur-px {params.blur_px}"
-        " --rounds {params.rounds} --max-rotation-deg {params.max_rotation_deg}"
-        " --max-shift-fraction {params.max_shift_fraction} --min-motion-px {params.min_motion_px} > {log:q} 2>&1"
+        " --hdr {input.hdr:q} --capture {params.capture:q} --output {output.cameras:q} --settings {params.settings}"
+        " > {log:q} 2>&1"

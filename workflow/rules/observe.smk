@@ -22,7 +22,7 @@ rule gather_observations:
         shadow_offset=config["observe"]["shadow_offset"],
         min_cos=config["observe"]["min_cos"],
         edge_margin=config["observe"]["edge_margin"],
-        mask_threshold=config["sfm"]["mask_threshold"],
+        silhouette_settings=settings_json(config["silhouette"]),
         max_slope=config["observe"]["max_slope"],
         missing_poses=config["observe"]["missing_poses"],
         held_out=config["evaluate"]["held_out_views"],
@@ -40,6 +40,7 @@ rule gather_observations:
         " --capture {params.capture:q} --output {output:q} --vertex-chunk {params.vertex_chunk}"
         " --view-chunk {params.view_chunk} --occlusion-tolerance {params.occlusion_tolerance}"
         " --shadow-offset {params.shadow_offset} --min-cos {params.min_cos}"
-        " --edge-margin {params.edge_margin} --mask-threshold {params.mask_threshold} --max-slope {params.max_slope}"
+        " --edge-margin {params.edge_margin} --silhouette-settings {params.silhouette_settings}"
+        " --max-slope {params.max_slope}"
         " --missing-poses {params.missing_poses} --exclude-views {params.held_out:q} {params.max_views}"
         " --threads {threads} > {log:q} 2>&1"

@@ -197,7 +197,7 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
         mark("fit")
         if lobe is None:
             lobe = fit_cluster_lobe(obs, store["normals"][rows], store["rho_d"][rows], eta0,
-                                    settings_for_model(fit_settings, model, selection.sigma_ss_fixed), settings,
+                                    settings_for_model(fit_settings, model, selection.model2_sigma_ss), settings,
                                     seed=seed + cluster)
         log.info("cluster %d: %d vertices (%d confident), %d samples, model %d: eta %.3f sigma_s %.3f sigma_ss %.3f "
                  "rho_s %.4g rho_ss %s", cluster, int(np.sum(clustering.labels == cluster)), members.size,

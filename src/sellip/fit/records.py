@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sellip.model.pbrdf import PBRDFParams
+from sellip.settings import setting
 
 STATUS_FITTED = 0
 STATUS_TOO_FEW_VIEWS = 1
@@ -31,40 +32,57 @@ MODELS = (0, 1, 2, 3)
 1 + specular, 2 + single scattering with sigma_ss fixed, 3 + single scattering (:mod:`sellip.fit.selection`)."""
 
 DEFAULT_FIXED_SIGMA_SS = 0.9
-"""Model 2's sigma_ss when the settings do not fix it (paper §6: 0.9 or 1.0)."""
+"""Model 2's sigma_ss when the fit settings do not fix it (paper §6: 0.9 or 1.0): the default of config
+``model_selection.model2_sigma_ss`` (:class:`sellip.fit.selection.SelectionSettings`)."""
 
 
 @dataclass(frozen=True)
 class FitSettings:
-    """Settings of the per-vertex fit (config section ``fit``)."""
+    """Settings of the per-vertex fit (config sections ``fit.settings``, ``augment.settings``, ``final.settings``;
+    each field declared once here: :func:`sellip.settings.setting`)."""
 
-    lambda_psi: float = 100.0  # docs/design.md §5 starts at 1; 100 with dimensionless residuals (docs/fit.md)
-    lambda_d: float = 100.0
-    lambda_s: float = 1.0
-    lambda_phi: float = 100.0
-    max_iterations: int = 30  # per stage
-    normal_stage_iterations: int = 10  # the first stage (normal and eta, roughness held)
-    tolerance: float = 1e-3  # relative loss decrease (of a near Gauss-Newton step) at which LM stops
-    gradient_tolerance: float = 1e-3  # ... or when the residual is this close to orthogonal to the Jacobian
-    min_views: int = 8
-    dark_threshold: float = 0.02  # a view is too dark below this fraction of the vertex's median diffuse level
-    chroma_threshold: float = 0.2  # colour outlier: distance of the unit-norm colour to the robust mean colour
-    outlier_threshold: float = 4.0  # a view is an outlier when its residual exceeds this many robust sigmas ...
-    outlier_floor: float = 0.05  # ... and this relative error
-    shading_outlier_floor: float = 0.9  # a shading outlier is also > e^0.9 = 2.5x off the median apparent albedo
-    sigma_ss_fixed: float | None = None  # fix sigma_ss (paper §6: 0.9 or 1.0) instead of fitting it
-    lobes: str = "full"  # reflection lobes of the model: "diffuse" (none), "specular" (no single scattering), "full"
-    round_iterations: int = 4  # LM iterations between compactions of the still-running vertices
-    lm_batch: int = 512  # vertices advanced together by one compiled LM kernel
-    chunk_size: int = 8192  # vertices prepared and finalized together (bounds memory)
-    fit_normal: bool = True  # False holds the normal at normal0 (the augmented refit, docs/augment.md)
-    lambda_g: float = 0.1  # weight of the virtual specular samples against the real views (paper Eq. 24)
-    virtual_count: int = 180  # M virtual samples per vertex, at theta_h = 0, step, ..., (M - 1) step
-    virtual_step_deg: float = 0.5  # their theta_h spacing (degrees)
-    # The diffuse intensity's Fresnel transmissions use a held eta (the warm start's, then each LM stage's result),
-    # so that eta is fitted from the polarization and the specular lobe, not from the diffuse shading's falloff,
-    # which texture below the pixel and geometry errors bend (docs/fit.md). False: the fitted eta everywhere.
-    hold_diffuse_eta: bool = True
+    lambda_psi: float = setting(100.0, "weight of the degree-of-polarization residual (docs/design.md §5 starts at 1; 100 with dimensionless "
+                                "residuals, docs/fit.md)", minimum=0, per_iteration=True)
+    lambda_d: float = setting(100.0, "weight of the diffuse intensity residual", minimum=0, per_iteration=True)
+    lambda_s: float = setting(1.0, "weight of the specular intensity residual", minimum=0, per_iteration=True)
+    lambda_phi: float = setting(100.0, "weight of the polarization azimuth residual", minimum=0, per_iteration=True)
+    max_iterations: int = setting(30, "Levenberg-Marquardt iterations per stage", minimum=1, per_iteration=True)
+    normal_stage_iterations: int = setting(10, "iterations of the first stage (normal and eta, roughness held)",
+                                           minimum=0)
+    tolerance: float = setting(1e-3, "relative loss decrease (of a near Gauss-Newton step) at which LM stops",
+                               exclusive_minimum=0)
+    gradient_tolerance: float = setting(1e-3, "... or when the residual is this close to orthogonal to the Jacobian",
+                                        exclusive_minimum=0)
+    min_views: int = setting(8, "a vertex seen in fewer usable views keeps its prior (status 'too few views')",
+                             minimum=3)
+    dark_threshold: float = setting(0.02, "a view is too dark below this fraction of the vertex's median diffuse "
+                                    "level", minimum=0)
+    chroma_threshold: float = setting(0.2, "colour outlier: distance of the unit-norm colour to the robust mean "
+                                      "colour", minimum=0)
+    outlier_threshold: float = setting(4.0, "a view is an outlier when its residual exceeds this many robust sigmas "
+                                       "...", unit="robust sigmas", exclusive_minimum=0)
+    outlier_floor: float = setting(0.05, "... and this relative error", minimum=0)
+    shading_outlier_floor: float = setting(0.9, "a shading outlier is also this far off the median apparent albedo "
+                                           "(log; 0.9: 2.5x)", minimum=0)
+    sigma_ss_fixed: float | None = setting(None, "every vertex's single-scattering sigma_ss held at this value instead "
+                                           "of fitted (paper §6: 0.9 or 1.0; null: fitted); the most complex model "
+                                           "is then 2", minimum=0.02, maximum=1)
+    lobes: str = setting("full", "reflection lobes of the most complex model allowed: diffuse (none), specular (no "
+                         "single scattering), full", choices=LOBE_SETS)
+    round_iterations: int = setting(4, "LM iterations between compactions of the still-running vertices", minimum=1)
+    lm_batch: int = setting(512, "vertices advanced together by one compiled LM kernel", minimum=1)
+    chunk_size: int = setting(8192, "vertices prepared and finalized together (bounds memory)", minimum=1)
+    fit_normal: bool = setting(True, "fit the normal; false holds it at the start normal (the augmented refit, "
+                               "docs/augment.md)")
+    lambda_g: float = setting(0.1, "weight of the virtual specular samples against the real views (paper Eq. 24)",
+                              minimum=0)
+    virtual_count: int = setting(180, "virtual samples per vertex, at theta_h = 0, step, ..., (count - 1) step",
+                                 minimum=1)
+    virtual_step_deg: float = setting(0.5, "theta_h spacing of the virtual samples", unit="degrees",
+                                      exclusive_minimum=0)
+    hold_diffuse_eta: bool = setting(True, "the diffuse intensity's Fresnel transmissions at a held eta (each LM "
+                                     "stage's result), so that eta comes from the polarization and the specular "
+                                     "lobe, not from the shading's falloff (docs/fit.md); false: the fitted eta")
 
     def __post_init__(self):
         if self.lobes not in LOBE_SETS:

@@ -51,9 +51,11 @@ import numpy as np
 
 from sellip.fit import clusters
 from sellip.fit import lobes as fit_lobes
-from sellip.fit.records import MODELS, FitResult, FitSettings, Observations, VirtualSamples, model_of
+from sellip.fit.records import (DEFAULT_FIXED_SIGMA_SS, MODELS, FitResult, FitSettings, Observations, VirtualSamples,
+                                model_of)
 from sellip.fit.vertex_fit import fit_vertices
 from sellip.model.pbrdf import PBRDFParams
+from sellip.settings import setting
 
 log = logging.getLogger(__name__)
 
@@ -62,21 +64,28 @@ log = logging.getLogger(__name__)
 class SelectionSettings:
     """Settings of the per-cluster model selection (config section ``model_selection``)."""
 
-    enabled: bool = True
-    candidates: tuple[int, ...] = MODELS  # models tried (capped by the fit settings, see model_of)
-    held_out_fraction: float = 0.25  # of the cluster's vertices (seeded split by vertex), when folds is 1
-    # 1: one held-out part of held_out_fraction; k >= 2: k-fold cross-validation, every vertex held out once (the
-    # candidates fitted k times; docs/model_selection.md, "Cross-validation and nested fits")
-    folds: int = 4
-    tolerance: float = 0.01  # a simpler model may lose this fraction of the best held-out loss ...
-    standard_errors: float = 1.0  # ... plus this many standard errors of the paired difference
-    sigma_ss_fixed: float = 0.9  # sigma_ss of model 2 when the fit settings do not fix it (paper §6)
-    max_samples: int = 4096  # training (and at most as many held-out) samples per candidate fit
-    min_held_out_vertices: int = 8  # fewer in either part: no selection, the most complex candidate
-    # |Delta theta_h| bound of the candidate fits and of their held-out scores among the models with a lobe
-    # (1, 2, 3; degrees; 0: no per-sample half-angle error, see the module docstring). Model 0 against a lobe
-    # keeps the cluster lobe fit's (AugmentSettings.max_theta_error_deg).
-    max_theta_error_deg: float = 0.0
+    enabled: bool = setting(True, "choose each cluster's model on held-out vertices; false: every vertex gets the fit "
+                            "settings' model (3, or 2 when fit.settings.sigma_ss_fixed is set)")
+    candidates: tuple[int, ...] = setting(MODELS, "models tried: 0 diffuse, 1 + specular, 2 + single scattering with "
+                                          "sigma_ss fixed, 3 + single scattering (capped by the fit settings)",
+                                          choices=MODELS, min_items=1)
+    held_out_fraction: float = setting(0.25, "share of a cluster's vertices held out (a seeded split by vertex) when "
+                                       "folds is 1", exclusive_minimum=0, exclusive_maximum=1)
+    folds: int = setting(4, "k >= 2: k-fold cross-validation, every vertex held out once (docs/model_selection.md, "
+                         "'Cross-validation and nested fits'); 1: one held-out part of held_out_fraction", minimum=1)
+    tolerance: float = setting(0.01, "a simpler model may lose this fraction of the best held-out loss ...", minimum=0)
+    standard_errors: float = setting(1.0, "... plus this many standard errors of the paired per-vertex difference",
+                                     minimum=0)
+    model2_sigma_ss: float = setting(DEFAULT_FIXED_SIGMA_SS, "sigma_ss of model 2 (single scattering with sigma_ss "
+                                     "fixed), unless fit.settings.sigma_ss_fixed fixes every vertex's (paper §6: 0.9 "
+                                     "or 1.0)", minimum=0.02, maximum=1)
+    max_samples: int = setting(4096, "training (and at most as many held-out) samples per candidate fit (a power of "
+                               "two: one compiled shape)", minimum=1)
+    min_held_out_vertices: int = setting(8, "fewer vertices in either part: no selection, the most complex candidate",
+                                         minimum=1)
+    max_theta_error_deg: float = setting(0.0, "|Delta theta_h| bound of the candidate fits and their held-out scores "
+                                         "among models 1, 2, 3 (0: none; model 0 against a lobe keeps augment's "
+                                         "bound; docs/model_selection.md)", unit="degrees", minimum=0)
 
     def __post_init__(self):
         if not self.candidates or any(m not in MODELS for m in self.candidates):
@@ -88,8 +97,8 @@ class SelectionSettings:
             raise ValueError(f"model_selection folds must be an integer >= 1, got {self.folds}")
         if self.tolerance < 0 or self.standard_errors < 0:
             raise ValueError("model_selection tolerance and standard_errors must be >= 0")
-        if not 0.02 <= self.sigma_ss_fixed <= 1:
-            raise ValueError(f"model_selection sigma_ss_fixed must be in [0.02, 1], got {self.sigma_ss_fixed}")
+        if not 0.02 <= self.model2_sigma_ss <= 1:
+            raise ValueError(f"model_selection model2_sigma_ss must be in [0.02, 1], got {self.model2_sigma_ss}")
         if self.max_theta_error_deg < 0:
             raise ValueError(f"model_selection max_theta_error_deg must be >= 0, got {self.max_theta_error_deg}")
 
@@ -101,7 +110,8 @@ class SelectionSettings:
                                    alternations=augment_settings.alternations if self.max_theta_error_deg > 0 else 0)
 
 
-def settings_for_model(settings: FitSettings, model: int, sigma_ss_fixed: float = 0.9) -> FitSettings:
+def settings_for_model(settings: FitSettings, model: int,
+                       sigma_ss_fixed: float = DEFAULT_FIXED_SIGMA_SS) -> FitSettings:
     """``settings`` fitting model ``model``. Model 2 fixes sigma_ss at ``settings.sigma_ss_fixed``
     when set, else at ``sigma_ss_fixed``; the other fields are kept."""
     if model not in MODELS:
@@ -272,8 +282,8 @@ def _held_out_losses(models, folds, eta0: float, fit_settings: FitSettings, sele
     (train, held, held-out vertex count); the vertices in fold order), with the Delta theta_h bound of
     ``lobe_settings`` (0: none, and no Delta theta_h fitted on the held-out samples either)."""
     delta_rounds = 2 if lobe_settings.max_theta_error_deg > 0 else 0
-    settings = {m: settings_for_model(fit_settings, m, selection.sigma_ss_fixed) for m in models}
-    model_2_sigma_ss = settings_for_model(fit_settings, 2, selection.sigma_ss_fixed).sigma_ss_fixed
+    settings = {m: settings_for_model(fit_settings, m, selection.model2_sigma_ss) for m in models}
+    model_2_sigma_ss = settings_for_model(fit_settings, 2, selection.model2_sigma_ss).sigma_ss_fixed
     per_fold = {m: [] for m in models}
     for train_pool, held_pool, held in folds:
         fits = nested_fits({m: fit_lobes.fit_pool(train_pool, eta0, settings[m], lobe_settings) for m in models},
@@ -370,7 +380,8 @@ def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: F
 
 
 def fit_by_model(obs: Observations, normal0, prior: PBRDFParams, models, settings: FitSettings = FitSettings(),
-                 sigma_ss_fixed: float = 0.9, progress=None, virtual: VirtualSamples | None = None) -> FitResult:
+                 sigma_ss_fixed: float = DEFAULT_FIXED_SIGMA_SS, progress=None,
+                 virtual: VirtualSamples | None = None) -> FitResult:
     """:func:`sellip.fit.vertex_fit.fit_vertices` of N vertices, each with its own model (N,) (:data:`MODELS`).
 
     Model 2 fixes sigma_ss at ``settings.sigma_ss_fixed`` when set, else at ``sigma_ss_fixed``; models

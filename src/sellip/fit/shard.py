@@ -1,6 +1,7 @@
 """One fit shard (rule ``fit_pbrdf``) and the gather of an iteration's shards into ``fit.zarr`` (rule
-``gather_fit``): the shard's vertex rows, the fit settings from ``--set KEY=VALUE`` pairs, XLA's persistent
-compilation cache, :func:`fit_shard` and :func:`gather_shards`; the memory a shard needs (:data:`SHARD_MEMORY`),
+``gather_fit``): the shard's vertex rows, settings records from ``key=value`` pairs (the benchmarks' replay
+tools), XLA's persistent compilation cache, :func:`fit_shard` and :func:`gather_shards`; the memory a shard needs
+(:data:`SHARD_MEMORY`),
 what the job may use (:func:`memory_budget`) and the error that names the shard count that fits
 (:class:`ShardMemoryError`).
 """
@@ -39,14 +40,6 @@ def shard_rows(num_vertices: int, chunk: int, index: int, total: int) -> tuple[i
     blocks = -(-num_vertices // chunk)
     first, last = index * blocks // total, (index + 1) * blocks // total
     return min(first * chunk, num_vertices), min(last * chunk, num_vertices)
-
-
-
-def settings_from_pairs(pairs: list[str]):
-    """FitSettings with ``key=value`` overrides (:func:`overrides_from_pairs`)."""
-    from sellip.fit.records import FitSettings
-
-    return FitSettings(**overrides_from_pairs(pairs, FitSettings))
 
 
 
@@ -199,10 +192,10 @@ def shard_memory_message(shard: tuple[int, int], vertices: int, total: int, view
 
 def fit_shard(observations: Path, shard: tuple[int, int], output: Path, prior: Path | None = None,
               dtype: str = "float32", settings=None, compilation_cache: str | None = None,
-              lobes: Path | None = None, fixed_sigma_ss: float = 0.9, mem_mb: float | None = None) -> dict:
+              lobes: Path | None = None, fixed_sigma_ss: float | None = None, mem_mb: float | None = None) -> dict:
     """Fit one shard and write ``output`` (.npz, atomically); with ``lobes`` the augmented refit.
     Every vertex is fitted with its model (module docstring); ``fixed_sigma_ss`` is model 2's
-    sigma_ss when ``settings.sigma_ss_fixed`` is None. Returns a summary dict. Before reading the observations,
+    sigma_ss when ``settings.sigma_ss_fixed`` is None (None: config ``model_selection.model2_sigma_ss``'s default). Returns a summary dict. Before reading the observations,
     the memory the shard needs (:data:`SHARD_MEMORY`) is checked against :func:`memory_budget` (``mem_mb``: the
     job's limit); :class:`ShardMemoryError` names the shard count that fits, then and when an allocation fails.
 
@@ -216,10 +209,11 @@ def fit_shard(observations: Path, shard: tuple[int, int], output: Path, prior: P
         jax.config.update("jax_enable_x64", True)
     enable_compilation_cache(compilation_cache)
     from sellip.fit.observe import open_observations
-    from sellip.fit.records import FitSettings
+    from sellip.fit.records import DEFAULT_FIXED_SIGMA_SS, FitSettings
 
     mark("read")
     settings = settings or FitSettings()
+    fixed_sigma_ss = DEFAULT_FIXED_SIGMA_SS if fixed_sigma_ss is None else fixed_sigma_ss
     group = open_observations(observations)
     total = int(group.attrs["num_vertices"])
     chunk = int(group["diffuse"].chunks[0])

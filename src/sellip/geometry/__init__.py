@@ -44,7 +44,7 @@ Modules and what they export (each name is importable from here too)::
     silhouettes: Silhouettes of the object in the HDR views: the level above the background's noise floor, the masks,
       and signed distances to their boundary (to a fraction of a pixel)
         background_noise, DEFAULT_SILHOUETTE, silhouette_level, silhouette_masks, signed_distance, Silhouette,
-        boundary_distance
+        boundary_distance, SilhouetteOptions
     update: The geometry update (docs/design.md §2, docs/geometry_update.md): the surface moved to agree with the
       confident fitted normals by normal integration (a sparse least-squares problem), held by the photographs'
       silhouettes
@@ -70,6 +70,6 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "scale_intrinsics", "match_pairs_by_retrieval", "run_sfm", "result_from_reconstruction",
            "metric_normalization", "transform_result", "check_registration"),
     "silhouettes": ("background_noise", "DEFAULT_SILHOUETTE", "silhouette_level", "silhouette_masks",
-           "signed_distance", "Silhouette", "boundary_distance"),
+           "signed_distance", "Silhouette", "boundary_distance", "SilhouetteOptions"),
     "update": ("SilhouetteConstraints", "silhouette_constraints", "refine_from_normals", "step_without_folds"),
 })

@@ -132,7 +132,7 @@ def mvs_points(hdr, sfm_dir: Path, view_ids: list[str], masks: np.ndarray, threa
 
 CAMERAS_ADVICE = ("the cameras do not describe these photographs. Check capture.yaml's camera.fx, fy, cx, cy (raw "
                   "pixels) and distortion, that poses.csv is cam_from_world (COLMAP's convention, not the camera's "
-                  "pose in the world) and is this capture's, and the mask threshold (sfm.mask_threshold)")
+                  "pose in the world) and is this capture's, and the silhouette threshold (silhouette.threshold)")
 """What to check when the silhouettes and the cameras disagree about the object (docs/reliability.md)."""
 
 COVERAGE_STOP = 0.6
@@ -254,7 +254,7 @@ def make_initial_mesh(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: s
             + CAMERAS_ADVICE)
     if disagreeing:
         log.warning("%d of %d silhouettes disagree with %s (more than %.0f%% of it outside the mask): %s. Check "
-                    "the poses of these views or the mask threshold (sfm.mask_threshold)%s.", len(disagreeing),
+                    "the poses of these views or the silhouette threshold (silhouette.threshold)%s.", len(disagreeing),
                     len(view_ids), against, 100 * disagreement_warn, ", ".join(disagreeing[:30]), advice)
     others = (mesh.carving.others_disagreement, "the other views' hull") if mode != "mesh" else (disagreement, against)
     outliers = warn_outlier_views(view_ids, *others, outlier_view_z, disagreement_warn)

@@ -28,37 +28,36 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from sellip.settings import setting
+
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class PoseRefinementSettings:
-    """How each view's pose is aligned to the model (docs/geometry.md, "Poses refined against the object").
+    """How each view's pose is aligned to the model (config section ``refine_poses``; docs/geometry.md, "Poses
+    refined against the object"). Each round renders the model at the pose of the last; the first round uses every
+    blur, later rounds the last. From exact or good poses the alignment moves the surface points by 0.2-0.3 px, its
+    own noise (``min_motion_px``)."""
 
-    blur_px: Gaussian blurs (sigma, HDR pixels) of the photograph, coarse to fine, in the first round (the
-    coarse ones widen the reach to a few pixels); later rounds use the last. rounds: renders per view (each
-    round renders the model at the pose of the last). erode_px: the render's footprint is eroded by this many
-    pixels (no silhouette pixel, whose value mixes object and background). min_pixels: fewer usable pixels
-    leave the pose as it was. max_rotation_deg, max_shift_fraction: a larger step (rotation in degrees; centre
-    shift as a fraction of the camera's distance to the object) is taken for a divergence and the pose kept.
-    min_confidence: pixels of vertices fitted with less confidence are not compared. min_motion_px: a view whose
-    new pose moves the object's surface points by less (median, pixels) keeps its pose (0: none does; from exact or
-    good poses the alignment moves them by 0.2-0.3 px, its own noise; docs/geometry.md, "Poses refined against the
-    object").
-    robust_scale: the soft-L1 loss's scale, a fraction of the render's median value. max_evaluations: per
-    blur level.
-    """
-
-    blur_px: tuple[float, ...] = (1.5, 0.0)
-    rounds: int = 2
-    erode_px: int = 2
-    min_pixels: int = 500
-    max_rotation_deg: float = 2.0
-    max_shift_fraction: float = 0.03
-    robust_scale: float = 0.05
-    max_evaluations: int = 60
-    min_confidence: float = 0.5
-    min_motion_px: float = 0.0
+    blur_px: tuple[float, ...] = setting((1.5, 0.0), "Gaussian blurs (sigma) of the photograph, coarse to fine "
+                                         "(the coarse ones widen the reach to a few pixels)", unit="HDR pixels",
+                                         minimum=0, min_items=1)
+    rounds: int = setting(2, "renders per view and refinement", minimum=1)
+    erode_px: int = setting(2, "the render's footprint is eroded by this much (no silhouette pixel, whose value "
+                            "mixes object and background)", unit="pixels", minimum=0)
+    min_pixels: int = setting(500, "fewer usable pixels leave the view's pose as it was", minimum=1)
+    max_rotation_deg: float = setting(2.0, "a larger rotation is taken for a divergence: the view keeps its pose",
+                                      unit="degrees", exclusive_minimum=0)
+    max_shift_fraction: float = setting(0.03, "a larger centre shift is taken for a divergence: the view keeps its "
+                                        "pose", unit="fraction of the camera's distance", exclusive_minimum=0)
+    robust_scale: float = setting(0.05, "the soft-L1 loss's scale", unit="fraction of the render's median value",
+                                  exclusive_minimum=0)
+    max_evaluations: int = setting(60, "cost evaluations per blur level", minimum=1)
+    min_confidence: float = setting(0.5, "pixels of vertices fitted with less confidence are not compared", minimum=0,
+                                    maximum=1)
+    min_motion_px: float = setting(0.0, "a view whose new pose moves the object less (median) keeps its pose; 0: "
+                                   "every view takes its aligned pose (docs/benchmarks.md)", unit="pixels", minimum=0)
 
     def __post_init__(self):
         if not self.blur_px or any(not np.isfinite(b) or b < 0 for b in self.blur_px):

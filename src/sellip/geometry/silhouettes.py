@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from sellip.settings import setting
+
 # --------------------------------------------------------------------------- silhouettes
 
 
@@ -44,7 +46,8 @@ def background_noise(luminance: np.ndarray, usable: np.ndarray) -> tuple[float, 
 
 @dataclass(frozen=True)
 class SilhouetteOptions:
-    """How a silhouette is cut (:func:`silhouette_masks`, :meth:`Silhouette.of`): ``threshold`` times the
+    """How a silhouette is cut (config section ``silhouette``: its ``threshold``, the one field the workflow sets;
+    :func:`silhouette_masks`, :meth:`Silhouette.of`): ``threshold`` times the
     ``percentile`` of the pixels above the background's noise floor is the level (:func:`silhouette_level`); then an
     opening with a disk of ``open_px`` (noise specks), a closing with ``close_px`` (cracks), background holes
     smaller than ``max_hole_fraction`` of the object area filled, object blobs smaller than ``min_blob_fraction`` of
@@ -52,7 +55,9 @@ class SilhouetteOptions:
     figure), a pixel is object too when it exceeds ``local_fraction`` of the brightest pixel within ``local_px``
     and is connected to the pixels above the level (:func:`level_map`); ``local_fraction`` 0 turns that off."""
 
-    threshold: float = 0.03
+    threshold: float = setting(0.03, "object where the luminance exceeds this fraction of the view's robust maximum "
+                               "(the percentile of the pixels above the background's noise floor)", exclusive_minimum=0,
+                               exclusive_maximum=1)
     percentile: float = 99.0
     local_fraction: float = 0.1
     local_px: int = 2

@@ -4,10 +4,8 @@
                          --observations results/NAME/iter/0/observations.zarr
                          --output results/NAME/iter/0/clusters --seed 0
                          [--k-max 8] [--max-samples 20000] [--min-cluster-vertices 50] [--min-coherence 0.5]
-                         [--set lambda_psi=100 ...]
-                         [--no-model-selection] [--candidates 0 1 2 3] [--held-out-fraction 0.25]
-                         [--selection-tolerance 0.01] [--selection-standard-errors 1]
-                         [--fixed-sigma-ss 0.9] [--selection-max-samples 4096] [--inherit-models]
+                         [--settings '{"lambda_psi": 100}'] [--model-selection '{"folds": 4}']
+                         [--inherit-models]
 
 Writes the directory ``--output`` (built under a temporary name, then renamed) with
 
@@ -24,17 +22,20 @@ Writes the directory ``--output`` (built under a temporary name, then renamed) w
   the settings (``settings``: the clustering's; ``fit_settings``: the lobe fit's) and the seed, and under ``model_selection`` per cluster the chosen model, the held-out loss of
   every candidate and why.
 
-Model selection (docs/design.md §7, :mod:`sellip.fit.selection`, on unless ``--no-model-selection``): per cluster,
+Model selection (docs/design.md §7, :mod:`sellip.fit.selection`; ``--model-selection`` is
+:class:`sellip.fit.selection.SelectionSettings` as one JSON object, config ``model_selection``; on unless its
+``enabled`` is false): per cluster,
 the simplest model whose held-out loss is within the tolerance of the best; the cluster's lobe is
 then fitted with that model. Without it every cluster gets the model of the fit settings (3, or 2
-with ``--set sigma_ss_fixed=...``). The fit settings (``--set``) are also the most complex model allowed.
+with the settings' ``sigma_ss_fixed``). The fit settings (``--settings``) are also the most complex model allowed.
 With ``--inherit-models`` (iterations between selections, config ``model_selection.every``) no candidate
 is fitted: each cluster takes the model most of its vertices have in ``--params`` (their ``model``, from
 the previous iteration), capped by what the settings allow; a store without models selects as usual.
 
 The numerics are :mod:`sellip.fit` and :mod:`sellip.fit.selection`; ``sellip fit --lobes DIR`` turns
-the result into virtual samples and fits every vertex with its model. ``--set`` overrides
-:class:`sellip.fit.records.FitSettings` (view selection, lambda_psi, lambda_s, lobes, sigma_ss_fixed).
+the result into virtual samples and fits every vertex with its model. ``--settings`` is
+:class:`sellip.fit.records.FitSettings` as one JSON object (view selection, lambda_psi, lambda_s, lobes,
+sigma_ss_fixed; config ``fit.settings``).
 """
 
 from __future__ import annotations
@@ -50,10 +51,11 @@ log = logging.getLogger(__name__)
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     from sellip.fit.clusters import AugmentSettings
+    from sellip.fit.records import FitSettings
     from sellip.fit.selection import SelectionSettings
+    from sellip.settings import add_renamed_argument, add_settings_argument
 
     defaults = AugmentSettings()
-    selection = SelectionSettings()
     parser.add_argument("--params", type=Path, required=True, help="this iteration's first-pass params store")
     parser.add_argument("--observations", type=Path, required=True, help="this iteration's observations.zarr")
     parser.add_argument("--output", type=Path, required=True, help="output directory (clusters)")
@@ -70,54 +72,29 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stability-resamples", type=int, default=defaults.stability_resamples,
                         help="repeat the clustering on this many seeded 90 %% subsamples and record each cluster's "
                              "support (clusters.json 'support'; 0: not measured)")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a FitSettings field (repeatable)")
+    add_settings_argument(parser, FitSettings, "--settings", "fit.settings")
     parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
-    parser.add_argument("--model-selection", action=argparse.BooleanOptionalAction, default=selection.enabled,
-                        help="choose each cluster's model on held-out vertices (default on)")
+    add_settings_argument(parser, SelectionSettings, "--model-selection", "model_selection")
+    add_renamed_argument(parser, "--set", "--settings (FitSettings as one JSON object)")
+    add_renamed_argument(parser, "--fixed-sigma-ss", "--model-selection '{\"model2_sigma_ss\": ...}'")
     parser.add_argument("--inherit-models", action="store_true",
                         help="no candidate fits: each cluster takes its vertices' most common model in --params")
-    parser.add_argument("--candidates", type=int, nargs="+", default=list(selection.candidates),
-                        help="model codes tried (sellip.model.params.MODEL_NAMES)")
-    parser.add_argument("--held-out-fraction", type=float, default=selection.held_out_fraction,
-                        help="share of a cluster's vertices held out, with --selection-folds 1")
-    parser.add_argument("--selection-folds", type=int, default=selection.folds,
-                        help="k >= 2: k-fold cross-validation (every vertex held out once); 1: one held-out part")
-    parser.add_argument("--selection-tolerance", type=float, default=selection.tolerance,
-                        help="relative held-out loss a simpler model may lose")
-    parser.add_argument("--selection-standard-errors", type=float, default=selection.standard_errors,
-                        help="plus this many standard errors of the difference")
-    parser.add_argument("--fixed-sigma-ss", type=float, default=selection.sigma_ss_fixed,
-                        help="sigma_ss of model 2 when --set sigma_ss_fixed is not given")
-    parser.add_argument("--selection-max-samples", type=int, default=selection.max_samples,
-                        help="training samples per candidate fit")
-    parser.add_argument("--selection-max-theta-error-deg", type=float, default=selection.max_theta_error_deg,
-                        help="|Delta theta_h| bound of the candidate fits and their held-out scores among models 1-3 "
-                             "(0: none; model 0 against a lobe keeps the lobe fit's)")
 
 
 def main(args: argparse.Namespace) -> int:
     from sellip.fit.clusters import AugmentSettings
     from sellip.fit.observe import ObserveError
-    from sellip.fit.selection import SelectionSettings
-    from sellip.fit.shard import settings_from_pairs
     from sellip.model.params import ParamsError
 
     try:
-        if args.k_max < 1 or args.max_samples < 1 or args.min_cluster_vertices < 1 or args.selection_max_samples < 1:
-            raise ValueError("--k-max, --max-samples, --min-cluster-vertices and --selection-max-samples must be >= 1")
+        if args.k_max < 1 or args.max_samples < 1 or args.min_cluster_vertices < 1:
+            raise ValueError("--k-max, --max-samples and --min-cluster-vertices must be >= 1")
         settings = AugmentSettings(k_max=args.k_max, max_samples=args.max_samples,
                                    min_cluster_vertices=args.min_cluster_vertices, min_coherence=args.min_coherence,
                                    pool_min_coherence=args.pool_min_coherence,
                                    stability_resamples=args.stability_resamples)
-        selection = SelectionSettings(enabled=args.model_selection, candidates=tuple(args.candidates),
-                                      held_out_fraction=args.held_out_fraction, folds=args.selection_folds,
-                                      tolerance=args.selection_tolerance,
-                                      standard_errors=args.selection_standard_errors,
-                                      sigma_ss_fixed=args.fixed_sigma_ss, max_samples=args.selection_max_samples,
-                                      max_theta_error_deg=args.selection_max_theta_error_deg)
-        cluster_and_fit_lobes(args.params, args.observations, args.output, args.seed, settings,
-                  settings_from_pairs(args.overrides), args.compilation_cache, selection, args.inherit_models)
+        cluster_and_fit_lobes(args.params, args.observations, args.output, args.seed, settings, args.settings,
+                              args.compilation_cache, args.model_selection, args.inherit_models)
     except (ObserveError, ParamsError, ValueError) as error:
         log.error("%s", error)
         return 1

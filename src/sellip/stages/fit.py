@@ -3,21 +3,22 @@
     sellip fit --observations results/NAME/iter/0/observations.zarr --shard 2-of-4
                --output results/NAME/iter/0/fit/2-of-4.npz
                [--prior results/NAME/iter/1/refit.zarr] [--dtype float32]
-               [--set lambda_d=100 --set sigma_ss_fixed=0.9 ...] [--compilation-cache DIR]
-               [--lobes results/NAME/iter/0/clusters] [--mem-mb 4000]
+               [--settings '{"lambda_d": 100, "min_views": 4}'] [--model2-sigma-ss 1.0]
+               [--compilation-cache DIR] [--lobes results/NAME/iter/0/clusters] [--mem-mb 4000]
 
 The shard's vertex range is derived at run time from the store's vertex count and chunking
 (shard i of n takes an equal share of whole vertex chunks, so it reads only its own chunks).
 With ``--prior`` (a parameter store: the previous iteration's) every parameter is warm-started from
 the nearest previous vertex (docs/design.md §7); without it the fit starts from eta = 1.5 and the
 defaults of :func:`sellip.fit.vertex_fit.default_prior`. The starting normals are the mesh normals.
-``--set`` overrides a field of :class:`sellip.fit.records.FitSettings`.
+``--settings`` is :class:`sellip.fit.records.FitSettings` as one JSON object (the workflow's config
+``fit.settings`` of this iteration and pass; keys left out take the record's defaults).
 
 With ``--lobes`` (the output of ``sellip cluster-lobes``: labels.npy, models.npy, lobes.csv) this
 is the augmented refit (docs/augment.md): every vertex gets the virtual specular samples of its
 cluster's lobe. The prior is then the same iteration's first-pass params store (same vertices):
 the fit starts from its normals as well as its parameters (and holds them with
-``--set fit_normal=false``). The workflow's final pass gives its first fit the previous iteration's
+``"fit_normal": false``). The workflow's final pass gives its first fit the previous iteration's
 lobes and refit settings: its prior is then on another mesh, so it starts from the (final) mesh's
 normals, and it runs the refit's compiled program (one compilation fewer, docs/speed.md).
 
@@ -25,7 +26,8 @@ Models (docs/design.md §7, :mod:`sellip.fit.selection`): every vertex is fitted
 ``--lobes``'s models.npy, else from the prior store's ``model`` (nearest vertex, as its
 parameters), else the model of the settings (3, or 2 with ``sigma_ss_fixed``); never more
 complex than the settings allow. Vertices are grouped by model, one fit per group. Model 2's
-sigma_ss is ``--set sigma_ss_fixed`` when given, else ``--fixed-sigma-ss``. The output holds
+sigma_ss is the settings' ``sigma_ss_fixed`` when given, else ``--model2-sigma-ss`` (config
+``model_selection.model2_sigma_ss``). The output holds
 ``model`` (N,) uint8, the model each vertex was fitted with.
 """
 
@@ -35,7 +37,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from sellip.fit.shard import fit_shard, parse_shard, settings_from_pairs
+from sellip.fit.shard import fit_shard, parse_shard
 
 log = logging.getLogger(__name__)
 
@@ -47,18 +49,21 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prior", type=Path, default=None,
                         help="a parameter store to warm-start from (the previous iteration's, or this one's first pass)")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a FitSettings field (repeatable)")
+    from sellip.fit.records import FitSettings
+    from sellip.settings import add_renamed_argument, add_settings_argument
+
+    add_settings_argument(parser, FitSettings, "--settings", "fit.settings")
+    add_renamed_argument(parser, "--set", "--settings (FitSettings as one JSON object)")
+    add_renamed_argument(parser, "--fixed-sigma-ss", "--model2-sigma-ss")
     parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
     parser.add_argument("--lobes", type=Path, default=None,
                         help="cluster-lobes output directory: the augmented refit (virtual specular samples)")
     parser.add_argument("--mem-mb", type=float, default=None,
                         help="memory the job may use (MB; the rule's mem_mb resource, config fit.mem_mb): a shard "
                              "needing more stops before reading, naming the shard count that fits")
-    from sellip.fit.selection import SelectionSettings
-
-    parser.add_argument("--fixed-sigma-ss", type=float, default=SelectionSettings().sigma_ss_fixed,
-                        help="sigma_ss of the vertices of model 2 when --set sigma_ss_fixed is not given")
+    parser.add_argument("--model2-sigma-ss", type=float, default=None,
+                        help="sigma_ss of the vertices of model 2 unless the settings' sigma_ss_fixed is given (config "
+                             "model_selection.model2_sigma_ss; default: its declared default)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -66,11 +71,10 @@ def main(args: argparse.Namespace) -> int:
     from sellip.fit.shard import ShardMemoryError
 
     try:
-        settings = settings_from_pairs(args.overrides)
-        if not 0.02 <= args.fixed_sigma_ss <= 1:
-            raise ValueError(f"--fixed-sigma-ss must be in [0.02, 1], got {args.fixed_sigma_ss}")
-        fit_shard(args.observations, args.shard, args.output, args.prior, args.dtype, settings,
-                  args.compilation_cache, args.lobes, args.fixed_sigma_ss, args.mem_mb)
+        if args.model2_sigma_ss is not None and not 0.02 <= args.model2_sigma_ss <= 1:
+            raise ValueError(f"--model2-sigma-ss must be in [0.02, 1], got {args.model2_sigma_ss}")
+        fit_shard(args.observations, args.shard, args.output, args.prior, args.dtype, args.settings,
+                  args.compilation_cache, args.lobes, args.model2_sigma_ss, args.mem_mb)
     except (ObserveError, ValueError, ShardMemoryError) as error:
         log.error("%s", error)
         return 1

@@ -58,7 +58,7 @@ def main(args: argparse.Namespace) -> int:
                                        max_vertices=args.max_vertices, threads=args.threads)
     try:
         make_initial_mesh(args.hdr, args.cameras, args.sfm, args.output, mode=args.mode, options=options,
-                  mask_options={"threshold": args.mask_threshold}, mesh_path=args.mesh_path,
+                  mask_options={"threshold": args.silhouette_settings.threshold}, mesh_path=args.mesh_path,
                   outlier_view_z=args.outlier_view_z)
     except (InitMeshError, ValueError) as exc:
         log.error("%s", exc)

@@ -31,6 +31,7 @@ from sellip.capture.files import CaptureError
 from sellip.fit.observe import ObserveError, ObserveSettings
 from sellip.fit.observe_mesh import MISSING_POSES, observe_mesh
 from sellip.geometry.cameras import CamerasError
+from sellip.stages._arguments import add_silhouette_argument
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +54,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="front-facing / lit when the cosine to the camera / flash exceeds this")
     parser.add_argument("--edge-margin", type=float, default=defaults.edge_margin,
                         help="a sample must lie this many HDR pixels inside the object's silhouette (0: off)")
-    parser.add_argument("--mask-threshold", type=float, default=defaults.mask_threshold,
-                        help="silhouette threshold for --edge-margin (fraction of the view's robust maximum)")
+    add_silhouette_argument(parser)  # the silhouette of --edge-margin
     parser.add_argument("--max-slope", type=float, default=defaults.max_slope,
                         help="leave out samples whose footprint has an intensity slope above this "
                              "(|grad S0| / S0 per HDR pixel; 0: off)")
@@ -73,7 +73,7 @@ def main(args: argparse.Namespace) -> int:
         settings = ObserveSettings(vertex_chunk=args.vertex_chunk, view_chunk=args.view_chunk,
                                    occlusion_tolerance=args.occlusion_tolerance, shadow_offset=args.shadow_offset,
                                    min_cos=args.min_cos, edge_margin=args.edge_margin,
-                                   mask_threshold=args.mask_threshold, max_slope=args.max_slope,
+                                   mask_threshold=args.silhouette_settings.threshold, max_slope=args.max_slope,
                                    threads=args.threads)
     except ValueError as exc:
         log.error("bad settings: %s", exc)

@@ -5,7 +5,8 @@
                            [--smoothness 0.01] [--smoothness-unconfident 1] [--anchor 0.001] [--rounds 3]
                            [--no-keep-surface]
                            [--silhouette 0.01 --cameras results/NAME/cameras.csv --hdr results/NAME/hdr.zarr
-                            --capture CAPTURE --exclude-views v004 ... --mask-threshold 0.03]
+                            --capture CAPTURE --exclude-views v004 ...
+                            --silhouette-settings '{"threshold": 0.02}']
 
 The mesh's vertices move along its normals until its surface agrees with the iteration's fitted normals, as far
 as the fit's normal confidence allows (:func:`sellip.geometry.update.refine_from_normals`, docs/geometry_update.md);
@@ -30,6 +31,7 @@ import logging
 from pathlib import Path
 
 from sellip.fit.geometry_jobs import refine_geometry
+from sellip.stages._arguments import add_silhouette_argument
 
 log = logging.getLogger(__name__)
 
@@ -57,8 +59,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--capture", type=Path, default=None, help="capture folder (capture.yaml light)")
     parser.add_argument("--exclude-views", nargs="*", default=[], help="views whose silhouettes are not used "
                         "(the held-out views)")
-    parser.add_argument("--mask-threshold", type=float, default=0.03,
-                        help="silhouette threshold, a fraction of each view's robust maximum (sfm.mask_threshold)")
+    add_silhouette_argument(parser)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -70,7 +71,7 @@ def main(args: argparse.Namespace) -> int:
                   reference_mesh=args.reference_mesh, smoothness_unconfident=args.smoothness_unconfident,
                   silhouette=args.silhouette, keep_surface=args.keep_surface, cameras_path=args.cameras,
                   hdr_path=args.hdr, capture_path=args.capture, exclude_views=args.exclude_views,
-                  mask_options={"threshold": args.mask_threshold})
+                  mask_options={"threshold": args.silhouette_settings.threshold})
     except (ParamsError, ObserveError, ValueError) as error:
         log.error("%s", error)
         return 1

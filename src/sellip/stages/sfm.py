@@ -79,7 +79,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         solve_poses(args.hdr, args.capture, args.cameras, args.output, mode=args.mode, options=options,
                   min_registered_fraction=args.min_registered_fraction, feature_object_px=args.feature_object_px,
-                  max_upscale=args.max_upscale, mask_options={"threshold": args.mask_threshold})
+                  max_upscale=args.max_upscale, mask_options={"threshold": args.silhouette_settings.threshold})
     except (sfm.RegistrationError, CaptureError) as exc:
         log.error("%s", exc)
         return 1
