@@ -260,9 +260,10 @@ def test_a_failed_rerun_says_the_model_is_stale(tiny_run, tmp_path_factory):
     text = failed.stdout + failed.stderr
     assert failed.returncode != 0, text[-3000:]
     assert "sellip: rule linearize_frames failed" in text
-    stale = [line for line in text.splitlines() if "final/model.ply is out of date" in line]
-    assert stale and "the last run failed" in stale[0], text[-3000:]
-    assert "rule linearize_frames (log: results/tiny/logs/linearize_frames.log)" in stale[0]
+    stale = [line for line in text.splitlines() if line.startswith("sellip: results/tiny/final/model.ply (made ")]
+    assert stale and ") is out of date: the last run (started " in stale[0], text[-3000:]
+    assert "failed at rule linearize_frames (log: results/tiny/logs/linearize_frames.log)" in stale[0]
+    assert "1 capture file(s) changed after it (captures/tiny/capture.yaml)" in stale[0]
     record = json.loads((workdir / "results" / "tiny" / "last_run.json").read_text())
     assert record["status"] == "failed" and record["failed"][0]["rule"] == "linearize_frames"
     view = subprocess.run([sys.executable, "-m", "sellip.cli", "view", "results/tiny"], cwd=workdir, env=env,
