@@ -120,10 +120,16 @@ def user_mesh():
 
 RESULTS = f"results/{config['name']}"
 
-# The command every rule runs: `sellip` from the rule's conda env with --sdm conda, or when it is
+# The command of each job: `sellip` from the rule's conda env with --sdm conda, or when it is
 # on PATH (an activated venv); else the sellip of the Python that runs Snakemake (.venv/bin/snakemake).
 _CONDA = DeploymentMethod.CONDA in workflow.deployment_settings.deployment_method
 SELLIP = "sellip" if _CONDA or shutil.which("sellip") else f"{shlex.quote(sys.executable)} -m sellip.cli"
+
+
+def sellip_shell(arguments):
+    """A rule's shell command: SELLIP running the `sellip` subcommand and ``arguments`` (one command per rule)."""
+    return f"{SELLIP} {arguments}"
+
 
 # The env files (envs/*.yaml) install sellip from ${SELLIP_ROOT}: this checkout.
 os.environ.setdefault("SELLIP_ROOT", str(Path(workflow.basedir).resolve()))
@@ -204,6 +210,48 @@ def get_lobes(wildcards):
 
 
 def get_final_outputs():
-    """What `rule all` builds: the reconstructed model, its renders and its metrics."""
+    """What the target `all` builds: the reconstructed model, its renders and its metrics."""
     return [f"{RESULTS}/previews", f"{RESULTS}/final/model.ply", f"{RESULTS}/final/params.zarr",
             f"{RESULTS}/final/renders", f"{RESULTS}/metrics.json", f"{RESULTS}/viewer"]
+
+
+# --config fit/augment/final/model_selection settings as the arguments of rules fit_pbrdf and cluster_lobes.
+def settings_args(settings):
+    """`--set KEY=VALUE ...` of a dict of FitSettings fields."""
+    return " ".join(f"--set {key}={'null' if value is None else value}" for key, value in settings.items())
+
+
+def fit_settings_args(wildcards):
+    """`--set KEY=VALUE` for the FitSettings of this iteration and pass: config `fit.settings`
+    (lists are per iteration), then `augment.settings` for a pass with virtual samples (a refit, and the
+    final pass's first fit: get_lobes), then `final.settings` for the final pass (iteration ITERATIONS:
+    normals from the final geometry, pBRDF only)."""
+    it = int(wildcards.it)
+    settings = {key: at_iteration(value, it) for key, value in config["fit"]["settings"].items()}
+    if get_lobes(wildcards):
+        settings.update(config["augment"]["settings"])
+    if it == ITERATIONS:
+        settings.update(config["final"]["settings"])
+    return settings_args(settings)
+
+
+def cluster_settings_args(wildcards):
+    """`--set KEY=VALUE` for the cluster lobe fits of this iteration: config `fit.settings` (its loss
+    weights, view selection, and the most complex model allowed: `lobes`, `sigma_ss_fixed`)."""
+    return settings_args({key: at_iteration(value, int(wildcards.it)) for key, value in config["fit"]["settings"].items()})
+
+
+def model_selection_args(wildcards):
+    """The model-selection options of `sellip cluster-lobes` from config `model_selection` (DESIGN §7):
+    candidates are fitted at iteration 0, every `every`-th iteration and the final pass; the others
+    inherit their vertices' models (`--inherit-models`)."""
+    selection = config["model_selection"]
+    it = int(wildcards.it)
+    inherit = " --inherit-models" if it % int(selection["every"]) and it != ITERATIONS else ""
+    return (f"--{'' if selection['enabled'] else 'no-'}model-selection{inherit}"
+            f" --candidates {' '.join(str(m) for m in selection['candidates'])}"
+            f" --held-out-fraction {selection['held_out_fraction']} --selection-folds {selection['folds']}"
+            f" --selection-tolerance {selection['tolerance']}"
+            f" --selection-standard-errors {selection['standard_errors']}"
+            f" --fixed-sigma-ss {selection['sigma_ss_fixed']} --selection-max-samples {selection['max_samples']}"
+            f" --selection-max-theta-error-deg {selection['max_theta_error_deg']}")

@@ -24,11 +24,11 @@ rule finalize_model:
     benchmark:
         f"{RESULTS}/benchmarks/finalize_model.tsv"
     shell:
-        SELLIP + " finalize --params {input.params:q} --mesh {input.mesh:q} --output-model {output.model:q}"
+        sellip_shell("finalize --params {input.params:q} --mesh {input.mesh:q} --output-model {output.model:q}"
         " --output-params {output.params:q} {params.clusters}"
         " --eta-deviation-sigmas {params.eta_deviation_sigmas}"
         " --lobe-deviation-sigmas {params.lobe_deviation_sigmas}"
-        " --deviation-support {params.deviation_support} > {log:q} 2>&1"
+        " --deviation-support {params.deviation_support} > {log:q} 2>&1")
 
 
 rule render_outputs:
@@ -56,9 +56,9 @@ rule render_outputs:
     benchmark:
         f"{RESULTS}/benchmarks/render_outputs.tsv"
     shell:
-        SELLIP + " render-outputs --model {input.model:q} --cameras {input.cameras:q} --hdr {input.hdr:q}"
+        sellip_shell("render-outputs --model {input.model:q} --cameras {input.cameras:q} --hdr {input.hdr:q}"
         " --capture {params.capture:q} --output {output:q} --views {params.views:q}"
-        " --supersample {params.supersample} > {log:q} 2>&1"
+        " --supersample {params.supersample} > {log:q} 2>&1")
 
 
 rule evaluate_model:
@@ -92,12 +92,12 @@ rule evaluate_model:
     benchmark:
         f"{RESULTS}/benchmarks/evaluate_model.tsv"
     shell:
-        SELLIP + " evaluate --model {input.model:q} --params {input.params:q} --cameras {input.cameras:q}"
+        sellip_shell("evaluate --model {input.model:q} --params {input.params:q} --cameras {input.cameras:q}"
         " --hdr {input.hdr:q} --capture {params.capture:q} --benchmarks {params.benchmarks:q}"
         " --held-out {params.held_out:q} --output {output.metrics:q} --timings-plot {output.timings:q}"
         " --iteration-meshes {input.meshes:q} --iteration-fits {input.fits:q} --convergence-plot {output.convergence:q}"
         " --logs {params.logs:q} --sfm-report {input.sfm:q}/report.json --initial-cameras {input.initial_cameras:q}"
-        " > {log:q} 2>&1"
+        " > {log:q} 2>&1")
 
 
 rule export_viewer:
@@ -116,7 +116,7 @@ rule export_viewer:
         maps=directory(f"{RESULTS}/final/maps"),
         viewer=directory(f"{RESULTS}/viewer"),
     params:
-        results=RESULTS,
+        results=lambda wildcards, output: Path(output.viewer).parent,
         capture=lambda wildcards, input: Path(input.capture).parent,
     conda:
         "../../envs/report.yaml"
@@ -125,7 +125,7 @@ rule export_viewer:
     benchmark:
         f"{RESULTS}/benchmarks/export_viewer.tsv"
     shell:
-        SELLIP + " view {params.results:q} --capture {params.capture:q} > {log:q} 2>&1"
+        sellip_shell("view {params.results:q} --capture {params.capture:q} > {log:q} 2>&1")
 
 
 onsuccess:

@@ -6,47 +6,6 @@
 # The numerics live in sellip.fit and sellip.fit; each rule calls one `sellip` command.
 
 
-def settings_args(settings):
-    """`--set KEY=VALUE ...` of a dict of FitSettings fields."""
-    return " ".join(f"--set {key}={'null' if value is None else value}" for key, value in settings.items())
-
-
-def fit_settings_args(wildcards):
-    """`--set KEY=VALUE` for the FitSettings of this iteration and pass: config `fit.settings`
-    (lists are per iteration), then `augment.settings` for a pass with virtual samples (a refit, and the
-    final pass's first fit: get_lobes), then `final.settings` for the final pass (iteration ITERATIONS:
-    normals from the final geometry, pBRDF only)."""
-    it = int(wildcards.it)
-    settings = {key: at_iteration(value, it) for key, value in config["fit"]["settings"].items()}
-    if get_lobes(wildcards):
-        settings.update(config["augment"]["settings"])
-    if it == ITERATIONS:
-        settings.update(config["final"]["settings"])
-    return settings_args(settings)
-
-
-def cluster_settings_args(wildcards):
-    """`--set KEY=VALUE` for the cluster lobe fits of this iteration: config `fit.settings` (its loss
-    weights, view selection, and the most complex model allowed: `lobes`, `sigma_ss_fixed`)."""
-    return settings_args({key: at_iteration(value, int(wildcards.it)) for key, value in config["fit"]["settings"].items()})
-
-
-def model_selection_args(wildcards):
-    """The model-selection options of `sellip cluster-lobes` from config `model_selection` (DESIGN §7):
-    candidates are fitted at iteration 0, every `every`-th iteration and the final pass; the others
-    inherit their vertices' models (`--inherit-models`)."""
-    selection = config["model_selection"]
-    it = int(wildcards.it)
-    inherit = " --inherit-models" if it % int(selection["every"]) and it != ITERATIONS else ""
-    return (f"--{'' if selection['enabled'] else 'no-'}model-selection{inherit}"
-            f" --candidates {' '.join(str(m) for m in selection['candidates'])}"
-            f" --held-out-fraction {selection['held_out_fraction']} --selection-folds {selection['folds']}"
-            f" --selection-tolerance {selection['tolerance']}"
-            f" --selection-standard-errors {selection['standard_errors']}"
-            f" --fixed-sigma-ss {selection['sigma_ss_fixed']} --selection-max-samples {selection['max_samples']}"
-            f" --selection-max-theta-error-deg {selection['max_theta_error_deg']}")
-
-
 rule fit_pbrdf:
     input:
         observations=f"{RESULTS}/iter/{{it}}/observations.zarr",
@@ -71,10 +30,10 @@ rule fit_pbrdf:
     benchmark:
         f"{RESULTS}/benchmarks/fit_pbrdf/{{it}}/{{pass_}}/{{scatteritem}}.tsv"
     shell:
-        SELLIP + " fit --observations {input.observations:q} --shard {wildcards.scatteritem}"
+        sellip_shell("fit --observations {input.observations:q} --shard {wildcards.scatteritem}"
         " --output {output:q} {params.prior} {params.lobes} --dtype {params.dtype} {params.settings}"
         " --fixed-sigma-ss {params.fixed_sigma_ss} --compilation-cache {params.cache:q} --mem-mb {resources.mem_mb}"
-        " > {log:q} 2>&1"
+        " > {log:q} 2>&1")
 
 
 rule gather_fit:
@@ -90,8 +49,8 @@ rule gather_fit:
     benchmark:
         f"{RESULTS}/benchmarks/gather_fit/{{it}}/{{pass_}}.tsv"
     shell:
-        SELLIP + " gather-fit --observations {input.observations:q} --shards {input.shards:q}"
-        " --output {output:q} > {log:q} 2>&1"
+        sellip_shell("gather-fit --observations {input.observations:q} --shards {input.shards:q}"
+        " --output {output:q} > {log:q} 2>&1")
 
 
 rule cluster_lobes:
@@ -124,9 +83,9 @@ rule cluster_lobes:
     benchmark:
         f"{RESULTS}/benchmarks/cluster_lobes/{{it}}.tsv"
     shell:
-        SELLIP + " cluster-lobes --params {input.params:q} --observations {input.observations:q} --output {output:q}"
+        sellip_shell("cluster-lobes --params {input.params:q} --observations {input.observations:q} --output {output:q}"
         " --seed {params.seed} --k-max {params.k_max} --max-samples {params.max_samples}"
         " --min-cluster-vertices {params.min_cluster_vertices} --min-coherence {params.min_coherence}"
         " --pool-min-coherence {params.pool_min_coherence}"
         " {params.settings} {params.selection}"
-        " --compilation-cache {params.cache:q} > {log:q} 2>&1"
+        " --compilation-cache {params.cache:q} > {log:q} 2>&1")

@@ -34,13 +34,13 @@ rule run_sfm:
     benchmark:
         f"{RESULTS}/benchmarks/run_sfm.tsv"
     shell:
-        SELLIP + " sfm --hdr {input.hdr:q} --capture {params.capture:q} --cameras {output.cameras:q}"
+        sellip_shell("sfm --hdr {input.hdr:q} --capture {params.capture:q} --cameras {output.cameras:q}"
         " --output {output.sfm:q} --mode {params.mode} --matching {params.matching}"
         " --exhaustive-max-views {params.exhaustive_max_views} --retrieval-neighbors {params.retrieval_neighbors}"
         " --max-features {params.max_features} --feature-object-px {params.feature_object_px}"
         " --max-upscale {params.max_upscale} {params.refine_intrinsics}"
         " --min-registered-fraction {params.min_registered_fraction} --mask-threshold {params.mask_threshold}"
-        " --seed {params.seed} --threads {threads} > {log:q} 2>&1"
+        " --seed {params.seed} --threads {threads} > {log:q} 2>&1")
 
 
 rule init_mesh:
@@ -70,11 +70,11 @@ rule init_mesh:
     benchmark:
         f"{RESULTS}/benchmarks/init_mesh.tsv"
     shell:
-        SELLIP + " init-mesh --hdr {input.hdr:q} --cameras {input.cameras:q} --sfm {input.sfm:q}"
+        sellip_shell("init-mesh --hdr {input.hdr:q} --cameras {input.cameras:q} --sfm {input.sfm:q}"
         " --output {output.mesh:q} --mode {params.mode} {params.mesh_path} --hull-resolution {params.hull_resolution}"
         " --min-inside-fraction {params.min_inside_fraction} --poisson-depth {params.poisson_depth}"
         " --target-depth {params.target_depth} --max-vertices {params.max_vertices}"
-        " --mask-threshold {params.mask_threshold} --threads {threads} > {log:q} 2>&1"
+        " --mask-threshold {params.mask_threshold} --threads {threads} > {log:q} 2>&1")
 
 
 rule refine_geometry:
@@ -105,11 +105,11 @@ rule refine_geometry:
     benchmark:
         f"{RESULTS}/benchmarks/refine_geometry/{{it}}.tsv"
     shell:
-        SELLIP + " refine-geometry --params {input.params:q} --mesh {input.mesh:q} --output {output.mesh:q}"
+        sellip_shell("refine-geometry --params {input.params:q} --mesh {input.mesh:q} --output {output.mesh:q}"
         " --reference-mesh {input.reference:q} --smoothness {params.smoothness}"
         " --smoothness-unconfident {params.smoothness_unconfident} --anchor {params.anchor} --rounds {params.rounds}"
         " --silhouette {params.silhouette} --cameras {input.cameras:q} --hdr {input.hdr:q} --capture {params.capture:q}"
-        " --exclude-views {params.held_out:q} --mask-threshold {params.mask_threshold} > {log:q} 2>&1"
+        " --exclude-views {params.held_out:q} --mask-threshold {params.mask_threshold} > {log:q} 2>&1")
 
 
 rule refine_poses:
@@ -140,7 +140,7 @@ rule refine_poses:
     benchmark:
         f"{RESULTS}/benchmarks/refine_poses/{{it}}.tsv"
     shell:
-        SELLIP + " refine-poses --params {input.params:q} --mesh {input.mesh:q} --cameras {input.cameras:q}"
+        sellip_shell("refine-poses --params {input.params:q} --mesh {input.mesh:q} --cameras {input.cameras:q}"
         " --hdr {input.hdr:q} --capture {params.capture:q} --output {output.cameras:q} --blur-px {params.blur_px}"
         " --rounds {params.rounds} --max-rotation-deg {params.max_rotation_deg}"
-        " --max-shift-fraction {params.max_shift_fraction} --min-motion-px {params.min_motion_px} > {log:q} 2>&1"
+        " --max-shift-fraction {params.max_shift_fraction} --min-motion-px {params.min_motion_px} > {log:q} 2>&1")

@@ -13,7 +13,8 @@ rule linearize_frames:
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
         saturation=config["ingest"]["saturation"],
-        black_level_from=config["ingest"]["black_level_from"],
+        # A function: its value `capture` would read to `snakemake --lint` as a hard-coded prefix of captures/.
+        black_level_from=lambda wildcards: config["ingest"]["black_level_from"],
         bad_frames=config["ingest"].get("bad_frames", "error"),
     threads: config["ingest"]["threads"]
     conda:
@@ -23,9 +24,9 @@ rule linearize_frames:
     benchmark:
         f"{RESULTS}/benchmarks/linearize_frames.tsv"
     shell:
-        SELLIP + " linearize --capture {params.capture:q} --output {output:q} --threads {threads}"
+        sellip_shell("linearize --capture {params.capture:q} --output {output:q} --threads {threads}"
         " --saturation {params.saturation} --black-level-from {params.black_level_from}"
-        " --bad-frames {params.bad_frames} > {log:q} 2>&1"
+        " --bad-frames {params.bad_frames} > {log:q} 2>&1")
 
 
 rule merge_hdr:
@@ -41,7 +42,7 @@ rule merge_hdr:
     benchmark:
         f"{RESULTS}/benchmarks/merge_hdr.tsv"
     shell:
-        SELLIP + " merge-hdr --linear {input:q} --output {output:q} --threads {threads} > {log:q} 2>&1"
+        sellip_shell("merge-hdr --linear {input:q} --output {output:q} --threads {threads} > {log:q} 2>&1")
 
 
 rule plot_hdr_previews:
@@ -63,4 +64,4 @@ rule plot_hdr_previews:
     benchmark:
         f"{RESULTS}/benchmarks/plot_hdr_previews.tsv"
     shell:
-        SELLIP + " hdr-previews --hdr {input:q} --output {output:q} > {log:q} 2>&1"
+        sellip_shell("hdr-previews --hdr {input:q} --output {output:q} > {log:q} 2>&1")

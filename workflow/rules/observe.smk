@@ -36,10 +36,10 @@ rule gather_observations:
     benchmark:
         f"{RESULTS}/benchmarks/gather_observations/{{it}}.tsv"
     shell:
-        SELLIP + " observe --mesh {input.mesh:q} --cameras {input.cameras:q} --hdr {input.hdr:q}"
+        sellip_shell("observe --mesh {input.mesh:q} --cameras {input.cameras:q} --hdr {input.hdr:q}"
         " --capture {params.capture:q} --output {output:q} --vertex-chunk {params.vertex_chunk}"
         " --view-chunk {params.view_chunk} --occlusion-tolerance {params.occlusion_tolerance}"
         " --shadow-offset {params.shadow_offset} --min-cos {params.min_cos}"
         " --edge-margin {params.edge_margin} --mask-threshold {params.mask_threshold} --max-slope {params.max_slope}"
         " --missing-poses {params.missing_poses} --exclude-views {params.held_out:q} {params.max_views}"
-        " --threads {threads} > {log:q} 2>&1"
+        " --threads {threads} > {log:q} 2>&1")

@@ -21,7 +21,7 @@ rule synth_capture:
     benchmark:
         "results/benchmarks/synth_capture/{scene}.tsv"
     shell:
-        SELLIP + " synth --scene {wildcards.scene} --out captures/{wildcards.scene}"
+        sellip_shell("synth --scene {wildcards.scene} --out captures/{wildcards.scene}"
         " --views {params.views:q} --width {params.width} --height {params.height}"
         " --seed {params.seed} --noise-scale {params.noise_scale} --renderer {params.renderer:q}"
-        " --no-progress > {log:q} 2>&1"
+        " --no-progress > {log:q} 2>&1")
