@@ -403,7 +403,7 @@ def test_black_levels_from_raw_file_metadata(tmp_path):
     merged, _ = run_ingest(tmp_path / "c", tmp_path / "file", black_level_from="file").view("v")
     camera_rgb = merged[..., 0, :] @ np.linalg.inv(np.asarray(sensor.color_matrix)).T
     np.testing.assert_allclose(camera_rgb, 2000 / ((4095 - np.mean(pattern)) * EXPOSURE_S), rtol=1e-3)
-    spread = lambda a: np.ptp(a[..., 0]) / np.mean(a[..., 0])  # noqa: E731 (4 analyzers of red, one pixel)
+    spread = lambda a: np.ptp(a[..., 0]) / np.mean(a[..., 0])  # 4 analyzers of red, one pixel
     assert spread(merged[10, 10]) < 1e-3
     merged_capture, _ = run_ingest(tmp_path / "c", tmp_path / "capture").view("v")
     assert spread(merged_capture[10, 10]) > 0.01  # with capture.yaml's black 0 the pattern leaks in

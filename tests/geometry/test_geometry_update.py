@@ -345,7 +345,8 @@ def test_the_true_model_predicts_the_photographs_silhouettes(tiny_capture):
 
 def test_the_prediction_is_the_photograph_of_the_render(tiny_capture):
     """predicted_diffuse (a render of the 90-degree analyzer's raw pixels inside the model's box, one analyzer
-    developed) equals the whole chain: every raw pixel rendered, sampled by the mosaic (sellip.capture.sensor), developed
+    developed) equals the whole chain: every raw pixel rendered, sampled by the mosaic (sellip.capture.sensor),
+    developed
     by the ingest's code (all four analyzers), I_d = 2 I90."""
     from sellip.capture.ingest import develop, make_ingest_plan
     from sellip.capture.reader import read_capture
@@ -400,6 +401,6 @@ def test_the_stage_moves_a_displaced_model_onto_the_silhouettes(tiny_capture, tm
         low.append(-1e3 * fitted_sphere(read_mesh(tmp_path / f"{weight}.ply").vertices)[0][2])
         assert json.loads((tmp_path / f"{weight}.ply.json").read_text())["silhouette_constraints"] == \
             summary["silhouette_constraints"]
-    print("mm low: normals only %.3f, with silhouettes %.3f" % tuple(low))
+    print(f"mm low: normals only {low[0]:.3f}, with silhouettes {low[1]:.3f}")
     assert low[0] > 1.4 and low[1] < 0.15, low  # 1.500 and 0.082 mm
     assert summary["silhouette_constraints"] > 500 and len(summary["silhouette_offset_px"]) == 8

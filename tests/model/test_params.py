@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+
 import numpy as np
 import pytest
 
@@ -19,7 +21,7 @@ def test_shards_cover_every_vertex_once_in_whole_chunks(total, chunk, shards):
 
 def test_shard_argument_and_settings_overrides():
     assert parse_shard("2-of-4") == (1, 4)
-    with pytest.raises(Exception):
+    with pytest.raises(argparse.ArgumentTypeError, match="i must be in 1..n"):
         parse_shard("5-of-4")
     settings = settings_from_pairs(["lambda_d=10", "max_iterations=12", "sigma_ss_fixed=null"])
     assert settings.lambda_d == 10.0 and settings.max_iterations == 12 and settings.sigma_ss_fixed is None
