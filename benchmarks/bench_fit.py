@@ -151,7 +151,8 @@ def main() -> int:
         bounds = np.linspace(0, n, args.workers + 1).astype(int)
         context = multiprocessing.get_context("spawn")
         barrier, results = context.Barrier(args.workers), context.Queue()
-        workers = [context.Process(target=_worker, args=(folder, int(a), int(b), cores[i], barrier, results)) for i, (a, b) in enumerate(zip(bounds, bounds[1:]))]
+        workers = [context.Process(target=_worker, args=(folder, int(a), int(b), cores[i], barrier, results))
+                   for i, (a, b) in enumerate(zip(bounds, bounds[1:]))]
         for w in workers:
             w.start()
         timings = [results.get() for _ in workers]
@@ -170,8 +171,8 @@ def main() -> int:
           f"first run, compiling: {first:.1f} s")
     print(f"           {accuracy(result_normal, result_params, slice(None))}")
 
-    # Baseline: the same procedure (sellip.fit.vertex_fit._fit_chunk), one vertex at a time, with scipy least_squares on the
-    # same residuals (same views, same start, float64, finite-difference Jacobians as fmincon's) on one core.
+    # Baseline: the same procedure (sellip.fit.vertex_fit._fit_chunk), one vertex at a time, with scipy least_squares
+    # on the same residuals (same views, same start, float64, finite-difference Jacobians as fmincon's) on one core.
     os.sched_setaffinity(0, {cores[0]}) if hasattr(os, "sched_setaffinity") else None
     settings = dataclasses.replace(FitSettings(), lobes="full", sigma_ss_fixed=None)
     m = min(args.baseline, n)
@@ -190,9 +191,10 @@ def main() -> int:
             return float(r @ r)
 
         def best_start(x):
-            eta = fit_records.ETA_BOUNDS[0] + (fit_records.ETA_BOUNDS[1] - fit_records.ETA_BOUNDS[0]) / (1 + np.exp(-x[2]))
-            starts = np.array(parameterization._encode(jnp.full(len(grid), eta), jnp.asarray(grid[:, 0]), jnp.asarray(grid[:, 1]),
-                                            jnp.float64))
+            low, high = fit_records.ETA_BOUNDS
+            eta = low + (high - low) / (1 + np.exp(-x[2]))
+            starts = np.array(parameterization._encode(jnp.full(len(grid), eta), jnp.asarray(grid[:, 0]),
+                                                       jnp.asarray(grid[:, 1]), jnp.float64))
             starts[:, :2] = x[:2]
             candidates = [x, *starts]
             return candidates[int(np.argmin([cost(c) for c in candidates]))]
@@ -217,12 +219,14 @@ def main() -> int:
             z = solve(z, [0, 1, 2, 3, 4])
         return z, v
 
-    keep, records, frames, z0 = fit_vertex_fit._select_and_prepare(sub, start[:m].astype(np.float64), sub_prior, settings)
+    keep, records, frames, z0 = fit_vertex_fit._select_and_prepare(sub, start[:m].astype(np.float64), sub_prior,
+                                                                   settings)
     v0, f0 = take(records, 0), take(frames, 0)
     residual(z0[0], v0, f0).block_until_ready()  # compile once, outside the timing
     weights(z0[0], v0, f0)
     began, began_cpu = time.perf_counter(), time.process_time()
-    keep, records, frames, z0 = fit_vertex_fit._select_and_prepare(sub, start[:m].astype(np.float64), sub_prior, settings)
+    keep, records, frames, z0 = fit_vertex_fit._select_and_prepare(sub, start[:m].astype(np.float64), sub_prior,
+                                                                   settings)
     solutions = []
     for i in range(m):
         solutions.append(baseline_fit(take(records, i), take(frames, i), np.asarray(z0[i], np.float64)))

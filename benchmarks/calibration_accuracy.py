@@ -80,7 +80,8 @@ def main() -> None:
     raw = reader.read_raw_file(args.folder / "chart" / truth["chart"]["file"], sensor)
     c = color.calibrate_color(raw, device, np.asarray(truth["chart"]["corners_px"]))
     m_true = np.asarray(cam["color_matrix"])
-    summary["color"] = {"delta_e2000_mean": float(np.nanmean(c.delta_e)), "delta_e2000_max": float(np.nanmax(c.delta_e)),
+    summary["color"] = {"delta_e2000_mean": float(np.nanmean(c.delta_e)),
+                        "delta_e2000_max": float(np.nanmax(c.delta_e)),
                         "matrix_max_rel_error": float(np.abs(c.matrix - m_true).max() / np.abs(m_true).max())}
     print("color:", json.dumps(summary["color"]), flush=True)
     print(json.dumps(summary))

@@ -221,7 +221,8 @@ def error_lines(log: str | Path, limit: int = 8) -> list[str]:
 
 def killed_from_outside(log: str | Path) -> list[str]:
     """For a job log that ends mid-run (its last line one of sellip's INFO/DEBUG/WARNING lines; no ERROR line, no
-    traceback): what that means, and the log's memory estimates (a fit job's ``memory:`` line, :func:`sellip.fit.shard.fit_shard`). Empty otherwise."""
+    traceback): what that means, and the log's memory estimates (a fit job's ``memory:`` line,
+    :func:`sellip.fit.shard.fit_shard`). Empty otherwise."""
     try:
         lines = Path(log).read_text(encoding="utf-8", errors="replace").splitlines()
     except OSError:

@@ -78,8 +78,8 @@ def test_noise_scale_multiplies_the_noise_and_keeps_the_signal():
 
 
 def test_synth_records_the_noise_scale_and_the_workflow_passes_it(tmp_path):
-    path = capture_synthetic.synthesize_capture("tiny_dark", tmp_path / "capture", views=1, width=64, height=48, supersample=1,
-                                    progress=False, noise_scale=3.0)
+    path = capture_synthetic.synthesize_capture("tiny_dark", tmp_path / "capture", views=1, width=64, height=48,
+                                                supersample=1, progress=False, noise_scale=3.0)
     extra = reader.read_capture(path).config["synthetic"]
     assert extra["noise_scale"] == 3.0 and extra["gain_e_per_dn"] == pytest.approx(2.58 / 9)
     assert extra["read_noise_e"] == pytest.approx(0.8)
@@ -99,8 +99,8 @@ def test_synth_records_the_noise_scale_and_the_workflow_passes_it(tmp_path):
 @pytest.fixture(scope="module")
 def small_capture(tmp_path_factory):
     """Three views of the tiny sphere at 64x48 (9 DNG frames)."""
-    return capture_synthetic.synthesize_capture("tiny", tmp_path_factory.mktemp("capture") / "tiny", views=3, width=64, height=48,
-                                    supersample=1, progress=False)
+    return capture_synthetic.synthesize_capture("tiny", tmp_path_factory.mktemp("capture") / "tiny", views=3, width=64,
+                                                height=48, supersample=1, progress=False)
 
 
 def _copy(capture, to):
@@ -154,7 +154,8 @@ def test_bad_frames_skip_merges_from_the_other_frames_and_drops_empty_views(smal
     from sellip.stages import observe
 
     cameras = tmp_path / "skip" / "cameras.csv"
-    geometry_poses.solve_poses(tmp_path / "skip" / "hdr.zarr", capture, cameras, tmp_path / "skip" / "sfm", mode="known")
+    geometry_poses.solve_poses(tmp_path / "skip" / "hdr.zarr", capture, cameras, tmp_path / "skip" / "sfm",
+                               mode="known")
     assert list(pd.read_csv(cameras)["view_id"]) == ["v000", "v001"]
     observe_mesh.observe_mesh(capture / files.GROUND_TRUTH_MESH, cameras, tmp_path / "skip" / "hdr.zarr", capture,
                       tmp_path / "skip" / "observations.zarr", exclude_views=("v002",))

@@ -74,7 +74,8 @@ def test_refined_corners_lie_on_the_true_projection_and_the_window_follows_the_s
     assert np.sqrt(np.mean(error ** 2)) < 0.08 and np.all(np.abs(error.mean(axis=0)) < 0.03)  # intensity-image px
     windows = []
     original = cv2.cornerSubPix
-    monkeypatch.setattr(cv2, "cornerSubPix", lambda img, c, win, *a: windows.append(win[0]) or original(img, c, win, *a))
+    monkeypatch.setattr(cv2, "cornerSubPix",
+                        lambda img, c, win, *a: windows.append(win[0]) or original(img, c, win, *a))
     square = np.median(np.linalg.norm(np.diff(truth.reshape(SPEC.rows, SPEC.cols, 2), axis=1), axis=-1))
     intrinsics.refine_corners(image, truth.copy(), SPEC.cols, SPEC.rows)
     centre = truth.mean(axis=0)
@@ -306,7 +307,8 @@ def _frame_folder(tmp_path, names, width=64, height=48):
     raw_dir.mkdir(parents=True)
     rng = np.random.default_rng(0)
     for name in names:
-        writer.write_raw_file(raw_dir / name, rng.integers(64, 4000, (height, width)).astype(np.uint16), device["sensor"])
+        writer.write_raw_file(raw_dir / name, rng.integers(64, 4000, (height, width)).astype(np.uint16),
+                              device["sensor"])
     path = devices.write_device(tmp_path / "device.yaml", device)
     return raw_dir, devices.read_device(path, complete=True), path
 

@@ -147,7 +147,8 @@ def test_one_analyzer_plan_develops_that_analyzer_alone(color_layout):
     full = ingest.develop(mosaic, plan)
     for k in range(4):
         others = mosaic.copy()
-        others[layout.analyzer_map(height, width) != k] = rng.uniform(0, 5, np.sum(layout.analyzer_map(height, width) != k))
+        elsewhere = layout.analyzer_map(height, width) != k
+        others[elsewhere] = rng.uniform(0, 5, np.sum(elsewhere))
         one = ingest.develop(others, ingest.analyzer_plan(plan, k))
         assert one.shape == full[..., k:k + 1, :].shape
         np.testing.assert_allclose(one, full[..., k:k + 1, :], rtol=1e-6, atol=1e-7)
@@ -179,7 +180,8 @@ def test_colours_share_the_guide_resolution_and_polarization():
         return np.hypot(i0 - i90, i45 - i135) / (i0 + i90)
 
     errors = {}
-    for name, demosaic_plan in (("guided", plan.demosaic), ("bilinear", dataclasses.replace(plan.demosaic, guide=None))):
+    for name, demosaic_plan in (("guided", plan.demosaic),
+                                ("bilinear", dataclasses.replace(plan.demosaic, guide=None))):
         out = ingest.remap(ingest.demosaic(linear, demosaic_plan), plan.remap)[3:-3, 3:-3]
         errors[name] = (np.sqrt(np.mean(((out - truth) / truth) ** 2, axis=(0, 1, 2))),
                         np.sqrt(np.mean((dop(out) - dop(truth)) ** 2, axis=(0, 1))))

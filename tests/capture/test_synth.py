@@ -120,7 +120,8 @@ def test_demo_fine_keeps_the_texture_at_the_pixel():
 
 
 def test_the_config_schema_offers_every_scene():
-    """demo.scene in config.schema.yaml lists exactly sellip.capture.scenes.SCENES (a scene missing there fails validation)."""
+    """demo.scene in config.schema.yaml lists exactly sellip.capture.scenes.SCENES (a scene missing there fails
+    validation)."""
     from pathlib import Path
 
     import yaml
@@ -186,8 +187,8 @@ def test_demo_highlights_saturate_at_the_strongest_flash_while_diffuse_stays_in_
 
 def test_png_frames_and_lens_distortion(tmp_path):
     distortion = [-0.1, 0.02, 0.0, 0.0, 0.0]
-    path = capture_synthetic.synthesize_capture("tiny", tmp_path / "cap", seed=0, raw_format="png", distortion=distortion,
-                                    **{**TINY, "views": 1})
+    path = capture_synthetic.synthesize_capture("tiny", tmp_path / "cap", seed=0, raw_format="png",
+                                                distortion=distortion, **{**TINY, "views": 1})
     capture = reader.read_capture(path, check_raw=True)
     assert capture.config["camera"]["distortion"] == distortion
     assert capture.frames["file"].str.endswith(".png").all()
@@ -215,7 +216,8 @@ def test_a_described_device_shoots_the_capture(tmp_path):
     noisy = capture_synthetic.synthesize_capture("tiny", tmp_path / "n", views=2, device=device, noise_seed=7,
                                                  progress=False)
     upright = capture_synthetic.synthesize_capture("tiny", tmp_path / "u", views=2, progress=False,
-                                                   device={**device, "light": {**device["light"], "polarizer_deg": 0.0}})
+                                                   device={**device,
+                                                           "light": {**device["light"], "polarizer_deg": 0.0}})
     files_a, files_b, files_n = _files(out), _files(b), _files(noisy)
     assert files_a["raw/v000_f0.dng"] == files_b["raw/v000_f0.dng"]  # the CLI and the library agree
     assert files_n["poses.csv"] == files_a["poses.csv"] and files_n["raw/v000_f0.dng"] != files_a["raw/v000_f0.dng"]

@@ -103,9 +103,9 @@ def scene():
     s["lobes"] = []
     for k in range(len(s["clusters"].centres)):
         m = s["clusters"].labels == k
-        s["lobes"].append(fit_lobes.fit_cluster_lobe(Observations(*[np.asarray(x)[m] for x in s["obs"]]), s["normals"][m],
-                                                   plain.rho_d[m], float(np.median(plain.eta[m])), HELD, AUGMENT,
-                                                   seed=k))
+        s["lobes"].append(fit_lobes.fit_cluster_lobe(Observations(*[np.asarray(x)[m] for x in s["obs"]]),
+                                                     s["normals"][m], plain.rho_d[m], float(np.median(plain.eta[m])),
+                                                     HELD, AUGMENT, seed=k))
     s["virtual"] = fit_lobes.virtual_samples(s["clusters"].labels, s["lobes"], HELD, np.float64)
     s["augmented"] = fit_vertices(s["obs"], s["normals"], default_prior(n, np.float64), HELD, virtual=s["virtual"])
     return s
@@ -163,7 +163,8 @@ def test_augmentation_recovers_the_lobes_of_vertices_that_never_see_their_highli
             i_s.append(np.asarray(obs.specular)[0])
         predictions[name] = np.stack(i_s)
     level = np.sqrt(np.mean(predictions["truth"] ** 2, axis=(1, 2)))
-    rms = {name: np.median((np.sqrt(np.mean((predictions[name] - predictions["truth"]) ** 2, axis=(1, 2))) / level)[unseen])
+    rms = {name: np.median((np.sqrt(np.mean((predictions[name] - predictions["truth"]) ** 2, axis=(1, 2)))
+                            / level)[unseen])
            for name in ("plain", "augmented")}
     # Measured: 0.73 -> 0.03 (median relative RMS of I_s near the highlight).
     assert rms["augmented"] < rms["plain"] / 4 and rms["augmented"] < 0.15, rms
@@ -245,7 +246,8 @@ def test_a_few_vertices_of_a_narrower_brighter_lobe_do_not_take_the_cluster_lobe
 
     from sellip.fit.selection import settings_for_model
 
-    materials = ((1.33, (0.27, 0.27, 0.22), 0.8, 0.4, (0, 0, 0), 0.6), (1.6, (0.1, 0.09, 0.08), 0.8, 0.08, (0, 0, 0), 0.6))
+    materials = ((1.33, (0.27, 0.27, 0.22), 0.8, 0.4, (0, 0, 0), 0.6),
+                 (1.6, (0.1, 0.09, 0.08), 0.8, 0.08, (0, 0, 0), 0.6))
     settings = settings_for_model(HELD, 1)
     fits = {}
     for intruders in (8, 0, 36):
@@ -264,8 +266,8 @@ def test_a_few_vertices_of_a_narrower_brighter_lobe_do_not_take_the_cluster_lobe
 
 def test_clusters_and_lobes_are_deterministic_for_a_seed(scene):
     plain = scene["plain"]
-    again = fit_clusters.cluster_materials(plain.params.eta, plain.params.rho_d, plain.status, plain.confidence, AUGMENT,
-                                      seed=0)
+    again = fit_clusters.cluster_materials(plain.params.eta, plain.params.rho_d, plain.status, plain.confidence,
+                                           AUGMENT, seed=0)
     np.testing.assert_array_equal(again.labels, scene["clusters"].labels)
     np.testing.assert_array_equal(again.centres, scene["clusters"].centres)
     m = scene["clusters"].labels == 0
@@ -316,9 +318,9 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
 
     # The refit: float64 and held normals (the settings of the library fit above, so its kernels are reused).
     output = tmp_path / "refit.npz"
-    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--prior", str(tmp_path / "fit.zarr"),
-                     "--lobes", str(clusters), "--output", str(output), "--dtype", "float64",
-                     "--set", "fit_normal=false"]) == 0
+    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"),
+                     "--prior", str(tmp_path / "fit.zarr"), "--lobes", str(clusters), "--output", str(output),
+                     "--dtype", "float64", "--set", "fit_normal=false"]) == 0
     with np.load(output) as refit:
         unseen = ~scene["facing"]
         assert np.median(_relative(refit["sigma_s"], scene["params"].sigma_s)[unseen]) < 0.1
@@ -501,8 +503,8 @@ def test_a_region_is_kept_when_its_cluster_also_takes_scattered_vertices_of_a_si
     albedo = np.where(caps[:, None], [0.42, 0.28, 0.06], np.where(scattered[:, None], [0.62, 0.40, 0.045],
                                                                    [0.22, 0.14, 0.075]))
     rho_d = albedo * np.exp(rng.normal(0, 0.1, (n, 1))) * rng.uniform(0.99, 1.01, (n, 3))
-    found = fit_clusters.cluster_materials(eta, rho_d, np.zeros(n, np.int32), np.ones(n), AugmentSettings(min_coherence=0.5),
-                                      vertices=vertices)
+    found = fit_clusters.cluster_materials(eta, rho_d, np.zeros(n, np.int32), np.ones(n),
+                                           AugmentSettings(min_coherence=0.5), vertices=vertices)
     assert len(found.regions) == 1 and found.regions[0]["coherence"] > 0.8 and not found.merges
     assert len(found.centres) == 2
     region = found.labels == found.labels[np.argmax(caps)]

@@ -161,7 +161,8 @@ def test_sharded_and_unsharded_runs_agree():
     prior = default_prior(40, np.float64)
     whole = fit_vertices(obs, start, prior)
     halves = [fit_vertices(Observations(*[np.asarray(x)[part] for x in obs]), start[part],
-                           type(prior)(*[np.asarray(x)[part] for x in prior])) for part in (slice(0, 23), slice(23, 40))]
+                           type(prior)(*[np.asarray(x)[part] for x in prior]))
+              for part in (slice(0, 23), slice(23, 40))]
     np.testing.assert_array_equal(whole.status, np.concatenate([h.status for h in halves]))
     np.testing.assert_array_equal(whole.views_used, np.concatenate([h.views_used for h in halves]))
     for name in ("normal", "confidence", "loss"):
@@ -177,7 +178,8 @@ def test_levenberg_marquardt_agrees_with_scipy_least_squares():
     params, normals, obs, start = _scene(6, seed=8, noise=0.01)
     settings = FitSettings(hold_diffuse_eta=False)
     result = fit_vertices(obs, start, default_prior(6, np.float64), settings)
-    keep, records, frames, z0 = vertex_fit._select_and_prepare(obs, jnp.asarray(start), default_prior(6, np.float64), settings)
+    keep, records, frames, z0 = vertex_fit._select_and_prepare(obs, jnp.asarray(start), default_prior(6, np.float64),
+                                                               settings)
     z0 = fit_solver._best_start(z0, records, frames, settings)
     residual = jax.jit(lambda z, v, f: fit_residuals._residuals(z, v, f, settings))
     jacobian = jax.jit(jax.jacfwd(lambda z, v, f: fit_residuals._residuals(z, v, f, settings)))
@@ -203,8 +205,8 @@ def test_specular_nnls_matches_scipy():
         weight = rng.uniform(0.1, 1, k)
         ridge = 1e-3
         prior = rng.uniform(0, 0.5, 4)
-        ours = np.asarray(fit_residuals._nnls_specular(jnp.asarray(a), jnp.asarray(b), jnp.asarray(y), jnp.asarray(weight),
-                                             jnp.asarray(prior), ridge))
+        ours = np.asarray(fit_residuals._nnls_specular(jnp.asarray(a), jnp.asarray(b), jnp.asarray(y),
+                                                       jnp.asarray(weight), jnp.asarray(prior), ridge))
         # The same problem as one stacked non-negative least squares, solved by scipy.
         sw = np.sqrt(weight)
         rows = [np.c_[sw * a, *(sw * b * (c == j) for j in range(3))] for c in range(3)]
@@ -240,8 +242,9 @@ def test_zero_weight_virtual_samples_change_nothing():
     settings = FitSettings()
     virtual = VirtualSamples(theta_h=np.tile(np.radians(np.arange(180) * 0.5), (2, 1)),
                              reflectance=np.full((2, 180, 3), 0.3), weight=np.zeros((2, 180)))
-    _, plain, frames, z0 = vertex_fit._select_and_prepare(obs, jnp.asarray(start), default_prior(2, np.float64), settings)
-    _, zero, _, _ = vertex_fit._select_and_prepare(obs, jnp.asarray(start), default_prior(2, np.float64), settings, virtual)
+    prior = default_prior(2, np.float64)
+    _, plain, frames, z0 = vertex_fit._select_and_prepare(obs, jnp.asarray(start), prior, settings)
+    _, zero, _, _ = vertex_fit._select_and_prepare(obs, jnp.asarray(start), prior, settings, virtual)
     v, w, f = (jax.tree_util.tree_map(lambda x: x[0], r) for r in (plain, zero, frames))
     r_plain, r_zero = fit_residuals._residuals(z0[0], v, f, settings), fit_residuals._residuals(z0[0], w, f, settings)
     np.testing.assert_allclose(r_zero[:r_plain.size], r_plain, rtol=1e-12, atol=1e-15)  # sums reordered: round-off

@@ -48,8 +48,8 @@ def _rows(obs, rows):
 
 def _select(scene, name, seed=0, selection=SELECTION):
     rows = np.flatnonzero(scene["material"] == scene["names"].index(name))
-    return fit_selection.select_model(_rows(scene["obs"], rows), scene["normals"][rows], scene["params"].rho_d[rows], 1.5,
-                               HELD, selection, LOBES, seed=seed)
+    return fit_selection.select_model(_rows(scene["obs"], rows), scene["normals"][rows], scene["params"].rho_d[rows],
+                                      1.5, HELD, selection, LOBES, seed=seed)
 
 
 CLUSTER_KERNELS = ("_stacked", "_stacked_jacobian", "_delta_step_jit", "_pool_solution", "_sample_losses")
@@ -89,7 +89,8 @@ def test_model_codes_settings_and_caps():
     assert fit_selection.allowed_models(fixed) == [0, 1, 2]
     assert fit_selection.allowed_models(FitSettings(lobes="specular"), (0, 1, 3)) == [0, 1]
     np.testing.assert_array_equal(fit_selection.cap_models([0, 1, 2, 3], fixed), [0, 1, 2, 2])
-    assert settings_from_pairs(["lobes=specular", "fit_normal=false"]) == FitSettings(lobes="specular", fit_normal=False)
+    assert (settings_from_pairs(["lobes=specular", "fit_normal=false"])
+            == FitSettings(lobes="specular", fit_normal=False))
     with pytest.raises(ValueError, match="lobes"):
         settings_from_pairs(["lobes=mirror"])
     with pytest.raises(ValueError, match="max_iterations expects an integer"):
@@ -115,7 +116,8 @@ def test_the_rule_takes_the_simplest_model_within_the_tolerance():
     spread = rng.normal(0, 1, 20)
     spread = 0.3 * (spread - spread.mean()) / spread.std()
     flat = np.full(20, 1.5)
-    chosen, best, table = fit_selection.choose({1: flat * (1.03 + spread), 3: flat}, tolerance=0.01, standard_errors=1.0)
+    chosen, best, table = fit_selection.choose({1: flat * (1.03 + spread), 3: flat}, tolerance=0.01,
+                                               standard_errors=1.0)
     assert best == 3 and chosen == 1 and table[1]["excess"] == pytest.approx(0.03 * table[3]["held_out_loss"])
     assert fit_selection.choose({1: flat * (1.03 + spread), 3: flat}, tolerance=0.0, standard_errors=0.0)[0] == 3
 
@@ -258,15 +260,17 @@ def test_fit_by_model_fits_every_vertex_with_its_model(scene):
                                        atol=1e-9, err_msg=f"model {code}: {name}")
         np.testing.assert_array_equal(grouped.status[m], alone.status)
         if code == 1:  # every vertex of one model: the same as the plain fit with that model's settings
-            same = fit_selection.fit_by_model(_rows(obs, m), normals[m], PBRDFParams(*[np.asarray(x)[m] for x in prior]),
-                                       np.ones(m.sum(), int), HELD, virtual=records.VirtualSamples(
-                                           *[np.asarray(x)[m] for x in virtual]))
+            same = fit_selection.fit_by_model(_rows(obs, m), normals[m],
+                                              PBRDFParams(*[np.asarray(x)[m] for x in prior]),
+                                              np.ones(m.sum(), int), HELD, virtual=records.VirtualSamples(
+                                                  *[np.asarray(x)[m] for x in virtual]))
             for a, b in zip(jax_leaves(same), jax_leaves(alone)):
                 np.testing.assert_array_equal(a, b)
     compiled = solver._lm_rounds._cache_size()
     mixed = fit_selection.fit_by_model(obs, normals, prior, np.arange(n) % 4, HELD, virtual=virtual)
     assert solver._lm_rounds._cache_size() == compiled
-    assert np.all(mixed.params.rho_s[np.arange(n) % 4 == 0] == 0) and np.all(mixed.params.rho_ss[np.arange(n) % 4 < 2] == 0)
+    assert np.all(mixed.params.rho_s[np.arange(n) % 4 == 0] == 0)
+    assert np.all(mixed.params.rho_ss[np.arange(n) % 4 < 2] == 0)
     np.testing.assert_allclose(mixed.params.sigma_ss[np.arange(n) % 4 == 2], 0.9, rtol=1e-12)
     assert np.all(grouped.status == 0) and np.all(grouped.params.rho_ss == 0)
     assert np.all(grouped.params.rho_s[vertex_models == 0] == 0)
@@ -326,7 +330,8 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     assert table[0].endswith(",model") and sorted(int(line.split(",")[-1]) for line in table[1:]) == [0, 1, 1]
 
     # The refit: every vertex with its cluster's model (the grouped fit's compiled shapes above).
-    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--prior", str(tmp_path / "fit.zarr"),
+    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"),
+                     "--prior", str(tmp_path / "fit.zarr"),
                      "--lobes", str(tmp_path / "clusters"), "--output", str(tmp_path / "refit.npz"),
                      "--dtype", "float64", "--set", "fit_normal=false"]) == 0
     with np.load(tmp_path / "refit.npz") as refit:
@@ -355,8 +360,8 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     vertex, _ = read_ply(tmp_path / "model.ply")
     np.testing.assert_array_equal(vertex["model"], vertex_models)
     # ... and its cluster's selection margin, which lowers the confidence where it is small.
-    margins, runner_up = fit_selection.cluster_margins(json.loads((tmp_path / "clusters" / "clusters.json").read_text()),
-                                                       int(labels.max()) + 1)
+    record = json.loads((tmp_path / "clusters" / "clusters.json").read_text())
+    margins, runner_up = fit_selection.cluster_margins(record, int(labels.max()) + 1)
     assert np.isfinite(margins).all()
     final = read_params(tmp_path / "final.zarr")
     np.testing.assert_allclose(final["selection_margin"], margins[labels], rtol=1e-6)
@@ -398,6 +403,6 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     # A bad models.npy is refused, naming the file; nothing is written.
     np.save(tmp_path / "clusters" / "models.npy", np.full(n, 7, np.uint8))
     caplog.clear()
-    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--lobes", str(tmp_path / "clusters"),
-                     "--output", str(tmp_path / "bad.npz")]) == 1
+    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"),
+                     "--lobes", str(tmp_path / "clusters"), "--output", str(tmp_path / "bad.npz")]) == 1
     assert "models.npy" in caplog.text and not (tmp_path / "bad.npz").exists()

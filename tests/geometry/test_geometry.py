@@ -22,8 +22,8 @@ WIDTH, HEIGHT = 320, 256
 
 
 def random_similarity(rng) -> geometry_alignment.Similarity:
-    return geometry_alignment.Similarity(float(rng.uniform(0.3, 3.0)), Rotation.random(random_state=rng.integers(1 << 31))
-                               .as_matrix(), rng.normal(size=3))
+    rotation = Rotation.random(random_state=rng.integers(1 << 31)).as_matrix()
+    return geometry_alignment.Similarity(float(rng.uniform(0.3, 3.0)), rotation, rng.normal(size=3))
 
 
 def orbit(views: int, seed: int = 1) -> list[Camera]:
@@ -142,8 +142,8 @@ def test_align_cameras_and_pose_errors_report_known_perturbations():
 
 
 def test_refine_to_surface_removes_a_millimetre_misalignment_and_keeps_an_exact_one():
-    """A noisy reconstruction of an ellipsoid, aligned 1 % off in scale, 1° off in rotation and 3 mm off in place (as the
-    camera centres of a narrow-field SfM leave it), lands within a tenth of that; an exact alignment stays exact."""
+    """A noisy reconstruction of an ellipsoid, aligned 1 % off in scale, 1° off in rotation and 3 mm off in place (as
+    the camera centres of a narrow-field SfM leave it), lands within a tenth of that; an exact alignment stays exact."""
     rng = np.random.default_rng(3)
     vertices, faces = sphere(1.0)
     truth_vertices = vertices * np.array([0.06, 0.04, 0.025])
@@ -275,8 +275,10 @@ def test_boundary_distance_measures_a_sub_pixel_shift_of_a_dim_limb():
     inner = limb(radius)
     for shift in (0.1, 0.3, 0.7):
         outer = limb(radius + shift)
-        found = geometry_silhouettes.boundary_distance(inner, points, outward) - geometry_silhouettes.boundary_distance(outer, points, outward)
-        by_mask = np.subtract(*(ndimage.map_coordinates(geometry_silhouettes.signed_distance(s.mask), points[:, ::-1].T, order=1)
+        found = (geometry_silhouettes.boundary_distance(inner, points, outward)
+                 - geometry_silhouettes.boundary_distance(outer, points, outward))
+        by_mask = np.subtract(*(ndimage.map_coordinates(geometry_silhouettes.signed_distance(s.mask), points[:, ::-1].T,
+                                                        order=1)
                                 for s in (inner, outer)))
         assert abs(np.mean(found) - shift) < 0.02, (shift, np.mean(found))
         error, mask_error = (np.sqrt(np.mean((x - shift) ** 2)) for x in (found, by_mask))

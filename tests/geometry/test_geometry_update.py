@@ -57,7 +57,8 @@ def test_unconfident_normals_leave_the_surface_where_it_was():
     random = rng.normal(size=vertices.shape)
     random /= np.linalg.norm(random, axis=1, keepdims=True)
     for reference in (None, 1.1 * vertices):  # held where it is, not pulled to the reference, when unsure
-        refined = geometry_update.refine_from_normals(vertices, faces, random, np.zeros(len(vertices)), reference=reference)
+        refined = geometry_update.refine_from_normals(vertices, faces, random, np.zeros(len(vertices)),
+                                                      reference=reference)
         np.testing.assert_allclose(refined, vertices, rtol=0, atol=1e-12)
     trusted = geometry_update.refine_from_normals(vertices, faces, random, np.ones(len(vertices)))
     assert np.max(np.abs(trusted - vertices)) > 1e-3
@@ -226,7 +227,8 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
 
     # A store that does not belong to the mesh is refused, naming both files.
     with pytest.raises(ParamsError, match="params.zarr.*mesh.ply"):
-        fit_finalize.finalize_model(tmp_path / "params.zarr", tmp_path / "mesh.ply", tmp_path / "x.ply", tmp_path / "x.zarr")
+        fit_finalize.finalize_model(tmp_path / "params.zarr", tmp_path / "mesh.ply", tmp_path / "x.ply",
+                                    tmp_path / "x.zarr")
 
 
 def fitted_sphere(vertices):
@@ -252,13 +254,14 @@ def test_silhouettes_move_the_mean_offset_that_normals_cannot_tell():
     for _ in range(3):
         normals = meshes.vertex_normals(vertices, faces)
         constraints = geometry_update.SilhouetteConstraints.concatenate([
-            geometry_update.silhouette_constraints(vertices, normals, camera.intrinsics, camera.rotation, camera.translation,
-                                            seen, coverage_masks(vertices, faces, [camera])[0])
+            geometry_update.silhouette_constraints(vertices, normals, camera.intrinsics, camera.rotation,
+                                                   camera.translation, seen,
+                                                   coverage_masks(vertices, faces, [camera])[0])
             for camera, seen in zip(cameras, observed)])
         assert len(constraints) > 200
         # 12 views give a tenth of the constraints per vertex of a real capture: ten times the default weight.
-        vertices = geometry_update.refine_from_normals(vertices, faces, unit, np.ones(len(unit)), silhouettes=constraints,
-                                                silhouette_weight=0.1)
+        vertices = geometry_update.refine_from_normals(vertices, faces, unit, np.ones(len(unit)),
+                                                       silhouettes=constraints, silhouette_weight=0.1)
     centre, radius = fitted_sphere(vertices)
     assert np.linalg.norm(centre) < 0.1e-3, centre
     assert abs(radius - RADIUS) < 0.1e-3, radius

@@ -233,6 +233,7 @@ def test_cameras_that_disagree_with_the_silhouettes_stop_the_stage(capture, tmp_
     assert str(bad) in message and "covers a median" in message and "do not describe these photographs" in message
     assert "cam_from_world" in message and "camera.fx, fy, cx, cy" in message
     assert not (tmp_path / "out").exists()
-    report = geometry_initial.make_initial_mesh(capture["hdr"], capture["root"] / "cameras.csv", capture["root"] / "sfm",
-                                                tmp_path / "good" / "init.ply", options=options)
+    report = geometry_initial.make_initial_mesh(capture["hdr"], capture["root"] / "cameras.csv",
+                                                capture["root"] / "sfm", tmp_path / "good" / "init.ply",
+                                                options=options)
     assert min(report["silhouette_coverage"].values()) > 0.95

@@ -39,7 +39,8 @@ def test_rotator_composes():
 
 def test_rotator_matches_mitsuba_example():
     # Mitsuba's documented example: R(45 deg) turns [1, 1, 0, 0] into [1, 0, -1, 0].
-    np.testing.assert_allclose(polar.rotator(jnp.asarray(np.pi / 4)) @ jnp.array([1.0, 1, 0, 0]), [1, 0, -1, 0], atol=1e-12)
+    np.testing.assert_allclose(polar.rotator(jnp.asarray(np.pi / 4)) @ jnp.array([1.0, 1, 0, 0]), [1, 0, -1, 0],
+                               atol=1e-12)
 
 
 def test_s0_and_dolp_invariant_under_frame_rotation():

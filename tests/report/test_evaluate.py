@@ -247,8 +247,8 @@ def test_evaluate_aligns_an_sfm_world_model_and_reports_nulls_without_ground_tru
     turned = rotations.copy()
     turned[1] = Rotation.from_euler("z", 0.1, degrees=True).as_matrix() @ turned[1]
     write_cameras(run / "initial.csv", view_ids, *sim.apply_to_poses(turned, translations))
-    metrics = report_metrics.evaluate_model(run / "model.ply", run / "cameras.csv", tiny_run["hdr"], tiny_run["capture"],
-                                       run / "metrics.json", params_path=run / "params.zarr",
+    metrics = report_metrics.evaluate_model(run / "model.ply", run / "cameras.csv", tiny_run["hdr"],
+                                            tiny_run["capture"], run / "metrics.json", params_path=run / "params.zarr",
                                        held_out=[view_ids[0]], geometry_samples=5000, supersample=1,
                                        initial_cameras=run / "initial.csv")
     assert metrics["alignment"]["method"] == "sim3+icp"

@@ -88,7 +88,8 @@ def _params(count, **values) -> PBRDFParams:
 
 
 def _tilted_plane():
-    """A 0.8 m square at z = 1 (filling the view) tilted about the y axis (normal (sin 25°, 0, -cos 25°)), camera at the origin."""
+    """A 0.8 m square at z = 1 (filling the view) tilted about the y axis (normal (sin 25°, 0, -cos 25°)), camera at
+    the origin."""
     tilt = np.radians(25.0)
     normal = np.array([np.sin(tilt), 0.0, -np.cos(tilt)])
     u = np.array([np.cos(tilt), 0.0, np.sin(tilt)])

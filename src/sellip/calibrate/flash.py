@@ -84,7 +84,8 @@ def pixel_rays(px: np.ndarray, intrinsics: Mapping) -> np.ndarray:
 
 
 def _outline(s0: np.ndarray, centroid: np.ndarray, radius: float, level: float) -> np.ndarray:
-    """(K, 2) sub-pixel points where s0 first falls below ``level`` coming in from outside, along rays from the centroid."""
+    """(K, 2) sub-pixel points where s0 first falls below ``level`` coming in from outside, along rays from the
+    centroid."""
     angles = np.linspace(0, 2 * np.pi, OUTLINE_SAMPLES, endpoint=False)
     radii = np.arange(1.4 * radius, 0.6 * radius, -0.25)
     dirs = np.stack([np.cos(angles), np.sin(angles)], axis=-1)

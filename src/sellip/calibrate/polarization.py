@@ -214,7 +214,8 @@ def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius
         weight = np.hypot(h[:, 1], h[:, 2])
         mean = 0.5 * np.arctan2(np.sum(weight * np.sin(2 * angles)), np.sum(weight * np.cos(2 * angles)))
         spread = np.sqrt(np.sum(weight * ((angles - mean + np.pi / 2) % np.pi - np.pi / 2) ** 2) / np.sum(weight))
-        polarizer, polarizer_std = float(np.degrees(mean) % 180), float(np.degrees(spread) / np.sqrt(len(highlight_pixels)))
+        polarizer = float(np.degrees(mean) % 180)
+        polarizer_std = float(np.degrees(spread) / np.sqrt(len(highlight_pixels)))
     else:
         polarizer, polarizer_std = float("nan"), float("nan")
     report = PolarizationReport(

@@ -123,7 +123,9 @@ def assemble_capture(frames_dir: str | Path, device: Mapping, distance_m: float,
         raise AssembleError(str(frames_dir), None, "not a folder; expected the folder of raw frames")
     if (pattern is None) == (csv is None):
         raise AssembleError("sellip capture new", None, "give exactly one of --pattern and --csv")
-    out = Path(out) if out is not None else (frames_dir.parent if frames_dir.name == capture_files.RAW_DIR else frames_dir)
+    if out is None:
+        out = frames_dir.parent if frames_dir.name == capture_files.RAW_DIR else frames_dir
+    out = Path(out)
     if not distance_m > 0:
         raise AssembleError("--distance-m", None, f"expected the typical camera-object distance in metres (> 0), "
                                                   f"got {distance_m}")
@@ -142,15 +144,17 @@ def assemble_capture(frames_dir: str | Path, device: Mapping, distance_m: float,
     for row in frames.itertuples(index=False):
         path = Path(os.path.normpath(out / row.file))  # `out` itself may not exist yet
         if not path.is_file():
-            raise capture_files.MissingFileError(str(out / capture_files.FRAMES_CSV), f"frame {row.frame_id!r}", f"file {path} missing")
+            raise capture_files.MissingFileError(str(out / capture_files.FRAMES_CSV), f"frame {row.frame_id!r}",
+                                                 f"file {path} missing")
         if check_raw:
             reader.read_raw_file(path, checked["sensor"], file_label=f"{path} (frame {row.frame_id!r})")
     out.mkdir(parents=True, exist_ok=True)
     written = []
     try:
         for name, write in ((capture_files.FRAMES_CSV, lambda f: frames.to_csv(f, index=False, float_format="%.10g")),
-                            (capture_files.CAPTURE_YAML, lambda f: yaml.safe_dump(writer.yaml_safe(checked), f, sort_keys=False,
-                                                                       default_flow_style=None))):
+                            (capture_files.CAPTURE_YAML, lambda f: yaml.safe_dump(writer.yaml_safe(checked), f,
+                                                                                  sort_keys=False,
+                                                                                  default_flow_style=None))):
             tmp = out / f".{name}.tmp-{os.getpid()}"
             written.append(tmp)
             with open(tmp, "w") as f:

@@ -104,8 +104,9 @@ def _schema_problem(error: jsonschema.ValidationError) -> tuple[str, str]:
         missing = error.message.split("'")[1] if "'" in error.message else error.message
         return _key_path(path + [missing]), "missing; this key is required"
     if error.validator == "additionalProperties":
+        patterns = error.schema.get("patternProperties", {})
         unknown = sorted(key for key in set(error.instance) - set(error.schema["properties"])
-                         if not any(re.match(pattern, str(key)) for pattern in error.schema.get("patternProperties", {})))
+                         if not any(re.match(pattern, str(key)) for pattern in patterns))
         allowed = sorted(error.schema["properties"]) + [f"{p.lstrip('^')}..." for p in error.schema.get(
             "patternProperties", {})]
         return _key_path(path + unknown[:1]), f"unknown key; expected only {allowed}"

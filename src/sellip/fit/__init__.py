@@ -87,8 +87,8 @@ from sellip._exports import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "augment_pass": ("cluster_rows", "cluster_and_fit_lobes"),
-    "clusters": ("CHROMA_SCALE", "LOG_BRIGHTNESS_SCALE", "ETA_SCALE", "VARIANCE_FLOOR", "REGION_OUTLIER_P", "REGION_EPS",
-           "REGION_MIN_SAMPLES", "REGION_FIT_POINTS", "CUT_ALBEDO_SD", "CUT_MODE_POINTS", "CUT_ETA_SE",
+    "clusters": ("CHROMA_SCALE", "LOG_BRIGHTNESS_SCALE", "ETA_SCALE", "VARIANCE_FLOOR", "REGION_OUTLIER_P",
+           "REGION_EPS", "REGION_MIN_SAMPLES", "REGION_FIT_POINTS", "CUT_ALBEDO_SD", "CUT_MODE_POINTS", "CUT_ETA_SE",
            "CUT_MODES_ALBEDO_SD", "AugmentSettings", "Clustering", "cluster_features", "kmeans", "bic", "choose_k",
            "spatial_coherence", "nearest_vertices", "vertex_coherence", "DEGENERATE_VARIANCE", "cluster_materials"),
     "finalize": ("finalize_model",),
@@ -103,7 +103,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "silhouette_distance", "relative_slope", "Visibility", "ViewObservations", "Observer",
            "ObservationWriter", "VertexObservations", "open_observations", "load_observations"),
     "observe_mesh": ("MISSING_POSES", "UNITS", "pair_views", "spread_subset", "observe_mesh"),
-    "parameterization": ("tangent_basis", "ETA_BOUND_MARGIN", "eta_at_bound", "virtual_geometry", "virtual_reflectance"),
+    "parameterization": ("tangent_basis", "ETA_BOUND_MARGIN", "eta_at_bound", "virtual_geometry",
+                         "virtual_reflectance"),
     "records": ("STATUS_FITTED", "STATUS_TOO_FEW_VIEWS", "STATUS_FAILED", "STATUS_NAMES", "ETA_BOUNDS", "SIGMA_BOUNDS",
            "LOBE_GAP", "LOBE_SETS", "MODELS", "DEFAULT_FIXED_SIGMA_SS", "FitSettings", "model_of", "model_arrays",
            "Observations", "VirtualSamples", "FitResult"),
@@ -116,6 +117,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "largest_shard", "ShardMemory", "SHARD_MEMORY", "ShardMemoryError", "available_memory", "memory_budget",
            "shard_memory_message", "fit_shard", "gather_shards"),
     "simulate": ("vertex_observations",),
-    "solver": ("Z_LIMIT", "PROGRESS_ITERATIONS", "STUCK_DAMPING", "HOLD_ROUNDS", "HOLD_ETA_TOLERANCE", "ROUGHNESS_GRID"),
+    "solver": ("Z_LIMIT", "PROGRESS_ITERATIONS", "STUCK_DAMPING", "HOLD_ROUNDS", "HOLD_ETA_TOLERANCE",
+               "ROUGHNESS_GRID"),
     "vertex_fit": ("select_views", "confidence_from_uncertainty", "fit_vertices", "default_prior"),
 })

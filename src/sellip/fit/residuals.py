@@ -277,7 +277,8 @@ def _residuals_from_terms(terms, v: _Vertex, settings: FitSettings):
     parts = [res_psi, res_d.ravel(), res_s.ravel(), res_phi.ravel()]
     if v.virtual is not None:  # lambda_s lambda_g sum_m w^a_m sum_c (I_s_hat - I_s_virtual)^2 (paper Eq. 24)
         pred_virtual = terms["virt_s"][:, None] * spec[0] + terms["virt_ss"][:, None] * spec[None, 1:]
-        parts.append((jnp.sqrt(settings.lambda_s * v.virtual.weight)[:, None] * (pred_virtual - v.virtual.target)).ravel())
+        weight = jnp.sqrt(settings.lambda_s * v.virtual.weight)[:, None]
+        parts.append((weight * (pred_virtual - v.virtual.target)).ravel())
     return jnp.concatenate(parts)
 
 
@@ -336,8 +337,8 @@ def _residuals_and_jacobian(z, v: _Vertex, frame: _Frame, settings: FitSettings,
         rows.append(residual(_view_terms(normal_i, eta, v, reflection=reflection), sigma_s, sigma_ss))
     for i in eta_cols:
         _, eta_i, _, _ = decode(i)
-        rows.append(residual(_view_terms(normal, eta_i, v, surface=surface, reflection=reflection_stokes(frames, eta_i)),
-                             sigma_s, sigma_ss))
+        terms_i = _view_terms(normal, eta_i, v, surface=surface, reflection=reflection_stokes(frames, eta_i))
+        rows.append(residual(terms_i, sigma_s, sigma_ss))
     for i in roughness:
         _, _, sigma_s_i, sigma_ss_i = decode(i)
         rows.append(residual(base, sigma_s_i, sigma_ss_i))

@@ -354,7 +354,8 @@ def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: F
         margins.append(decision_margin(first, chosen))
         table.update(first)  # model 1's row is the which-lobes question's where that is asked
     if len(lobed) > 1:  # which lobes: no Delta theta_h (selection.max_theta_error_deg); recorded after a "none" too
-        losses = _held_out_losses(lobed, pools, eta0, fit_settings, selection, selection.lobe_settings(augment_settings))
+        losses = _held_out_losses(lobed, pools, eta0, fit_settings, selection,
+                                  selection.lobe_settings(augment_settings))
         which, which_best, second = choose(losses, selection.tolerance, selection.standard_errors)
         table.update(second)
         if chosen != 0:

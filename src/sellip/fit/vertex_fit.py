@@ -80,7 +80,8 @@ def select_views(obs: Observations, normal, settings: FitSettings):
         # The fixed threshold, widened where the vertex's own colours spread more (texture finer
         # than a pixel, noise in dark vertices): only outliers of its own distribution go.
         spread = 1.4826 * _masked_median(distance, keep)
-        keep = usable & (distance < jnp.maximum(settings.chroma_threshold, settings.outlier_threshold * spread)[:, None])
+        threshold = jnp.maximum(settings.chroma_threshold, settings.outlier_threshold * spread)
+        keep = usable & (distance < threshold[:, None])
     cos_i = jnp.clip(jnp.sum(normal[:, None, :] * obs.to_light, -1), 0.05, 1)
     distance = jnp.where(keep, obs.light_distance, 1)
     log_albedo = jnp.log(jnp.maximum(mono, 1e-30) * distance**2 / cos_i)

@@ -166,7 +166,8 @@ def align_pose(points: np.ndarray, reference: np.ndarray, image: np.ndarray, cam
         directions_kept = basis.shape[1]
         if not directions_kept:  # a photograph that does not change with the pose (a flat, dark one)
             continue
-        solution = least_squares(lambda y: residual(basis @ y, rotation, translation, blurred), np.zeros(basis.shape[1]),  # noqa: B023 - used within this iteration only
+        solution = least_squares(lambda y: residual(basis @ y, rotation, translation, blurred),  # noqa: B023 - here only
+                                 np.zeros(basis.shape[1]),
                                  loss="soft_l1", f_scale=robust_scale, diff_step=1e-4, max_nfev=max_evaluations)
         rotation, translation = moved_pose(basis @ solution.x, rotation, translation, distance)
     cost_start = robust_cost(residual(np.zeros(6), rotation0, translation0, blurred))

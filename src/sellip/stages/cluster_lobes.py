@@ -19,8 +19,8 @@ Writes the directory ``--output`` (built under a temporary name, then renamed) w
 - ``clusters.json``: K, the BIC per K, the merges, the regions added (:func:`sellip.fit.clusters.cluster_materials`),
   ``degenerate``: what could not be computed on these data and what was done instead (a cluster without a
   confident vertex or a usable sample, albedos without spread; the run goes on, lower in confidence),
-  the settings (``settings``: the clustering's; ``fit_settings``: the lobe fit's) and the seed, and under ``model_selection`` per cluster the chosen model, the held-out loss of
-  every candidate and why.
+  the settings (``settings``: the clustering's; ``fit_settings``: the lobe fit's) and the seed, and under
+  ``model_selection`` per cluster the chosen model, the held-out loss of every candidate and why.
 
 Model selection (DESIGN §7, :mod:`sellip.fit.selection`, on unless ``--no-model-selection``): per cluster,
 the simplest model whose held-out loss is within the tolerance of the best; the cluster's lobe is

@@ -45,7 +45,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--shard", type=parse_shard, default=(0, 1), help="i-of-n (default 1-of-1: all vertices)")
     parser.add_argument("--output", type=Path, required=True, help="shard result (.npz)")
     parser.add_argument("--prior", type=Path, default=None,
-                        help="a parameter store to warm-start from (the previous iteration's, or this one's first pass)")
+                        help="a parameter store to warm-start from "
+                             "(the previous iteration's, or this one's first pass)")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a FitSettings field (repeatable)")

@@ -24,7 +24,8 @@ log = logging.getLogger(__name__)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--params", type=Path, required=True, help="the iteration's params store (fitted normals, pBRDF)")
+    parser.add_argument("--params", type=Path, required=True,
+                        help="the iteration's params store (fitted normals, pBRDF)")
     parser.add_argument("--mesh", type=Path, required=True, help="the iteration's mesh (the store's vertices)")
     parser.add_argument("--cameras", type=Path, required=True, help="the iteration's cameras.csv")
     parser.add_argument("--hdr", type=Path, required=True, help="hdr.zarr")
@@ -38,7 +39,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-shift-fraction", type=float, default=0.03,
                         help="a larger centre shift (fraction of the camera's distance) keeps the view's pose")
     parser.add_argument("--min-motion-px", type=float, default=0.0,
-                        help="a smaller move of the object (median, pixels) keeps the view's pose (0: every view moves)")
+                        help="a smaller move of the object (median, pixels) keeps the view's pose "
+                             "(0: every view moves)")
 
 
 def main(args: argparse.Namespace) -> int:
