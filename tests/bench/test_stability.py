@@ -77,6 +77,7 @@ def test_noise_scale_multiplies_the_noise_and_keeps_the_signal():
         SensorModel(width=8, height=8).with_noise_scale(0)
 
 
+@pytest.mark.slow
 def test_synth_records_the_noise_scale_and_the_workflow_passes_it(tmp_path):
     path = capture_synthetic.synthesize_capture("tiny_dark", tmp_path / "capture", views=1, width=64, height=48,
                                                 supersample=1, progress=False, noise_scale=3.0)
@@ -110,6 +111,7 @@ def _copy(capture, to):
     return to
 
 
+@pytest.mark.slow
 def test_bad_frames_skip_merges_from_the_other_frames_and_drops_empty_views(small_capture, tmp_path, caplog):
     from sellip.capture.hdr import merge_capture, read_hdr
     from sellip.capture.linearize import linearize_capture
@@ -409,6 +411,7 @@ def test_suite_writes_validated_tables_and_keeps_going_after_a_failure(tmp_path)
         stability_table.validate_table([{**table.iloc[0].to_dict(), "auc": 1.5}])
 
 
+@pytest.mark.slow
 def test_cli_lists_the_cases():
     out = subprocess.run([sys.executable, "-m", "sellip.cli", "bench-stability", "--help"], capture_output=True,
                          text=True, check=True).stdout

@@ -356,6 +356,7 @@ def _dry_run(workdir: Path, config: dict, targets=()) -> dict[str, int]:
             if len(line.split()) == 2 and line.split()[1].isdigit()}
 
 
+@pytest.mark.slow
 def test_linked_upstream_is_up_to_date_for_snakemake(tmp_path):
     """With the upstream outputs linked in, the real Snakefile plans only the loop and the evaluation."""
     capture = tmp_path / "captures" / "tiny"

@@ -313,6 +313,7 @@ def _frame_folder(tmp_path, names, width=64, height=48):
     return raw_dir, devices.read_device(path, complete=True), path
 
 
+@pytest.mark.slow
 def test_capture_new_from_a_pattern(tmp_path):
     names = [f"v{v:03d}_f{level}.dng" for v in range(3) for level in (4, 8, 16)]
     raw_dir, device, device_path = _frame_folder(tmp_path, names)
@@ -370,6 +371,7 @@ def test_flash_level_from_file_names():
 # --------------------------------------------------------------------------- the commands end to end
 
 
+@pytest.mark.slow
 def test_calibrate_commands_write_device_yaml(calib, tmp_path):
     folder, truth = calib
     device_path = tmp_path / "device.yaml"

@@ -34,6 +34,7 @@ def _files(root):
     return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
 
 
+@pytest.mark.slow
 def test_cli_writes_a_valid_capture_with_ground_truth(tmp_path):
     out = tmp_path / "captures" / "tiny"
     subprocess.run([sys.executable, "-m", "sellip.cli", "synth", "--scene", "tiny", "--out", str(out), "--views", "3",
@@ -56,6 +57,7 @@ def test_cli_writes_a_valid_capture_with_ground_truth(tmp_path):
     assert 0 < centre[0] / centre[2] < 64 and 0 < centre[1] / centre[2] < 48
 
 
+@pytest.mark.slow
 def test_same_seed_gives_byte_identical_files(tmp_path):
     a = capture_synthetic.synthesize_capture("tiny", tmp_path / "a", seed=3, **TINY)
     b = capture_synthetic.synthesize_capture("tiny", tmp_path / "b", seed=3, **TINY)
@@ -194,6 +196,7 @@ def test_png_frames_and_lens_distortion(tmp_path):
     assert capture.frames["file"].str.endswith(".png").all()
 
 
+@pytest.mark.slow
 def test_a_described_device_shoots_the_capture(tmp_path):
     """--device: the frames are shot with the device's lens, flash and polarizer, and capture.yaml describes it;
     --noise-seed changes the noise alone (same orbit); a size other than the device's is refused."""

@@ -54,6 +54,7 @@ def test_clean_data_recovers_the_parameters(flash_offset_m):
     assert np.all(result.confidence > 0.5)
 
 
+@pytest.mark.slow
 def test_noise_degrades_gracefully():
     """Errors grow with the noise and stay moderate: the fit does not break down."""
     medians = []
@@ -69,6 +70,7 @@ def test_noise_degrades_gracefully():
     assert angle < 0.5 and eta < 0.04 and albedo < 0.02, medians
 
 
+@pytest.mark.slow
 def test_views_from_several_azimuths_resolve_the_pi_ambiguity():
     """Views spread around an axis 30 deg from the normal. Started from the normal mirrored
     about that axis (60 deg away: the same zenith, and the same polarization angle modulo pi, in
@@ -90,6 +92,7 @@ def test_views_from_several_azimuths_resolve_the_pi_ambiguity():
     assert np.median(angle) < 0.5 and np.mean(angle < 1.0) >= 0.75, np.sort(angle)
 
 
+@pytest.mark.slow
 def test_eta_is_not_bent_by_a_diffuse_falloff_that_texture_below_the_pixel_makes():
     """A vertex brighter than the texture around it looks darker at grazing views, whose pixel footprint (1 / cos
     theta_o larger) takes in its darker surroundings, and one darker looks brighter: the diffuse part of every view
@@ -122,6 +125,7 @@ def test_eta_is_not_bent_by_a_diffuse_falloff_that_texture_below_the_pixel_makes
     assert max(abs(b) for b in bias[True]) < 1.0, bias
 
 
+@pytest.mark.slow
 def test_outlier_views_do_not_move_the_fit():
     """10 % of the views corrupted (a spurious bright reflection in all four analyzers)."""
     params, normals, obs, start = _scene(32, seed=4, noise=0.005)
@@ -153,6 +157,7 @@ def test_three_views_mean_too_few_views_and_finite_values():
     np.testing.assert_allclose(result.params.eta, 1.5)
 
 
+@pytest.mark.slow
 def test_sharded_and_unsharded_runs_agree():
     """Each vertex is an independent problem: splitting the vertices into shards changes nothing
     but floating-point round-off (different batch shapes vectorize differently; a poorly determined
@@ -172,6 +177,7 @@ def test_sharded_and_unsharded_runs_agree():
         np.testing.assert_allclose(a, np.concatenate(parts), rtol=1e-6, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_levenberg_marquardt_agrees_with_scipy_least_squares():
     """Same residuals, same start: scipy's trust-region solver reaches the same minimum. One fixed objective: the
     diffuse eta is not held (hold_diffuse_eta moves the objective between LM stages)."""
@@ -224,6 +230,7 @@ def test_solve_spd_matches_numpy():
     np.testing.assert_allclose(solve_spd(jnp.asarray(spd), jnp.asarray(rhs)), np.linalg.solve(spd, rhs), rtol=1e-10)
 
 
+@pytest.mark.slow
 def test_float32_fit_runs_and_is_accurate():
     params, normals, obs, start = _scene(32, seed=11)
     obs32 = Observations(*[np.asarray(x).astype(np.float32) if np.asarray(x).dtype == np.float64 else np.asarray(x)

@@ -67,6 +67,7 @@ def scene():
     return s
 
 
+@pytest.mark.slow
 def test_every_candidate_model_runs_one_compiled_program(scene):
     """The model is data to the cluster kernels, not a static argument: the four candidates of three
     clusters (twelve lobe fits and held-out scorings) compile each kernel once."""
@@ -211,6 +212,7 @@ def test_the_candidate_fits_have_no_half_angle_error_unless_asked():
         fit_selection.SelectionSettings(max_theta_error_deg=-1.0)
 
 
+@pytest.mark.slow
 def test_selection_drops_the_lobes_a_cluster_does_not_need_and_keeps_those_it_needs(scene):
     chosen = {name: s.model for name, s in scene["selection"].items()}
     print({name: s.reason for name, s in scene["selection"].items()})
@@ -227,6 +229,7 @@ def test_selection_drops_the_lobes_a_cluster_does_not_need_and_keeps_those_it_ne
     assert table[0]["excess"] > 10 * table[1]["held_out_loss"]  # the specular lobe is needed
 
 
+@pytest.mark.slow
 def test_selection_is_deterministic_for_a_seed(scene):
     again = _select(scene, "specular")
     first = scene["selection"]["specular"]
@@ -239,6 +242,7 @@ def _refit_models(scene):
     return np.where(scene["material"] == scene["names"].index("diffuse"), 0, 1)
 
 
+@pytest.mark.slow
 def test_fit_by_model_fits_every_vertex_with_its_model(scene):
     """A real grouped fit: the rows of each model are the plain fit of that model on them (to round-off), and
     the models are data to one compilation: a mix of every model compiles no LM kernel anew."""
@@ -304,6 +308,7 @@ def _write_stores(folder, scene):
                                        "status": np.zeros(n, np.int8)}, chunk=64)
 
 
+@pytest.mark.slow
 def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, scene, caplog, monkeypatch):
     from sellip.fit import finalize as fit_finalize
     from sellip.model.params import read_params

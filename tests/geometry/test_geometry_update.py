@@ -320,6 +320,7 @@ def tiny_capture(tmp_path_factory):
             "truth": read_param_mesh(folder / GROUND_TRUTH_MESH)}
 
 
+@pytest.mark.slow
 def test_the_true_model_predicts_the_photographs_silhouettes(tiny_capture):
     """The operator that cuts a dim limb cuts the render of the true model alike: the observed silhouettes lie
     within 0.05 pixel of the true model's rendered and developed like a photograph (mean over the contour of
@@ -346,6 +347,7 @@ def test_the_true_model_predicts_the_photographs_silhouettes(tiny_capture):
             assert np.sqrt(np.mean(explained ** 2)) > 0.4 and np.corrcoef(offset_px, explained)[0, 1] > 0.7
 
 
+@pytest.mark.slow
 def test_the_prediction_is_the_photograph_of_the_render(tiny_capture):
     """predicted_diffuse (a render of the 90-degree analyzer's raw pixels inside the model's box, one analyzer
     developed) equals the whole chain: every raw pixel rendered, sampled by the mosaic (sellip.capture.sensor),
@@ -374,6 +376,7 @@ def test_the_prediction_is_the_photograph_of_the_render(tiny_capture):
         np.testing.assert_allclose(predicted, np.where(whole > 0, whole, 1e-12), atol=1e-6 * whole.max())
 
 
+@pytest.mark.slow
 def test_the_stage_moves_a_displaced_model_onto_the_silhouettes(tiny_capture, tmp_path):
     """The true sphere 1.5 mm low (about 0.8 HDR pixel) with its normals: the update leaves it there without the
     silhouettes (normals cannot tell a translation) and takes it most of the way back with the photographs'

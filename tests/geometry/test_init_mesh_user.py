@@ -23,6 +23,8 @@ from sellip.geometry import scan as geometry_scan
 from sellip.geometry.initial import InitMeshError
 from sellip.model.ply import read_ply
 
+pytestmark = pytest.mark.slow  # the whole module: `make test-fast` leaves it out
+
 REPO = Path(__file__).resolve().parents[2]
 
 

@@ -198,6 +198,7 @@ def test_stage_timings_sum_per_rule_and_count_vertex_fits(tmp_path):
 # --------------------------------------------------------------------------- the stage
 
 
+@pytest.mark.slow
 def test_evaluate_cli_on_a_perfect_model(tiny_run, tmp_path):
     results = tiny_run["results"]
     bench = _fake_benchmarks(results)

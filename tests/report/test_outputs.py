@@ -184,6 +184,7 @@ def test_fit_scale_recovers_a_global_factor():
 # --------------------------------------------------------------------------- the stage
 
 
+@pytest.mark.slow
 def test_render_outputs_cli_writes_the_documented_files(tiny_run, tmp_path):
     out = tmp_path / "renders"
     views = tiny_run["view_ids"][1:3]
@@ -211,6 +212,7 @@ def test_render_outputs_cli_writes_the_documented_files(tiny_run, tmp_path):
     assert not any(p.name.startswith(".") for p in tmp_path.iterdir())
 
 
+@pytest.mark.slow
 def test_render_outputs_names_a_missing_model(tiny_run, tmp_path):
     missing = tmp_path / "nothing.ply"
     run = subprocess.run([sys.executable, "-m", "sellip.cli", "render-outputs", "--model", str(missing),

@@ -166,6 +166,7 @@ def test_viewer_folder_holds_the_model_arrays(results, written):
     assert meta["intrinsics"]["width"] == 512 and len(meta["materials"]["rows"]) == 2
 
 
+@pytest.mark.slow
 def test_no_finished_model_is_a_clear_error(tmp_path):
     from sellip.report.viewer import ViewerError, load_inputs
 
@@ -187,6 +188,7 @@ def test_an_older_model_without_some_properties_disables_those_maps(tmp_path):
     assert "rho_ss" not in meta["arrays"] and "eta" in meta["arrays"]
 
 
+@pytest.mark.slow
 def test_serve_answers_on_localhost(results, written):
     import socket
     import time

@@ -26,8 +26,8 @@ BROWSER_ARGS = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-sw
 RESULTS = os.environ.get("SELLIP_VIEWER_RESULTS")
 HELD_OUT = os.environ.get("SELLIP_VIEWER_VIEW", "v005")
 
-pytestmark = pytest.mark.skipif(not shutil.which("chromium"),
-                                reason="needs Debian's chromium (apt-get install chromium)")
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(not shutil.which("chromium"),
+                                                    reason="needs Debian's chromium (apt-get install chromium)")]
 
 
 def srgb(linear: np.ndarray) -> np.ndarray:
