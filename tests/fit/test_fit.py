@@ -190,10 +190,10 @@ def test_levenberg_marquardt_agrees_with_scipy_least_squares():
     residual = jax.jit(lambda z, v, f: fit_residuals._residuals(z, v, f, settings))
     jacobian = jax.jit(jax.jacfwd(lambda z, v, f: fit_residuals._residuals(z, v, f, settings)))
     for i in range(6):
-        v = jax.tree_util.tree_map(lambda x: x[i], records)  # noqa: B023 - used within this iteration only
-        f = jax.tree_util.tree_map(lambda x: x[i], frames)  # noqa: B023 - used within this iteration only
-        theirs = optimize.least_squares(lambda z: np.asarray(residual(jnp.asarray(z), v, f)), np.asarray(z0[i]),  # noqa: B023 - used within this iteration only
-                                        jac=lambda z: np.asarray(jacobian(jnp.asarray(z), v, f)), method="trf",  # noqa: B023 - used within this iteration only
+        v = jax.tree_util.tree_map(lambda x: x[i], records)  # noqa: B023 - called in this iteration
+        f = jax.tree_util.tree_map(lambda x: x[i], frames)  # noqa: B023 - called in this iteration
+        theirs = optimize.least_squares(lambda z: np.asarray(residual(jnp.asarray(z), v, f)), np.asarray(z0[i]),  # noqa: B023 - called in this iteration
+                                        jac=lambda z: np.asarray(jacobian(jnp.asarray(z), v, f)), method="trf",  # noqa: B023 - called in this iteration
                                         xtol=1e-12, ftol=1e-12, gtol=1e-12)
         their_loss = 2 * theirs.cost
         assert result.loss[i] <= their_loss * 1.01 + 1e-10, (i, result.loss[i], their_loss)

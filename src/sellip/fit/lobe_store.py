@@ -108,8 +108,7 @@ def recorded_fit_settings(clusters_json: dict, path: Path | str = "clusters.json
 def clustering_settings(clusters_json: dict, overrides: dict | None = None):
     """The :class:`sellip.fit.clusters.AugmentSettings` a ``clusters.json`` (its parsed dict) was made with,
     ``overrides`` (field: value) over them: how a replay re-runs a pass's clustering or lobe fit as the workflow ran it
-    (the
-    :class:`sellip.fit.records.FitSettings` of the lobe fit are its ``fit_settings``)."""
+    (the :class:`sellip.fit.records.FitSettings` of the lobe fit are its ``fit_settings``)."""
     from sellip.fit.clusters import AugmentSettings
 
     fields = {f.name for f in dataclasses.fields(AugmentSettings)}

@@ -34,8 +34,7 @@ def predicted_diffuse(renderer, camera, capture, plan) -> np.ndarray:
     rendered at the raw sensor's resolution and lens (:func:`raw_camera`) under the capture's flash, sampled by
     its polarization and colour mosaic and developed like a photograph (``plan``:
     :func:`sellip.capture.ingest.make_ingest_plan`; :func:`sellip.capture.ingest.develop`), so that the demosaicing
-    blurs its
-    silhouette as it blurs the photograph's. The background is a tiny positive value: the silhouette
+    blurs its silhouette as it blurs the photograph's. The background is a tiny positive value: the silhouette
     operator then ranks the same pixels as in a photograph, whose background is noise, not zero
     (:func:`sellip.geometry.silhouettes.silhouette_level` takes its level from a percentile of the positive pixels).
 
@@ -86,9 +85,8 @@ def measure_silhouettes(mesh, mesh_normals: np.ndarray, shading_normals: np.ndar
     (``mesh`` with its geometric ``mesh_normals`` (V, 3), shaded with ``shading_normals`` (V, 3) and ``params``)
     as the camera would photograph it (:func:`predicted_diffuse`), both placed to a fraction of a pixel
     (:class:`sellip.geometry.silhouettes.Silhouette`, :func:`sellip.geometry.update.silhouette_constraints`). Returns
-    the constraints
-    and a per-view summary (constraints; the mean and RMS offset in pixels, positive where the photograph's
-    silhouette lies outside)."""
+    the constraints and a per-view summary (constraints; the mean and RMS offset in pixels, positive where the
+    photograph's silhouette lies outside)."""
     from sellip.capture.ingest import make_ingest_plan
     from sellip.capture.reader import read_capture
     from sellip.geometry.cameras import diffuse_view, load_cameras

@@ -277,8 +277,8 @@ def _residuals_from_terms(terms, v: _Vertex, settings: FitSettings):
     parts = [res_psi, res_d.ravel(), res_s.ravel(), res_phi.ravel()]
     if v.virtual is not None:  # lambda_s lambda_g sum_m w^a_m sum_c (I_s_hat - I_s_virtual)^2 (paper Eq. 24)
         pred_virtual = terms["virt_s"][:, None] * spec[0] + terms["virt_ss"][:, None] * spec[None, 1:]
-        weight = jnp.sqrt(settings.lambda_s * v.virtual.weight)[:, None]
-        parts.append((weight * (pred_virtual - v.virtual.target)).ravel())
+        sqrt_w_virtual = jnp.sqrt(settings.lambda_s * v.virtual.weight)[:, None]
+        parts.append((sqrt_w_virtual * (pred_virtual - v.virtual.target)).ravel())
     return jnp.concatenate(parts)
 
 

@@ -49,7 +49,7 @@ def vertex_observations(rng: np.random.Generator, params: PBRDFParams, normals, 
     analyzers = np.empty((n, n_views, 4, 3), dtype)
     for start in range(0, n, chunk):
         rows = slice(start, min(n, start + chunk))
-        as_j = lambda x: jnp.asarray(x[rows], dtype)  # noqa: B023 - used within this iteration only
+        as_j = lambda x: jnp.asarray(x[rows], dtype)  # noqa: B023 - called in this iteration
         point_params = PBRDFParams(*[jnp.broadcast_to(jnp.asarray(np.asarray(p)[rows], dtype)[:, None],
                                                       (rows.stop - rows.start, n_views) + np.shape(p)[1:])
                                      for p in params])

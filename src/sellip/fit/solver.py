@@ -262,7 +262,7 @@ def _map_batches(kernel, rows: np.ndarray, records: _Vertex, frames: _Frame, bat
         part = jax.tree_util.tree_map(np.asarray, part)
         if out is None:
             n = len(records.weight)
-            out = jax.tree_util.tree_map(lambda x: np.zeros((n,) + x.shape[1:], x.dtype), part)  # noqa: B023 - used within this iteration only
+            out = jax.tree_util.tree_map(lambda x: np.zeros((n,) + x.shape[1:], x.dtype), part)  # noqa: B023 - called in this iteration
 
         def scatter(full, new, index=index):
             full[(index,) + tuple(slice(0, k) for k in new.shape[1:])] = new
