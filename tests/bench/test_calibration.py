@@ -67,6 +67,7 @@ def test_perturbed_capture_shares_the_frames(tmp_path):
     assert changed["camera"]["fx"] == pytest.approx(1.005 * _config()["camera"]["fx"])
 
 
+@pytest.mark.slow
 def test_a_noisy_chart_gives_a_worse_matrix():
     """A chart shot with 8x the sensor noise: the fitted matrix moves off the true one and its mean ΔE2000 grows
     (measured at 612x512: 0.77 for the calibration set's chart, 1.31 for this one)."""

@@ -51,6 +51,7 @@ def test_psnr_ceiling_falls_when_the_truth_has_fewer_vertices(tmp_path):
     assert reduced["mean_db"] < full["mean_db"] - 5
 
 
+@pytest.mark.slow
 def test_render_rung_of_both_renderers_agrees_on_a_mitsuba_capture(tmp_path):
     """render_hdr draws the truth noise-free at the HDR grid with either renderer; on a scene both can draw
     (tiny_plain: no single scattering) the two agree pixel by pixel two pixels in from the silhouettes, which is

@@ -87,6 +87,7 @@ def test_refined_corners_lie_on_the_true_projection_and_the_window_follows_the_s
 # --------------------------------------------------------------------------- intrinsics
 
 
+@pytest.mark.slow
 def test_intrinsics_recover_the_truth(calib):
     folder, truth = calib
     device = truth["device"]
@@ -103,6 +104,7 @@ def test_intrinsics_recover_the_truth(calib):
     assert result.rms_px < 0.2
 
 
+@pytest.mark.slow
 def test_intrinsics_are_bit_identical_between_runs(calib):
     """Deterministic for the same frames: OpenCV's thread pool made fx ... vary in the 12th digit between runs
     (intrinsics.opencv_single_threaded fixes it); two runs on 8 frames must agree bit for bit."""
@@ -114,6 +116,7 @@ def test_intrinsics_are_bit_identical_between_runs(calib):
     assert runs[0].per_frame == runs[1].per_frame
 
 
+@pytest.mark.slow
 def test_bad_board_frames_are_named_and_too_few_is_an_error():
     device = synthetic.true_device(W, H)
     poses = synthetic.board_poses(SPEC, device, 3, np.random.default_rng(7))
@@ -141,6 +144,7 @@ def _calibrated(truth):
     return copy.deepcopy(truth["device"])
 
 
+@pytest.mark.slow
 def test_flash_position_from_sphere_highlights(calib):
     folder, truth = calib
     device = _calibrated(truth)
@@ -182,6 +186,7 @@ def test_nearest_point_ignores_one_bad_line():
     assert np.linalg.norm(x - target) < 5e-4 and weights[0] < 0.2 and distances[0] > 0.01
 
 
+@pytest.mark.slow
 def test_clipped_sphere_and_saturated_highlight_are_named():
     device = synthetic.true_device(W, H)
     radius = 0.012
@@ -205,6 +210,7 @@ def test_clipped_sphere_and_saturated_highlight_are_named():
 # --------------------------------------------------------------------------- polarization
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("claimed, polarizer, layout_ok, polarizer_ok, what", [
     ([[90, 45], [135, 0]], 0.0, True, True, None),
     ([[90, 135], [45, 0]], 0.0, False, True, "45 and 135 swapped"),
@@ -237,6 +243,7 @@ def test_permutation_relabels_the_analyzer_axis():
 # --------------------------------------------------------------------------- colour
 
 
+@pytest.mark.slow
 def test_color_matrix_from_the_chart(calib):
     folder, truth = calib
     device = _calibrated(truth)
@@ -247,6 +254,7 @@ def test_color_matrix_from_the_chart(calib):
     assert np.abs(result.matrix - true_matrix).max() / np.abs(true_matrix).max() < 0.05
 
 
+@pytest.mark.slow
 def test_chart_in_shadow_names_the_patches():
     device = synthetic.true_device(W, H)
     rotation = np.eye(3)

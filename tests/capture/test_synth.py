@@ -169,6 +169,7 @@ def test_handheld_orbit_is_irregular_and_frames_the_object():
         assert 0.35 * 612 < u < 0.65 * 612 and 0.35 * 512 < v < 0.65 * 512
 
 
+@pytest.mark.slow
 def test_demo_highlights_saturate_at_the_strongest_flash_while_diffuse_stays_in_range(demo_scene):
     """Looking straight at the owl's face: the glossy eyes saturate at flash 1/4; at 1/16 the object is mid-range."""
     scene = demo_scene
@@ -187,6 +188,7 @@ def test_demo_highlights_saturate_at_the_strongest_flash_while_diffuse_stays_in_
     assert np.mean(weak[on_object] >= sensor.white_level) == 0
 
 
+@pytest.mark.slow
 def test_png_frames_and_lens_distortion(tmp_path):
     distortion = [-0.1, 0.02, 0.0, 0.0, 0.0]
     path = capture_synthetic.synthesize_capture("tiny", tmp_path / "cap", seed=0, raw_format="png",

@@ -26,6 +26,8 @@ from sellip.model.conventions import observations_from_analyzers, stokes_to_anal
 from sellip.model.fresnel import fresnel
 from sellip.model.pbrdf import PBRDFParams, full_stokes, lobe_stokes
 
+pytestmark = pytest.mark.slow  # the whole module: `make test-fast` leaves it out
+
 MATERIALS = (  # eta, rho_d, rho_s, sigma_s, rho_ss, sigma_ss
     (1.4, (0.6, 0.25, 0.15), 0.8, 0.08, (0.15, 0.06, 0.04), 0.5),
     (1.6, (0.2, 0.45, 0.2), 0.5, 0.15, (0.05, 0.12, 0.05), 0.6),
@@ -135,7 +137,6 @@ def test_virtual_reflectance_is_the_coaxial_reflection_of_the_full_model():
     np.testing.assert_allclose(reflection[:, 1], shading * fresnel(jnp.ones(()), 1.6).r_plus, rtol=1e-10)
 
 
-@pytest.mark.slow
 def test_augmentation_recovers_the_lobes_of_vertices_that_never_see_their_highlight(scene):
     p, unseen = scene["params"], ~scene["facing"]
     errors = {}
@@ -178,7 +179,6 @@ def _rotation_to(normal):
     return np.stack([x, np.cross(z, x), z], 1)
 
 
-@pytest.mark.slow
 def test_the_number_of_materials_is_recovered(scene):
     clusters = scene["clusters"]
     assert len(clusters.centres) == 3, clusters.bic
@@ -266,7 +266,6 @@ def test_a_few_vertices_of_a_narrower_brighter_lobe_do_not_take_the_cluster_lobe
     assert (fits[36, 3].eta, fits[36, 3].sigma_s) == (fits[36, 0].eta, fits[36, 0].sigma_s)
 
 
-@pytest.mark.slow
 def test_clusters_and_lobes_are_deterministic_for_a_seed(scene):
     plain = scene["plain"]
     again = fit_clusters.cluster_materials(plain.params.eta, plain.params.rho_d, plain.status, plain.confidence,
@@ -301,7 +300,6 @@ def _write_stores(folder, scene):
     assert n == 120
 
 
-@pytest.mark.slow
 def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
     _write_stores(tmp_path, scene)
     clusters = tmp_path / "clusters"
@@ -551,7 +549,6 @@ def test_a_small_region_of_another_albedo_becomes_its_own_material_and_scattered
         assert abs(np.median(eta) / 1.62 - 1) > 0.07  # what the one cluster gave them
 
 
-@pytest.mark.slow
 def test_stage_degrades_when_no_vertex_is_confident_or_has_a_usable_sample(tmp_path, scene):
     """Every vertex with too few views and no usable sample: one cluster, no lobe (model 0, 0 samples), the reason
     in clusters.json's ``degenerate``, and the refit reads it: the run goes on (it used to raise)."""

@@ -42,6 +42,7 @@ def _errors(result, params, normals):
     return angle, eta, albedo
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("flash_offset_m", [0.0, FLASH_3_5_DEG], ids=["coaxial", "flash_3.5deg"])
 def test_clean_data_recovers_the_parameters(flash_offset_m):
     params, normals, obs, start = _scene(48, seed=1, flash_offset_m=flash_offset_m)
@@ -144,6 +145,7 @@ def test_outlier_views_do_not_move_the_fit():
     assert np.mean(robust.views_used) < np.mean(clean.views_used) - 2
 
 
+@pytest.mark.slow
 def test_three_views_mean_too_few_views_and_finite_values():
     params, normals, obs, start = _scene(8, seed=6)
     usable = np.zeros(np.shape(obs.usable), bool)

@@ -179,6 +179,7 @@ def _lobe(loss, rho_s=1.0, rho_ss=(0.0, 0.0, 0.0), sigma_s=0.1, sigma_ss=0.5):
                                  samples=100, loss=loss, theta_h_deg=np.zeros(0), value=np.zeros(0))
 
 
+@pytest.mark.slow
 def test_nested_fits_give_each_model_the_best_training_fit_of_its_family():
     """The near-mirror of the stability suite: model 3's fit ended with no single scattering at a worse training loss
     than model 1's; it must then score as model 1's fit, not as a lobe of its own (and the other way round)."""
@@ -200,6 +201,7 @@ def test_nested_fits_give_each_model_the_best_training_fit_of_its_family():
     assert fit_selection.in_family(_lobe(1.0, rho_ss=(0.1, 0, 0), sigma_ss=0.9), 2, 0.9)
 
 
+@pytest.mark.slow
 def test_the_candidate_fits_have_no_half_angle_error_unless_asked():
     augment = fit_clusters.AugmentSettings()
     assert augment.max_theta_error_deg > 0 and augment.alternations > 0  # the chosen lobe's fit keeps it

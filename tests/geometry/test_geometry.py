@@ -285,6 +285,7 @@ def test_boundary_distance_measures_a_sub_pixel_shift_of_a_dim_limb():
         assert error < 0.15 and error < 0.5 * mask_error, (shift, error, mask_error)
 
 
+@pytest.mark.slow
 def test_visual_hull_tolerates_a_bad_mask_and_reports_it():
     vertices, faces = sphere(0.05)
     cameras = orbit(24)
@@ -300,6 +301,7 @@ def test_visual_hull_tolerates_a_bad_mask_and_reports_it():
     assert np.delete(carving.disagreement, 5).max() < 0.02
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shape", ["sphere", "torus"])
 def test_initial_mesh_from_silhouettes(shape):
     """Convex (sphere) and concave, genus-1 (torus) objects: Chamfer distance < 3% of the object's size."""

@@ -96,6 +96,7 @@ def test_failed_fits_leave_the_surface_where_it_was():
     assert errors["flagged"] < 0.3 * errors["trusted"], errors
 
 
+@pytest.mark.slow
 def test_bumps_converge_from_a_smooth_start():
     """tiny_bumpy's 4 mm bumps and dents, from the plain sphere (what the hull gives where no silhouette shows
     them): with the normals a perfect fit would find at each vertex (the true surface's at its nearest point),
@@ -238,6 +239,7 @@ def fitted_sphere(vertices):
     return solution[:3], float(np.sqrt(solution[3] + solution[:3] @ solution[:3]))
 
 
+@pytest.mark.slow
 def test_silhouettes_move_the_mean_offset_that_normals_cannot_tell():
     """A sphere 0.5 mm low and 0.3 mm small, with its own (exact-shape) normals: normals alone leave it where
     it is (the anchor holds it); the silhouette constraints of 12 views (1 px = 0.5 mm) take it to the observed
@@ -268,6 +270,7 @@ def test_silhouettes_move_the_mean_offset_that_normals_cannot_tell():
     assert np.std(np.linalg.norm(vertices - centre, axis=1)) < 0.03e-3
 
 
+@pytest.mark.slow
 def test_silhouettes_do_not_roughen_a_part_the_normals_do_not_see():
     """The same low, small sphere with confidence 0 below 17 degrees of latitude south (a part no fit sees): over
     five updates with the silhouettes, the stiff offsets there (smoothness_unconfident) keep it a sphere (radial std
