@@ -324,6 +324,7 @@ def test_initial_mesh_from_silhouettes(shape):
     assert np.mean(np.einsum("ij,ij->i", mesh.normals, mesh.vertices - centre) > 0) > 0.98
 
 
+@pytest.mark.slow
 def test_sparse_points_open_a_concavity_the_silhouettes_cannot():
     """A bowl: silhouettes fill it to the rim; SfM-like points on its inside, seen from above, hollow it out."""
     vertices, faces = bowl()

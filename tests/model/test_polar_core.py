@@ -178,6 +178,7 @@ def _observations(stokes):
     return conventions.observations_from_analyzers(conventions.stokes_to_analyzers(stokes, axis=-2))
 
 
+@pytest.mark.slow
 def test_full_model_tends_to_coaxial_model():
     """At exact coaxial geometry, full = coaxial model times the incident T- factors the paper drops.
 
@@ -273,6 +274,7 @@ def test_float32_in_float32_out():
                                 geom["camera_up"], params).diffuse.dtype == jnp.float32
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["normal_incidence", "grazing", "theta_h_zero", "small_sigma", "retro"])
 def test_gradients_are_finite_at_edge_cases(case):
     theta, offset, sigma = {"normal_incidence": (0.0, 3.5, 0.3), "grazing": (89.9, 3.5, 0.3),

@@ -101,6 +101,7 @@ def _tilted_plane():
     return mesh, camera, normal
 
 
+@pytest.mark.slow
 def test_mueller_block_of_the_renderer_matches_full_mueller_at_each_pixel():
     """Three renders with incident Stokes basis states give the pBRDF's 3x3 Mueller block, pixel by pixel."""
     mesh, camera, normal = _tilted_plane()
