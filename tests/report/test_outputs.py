@@ -224,6 +224,7 @@ def test_render_outputs_names_a_missing_model(tiny_run, tmp_path):
     assert not (tmp_path / "r").exists()
 
 
+@pytest.mark.slow
 def test_render_outputs_skips_views_without_a_pose_and_defaults_when_none_is_given(tiny_run, tmp_path):
     from sellip.report import outputs as report_outputs
 
