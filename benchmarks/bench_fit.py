@@ -140,7 +140,7 @@ def main() -> int:
         angle = np.degrees(np.arccos(np.clip(np.sum(normal * normals[rows], -1), -1, 1)))
         eta = 100 * np.abs(np.asarray(params.eta) / truth.eta[rows] - 1)
         albedo = 100 * np.abs(np.asarray(params.rho_d) / truth.rho_d[rows] - 1).mean(-1)
-        q = lambda x: f"{np.median(x):.3f} / {np.percentile(x, 90):.3f}"  # noqa: E731
+        q = lambda x: f"{np.median(x):.3f} / {np.percentile(x, 90):.3f}"
         return f"normal {q(angle)} deg, eta {q(eta)} %, albedo {q(albedo)} % (median / p90)"
 
     # sellip: the shards side by side, one process and one core each.
@@ -160,7 +160,7 @@ def main() -> int:
             w.join()
             if w.exitcode != 0:
                 raise RuntimeError(f"a fit worker failed (exit code {w.exitcode})")
-        load = lambda name: np.concatenate([np.load(Path(folder) / f"{name}_{a}.npy") for a in bounds[:-1]])  # noqa: E731
+        load = lambda name: np.concatenate([np.load(Path(folder) / f"{name}_{a}.npy") for a in bounds[:-1]])
         result_normal, result_params = load("normal"), truth._replace(eta=load("eta"), rho_d=load("rho_d"))
     ours = max(t[1] for t in timings)
     ours_cpu = sum(t[2] for t in timings)
@@ -176,12 +176,12 @@ def main() -> int:
     os.sched_setaffinity(0, {cores[0]}) if hasattr(os, "sched_setaffinity") else None
     settings = dataclasses.replace(FitSettings(), lobes="full", sigma_ss_fixed=None)
     m = min(args.baseline, n)
-    as64 = lambda x: np.asarray(x, np.float64) if np.asarray(x).dtype.kind == "f" else np.asarray(x)  # noqa: E731
+    as64 = lambda x: np.asarray(x, np.float64) if np.asarray(x).dtype.kind == "f" else np.asarray(x)
     sub = type(obs)(*[jnp.asarray(as64(x[:m])) for x in obs])
     sub_prior = type(prior)(*[jnp.asarray(np.asarray(x[:m], np.float64)) for x in prior])
     residual = jax.jit(lambda z, v, f: fit_residuals._residuals(z, v, f, settings))
     weights = jax.jit(lambda z, v, f: fit_vertex_fit._robust_weights(z, v, f, settings))
-    take = lambda tree, i: jax.tree_util.tree_map(lambda x: x[i], tree)  # noqa: E731
+    take = lambda tree, i: jax.tree_util.tree_map(lambda x: x[i], tree)
     grid = np.asarray(solver.ROUGHNESS_GRID)
 
     def baseline_fit(v, f, z):

@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from sellip.capture import reader
 from sellip.calibrate import color, flash, intrinsics, polarization
 from sellip.calibrate.synthetic import BoardSpec, synthesize_calibration
+from sellip.capture import reader
 
 
 def main() -> None:

@@ -12,8 +12,7 @@ import importlib
 import logging
 import sys
 
-from sellip import timing
-from sellip import workflow_support
+from sellip import timing, workflow_support
 
 # command name -> (module under sellip.stages, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {

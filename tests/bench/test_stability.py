@@ -20,8 +20,8 @@ from sellip.bench.sweep_plan import merge
 from sellip.capture import files, reader
 from sellip.capture import synthetic as capture_synthetic
 from sellip.capture.scenes import build_scene, icosphere
-from sellip.geometry.meshes import vertex_normals
 from sellip.capture.sensor import SensorModel, simulate_raw
+from sellip.geometry.meshes import vertex_normals
 from sellip.model import ply as model_ply
 
 REPO = Path(__file__).resolve().parents[2]

@@ -166,7 +166,7 @@ def test_colours_share_the_guide_resolution_and_polarization():
     height, width, period = 64, 96, 16.0
     hue = np.array([0.7, 1.0, 0.45])
     polarization = 1 + 0.2 * np.cos(np.radians(2 * (np.array(ANALYZER_ANGLES_DEG) - 30.0)))
-    texture = lambda x, y: 0.6 + 0.3 * np.sin(2 * np.pi * x / period) * np.cos(2 * np.pi * y / (1.3 * period))  # noqa: E731
+    texture = lambda x, y: 0.6 + 0.3 * np.sin(2 * np.pi * x / period) * np.cos(2 * np.pi * y / (1.3 * period))
     y, x = np.mgrid[0:height, 0:width].astype(np.float64)
     a, c = layout.analyzer_map(height, width), layout.color_map(height, width)
     linear = (0.5 * texture(x, y) * hue[c] * polarization[a]).astype(np.float32)
@@ -246,7 +246,7 @@ def test_undistorted_output_matches_output_intrinsics():
     y, x = np.mgrid[0:height, 0:width].astype(np.float64)
     xn, yn = undistort_normalized((x - camera["cx"]) / camera["fx"], (y - camera["cy"]) / camera["fy"],
                                   camera["distortion"])
-    scene = lambda xn, yn: 0.4 + 0.25 * xn - 0.2 * yn  # noqa: E731
+    scene = lambda xn, yn: 0.4 + 0.25 * xn - 0.2 * yn
     raw = np.rint(scene(xn, yn) * 65535).astype(np.uint16)
     plan = ingest.make_ingest_plan({"width": width, "height": height, "black_level": 0, "white_level": 65535},
                                    camera, layout)

@@ -12,8 +12,8 @@ from collections import Counter
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import unit
 
+from helpers import unit
 from sellip import cli
 from sellip.fit import clusters as fit_clusters
 from sellip.fit import lobes as fit_lobes

@@ -6,9 +6,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import make_params, unit
 from scipy import optimize
 
+from helpers import make_params, unit
 from sellip.fit import parameterization, vertex_fit
 from sellip.fit import residuals as fit_residuals
 from sellip.fit import solver as fit_solver

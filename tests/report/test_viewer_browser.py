@@ -42,8 +42,7 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 @pytest.fixture(scope="module")
 def viewer(tmp_path_factory):
     """(results folder, index.html, the flash of its capture)."""
-    from sellip.report.viewer import load_inputs, write_viewer
-    from sellip.report.viewer import find_capture
+    from sellip.report.viewer import find_capture, load_inputs, write_viewer
 
     if RESULTS:
         results = Path(RESULTS)

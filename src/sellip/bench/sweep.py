@@ -48,9 +48,9 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 from sellip.bench.sweep_plan import (
     FACTORS,

@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sellip.capture import ingest
 from sellip.calibrate.intrinsics import CalibrationError
+from sellip.capture import ingest
 from sellip.capture.mosaic import mosaic_layout
 
 MIN_PATCH_LEVEL = 0.02

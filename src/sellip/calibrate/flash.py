@@ -35,8 +35,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from sellip.capture import ingest
 from sellip.calibrate.intrinsics import CalibrationError
+from sellip.capture import ingest
 from sellip.capture.mosaic import mosaic_layout
 
 MIN_HIGHLIGHTS = 6

@@ -26,11 +26,8 @@ from pathlib import Path
 import pandas as pd
 import yaml
 
+from sellip.capture import capture_yaml, reader, tables, writer
 from sellip.capture import files as capture_files
-from sellip.capture import reader
-from sellip.capture import tables
-from sellip.capture import writer
-from sellip.capture import capture_yaml
 
 RAW_SUFFIXES = capture_files.RAWPY_SUFFIXES + capture_files.TIFF_SUFFIXES + capture_files.PNG_SUFFIXES
 FIELDS = {"view": r"(?P<view>[A-Za-z0-9._-]+?)", "level": r"(?P<level>[0-9]+(?:[.][0-9]+)?)"}

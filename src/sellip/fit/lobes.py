@@ -128,7 +128,7 @@ def _pool_samples(obs: Observations, normals, rho_d, settings: FitSettings, max_
     size = fit_solver._bucket(max_samples, minimum=256)
     index_v = np.resize(vertex, size) if count else np.zeros(size, int)
     index_k = np.resize(view, size) if count else np.zeros(size, int)
-    take = lambda x: np.asarray(x)[index_v, index_k]  # noqa: E731
+    take = lambda x: np.asarray(x)[index_v, index_k]
     diffuse = take(obs.diffuse)
     valid = np.arange(size) < count
     scale = float(np.median(diffuse[:count].mean(-1))) if count else 1.0

@@ -330,7 +330,7 @@ def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: F
         top = candidates[-1]
         return Selection(top, {}, None, f"{n} vertices: too few to hold {selection.min_held_out_vertices} out "
                                         f"(kept the most complex candidate, {top})", train_count, held_count, 0)
-    take = lambda rows: Observations(*[np.asarray(x)[rows] for x in obs])  # noqa: E731
+    take = lambda rows: Observations(*[np.asarray(x)[rows] for x in obs])
     normals, rho_d = np.asarray(normals), np.asarray(rho_d)
     pools = []
     for fold, (train, held) in enumerate(splits):  # fold 0's generators are those of the single split

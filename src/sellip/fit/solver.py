@@ -123,7 +123,7 @@ def _lm_step(state: _LMState, v: _Vertex, frame: _Frame, settings: FitSettings, 
     flat = (better & (rel_gain < tolerance) & (damping < 1e-2)) | (model_gain < tolerance)
     converged = stationary | flat | (loss_new < 1e-14)
     stalled = (~better) & (damping > 1e8)
-    pick = lambda new, old: jnp.where(better, new, old)  # noqa: E731
+    pick = lambda new, old: jnp.where(better, new, old)
     damping = jnp.where(fresh, damping, jnp.where(better, damping * 0.3, damping * 4.0))
     return (pick(z_new, z), pick(loss_new, loss), damping, pick(hess_new, hess), pick(grad_new, grad),
             jnp.where(fresh, ~better, converged | stalled), fresh)
@@ -142,7 +142,7 @@ def _lm_rounds(state: _LMState, records: _Vertex, frames: _Frame, settings: FitS
         st, count = carry
         z, loss, damping, hess, grad, converged, fresh = step(st, records, frames)
         active = ~st.done
-        pick = lambda new, old: jnp.where(active.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)  # noqa: E731
+        pick = lambda new, old: jnp.where(active.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
         iterations = st.iterations + (active & ~fresh).astype(jnp.int32)
         loss = pick(loss, st.loss)
         # No progress: less than the tolerance gained over the last PROGRESS_ITERATIONS iterations

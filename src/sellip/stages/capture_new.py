@@ -16,8 +16,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from sellip.capture import files
-from sellip.capture import reader
+from sellip.capture import files, reader
 
 log = logging.getLogger(__name__)
 

@@ -34,8 +34,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     from sellip.report.materials import MaterialsError
-    from sellip.report.viewer import export_results
-    from sellip.report.viewer import ViewerError, serve
+    from sellip.report.viewer import ViewerError, export_results, serve
 
     logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
     try:
