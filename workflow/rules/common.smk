@@ -45,8 +45,11 @@ except ImportError:  # a Snakemake whose Python lacks sellip (e.g. --sdm conda):
 
 # --config values nested in a mapping arrive as strings (`augment={min_coherence: 0}` gives '0'): read them as the
 # numbers, booleans and nulls the schema expects there (docs/reliability.md).
-config.update(workflow_support.coerce_to_schema(
-    dict(config), workflow_support.load_yaml(Path(workflow.basedir) / "config" / "config.schema.yaml")))
+config.update(
+    workflow_support.coerce_to_schema(
+        dict(config), workflow_support.load_yaml(Path(workflow.basedir) / "config" / "config.schema.yaml")
+    )
+)
 
 # results/NAME/ must be one folder inside results/: name=.. or name=a/b would write elsewhere.
 try:
@@ -61,8 +64,10 @@ if not config["capture"]:
 
 # init.mode mesh without a mesh: say so in words (the schema's own message would be "'' is too short").
 if (config.get("init") or {}).get("mode") == "mesh" and not (config.get("init") or {}).get("mesh_path"):
-    raise WorkflowError("config: init.mode 'mesh' needs init.mesh_path, the mesh file to start from (PLY or OBJ, "
-                        "in the world of the poses, metres; relative to the capture folder unless absolute)")
+    raise WorkflowError(
+        "config: init.mode 'mesh' needs init.mesh_path, the mesh file to start from (PLY or OBJ, "
+        "in the world of the poses, metres; relative to the capture folder unless absolute)"
+    )
 
 validate(config, "../../config/config.schema.yaml")
 
@@ -101,8 +106,11 @@ def raw_frames():
 def poses_file():
     """The capture's poses.csv as a list (empty when it has none): an input of run_sfm, so that adding, removing or
     editing it re-runs the poses and what follows."""
-    return [capture_file("poses.csv")] if not config["capture"] else workflow_support.optional_file(
-        capture_dir(), "poses.csv")
+    return (
+        [capture_file("poses.csv")]
+        if not config["capture"]
+        else workflow_support.optional_file(capture_dir(), "poses.csv")
+    )
 
 
 def ground_truth_file():
@@ -211,8 +219,14 @@ def get_lobes(wildcards):
 
 def get_final_outputs():
     """What the target `all` builds: the reconstructed model, its renders and its metrics."""
-    return [f"{RESULTS}/previews", f"{RESULTS}/final/model.ply", f"{RESULTS}/final/params.zarr",
-            f"{RESULTS}/final/renders", f"{RESULTS}/metrics.json", f"{RESULTS}/viewer"]
+    return [
+        f"{RESULTS}/previews",
+        f"{RESULTS}/final/model.ply",
+        f"{RESULTS}/final/params.zarr",
+        f"{RESULTS}/final/renders",
+        f"{RESULTS}/metrics.json",
+        f"{RESULTS}/viewer",
+    ]
 
 
 # --config fit/augment/final/model_selection settings as the arguments of rules fit_pbrdf and cluster_lobes.
@@ -238,7 +252,9 @@ def fit_settings_args(wildcards):
 def cluster_settings_args(wildcards):
     """`--set KEY=VALUE` for the cluster lobe fits of this iteration: config `fit.settings` (its loss
     weights, view selection, and the most complex model allowed: `lobes`, `sigma_ss_fixed`)."""
-    return settings_args({key: at_iteration(value, int(wildcards.it)) for key, value in config["fit"]["settings"].items()})
+    return settings_args(
+        {key: at_iteration(value, int(wildcards.it)) for key, value in config["fit"]["settings"].items()}
+    )
 
 
 def model_selection_args(wildcards):
@@ -248,10 +264,12 @@ def model_selection_args(wildcards):
     selection = config["model_selection"]
     it = int(wildcards.it)
     inherit = " --inherit-models" if it % int(selection["every"]) and it != ITERATIONS else ""
-    return (f"--{'' if selection['enabled'] else 'no-'}model-selection{inherit}"
-            f" --candidates {' '.join(str(m) for m in selection['candidates'])}"
-            f" --held-out-fraction {selection['held_out_fraction']} --selection-folds {selection['folds']}"
-            f" --selection-tolerance {selection['tolerance']}"
-            f" --selection-standard-errors {selection['standard_errors']}"
-            f" --fixed-sigma-ss {selection['sigma_ss_fixed']} --selection-max-samples {selection['max_samples']}"
-            f" --selection-max-theta-error-deg {selection['max_theta_error_deg']}")
+    return (
+        f"--{'' if selection['enabled'] else 'no-'}model-selection{inherit}"
+        f" --candidates {' '.join(str(m) for m in selection['candidates'])}"
+        f" --held-out-fraction {selection['held_out_fraction']} --selection-folds {selection['folds']}"
+        f" --selection-tolerance {selection['tolerance']}"
+        f" --selection-standard-errors {selection['standard_errors']}"
+        f" --fixed-sigma-ss {selection['sigma_ss_fixed']} --selection-max-samples {selection['max_samples']}"
+        f" --selection-max-theta-error-deg {selection['max_theta_error_deg']}"
+    )

@@ -13,6 +13,15 @@ rule fit_pbrdf:
         lobes=get_lobes,
     output:
         temp(f"{RESULTS}/iter/{{it}}/{{pass_}}/{{scatteritem}}.npz"),
+    log:
+        f"{RESULTS}/logs/fit_pbrdf/{{it}}/{{pass_}}/{{scatteritem}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/fit_pbrdf/{{it}}/{{pass_}}/{{scatteritem}}.tsv"
+    conda:
+        "../../envs/fit.yaml"
+    threads: config["fit"]["threads"]
+    resources:
+        mem_mb=config["fit"]["mem_mb"],
     params:
         prior=lambda wildcards, input: f"--prior {shlex.join(input.prior)}" if input.prior else "",
         lobes=lambda wildcards, input: f"--lobes {shlex.join(input.lobes)}" if input.lobes else "",
@@ -20,20 +29,13 @@ rule fit_pbrdf:
         fixed_sigma_ss=config["model_selection"]["sigma_ss_fixed"],
         dtype=config["fit"]["dtype"],
         cache=config["fit"]["compilation_cache"],
-    threads: config["fit"]["threads"]
-    resources:
-        mem_mb=config["fit"]["mem_mb"],
-    conda:
-        "../../envs/fit.yaml"
-    log:
-        f"{RESULTS}/logs/fit_pbrdf/{{it}}/{{pass_}}/{{scatteritem}}.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/fit_pbrdf/{{it}}/{{pass_}}/{{scatteritem}}.tsv"
     shell:
-        sellip_shell("fit --observations {input.observations:q} --shard {wildcards.scatteritem}"
-        " --output {output:q} {params.prior} {params.lobes} --dtype {params.dtype} {params.settings}"
-        " --fixed-sigma-ss {params.fixed_sigma_ss} --compilation-cache {params.cache:q} --mem-mb {resources.mem_mb}"
-        " > {log:q} 2>&1")
+        sellip_shell(
+            "fit --observations {input.observations:q} --shard {wildcards.scatteritem}"
+            " --output {output:q} {params.prior} {params.lobes} --dtype {params.dtype} {params.settings}"
+            " --fixed-sigma-ss {params.fixed_sigma_ss} --compilation-cache {params.cache:q} --mem-mb {resources.mem_mb}"
+            " > {log:q} 2>&1"
+        )
 
 
 rule gather_fit:
@@ -42,15 +44,17 @@ rule gather_fit:
         shards=gather.fit(f"{RESULTS}/iter/{{{{it}}}}/{{{{pass_}}}}/{{scatteritem}}.npz"),
     output:
         directory(f"{RESULTS}/iter/{{it}}/{{pass_}}.zarr"),
-    conda:
-        "../../envs/fit.yaml"
     log:
         f"{RESULTS}/logs/gather_fit/{{it}}/{{pass_}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/gather_fit/{{it}}/{{pass_}}.tsv"
+    conda:
+        "../../envs/fit.yaml"
     shell:
-        sellip_shell("gather-fit --observations {input.observations:q} --shards {input.shards:q}"
-        " --output {output:q} > {log:q} 2>&1")
+        sellip_shell(
+            "gather-fit --observations {input.observations:q} --shards {input.shards:q}"
+            " --output {output:q} > {log:q} 2>&1"
+        )
 
 
 rule cluster_lobes:
@@ -65,6 +69,13 @@ rule cluster_lobes:
             category="Augmentation",
             labels={"iteration": "{it}", "figure": "{name}"},
         ),
+    log:
+        f"{RESULTS}/logs/cluster_lobes/{{it}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/cluster_lobes/{{it}}.tsv"
+    conda:
+        "../../envs/fit.yaml"
+    threads: config["fit"]["threads"]
     params:
         seed=config["seed"],
         k_max=config["augment"]["k_max"],
@@ -75,17 +86,12 @@ rule cluster_lobes:
         settings=cluster_settings_args,
         selection=model_selection_args,
         cache=config["fit"]["compilation_cache"],
-    threads: config["fit"]["threads"]
-    conda:
-        "../../envs/fit.yaml"
-    log:
-        f"{RESULTS}/logs/cluster_lobes/{{it}}.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/cluster_lobes/{{it}}.tsv"
     shell:
-        sellip_shell("cluster-lobes --params {input.params:q} --observations {input.observations:q} --output {output:q}"
-        " --seed {params.seed} --k-max {params.k_max} --max-samples {params.max_samples}"
-        " --min-cluster-vertices {params.min_cluster_vertices} --min-coherence {params.min_coherence}"
-        " --pool-min-coherence {params.pool_min_coherence}"
-        " {params.settings} {params.selection}"
-        " --compilation-cache {params.cache:q} > {log:q} 2>&1")
+        sellip_shell(
+            "cluster-lobes --params {input.params:q} --observations {input.observations:q} --output {output:q}"
+            " --seed {params.seed} --k-max {params.k_max} --max-samples {params.max_samples}"
+            " --min-cluster-vertices {params.min_cluster_vertices} --min-coherence {params.min_coherence}"
+            " --pool-min-coherence {params.pool_min_coherence}"
+            " {params.settings} {params.selection}"
+            " --compilation-cache {params.cache:q} > {log:q} 2>&1"
+        )

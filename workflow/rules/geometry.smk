@@ -13,6 +13,13 @@ rule run_sfm:
     output:
         cameras=f"{RESULTS}/cameras.csv",
         sfm=directory(f"{RESULTS}/sfm"),
+    log:
+        f"{RESULTS}/logs/run_sfm.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/run_sfm.tsv"
+    conda:
+        "../../envs/geometry.yaml"
+    threads: config["sfm"]["threads"]
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
         mode=config["sfm"]["mode"],
@@ -26,21 +33,16 @@ rule run_sfm:
         min_registered_fraction=config["sfm"]["min_registered_fraction"],
         mask_threshold=config["sfm"]["mask_threshold"],
         seed=config["seed"],
-    threads: config["sfm"]["threads"]
-    conda:
-        "../../envs/geometry.yaml"
-    log:
-        f"{RESULTS}/logs/run_sfm.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/run_sfm.tsv"
     shell:
-        sellip_shell("sfm --hdr {input.hdr:q} --capture {params.capture:q} --cameras {output.cameras:q}"
-        " --output {output.sfm:q} --mode {params.mode} --matching {params.matching}"
-        " --exhaustive-max-views {params.exhaustive_max_views} --retrieval-neighbors {params.retrieval_neighbors}"
-        " --max-features {params.max_features} --feature-object-px {params.feature_object_px}"
-        " --max-upscale {params.max_upscale} {params.refine_intrinsics}"
-        " --min-registered-fraction {params.min_registered_fraction} --mask-threshold {params.mask_threshold}"
-        " --seed {params.seed} --threads {threads} > {log:q} 2>&1")
+        sellip_shell(
+            "sfm --hdr {input.hdr:q} --capture {params.capture:q} --cameras {output.cameras:q}"
+            " --output {output.sfm:q} --mode {params.mode} --matching {params.matching}"
+            " --exhaustive-max-views {params.exhaustive_max_views} --retrieval-neighbors {params.retrieval_neighbors}"
+            " --max-features {params.max_features} --feature-object-px {params.feature_object_px}"
+            " --max-upscale {params.max_upscale} {params.refine_intrinsics}"
+            " --min-registered-fraction {params.min_registered_fraction} --mask-threshold {params.mask_threshold}"
+            " --seed {params.seed} --threads {threads} > {log:q} 2>&1"
+        )
 
 
 rule init_mesh:
@@ -53,6 +55,13 @@ rule init_mesh:
     output:
         mesh=f"{RESULTS}/mesh/init.ply",
         info=f"{RESULTS}/mesh/init.json",
+    log:
+        f"{RESULTS}/logs/init_mesh.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/init_mesh.tsv"
+    conda:
+        "../../envs/geometry.yaml"
+    threads: config["init"]["threads"]
     params:
         mode=config["init"]["mode"],
         mesh_path=lambda wildcards, input: " ".join(f"--mesh-path {shlex.quote(p)}" for p in input.user_mesh),
@@ -62,19 +71,14 @@ rule init_mesh:
         target_depth=config["init"]["target_depth"],
         max_vertices=config["init"]["max_vertices"],
         mask_threshold=config["sfm"]["mask_threshold"],
-    threads: config["init"]["threads"]
-    conda:
-        "../../envs/geometry.yaml"
-    log:
-        f"{RESULTS}/logs/init_mesh.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/init_mesh.tsv"
     shell:
-        sellip_shell("init-mesh --hdr {input.hdr:q} --cameras {input.cameras:q} --sfm {input.sfm:q}"
-        " --output {output.mesh:q} --mode {params.mode} {params.mesh_path} --hull-resolution {params.hull_resolution}"
-        " --min-inside-fraction {params.min_inside_fraction} --poisson-depth {params.poisson_depth}"
-        " --target-depth {params.target_depth} --max-vertices {params.max_vertices}"
-        " --mask-threshold {params.mask_threshold} --threads {threads} > {log:q} 2>&1")
+        sellip_shell(
+            "init-mesh --hdr {input.hdr:q} --cameras {input.cameras:q} --sfm {input.sfm:q}"
+            " --output {output.mesh:q} --mode {params.mode} {params.mesh_path} --hull-resolution {params.hull_resolution}"
+            " --min-inside-fraction {params.min_inside_fraction} --poisson-depth {params.poisson_depth}"
+            " --target-depth {params.target_depth} --max-vertices {params.max_vertices}"
+            " --mask-threshold {params.mask_threshold} --threads {threads} > {log:q} 2>&1"
+        )
 
 
 rule refine_geometry:
@@ -88,28 +92,31 @@ rule refine_geometry:
     output:
         mesh=f"{RESULTS}/iter/{{it}}/mesh.ply",
         summary=f"{RESULTS}/iter/{{it}}/mesh.ply.json",
+    log:
+        f"{RESULTS}/logs/refine_geometry/{{it}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/refine_geometry/{{it}}.tsv"
+    conda:
+        "../../envs/geometry.yaml"
     params:
         smoothness=lambda wildcards: at_iteration(config["refine_geometry"]["smoothness"], wildcards.it),
-        smoothness_unconfident=lambda wildcards: at_iteration(config["refine_geometry"]["smoothness_unconfident"],
-                                                              wildcards.it),
+        smoothness_unconfident=lambda wildcards: at_iteration(
+            config["refine_geometry"]["smoothness_unconfident"], wildcards.it
+        ),
         anchor=lambda wildcards: at_iteration(config["refine_geometry"]["anchor"], wildcards.it),
         rounds=config["refine_geometry"]["rounds"],
         silhouette=lambda wildcards: at_iteration(config["refine_geometry"]["silhouette"], wildcards.it),
         capture=lambda wildcards, input: Path(input.capture).parent,
         held_out=config["evaluate"]["held_out_views"],
         mask_threshold=config["sfm"]["mask_threshold"],
-    conda:
-        "../../envs/geometry.yaml"
-    log:
-        f"{RESULTS}/logs/refine_geometry/{{it}}.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/refine_geometry/{{it}}.tsv"
     shell:
-        sellip_shell("refine-geometry --params {input.params:q} --mesh {input.mesh:q} --output {output.mesh:q}"
-        " --reference-mesh {input.reference:q} --smoothness {params.smoothness}"
-        " --smoothness-unconfident {params.smoothness_unconfident} --anchor {params.anchor} --rounds {params.rounds}"
-        " --silhouette {params.silhouette} --cameras {input.cameras:q} --hdr {input.hdr:q} --capture {params.capture:q}"
-        " --exclude-views {params.held_out:q} --mask-threshold {params.mask_threshold} > {log:q} 2>&1")
+        sellip_shell(
+            "refine-geometry --params {input.params:q} --mesh {input.mesh:q} --output {output.mesh:q}"
+            " --reference-mesh {input.reference:q} --smoothness {params.smoothness}"
+            " --smoothness-unconfident {params.smoothness_unconfident} --anchor {params.anchor} --rounds {params.rounds}"
+            " --silhouette {params.silhouette} --cameras {input.cameras:q} --hdr {input.hdr:q} --capture {params.capture:q}"
+            " --exclude-views {params.held_out:q} --mask-threshold {params.mask_threshold} > {log:q} 2>&1"
+        )
 
 
 rule refine_poses:
@@ -124,8 +131,14 @@ rule refine_poses:
     output:
         cameras=f"{RESULTS}/iter/{{it}}/cameras.csv",
         summary=f"{RESULTS}/iter/{{it}}/cameras.csv.json",
+    log:
+        f"{RESULTS}/logs/refine_poses/{{it}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/refine_poses/{{it}}.tsv"
     wildcard_constraints:
         it=r"[1-9]\d*",
+    conda:
+        "../../envs/geometry.yaml"
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
         blur_px=" ".join(str(float(b)) for b in config["refine_poses"]["blur_px"]),
@@ -133,14 +146,10 @@ rule refine_poses:
         max_rotation_deg=config["refine_poses"]["max_rotation_deg"],
         max_shift_fraction=config["refine_poses"]["max_shift_fraction"],
         min_motion_px=config["refine_poses"]["min_motion_px"],
-    conda:
-        "../../envs/geometry.yaml"
-    log:
-        f"{RESULTS}/logs/refine_poses/{{it}}.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/refine_poses/{{it}}.tsv"
     shell:
-        sellip_shell("refine-poses --params {input.params:q} --mesh {input.mesh:q} --cameras {input.cameras:q}"
-        " --hdr {input.hdr:q} --capture {params.capture:q} --output {output.cameras:q} --blur-px {params.blur_px}"
-        " --rounds {params.rounds} --max-rotation-deg {params.max_rotation_deg}"
-        " --max-shift-fraction {params.max_shift_fraction} --min-motion-px {params.min_motion_px} > {log:q} 2>&1")
+        sellip_shell(
+            "refine-poses --params {input.params:q} --mesh {input.mesh:q} --cameras {input.cameras:q}"
+            " --hdr {input.hdr:q} --capture {params.capture:q} --output {output.cameras:q} --blur-px {params.blur_px}"
+            " --rounds {params.rounds} --max-rotation-deg {params.max_rotation_deg}"
+            " --max-shift-fraction {params.max_shift_fraction} --min-motion-px {params.min_motion_px} > {log:q} 2>&1"
+        )

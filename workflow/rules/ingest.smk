@@ -10,23 +10,25 @@ rule linearize_frames:
         raw=raw_frames(),
     output:
         temp(directory(f"{RESULTS}/ingest/linear.zarr")),
+    log:
+        f"{RESULTS}/logs/linearize_frames.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/linearize_frames.tsv"
+    conda:
+        "../../envs/ingest.yaml"
+    threads: config["ingest"]["threads"]
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
         saturation=config["ingest"]["saturation"],
         # A function: its value `capture` would read to `snakemake --lint` as a hard-coded prefix of captures/.
         black_level_from=lambda wildcards: config["ingest"]["black_level_from"],
         bad_frames=config["ingest"].get("bad_frames", "error"),
-    threads: config["ingest"]["threads"]
-    conda:
-        "../../envs/ingest.yaml"
-    log:
-        f"{RESULTS}/logs/linearize_frames.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/linearize_frames.tsv"
     shell:
-        sellip_shell("linearize --capture {params.capture:q} --output {output:q} --threads {threads}"
-        " --saturation {params.saturation} --black-level-from {params.black_level_from}"
-        " --bad-frames {params.bad_frames} > {log:q} 2>&1")
+        sellip_shell(
+            "linearize --capture {params.capture:q} --output {output:q} --threads {threads}"
+            " --saturation {params.saturation} --black-level-from {params.black_level_from}"
+            " --bad-frames {params.bad_frames} > {log:q} 2>&1"
+        )
 
 
 rule merge_hdr:
@@ -34,13 +36,13 @@ rule merge_hdr:
         f"{RESULTS}/ingest/linear.zarr",
     output:
         directory(f"{RESULTS}/hdr.zarr"),
-    threads: config["ingest"]["threads"]
-    conda:
-        "../../envs/ingest.yaml"
     log:
         f"{RESULTS}/logs/merge_hdr.log",
     benchmark:
         f"{RESULTS}/benchmarks/merge_hdr.tsv"
+    conda:
+        "../../envs/ingest.yaml"
+    threads: config["ingest"]["threads"]
     shell:
         sellip_shell("merge-hdr --linear {input:q} --output {output:q} --threads {threads} > {log:q} 2>&1")
 
@@ -57,11 +59,11 @@ rule plot_hdr_previews:
             subcategory="{kind}",
             labels={"view": "{view}", "image": "{kind}"},
         ),
-    conda:
-        "../../envs/ingest.yaml"
     log:
         f"{RESULTS}/logs/plot_hdr_previews.log",
     benchmark:
         f"{RESULTS}/benchmarks/plot_hdr_previews.tsv"
+    conda:
+        "../../envs/ingest.yaml"
     shell:
         sellip_shell("hdr-previews --hdr {input:q} --output {output:q} > {log:q} 2>&1")
