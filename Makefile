@@ -8,7 +8,7 @@ CORES ?= 2
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test dry-run report view bench-sweep bench-stability clean-results
+.PHONY: install demo test test-fast lint dry-run report view bench-sweep bench-stability clean-results
 
 install: $(STAMP)
 
@@ -42,8 +42,19 @@ RUN ?= demo
 view: $(STAMP)
 	$(BIN)/sellip view results/$(RUN) $(if $(SERVE),--serve)
 
+# The whole suite (~30 min on 2 cores; CI runs it), ending with its 25 slowest tests.
 test: $(STAMP)
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest --durations=25
+
+# The inner loop (< 3 min on 2 cores): every package's fast tests, without those marked slow.
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -m "not slow"
+
+# ruff (rules in pyproject.toml), snakefmt and Snakemake's own linter; CI runs this before the tests.
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/snakefmt --check Snakefile workflow/
+	$(BIN)/snakemake --lint --workflow-profile workflow/profiles/default
 
 # The stability suite (docs/benchmarks.md): failure-mode cases run end to end -> results/bench/stability/.
 bench-stability: $(STAMP)

@@ -77,7 +77,8 @@ def main(argv=None) -> int:
     from sellip.capture.synthetic import synthesize_capture
     from sellip.fit.observe import ObserveSettings
 
-    tag = f"{args.scene}_{args.views}v_{args.width}x{args.height}" + ("" if args.renderer == "sellip" else f"_{args.renderer}")
+    tag = (f"{args.scene}_{args.views}v_{args.width}x{args.height}"
+           + ("" if args.renderer == "sellip" else f"_{args.renderer}"))
     work = (args.workdir / tag).resolve()
     capture = work / "capture"
     if not (capture / "capture.yaml").is_file():
@@ -136,7 +137,8 @@ def main(argv=None) -> int:
     for rung, f in rows.items():
         per = f.get("eta_per_material") or {}
         psnr = f.get("held_out_psnr_db")
-        lines.append(f"| {rung} | {per.get('mean_error_pct', float('nan')):.2f} / {per.get('max_error_pct', float('nan')):.2f} "
+        lines.append(f"| {rung} | {per.get('mean_error_pct', float('nan')):.2f} / "
+                     f"{per.get('max_error_pct', float('nan')):.2f} "
                      f"| {f['eta_vertex_median_pct']:.2f} / {f['eta_vertex_p90_pct'] or float('nan'):.2f} "
                      f"| {f['normal_median_deg']:.2f} / {f['normal_p90_deg'] or float('nan'):.2f} "
                      f"| {'–' if psnr is None else f'{psnr:.1f}'} |")

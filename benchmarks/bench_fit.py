@@ -177,7 +177,7 @@ def main() -> int:
         angle = np.degrees(np.arccos(np.clip(np.sum(normal * normals[rows], -1), -1, 1)))
         eta = 100 * np.abs(np.asarray(params.eta) / truth.eta[rows] - 1)
         albedo = 100 * np.abs(np.asarray(params.rho_d) / truth.rho_d[rows] - 1).mean(-1)
-        q = lambda x: f"{np.median(x):.3f} / {np.percentile(x, 90):.3f}"  # noqa: E731
+        q = lambda x: f"{np.median(x):.3f} / {np.percentile(x, 90):.3f}"
         return f"normal {q(angle)} deg, eta {q(eta)} %, albedo {q(albedo)} % (median / p90)"
 
     # sellip: the shards side by side, one process and one core each.
@@ -188,7 +188,8 @@ def main() -> int:
         bounds = np.linspace(0, n, args.workers + 1).astype(int)
         context = multiprocessing.get_context("spawn")
         barrier, results = context.Barrier(args.workers), context.Queue()
-        workers = [context.Process(target=_worker, args=(folder, int(a), int(b), cores[i], barrier, results)) for i, (a, b) in enumerate(zip(bounds, bounds[1:]))]
+        workers = [context.Process(target=_worker, args=(folder, int(a), int(b), cores[i], barrier, results))
+                   for i, (a, b) in enumerate(zip(bounds, bounds[1:]))]
         for w in workers:
             w.start()
         timings = [results.get() for _ in workers]
@@ -196,7 +197,7 @@ def main() -> int:
             w.join()
             if w.exitcode != 0:
                 raise RuntimeError(f"a fit worker failed (exit code {w.exitcode})")
-        load = lambda name: np.concatenate([np.load(Path(folder) / f"{name}_{a}.npy") for a in bounds[:-1]])  # noqa: E731
+        load = lambda name: np.concatenate([np.load(Path(folder) / f"{name}_{a}.npy") for a in bounds[:-1]])
         result_normal, result_params = load("normal"), truth._replace(eta=load("eta"), rho_d=load("rho_d"))
         gpu_runs = []
         for batch in args.gpu_batch if args.gpu else ():
@@ -228,17 +229,17 @@ def main() -> int:
     if args.baseline <= 0:
         return 0
 
-    # Baseline: the same procedure (sellip.fit.vertex_fit._fit_chunk), one vertex at a time, with scipy least_squares on the
-    # same residuals (same views, same start, float64, finite-difference Jacobians as fmincon's) on one core.
+    # Baseline: the same procedure (sellip.fit.vertex_fit._fit_chunk), one vertex at a time, with scipy least_squares
+    # on the same residuals (same views, same start, float64, finite-difference Jacobians as fmincon's) on one core.
     os.sched_setaffinity(0, {cores[0]}) if hasattr(os, "sched_setaffinity") else None
     settings = dataclasses.replace(FitSettings(), lobes="full", sigma_ss_fixed=None)
     m = min(args.baseline, n)
-    as64 = lambda x: np.asarray(x, np.float64) if np.asarray(x).dtype.kind == "f" else np.asarray(x)  # noqa: E731
+    as64 = lambda x: np.asarray(x, np.float64) if np.asarray(x).dtype.kind == "f" else np.asarray(x)
     sub = type(obs)(*[jnp.asarray(as64(x[:m])) for x in obs])
     sub_prior = type(prior)(*[jnp.asarray(np.asarray(x[:m], np.float64)) for x in prior])
     residual = jax.jit(lambda z, v, f: fit_residuals.vertex_residuals(z, v, f, settings))
     weights = jax.jit(lambda z, v, f: fit_vertex_fit.robust_weights(z, v, f, settings))
-    take = lambda tree, i: jax.tree_util.tree_map(lambda x: x[i], tree)  # noqa: E731
+    take = lambda tree, i: jax.tree_util.tree_map(lambda x: x[i], tree)
     grid = np.asarray(solver.ROUGHNESS_GRID)
 
     def baseline_fit(v, f, z):
@@ -248,9 +249,10 @@ def main() -> int:
             return float(r @ r)
 
         def best_start(x):
-            eta = fit_records.ETA_BOUNDS[0] + (fit_records.ETA_BOUNDS[1] - fit_records.ETA_BOUNDS[0]) / (1 + np.exp(-x[2]))
-            starts = np.array(parameterization.encode_parameters(jnp.full(len(grid), eta), jnp.asarray(grid[:, 0]), jnp.asarray(grid[:, 1]),
-                                            jnp.float64))
+            eta = (fit_records.ETA_BOUNDS[0]
+                   + (fit_records.ETA_BOUNDS[1] - fit_records.ETA_BOUNDS[0]) / (1 + np.exp(-x[2])))
+            starts = np.array(parameterization.encode_parameters(jnp.full(len(grid), eta), jnp.asarray(grid[:, 0]),
+                                                                 jnp.asarray(grid[:, 1]), jnp.float64))
             starts[:, :2] = x[:2]
             candidates = [x, *starts]
             return candidates[int(np.argmin([cost(c) for c in candidates]))]
@@ -275,18 +277,21 @@ def main() -> int:
             z = solve(z, [0, 1, 2, 3, 4])
         return z, v
 
-    keep, records, frames, z0 = fit_vertex_fit.select_and_prepare(sub, start[:m].astype(np.float64), sub_prior, settings)
+    keep, records, frames, z0 = fit_vertex_fit.select_and_prepare(sub, start[:m].astype(np.float64), sub_prior,
+                                                                  settings)
     v0, f0 = take(records, 0), take(frames, 0)
     residual(z0[0], v0, f0).block_until_ready()  # compile once, outside the timing
     weights(z0[0], v0, f0)
     began, began_cpu = time.perf_counter(), time.process_time()
-    keep, records, frames, z0 = fit_vertex_fit.select_and_prepare(sub, start[:m].astype(np.float64), sub_prior, settings)
+    keep, records, frames, z0 = fit_vertex_fit.select_and_prepare(sub, start[:m].astype(np.float64), sub_prior,
+                                                                  settings)
     solutions = []
     for i in range(m):
         solutions.append(baseline_fit(take(records, i), take(frames, i), np.asarray(z0[i], np.float64)))
     base, base_cpu = time.perf_counter() - began, time.process_time() - began_cpu
     base_rate, base_cpu_rate = m / base, m / base_cpu
-    decoded = [parameterization.decode_parameters(jnp.asarray(z), take(frames, i), None) for i, (z, _) in enumerate(solutions)]
+    decoded = [parameterization.decode_parameters(jnp.asarray(z), take(frames, i), None)
+               for i, (z, _) in enumerate(solutions)]
     base_normal = np.stack([np.asarray(d[0]) for d in decoded])
     base_eta = np.array([float(d[1]) for d in decoded])
     rho_d = []

@@ -122,7 +122,8 @@ def main() -> None:
         tmp = Path(tmp)
         started = time.perf_counter()
         capture = make_capture(tmp / "capture", args.views)
-        print(f"capture: {args.views * len(LEVELS)} DNG frames {WIDTH}x{HEIGHT} in {time.perf_counter() - started:.1f} s")
+        print(f"capture: {args.views * len(LEVELS)} DNG frames {WIDTH}x{HEIGHT} "
+              f"in {time.perf_counter() - started:.1f} s")
         kernels = bench_kernels(capture, args.repeats)
         print(f"kernels (1 thread): plan {kernels['plan_s']:.2f} s once; process_frame "
               f"{kernels['process_frame_s']:.3f} s/frame; merge {kernels['merge_per_frame_s']:.3f} s/frame; "

@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from sellip.geometry.cameras import write_cameras
 
 BROWSER_ARGS = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"]
@@ -49,8 +50,8 @@ def bumpy_sphere(vertices: int, radius: float = 0.04):
 def synthetic_results(root: Path, vertices: int) -> Path:
     import zarr
 
-    from sellip.model.ply import write_ply
     from sellip.capture.scenes import handheld_orbit
+    from sellip.model.ply import write_ply
 
     pos, normals, faces = bumpy_sphere(vertices)
     n = len(pos)

@@ -22,10 +22,10 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from sellip.capture import reader
 from sellip.calibrate import color, flash, intrinsics, polarization, targets
 from sellip.calibrate.intrinsics import CalibrationError
 from sellip.calibrate.synthetic import BoardSpec, synthesize_calibration
+from sellip.capture import reader
 
 
 def main() -> None:
@@ -92,7 +92,8 @@ def main() -> None:
     raw = reader.read_raw_file(args.folder / "chart" / truth["chart"]["file"], sensor)
     c = color.calibrate_color(raw, device, np.asarray(truth["chart"]["corners_px"]))
     m_true = np.asarray(cam["color_matrix"])
-    summary["color"] = {"delta_e2000_mean": float(np.nanmean(c.delta_e)), "delta_e2000_max": float(np.nanmax(c.delta_e)),
+    summary["color"] = {"delta_e2000_mean": float(np.nanmean(c.delta_e)),
+                        "delta_e2000_max": float(np.nanmax(c.delta_e)),
                         "matrix_max_rel_error": float(np.abs(c.matrix - m_true).max() / np.abs(m_true).max()),
                         "missed_targets": targets.check("color", {"delta_e_mean": float(np.nanmean(c.delta_e))})}
     print("color:", json.dumps(summary["color"]), flush=True)

@@ -72,7 +72,8 @@ def main() -> int:
     for label, r in results.items():
         per = r["eta_per_material"] or {}
         mean, worst = per.get("mean_error_pct", float("nan")), per.get("max_error_pct", float("nan"))
-        print(f"| {label} | {mean:.2f} / {worst:.2f} | {r['eta_vertex_median_pct']:.2f} | {r['normal_median_deg']:.2f} |")
+        print(f"| {label} | {mean:.2f} / {worst:.2f} | {r['eta_vertex_median_pct']:.2f} "
+              f"| {r['normal_median_deg']:.2f} |")
     return 0
 
 

@@ -7,7 +7,8 @@ RUN is a workflow's results folder (``results/<name>``). The replay reads ``iter
 fit that the clustering saw) and ``iter/N/clusters/clusters.json`` (its settings and seed), overrides settings with
 ``--set`` (AugmentSettings fields), and runs :func:`sellip.fit.clusters.cluster_materials` as the workflow does. It
 prints K, the merges and regions, each cluster's size, spatial coherence, median eta and its vertices' true
-materials, and eta per material (the figure of metrics.json, :func:`sellip.report.figures_of_merit.eta_per_material`) when every
+materials, and eta per material (the figure of metrics.json,
+:func:`sellip.report.figures_of_merit.eta_per_material`) when every
 vertex takes its cluster's median: what the material eta of that pass would be with these settings, without the
 refit and the per-vertex deviations. The replays of docs/augment.md and docs/accuracy.md are this script.
 """

@@ -7,11 +7,11 @@ RUN is a workflow's results folder (``results/<name>``) whose pass N kept its ob
 ``snakemake --notemp`` up to ``results/<name>/iter/N/clusters`` (``observations.zarr`` is temporary otherwise). The
 replay runs the fit stage (:func:`sellip.fit.shard.fit_shard`, one shard, the default prior: pass 0's start) with
 the pass's fit settings as its ``clusters/clusters.json`` records them (the workflow's ``fit.settings`` for the
-pass, :func:`sellip.fit.lobe_store.recorded_fit_settings`) and ``--set`` over them, then prints, over the fitted vertices with confidence > 0.1: the
-normal error (median, p90) against the nearest true vertex's normal, and per true material the median eta error,
-its median on the darker and brighter halves of the material (by the true albedo of the 12 true vertices nearest
-each vertex), the median absolute eta error and the correlation of eta with that albedo. docs/fit.md ("Why the
-diffuse eta is held") is this script on stability ``fine_texture`` and ``baseline``.
+pass, :func:`sellip.fit.lobe_store.recorded_fit_settings`) and ``--set`` over them, then prints, over the fitted
+vertices with confidence > 0.1: the normal error (median, p90) against the nearest true vertex's normal, and per true
+material the median eta error, its median on the darker and brighter halves of the material (by the true albedo of the
+12 true vertices nearest each vertex), the median absolute eta error and the correlation of eta with that albedo.
+docs/fit.md ("Why the diffuse eta is held") is this script on stability ``fine_texture`` and ``baseline``.
 """
 
 from __future__ import annotations
@@ -67,14 +67,16 @@ def main(argv=None) -> int:
     material, eta_true = truth.material[nearest], np.asarray(truth.params.eta)[nearest]
     used = (fit["confidence"] > 0.1) & (fit["status"] == 0)
     angle = np.degrees(np.arccos(np.clip(np.sum(fit["normal"] * truth.normals[nearest], -1), -1, 1)))[used]
-    print(f"{args.run.name} pass {args.iteration} ({' '.join(args.pairs) or 'as run'}): {used.sum()} of {len(used)} vertices with confidence "
-          f"> 0.1; normal median {np.median(angle):.2f} deg, p90 {np.percentile(angle, 90):.2f}")
+    print(f"{args.run.name} pass {args.iteration} ({' '.join(args.pairs) or 'as run'}): {used.sum()} of {len(used)} "
+          f"vertices with confidence > 0.1; normal median {np.median(angle):.2f} deg, "
+          f"p90 {np.percentile(angle, 90):.2f}")
     error = 100 * (fit["eta"] / eta_true - 1)
     for k in np.unique(material):
         mine = used & (material == k)
         dark = mine & (albedo < np.median(albedo[mine]))
         bright = mine & ~dark
-        print(f"  material {k} (eta {eta_true[mine][0]:.3f}, {mine.sum()} vertices): median {np.median(error[mine]):+.2f} %"
+        print(f"  material {k} (eta {eta_true[mine][0]:.3f}, {mine.sum()} vertices): "
+              f"median {np.median(error[mine]):+.2f} %"
               f" (dark {np.median(error[dark]):+.2f} / bright {np.median(error[bright]):+.2f}), |error| median "
               f"{np.median(np.abs(error[mine])):.2f} %, eta-albedo correlation "
               f"{np.corrcoef(fit['eta'][mine], albedo[mine])[0, 1]:+.2f}")

@@ -7,9 +7,9 @@ RUN is a workflow's results folder (``results/<name>``) whose pass N kept its ob
 with ``snakemake --notemp`` (``iter/N/observations.zarr`` is temporary otherwise), e.g. up to the target
 ``results/<name>/iter/0/clusters``. The replay takes the confident vertices of pass N's fit (the ones the
 clustering uses) whose nearest true vertex is of material K, and fits :func:`sellip.fit.lobes.fit_cluster_lobe`
-with the settings the pass used (``clusters.json``: ``settings`` and ``fit_settings``) on: all of them, a random half, and the halves
-below and above the median true albedo brightness (a checker texture's dark and light bands). Per subset the
-fitted rho_d against the truth's (the fit holds it), then one row per subset and model: eta, sigma_s, sigma_ss,
+with the settings the pass used (``clusters.json``: ``settings`` and ``fit_settings``) on: all of them, a random half,
+and the halves below and above the median true albedo brightness (a checker texture's dark and light bands). Per subset
+the fitted rho_d against the truth's (the fit holds it), then one row per subset and model: eta, sigma_s, sigma_ss,
 rho_s, rho_ss, samples, loss. docs/augment.md ("On by default") quotes it: on
 stability ``baseline``'s first pass the rough material's light band alone swaps the lobes under model 3.
 """
@@ -80,11 +80,13 @@ def main(argv=None) -> int:
         obs = load_rows(group, subset)
         eta0 = float(np.median(np.asarray(store["eta"])[subset]))
         for model in args.models:
-            lobe = fit_lobes.fit_cluster_lobe(obs, np.asarray(store["normals"])[subset], np.asarray(store["rho_d"])[subset],
-                                            eta0, fit_selection.settings_for_model(fit_settings, model), settings,
-                                            seed=args.seed)
+            lobe = fit_lobes.fit_cluster_lobe(obs, np.asarray(store["normals"])[subset],
+                                              np.asarray(store["rho_d"])[subset], eta0,
+                                              fit_selection.settings_for_model(fit_settings, model), settings,
+                                              seed=args.seed)
             print(f"| {name} | {subset.size} | {model} | {lobe.eta:.3f} | {lobe.sigma_s:.3f} | {lobe.sigma_ss:.3f} | "
-                  f"{lobe.rho_s:.0f} | {', '.join(f'{abs(x):.0f}' for x in lobe.rho_ss)} | {lobe.samples} | {lobe.loss:.4f} |",
+                  f"{lobe.rho_s:.0f} | {', '.join(f'{abs(x):.0f}' for x in lobe.rho_ss)} | {lobe.samples} | "
+                  f"{lobe.loss:.4f} |",
                   flush=True)
     return 0
 

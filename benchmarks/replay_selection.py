@@ -90,15 +90,16 @@ def main(argv=None) -> int:
             true = f"{values[np.argmax(counts)]} ({counts.max() / counts.sum():.0%})"
         else:
             true = "–"
-        print(f"| {cluster} | {int(label.sum())} | {true} | {picked.model} | {picked.margin:.2f} ({picked.runner_up}) | "
-              f"{time.perf_counter() - began:.1f} | {picked.reason} |", flush=True)
+        print(f"| {cluster} | {int(label.sum())} | {true} | {picked.model} | {picked.margin:.2f} "
+              f"({picked.runner_up}) | {time.perf_counter() - began:.1f} | {picked.reason} |", flush=True)
     shares = single_scattering_shares(models[clustering.labels] >= 2, truth_ss, material)
     def pct(x):
         return "–" if x is None else f"{100 * x:.1f} %"
 
     print(f"single scattering where the truth has none: {pct(shares['share'])} "
           f"({', '.join(f'{k}: {pct(v)}' for k, v in shares['per_material'].items())}); "
-          f"recall: {pct(shares['recall'])} ({', '.join(f'{k}: {pct(v)}' for k, v in shares['recall_per_material'].items())})")
+          f"recall: {pct(shares['recall'])} "
+          f"({', '.join(f'{k}: {pct(v)}' for k, v in shares['recall_per_material'].items())})")
     return 0
 
 

@@ -23,9 +23,9 @@ from pathlib import Path
 
 
 def main(argv=None) -> int:
-    from sellip.bench.replay import ignore_snakemake_zarr_warnings
-
     import argparse
+
+    from sellip.bench.replay import ignore_snakemake_zarr_warnings
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run", type=Path, help="the run's results folder (results/<name>)")

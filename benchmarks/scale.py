@@ -98,7 +98,7 @@ def main(argv=None) -> int:
     lines = ["| size | V fitted | N | iterations | wall (measured) | ÷ the first size's | own costs (model) "
              "| from the other sizes | synthesis | η per material mean | normal median | held-out PSNR |",
              "|" + "---|" * 12]
-    for i, (r, (size, costs)) in enumerate(zip(records, runs)):
+    for i, (r, (size, _costs)) in enumerate(zip(records, runs)):
         own = scale.predict(scale.fit_cost_model([runs[i]]), size, r["iterations"], args.cores).attrs["wall_s"]
         others = [run for j, run in enumerate(runs) if j != i]
         loo = scale.predict(scale.fit_cost_model(others), size, r["iterations"], args.cores).attrs["wall_s"] \

@@ -19,8 +19,9 @@ import ast
 import sys
 from pathlib import Path
 
-FLOORS = {"jobs": -1, "timing": -1, "_exports": -1, "workflow_support": -1, "yaml_files": -1, "settings": -1, "model": 0, "capture": 1,
-          "geometry": 1, "fit": 2, "calibrate": 2, "report": 3, "bench": 4, "stages": 5, "cli": 6}
+FLOORS = {"jobs": -1, "timing": -1, "_exports": -1, "workflow_support": -1, "yaml_files": -1, "settings": -1,
+          "model": 0, "capture": 1, "geometry": 1, "fit": 2, "calibrate": 2, "report": 3, "bench": 4, "stages": 5,
+          "cli": 6}
 MAX_MODULE_LINES = 650
 MAX_FUNCTION_LINES = 80
 
@@ -33,7 +34,8 @@ def imports(path: Path, src: Path) -> set[str]:
     """The sellip modules ``path`` imports (``from sellip.x import y``: sellip.x, and sellip.x.y when a module)."""
     found = set()
     for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "sellip" and not node.level:
+        if (isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "sellip"
+                and not node.level):
             found.add(node.module)
             for alias in node.names:
                 candidate = src / (node.module.replace(".", "/") + f"/{alias.name}.py")

@@ -41,7 +41,7 @@ def camera_geometry(theta_deg, azimuth_deg, flash_offset_deg=0.0, distance=0.9, 
     to_light = unit(flash - point)
     normal = np.stack([np.sin(theta) * np.cos(azimuth), -np.sin(theta) * np.sin(azimuth), -np.cos(theta)], -1)
     shape = theta.shape
-    as_j = lambda v: jnp.asarray(np.broadcast_to(v, shape + (3,)), dtype)  # noqa: E731
+    as_j = lambda v: jnp.asarray(np.broadcast_to(v, shape + (3,)), dtype)
     return dict(
         normal=as_j(normal),
         to_light=as_j(to_light),

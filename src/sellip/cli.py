@@ -12,14 +12,15 @@ import importlib
 import logging
 import sys
 
-from sellip import timing
-from sellip import workflow_support
+from sellip import timing, workflow_support
 
 # command name -> (module under sellip.stages, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("synth", "generate a synthetic capture"),
-    "synth-calibration": ("synth_calibration", "generate synthetic calibration frames (board, spheres, chart) with truth"),
-    "calibrate": ("calibrate", "describe a device: intrinsics, flash position, polarization check, colour -> device.yaml"),
+    "synth-calibration": ("synth_calibration",
+                          "generate synthetic calibration frames (board, spheres, chart) with truth"),
+    "calibrate": ("calibrate",
+                  "describe a device: intrinsics, flash position, polarization check, colour -> device.yaml"),
     "capture": ("capture_new", "capture new: capture.yaml and frames.csv for a folder of raw frames and a device.yaml"),
     "linearize": ("linearize", "raw frames -> linear, demosaiced, undistorted analyzer images"),
     "merge-hdr": ("merge_hdr", "merge the flash levels of each view into HDR analyzer images"),

@@ -101,7 +101,8 @@ def refuse_to_replace_folder(path: str | Path, command: str, ours: Callable[[Pat
 
 def progress_logger(total: int, what: str, logger: logging.Logger = log,
                     every_s: float = 5.0) -> Callable[[int], None]:
-    """A callback ``done(count)`` that logs progress with throughput at most every ``every_s`` seconds and at the end."""
+    """A callback ``done(count)`` that logs progress with throughput at most every ``every_s`` seconds and at the
+    end."""
     started = time.perf_counter()
     last = [started]
 

@@ -25,6 +25,7 @@ import re
 from collections.abc import Iterable, Mapping
 from typing import Any
 
+
 def setting(default: Any, doc: str, *, unit: str | None = None, minimum: float | None = None,
             maximum: float | None = None, exclusive_minimum: float | None = None,
             exclusive_maximum: float | None = None, choices: Iterable | None = None, per_iteration: bool = False,

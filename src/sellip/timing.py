@@ -1,9 +1,9 @@
 """Where a job's time goes (docs/speed.md): start-up, imports, reading, tracing and compiling, work, writing.
 
 ``sellip`` (:func:`sellip.cli.main`) starts one :class:`JobClock` per process; stages mark what they
-do with :func:`mark` (``mark("read")``: from here on, reading) or :func:`phase` (``with phase("read"):``). JAX's own compile events are taken out of the
-phase they happen in and counted apart: ``trace`` (Python to jaxpr), ``lower`` (jaxpr to MLIR),
-``compile`` (XLA, or a hit in the persistent cache: ``cache_load``). At the end of the job one log
+do with :func:`mark` (``mark("read")``: from here on, reading) or :func:`phase` (``with phase("read"):``). JAX's own
+compile events are taken out of the phase they happen in and counted apart: ``trace`` (Python to jaxpr), ``lower``
+(jaxpr to MLIR), ``compile`` (XLA, or a hit in the persistent cache: ``cache_load``). At the end of the job one log
 line carries the seconds of every part::
 
     sellip job phases (s): {"startup": 0.4, "imports": 2.1, "read": 0.3, "trace": 1.2, ...}

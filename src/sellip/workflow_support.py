@@ -391,7 +391,8 @@ def error_lines(log: str | Path, limit: int = 8) -> list[str]:
 
 def killed_from_outside(log: str | Path) -> list[str]:
     """For a job log that ends mid-run (its last line one of sellip's INFO/DEBUG/WARNING lines; no ERROR line, no
-    traceback): what that means, and the log's memory estimates (a fit job's ``memory:`` line, :func:`sellip.fit.shard.fit_shard`). Empty otherwise."""
+    traceback): what that means, and the log's memory estimates (a fit job's ``memory:`` line,
+    :func:`sellip.fit.shard.fit_shard`). Empty otherwise."""
     try:
         lines = Path(log).read_text(encoding="utf-8", errors="replace").splitlines()
     except OSError:
@@ -498,7 +499,8 @@ def end_jobs_on_sigterm(scheduler, grace_s: float = 5.0) -> None:
 
 
 LAST_RUN = "last_run.json"
-"""The record of the last run that ended (results/NAME/last_run.json): written by the workflow's onsuccess and onerror."""
+"""The record of the last run that ended (results/NAME/last_run.json): written by the workflow's onsuccess and
+onerror."""
 
 MODEL = "final/model.ply"
 """The final model, the file whose age :func:`stale_model` compares."""

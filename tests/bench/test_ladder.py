@@ -27,6 +27,7 @@ def test_figures_of_a_fit_on_the_true_mesh():
         figures({"status": np.full(n, STATUS_TOO_FEW_VIEWS), "eta": eta, "normal": truth.normals}, truth)
 
 
+@pytest.mark.slow
 def test_psnr_ceiling_falls_when_the_truth_has_fewer_vertices(tmp_path):
     """The truth at its own vertices scores what the sensor and ingest leave; resampled on a coarse mesh, its checker
     texture blurs and the ceiling falls (measured at 320x256: 29.0 dB for the truth, 26.8 dB at 2,000 vertices,
@@ -50,6 +51,7 @@ def test_psnr_ceiling_falls_when_the_truth_has_fewer_vertices(tmp_path):
     assert reduced["mean_db"] < full["mean_db"] - 5
 
 
+@pytest.mark.slow
 def test_render_rung_of_both_renderers_agrees_on_a_mitsuba_capture(tmp_path):
     """render_hdr draws the truth noise-free at the HDR grid with either renderer; on a scene both can draw
     (tiny_plain: no single scattering) the two agree pixel by pixel two pixels in from the silhouettes, which is

@@ -1,4 +1,5 @@
-"""The scale benchmark's cost model (sellip.bench.scale): benchmark files in, per-rule costs, a fitted model, predictions."""
+"""The scale benchmark's cost model (sellip.bench.scale): benchmark files in, per-rule costs, a fitted model,
+predictions."""
 
 import numpy as np
 import pytest

@@ -20,8 +20,8 @@ from sellip.bench.sweep_plan import merge
 from sellip.capture import files, reader
 from sellip.capture import synthetic as capture_synthetic
 from sellip.capture.scenes import build_scene, icosphere
-from sellip.geometry.meshes import vertex_normals
 from sellip.capture.sensor import SensorModel, simulate_raw
+from sellip.geometry.meshes import vertex_normals
 from sellip.model import ply as model_ply
 
 REPO = Path(__file__).resolve().parents[2]
@@ -77,9 +77,10 @@ def test_noise_scale_multiplies_the_noise_and_keeps_the_signal():
         SensorModel(width=8, height=8).with_noise_scale(0)
 
 
+@pytest.mark.slow
 def test_synth_records_the_noise_scale_and_the_workflow_passes_it(tmp_path):
-    path = capture_synthetic.synthesize_capture("tiny_dark", tmp_path / "capture", views=1, width=64, height=48, supersample=1,
-                                    progress=False, noise_scale=3.0)
+    path = capture_synthetic.synthesize_capture("tiny_dark", tmp_path / "capture", views=1, width=64, height=48,
+                                                supersample=1, progress=False, noise_scale=3.0)
     extra = reader.read_capture(path).config["synthetic"]
     assert extra["noise_scale"] == 3.0 and extra["gain_e_per_dn"] == pytest.approx(2.58 / 9)
     assert extra["read_noise_e"] == pytest.approx(0.8)
@@ -99,8 +100,8 @@ def test_synth_records_the_noise_scale_and_the_workflow_passes_it(tmp_path):
 @pytest.fixture(scope="module")
 def small_capture(tmp_path_factory):
     """Three views of the tiny sphere at 64x48 (9 DNG frames)."""
-    return capture_synthetic.synthesize_capture("tiny", tmp_path_factory.mktemp("capture") / "tiny", views=3, width=64, height=48,
-                                    supersample=1, progress=False)
+    return capture_synthetic.synthesize_capture("tiny", tmp_path_factory.mktemp("capture") / "tiny", views=3, width=64,
+                                                height=48, supersample=1, progress=False)
 
 
 def _copy(capture, to):
@@ -110,6 +111,7 @@ def _copy(capture, to):
     return to
 
 
+@pytest.mark.slow
 def test_bad_frames_skip_merges_from_the_other_frames_and_drops_empty_views(small_capture, tmp_path, caplog):
     from sellip.capture.hdr import merge_capture, read_hdr
     from sellip.capture.linearize import linearize_capture
@@ -154,7 +156,8 @@ def test_bad_frames_skip_merges_from_the_other_frames_and_drops_empty_views(smal
     from sellip.stages import observe
 
     cameras = tmp_path / "skip" / "cameras.csv"
-    geometry_poses.solve_poses(tmp_path / "skip" / "hdr.zarr", capture, cameras, tmp_path / "skip" / "sfm", mode="known")
+    geometry_poses.solve_poses(tmp_path / "skip" / "hdr.zarr", capture, cameras, tmp_path / "skip" / "sfm",
+                               mode="known")
     assert list(pd.read_csv(cameras)["view_id"]) == ["v000", "v001"]
     observe_mesh.observe_mesh(capture / files.GROUND_TRUTH_MESH, cameras, tmp_path / "skip" / "hdr.zarr", capture,
                       tmp_path / "skip" / "observations.zarr", exclude_views=("v002",))
@@ -418,6 +421,7 @@ def test_suite_writes_validated_tables_and_keeps_going_after_a_failure(tmp_path)
         stability_table.validate_table([{**table.iloc[0].to_dict(), "auc": 1.5}])
 
 
+@pytest.mark.slow
 def test_cli_lists_the_cases():
     out = subprocess.run([sys.executable, "-m", "sellip.cli", "bench-stability", "--help"], capture_output=True,
                          text=True, check=True).stdout

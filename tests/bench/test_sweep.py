@@ -269,8 +269,10 @@ def test_tables_markdown_has_every_section():
                     ("sphere_ior", "sigma_ss", 1.0, 81.0, 10.2, 16.5, 19.5, 10.0),
                     ("sphere_ior", "model_selection", False, 90.0, 10.0, 15.0, 20.0, 45.0)])
     ior = pd.DataFrame([{"material": n, "eta_true": m, "vertices": 5, "eta_ours": m, "error_pct": 1.0,
-                         "vertex_error_pct": 2.0, "eta_paper": p, "paper_error_pct": e} for n, m, p, e in sweep_tables.PAPER_TABLE1])
-    text = tables_markdown(table, ior, "quick", {"sphere_ior__base": {1: 10}, "sphere_ior__model_selection-off": {3: 10}})
+                         "vertex_error_pct": 2.0, "eta_paper": p, "paper_error_pct": e}
+                        for n, m, p, e in sweep_tables.PAPER_TABLE1])
+    text = tables_markdown(table, ior, "quick",
+                           {"sphere_ior__base": {1: 10}, "sphere_ior__model_selection-off": {3: 10}})
     for heading in ("## sphere_ior", "## Refractive index", "## Augmentation on/off", "## σss free vs fixed",
                     "## Model selection on/off"):
         assert heading in text
@@ -354,6 +356,7 @@ def _dry_run(workdir: Path, config: dict, targets=()) -> dict[str, int]:
             if len(line.split()) == 2 and line.split()[1].isdigit()}
 
 
+@pytest.mark.slow
 def test_linked_upstream_is_up_to_date_for_snakemake(tmp_path):
     """With the upstream outputs linked in, the real Snakefile plans only the loop and the evaluation."""
     capture = tmp_path / "captures" / "tiny"

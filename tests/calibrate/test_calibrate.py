@@ -74,7 +74,8 @@ def test_refined_corners_lie_on_the_true_projection_and_the_window_follows_the_s
     assert np.sqrt(np.mean(error ** 2)) < 0.08 and np.all(np.abs(error.mean(axis=0)) < 0.03)  # intensity-image px
     windows = []
     original = cv2.cornerSubPix
-    monkeypatch.setattr(cv2, "cornerSubPix", lambda img, c, win, *a: windows.append(win[0]) or original(img, c, win, *a))
+    monkeypatch.setattr(cv2, "cornerSubPix",
+                        lambda img, c, win, *a: windows.append(win[0]) or original(img, c, win, *a))
     square = np.median(np.linalg.norm(np.diff(truth.reshape(SPEC.rows, SPEC.cols, 2), axis=1), axis=-1))
     intrinsics.refine_corners(image, truth.copy(), SPEC.cols, SPEC.rows)
     centre = truth.mean(axis=0)
@@ -86,6 +87,7 @@ def test_refined_corners_lie_on_the_true_projection_and_the_window_follows_the_s
 # --------------------------------------------------------------------------- intrinsics
 
 
+@pytest.mark.slow
 def test_intrinsics_recover_the_truth(calib):
     folder, truth = calib
     device = truth["device"]
@@ -102,6 +104,7 @@ def test_intrinsics_recover_the_truth(calib):
     assert result.rms_px < 0.2
 
 
+@pytest.mark.slow
 def test_intrinsics_are_bit_identical_between_runs(calib):
     """Deterministic for the same frames: OpenCV's thread pool made fx ... vary in the 12th digit between runs
     (intrinsics.opencv_single_threaded fixes it); two runs on 8 frames must agree bit for bit."""
@@ -113,6 +116,7 @@ def test_intrinsics_are_bit_identical_between_runs(calib):
     assert runs[0].per_frame == runs[1].per_frame
 
 
+@pytest.mark.slow
 def test_bad_board_frames_are_named_and_too_few_is_an_error():
     device = synthetic.true_device(W, H)
     poses = synthetic.board_poses(SPEC, device, 3, np.random.default_rng(7))
@@ -140,6 +144,7 @@ def _calibrated(truth):
     return copy.deepcopy(truth["device"])
 
 
+@pytest.mark.slow
 def test_flash_position_from_sphere_highlights(calib):
     folder, truth = calib
     device = _calibrated(truth)
@@ -183,6 +188,7 @@ def test_nearest_point_ignores_one_bad_line():
     assert np.linalg.norm(x - target) < 5e-4 and weights[0] < 0.2 and distances[0] > 0.01
 
 
+@pytest.mark.slow
 def test_clipped_sphere_and_saturated_highlight_are_named():
     device = synthetic.true_device(W, H)
     radius = 0.012
@@ -243,6 +249,7 @@ def test_dark_background_touching_spheres_and_spheres_near_the_centre_are_named(
 # --------------------------------------------------------------------------- polarization
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("claimed, polarizer, layout_ok, polarizer_ok, what", [
     ([[90, 45], [135, 0]], 0.0, True, True, None),
     ([[90, 135], [45, 0]], 0.0, False, True, "45 and 135 swapped"),
@@ -288,7 +295,7 @@ def test_panel_reflection_is_fresnel_and_s_polarized():
     nothing where the mirror ray turns back towards the camera (normal incidence)."""
     z = 0.5
     azimuth = np.radians(30.0)
-    points, normals, expected = [], [], []
+    points, normals = [], []
     for zenith_deg in (89.9, 70.0, 5.0):
         zenith = np.radians(zenith_deg)
         # a point on the optical axis with its normal at that zenith from the view ray, at that image azimuth
@@ -336,6 +343,7 @@ def test_permutation_relabels_the_analyzer_axis():
 # --------------------------------------------------------------------------- colour
 
 
+@pytest.mark.slow
 def test_color_matrix_from_the_chart(calib):
     folder, truth = calib
     device = _calibrated(truth)
@@ -346,6 +354,7 @@ def test_color_matrix_from_the_chart(calib):
     assert np.abs(result.matrix - true_matrix).max() / np.abs(true_matrix).max() < 0.05
 
 
+@pytest.mark.slow
 def test_chart_in_shadow_names_the_patches():
     device = synthetic.true_device(W, H)
     rotation = np.eye(3)
@@ -406,12 +415,13 @@ def _frame_folder(tmp_path, names, width=64, height=48, exposure_s=None):
     raw_dir.mkdir(parents=True)
     rng = np.random.default_rng(0)
     for name in names:
-        writer.write_raw_file(raw_dir / name, rng.integers(64, 4000, (height, width)).astype(np.uint16), device["sensor"],
-                              exposure_s=exposure_s)
+        writer.write_raw_file(raw_dir / name, rng.integers(64, 4000, (height, width)).astype(np.uint16),
+                              device["sensor"], exposure_s=exposure_s)
     path = devices.write_device(tmp_path / "device.yaml", device)
     return raw_dir, devices.read_device(path, complete=True), path
 
 
+@pytest.mark.slow
 def test_capture_new_from_a_pattern(tmp_path):
     names = [f"v{v:03d}_f{level}.dng" for v in range(3) for level in (4, 8, 16)]
     raw_dir, device, device_path = _frame_folder(tmp_path, names)
@@ -482,7 +492,8 @@ def test_capture_new_reads_the_exposure_from_the_files(tmp_path):
     assert reader.read_capture(out).frames["exposure_s"].iloc[0] == 0.00401
     writer.write_raw_file(tmp_path / "x.tiff", np.full((48, 64), 100, np.uint16), device["sensor"], exposure_s=0.02)
     writer.write_raw_file(tmp_path / "x.png", np.full((48, 64), 100, np.uint16), device["sensor"])
-    assert reader.exposure_time(tmp_path / "x.tiff") == pytest.approx(0.02) and reader.exposure_time(tmp_path / "x.png") is None
+    assert (reader.exposure_time(tmp_path / "x.tiff") == pytest.approx(0.02)
+            and reader.exposure_time(tmp_path / "x.png") is None)
 
 
 def test_capture_new_refuses_a_failed_calibration(tmp_path):
@@ -513,6 +524,7 @@ def test_flash_level_from_file_names():
 # --------------------------------------------------------------------------- the commands end to end
 
 
+@pytest.mark.slow
 def test_calibrate_commands_write_device_yaml(calib, tmp_path):
     folder, truth = calib
     device_path = tmp_path / "device.yaml"
@@ -565,7 +577,8 @@ def test_calibrate_commands_write_device_yaml(calib, tmp_path):
     before = device_path.read_bytes()
     reverse = [corners[0], *corners[:0:-1]]
     failed = subprocess.run(run + ["color", str(folder / "chart" / truth["chart"]["file"]), "--device",
-                                   str(device_path), "--corners", *reverse], check=False, capture_output=True, text=True)
+                                   str(device_path), "--corners", *reverse],
+                            check=False, capture_output=True, text=True)
     assert failed.returncode != 0 and device_path.read_bytes() == before
     assert "the corners were given in another order (counter-clockwise" in failed.stderr
     expected = " ".join(f"{float(x):.1f},{float(y):.1f}" for x, y in (c.split(",") for c in corners))

@@ -18,7 +18,8 @@ LAYOUT = [[90, 45], [135, 0]]
 
 def test_intrinsics_report():
     result = IntrinsicsResult(fx=1811.5, fy=1812.25, cx=309.4, cy=253.7, distortion=[-0.12, 0.25, 4e-4, -3e-4, 0.0],
-                              rms_px=0.0734, per_frame={"a.dng": 0.07, "b.dng": 0.08}, left_out={"c.dng": "board not found"},
+                              rms_px=0.0734, per_frame={"a.dng": 0.07, "b.dng": 0.08},
+                              left_out={"c.dng": "board not found"},
                               std={"fx": 1.5, "fy": 1.4, "cx": 0.9, "cy": 0.6})
     step = report.intrinsics_report(result, (14, 10), 10.0)
     assert step.lines[0] == (logging.WARNING, "left out c.dng: board not found")
@@ -64,7 +65,8 @@ def test_polarization_report_warns_and_writes_only_when_asked():
 def test_color_report_names_the_worst_patch_and_ignores_left_out_ones():
     delta_e = np.full(24, 0.5)
     delta_e[3], delta_e[18] = 1.75, np.nan  # foliage worst; white left out
-    step = report.color_report(ColorResult(matrix=np.eye(3) * 1.5, delta_e=delta_e, left_out={PATCH_NAMES[18]: "clipped"}))
+    step = report.color_report(ColorResult(matrix=np.eye(3) * 1.5, delta_e=delta_e,
+                                           left_out={PATCH_NAMES[18]: "clipped"}))
     (level, line), = step.lines
     assert level == logging.INFO and f"max 1.75 (patch {PATCH_NAMES[3]})" in line and "mean 0.55" in line
     assert step.sections == {"camera": {"color_matrix": (np.eye(3) * 1.5).tolist()}}

@@ -147,7 +147,8 @@ def test_one_analyzer_plan_develops_that_analyzer_alone(color_layout):
     full = ingest.develop(mosaic, plan)
     for k in range(4):
         others = mosaic.copy()
-        others[layout.analyzer_map(height, width) != k] = rng.uniform(0, 5, np.sum(layout.analyzer_map(height, width) != k))
+        elsewhere = layout.analyzer_map(height, width) != k
+        others[elsewhere] = rng.uniform(0, 5, np.sum(elsewhere))
         one = ingest.develop(others, ingest.analyzer_plan(plan, k))
         assert one.shape == full[..., k:k + 1, :].shape
         np.testing.assert_allclose(one, full[..., k:k + 1, :], rtol=1e-6, atol=1e-7)
@@ -165,7 +166,7 @@ def test_colours_share_the_guide_resolution_and_polarization():
     height, width, period = 64, 96, 16.0
     hue = np.array([0.7, 1.0, 0.45])
     polarization = 1 + 0.2 * np.cos(np.radians(2 * (np.array(ANALYZER_ANGLES_DEG) - 30.0)))
-    texture = lambda x, y: 0.6 + 0.3 * np.sin(2 * np.pi * x / period) * np.cos(2 * np.pi * y / (1.3 * period))  # noqa: E731
+    texture = lambda x, y: 0.6 + 0.3 * np.sin(2 * np.pi * x / period) * np.cos(2 * np.pi * y / (1.3 * period))
     y, x = np.mgrid[0:height, 0:width].astype(np.float64)
     a, c = layout.analyzer_map(height, width), layout.color_map(height, width)
     linear = (0.5 * texture(x, y) * hue[c] * polarization[a]).astype(np.float32)
@@ -179,7 +180,8 @@ def test_colours_share_the_guide_resolution_and_polarization():
         return np.hypot(i0 - i90, i45 - i135) / (i0 + i90)
 
     errors = {}
-    for name, demosaic_plan in (("guided", plan.demosaic), ("bilinear", dataclasses.replace(plan.demosaic, guide=None))):
+    for name, demosaic_plan in (("guided", plan.demosaic),
+                                ("bilinear", dataclasses.replace(plan.demosaic, guide=None))):
         out = ingest.remap(ingest.demosaic(linear, demosaic_plan), plan.remap)[3:-3, 3:-3]
         errors[name] = (np.sqrt(np.mean(((out - truth) / truth) ** 2, axis=(0, 1, 2))),
                         np.sqrt(np.mean((dop(out) - dop(truth)) ** 2, axis=(0, 1))))
@@ -244,7 +246,7 @@ def test_undistorted_output_matches_output_intrinsics():
     y, x = np.mgrid[0:height, 0:width].astype(np.float64)
     xn, yn = undistort_normalized((x - camera["cx"]) / camera["fx"], (y - camera["cy"]) / camera["fy"],
                                   camera["distortion"])
-    scene = lambda xn, yn: 0.4 + 0.25 * xn - 0.2 * yn  # noqa: E731
+    scene = lambda xn, yn: 0.4 + 0.25 * xn - 0.2 * yn
     raw = np.rint(scene(xn, yn) * 65535).astype(np.uint16)
     plan = ingest.make_ingest_plan({"width": width, "height": height, "black_level": 0, "white_level": 65535},
                                    camera, layout)
@@ -403,7 +405,7 @@ def test_black_levels_from_raw_file_metadata(tmp_path):
     merged, _ = run_ingest(tmp_path / "c", tmp_path / "file", black_level_from="file").view("v")
     camera_rgb = merged[..., 0, :] @ np.linalg.inv(np.asarray(sensor.color_matrix)).T
     np.testing.assert_allclose(camera_rgb, 2000 / ((4095 - np.mean(pattern)) * EXPOSURE_S), rtol=1e-3)
-    spread = lambda a: np.ptp(a[..., 0]) / np.mean(a[..., 0])  # noqa: E731 (4 analyzers of red, one pixel)
+    spread = lambda a: np.ptp(a[..., 0]) / np.mean(a[..., 0])  # 4 analyzers of red, one pixel
     assert spread(merged[10, 10]) < 1e-3
     merged_capture, _ = run_ingest(tmp_path / "c", tmp_path / "capture").view("v")
     assert spread(merged_capture[10, 10]) > 0.01  # with capture.yaml's black 0 the pattern leaks in

@@ -232,7 +232,8 @@ BAD_WRITES = {
     "duplicate frame_id": (lambda f, r, c: (f.assign(frame_id=["x", "y", "z", "x", "v", "w"]),
                                             {k: r["a_0"] for k in "xyzvw"}, c), files.DuplicateFrameError),
     "raw of the wrong size": (lambda f, r, c: (f, {**r, "b_2": r["b_2"][:, :-4]}, c), files.RawFrameError),
-    "raw above the bit depth": (lambda f, r, c: (f, {**r, "b_1": r["b_1"] | np.uint16(0x8000)}, c), files.RawFrameError),
+    "raw above the bit depth": (lambda f, r, c: (f, {**r, "b_1": r["b_1"] | np.uint16(0x8000)}, c),
+                                files.RawFrameError),
     "unknown layout": (lambda f, r, c: (f, r, {**c, "sensor": {**c["sensor"], "color_layout": "RGB"}}),
                        files.UnknownLayoutError),
 }

@@ -29,6 +29,8 @@ from sellip.model.fresnel import diffuse_dop
 from sellip.model.pbrdf import PBRDFParams
 from sellip.model.render import Camera, ParamMesh, Renderer, flash_light, pixel_rays
 
+pytestmark = pytest.mark.slow  # the whole module: `make test-fast` leaves it out
+
 REPO = Path(__file__).resolve().parents[2]
 
 

@@ -34,6 +34,7 @@ def _files(root):
     return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
 
 
+@pytest.mark.slow
 def test_cli_writes_a_valid_capture_with_ground_truth(tmp_path):
     out = tmp_path / "captures" / "tiny"
     subprocess.run([sys.executable, "-m", "sellip.cli", "synth", "--scene", "tiny", "--out", str(out), "--views", "3",
@@ -56,6 +57,7 @@ def test_cli_writes_a_valid_capture_with_ground_truth(tmp_path):
     assert 0 < centre[0] / centre[2] < 64 and 0 < centre[1] / centre[2] < 48
 
 
+@pytest.mark.slow
 def test_same_seed_gives_byte_identical_files(tmp_path):
     a = capture_synthetic.synthesize_capture("tiny", tmp_path / "a", seed=3, **TINY)
     b = capture_synthetic.synthesize_capture("tiny", tmp_path / "b", seed=3, **TINY)
@@ -120,7 +122,8 @@ def test_demo_fine_keeps_the_texture_at_the_pixel():
 
 
 def test_the_config_schema_offers_every_scene():
-    """demo.scene in config.schema.yaml lists exactly sellip.capture.scenes.SCENES (a scene missing there fails validation)."""
+    """demo.scene in config.schema.yaml lists exactly sellip.capture.scenes.SCENES (a scene missing there fails
+    validation)."""
     from pathlib import Path
 
     import yaml
@@ -166,6 +169,7 @@ def test_handheld_orbit_is_irregular_and_frames_the_object():
         assert 0.35 * 612 < u < 0.65 * 612 and 0.35 * 512 < v < 0.65 * 512
 
 
+@pytest.mark.slow
 def test_demo_highlights_saturate_at_the_strongest_flash_while_diffuse_stays_in_range(demo_scene):
     """Looking straight at the owl's face: the glossy eyes saturate at flash 1/4; at 1/16 the object is mid-range."""
     scene = demo_scene
@@ -184,15 +188,17 @@ def test_demo_highlights_saturate_at_the_strongest_flash_while_diffuse_stays_in_
     assert np.mean(weak[on_object] >= sensor.white_level) == 0
 
 
+@pytest.mark.slow
 def test_png_frames_and_lens_distortion(tmp_path):
     distortion = [-0.1, 0.02, 0.0, 0.0, 0.0]
-    path = capture_synthetic.synthesize_capture("tiny", tmp_path / "cap", seed=0, raw_format="png", distortion=distortion,
-                                    **{**TINY, "views": 1})
+    path = capture_synthetic.synthesize_capture("tiny", tmp_path / "cap", seed=0, raw_format="png",
+                                                distortion=distortion, **{**TINY, "views": 1})
     capture = reader.read_capture(path, check_raw=True)
     assert capture.config["camera"]["distortion"] == distortion
     assert capture.frames["file"].str.endswith(".png").all()
 
 
+@pytest.mark.slow
 def test_a_described_device_shoots_the_capture(tmp_path):
     """--device: the frames are shot with the device's lens, flash and polarizer, and capture.yaml describes it;
     --noise-seed changes the noise alone (same orbit); a size other than the device's is refused."""
@@ -215,7 +221,8 @@ def test_a_described_device_shoots_the_capture(tmp_path):
     noisy = capture_synthetic.synthesize_capture("tiny", tmp_path / "n", views=2, device=device, noise_seed=7,
                                                  progress=False)
     upright = capture_synthetic.synthesize_capture("tiny", tmp_path / "u", views=2, progress=False,
-                                                   device={**device, "light": {**device["light"], "polarizer_deg": 0.0}})
+                                                   device={**device,
+                                                           "light": {**device["light"], "polarizer_deg": 0.0}})
     files_a, files_b, files_n = _files(out), _files(b), _files(noisy)
     assert files_a["raw/v000_f0.dng"] == files_b["raw/v000_f0.dng"]  # the CLI and the library agree
     assert files_n["poses.csv"] == files_a["poses.csv"] and files_n["raw/v000_f0.dng"] != files_a["raw/v000_f0.dng"]

@@ -12,8 +12,8 @@ from collections import Counter
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import unit
 
+from helpers import unit
 from sellip import cli
 from sellip.fit import clusters as fit_clusters
 from sellip.fit import lobes as fit_lobes
@@ -25,6 +25,8 @@ from sellip.model import conventions
 from sellip.model.conventions import observations_from_analyzers, stokes_to_analyzers
 from sellip.model.fresnel import fresnel
 from sellip.model.pbrdf import PBRDFParams, full_stokes, lobe_stokes
+
+pytestmark = pytest.mark.slow  # the whole module: `make test-fast` leaves it out
 
 MATERIALS = (  # eta, rho_d, rho_s, sigma_s, rho_ss, sigma_ss
     (1.4, (0.6, 0.25, 0.15), 0.8, 0.08, (0.15, 0.06, 0.04), 0.5),
@@ -103,9 +105,9 @@ def scene():
     s["lobes"] = []
     for k in range(len(s["clusters"].centres)):
         m = s["clusters"].labels == k
-        s["lobes"].append(fit_lobes.fit_cluster_lobe(Observations(*[np.asarray(x)[m] for x in s["obs"]]), s["normals"][m],
-                                                   plain.rho_d[m], float(np.median(plain.eta[m])), HELD, AUGMENT,
-                                                   seed=k))
+        s["lobes"].append(fit_lobes.fit_cluster_lobe(Observations(*[np.asarray(x)[m] for x in s["obs"]]),
+                                                     s["normals"][m], plain.rho_d[m], float(np.median(plain.eta[m])),
+                                                     HELD, AUGMENT, seed=k))
     s["virtual"] = fit_lobes.virtual_samples(s["clusters"].labels, s["lobes"], HELD, np.float64)
     s["augmented"] = fit_vertices(s["obs"], s["normals"], default_prior(n, np.float64), HELD, virtual=s["virtual"])
     return s
@@ -163,7 +165,8 @@ def test_augmentation_recovers_the_lobes_of_vertices_that_never_see_their_highli
             i_s.append(np.asarray(obs.specular)[0])
         predictions[name] = np.stack(i_s)
     level = np.sqrt(np.mean(predictions["truth"] ** 2, axis=(1, 2)))
-    rms = {name: np.median((np.sqrt(np.mean((predictions[name] - predictions["truth"]) ** 2, axis=(1, 2))) / level)[unseen])
+    rms = {name: np.median((np.sqrt(np.mean((predictions[name] - predictions["truth"]) ** 2, axis=(1, 2)))
+                            / level)[unseen])
            for name in ("plain", "augmented")}
     # Measured: 0.73 -> 0.03 (median relative RMS of I_s near the highlight).
     assert rms["augmented"] < rms["plain"] / 4 and rms["augmented"] < 0.15, rms
@@ -245,7 +248,8 @@ def test_a_few_vertices_of_a_narrower_brighter_lobe_do_not_take_the_cluster_lobe
 
     from sellip.fit.selection import settings_for_model
 
-    materials = ((1.33, (0.27, 0.27, 0.22), 0.8, 0.4, (0, 0, 0), 0.6), (1.6, (0.1, 0.09, 0.08), 0.8, 0.08, (0, 0, 0), 0.6))
+    materials = ((1.33, (0.27, 0.27, 0.22), 0.8, 0.4, (0, 0, 0), 0.6),
+                 (1.6, (0.1, 0.09, 0.08), 0.8, 0.08, (0, 0, 0), 0.6))
     settings = settings_for_model(HELD, 1)
     fits = {}
     for intruders in (8, 0, 36):
@@ -264,8 +268,8 @@ def test_a_few_vertices_of_a_narrower_brighter_lobe_do_not_take_the_cluster_lobe
 
 def test_clusters_and_lobes_are_deterministic_for_a_seed(scene):
     plain = scene["plain"]
-    again = fit_clusters.cluster_materials(plain.params.eta, plain.params.rho_d, plain.status, plain.confidence, AUGMENT,
-                                      seed=0)
+    again = fit_clusters.cluster_materials(plain.params.eta, plain.params.rho_d, plain.status, plain.confidence,
+                                           AUGMENT, seed=0)
     np.testing.assert_array_equal(again.labels, scene["clusters"].labels)
     np.testing.assert_array_equal(again.centres, scene["clusters"].centres)
     m = scene["clusters"].labels == 0
@@ -316,7 +320,8 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
 
     # The refit: float64 and held normals (the settings of the library fit above, so its kernels are reused).
     output = tmp_path / "refit.npz"
-    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--prior", str(tmp_path / "fit.zarr"),
+    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"),
+                     "--prior", str(tmp_path / "fit.zarr"),
                      "--lobes", str(clusters), "--output", str(output), "--dtype", "float64",
                      "--settings", '{"fit_normal": false}']) == 0
     with np.load(output) as refit:
@@ -406,10 +411,10 @@ def test_a_materials_eta_is_the_median_of_its_confident_vertices():
 
 
 def test_a_material_cut_along_its_eta_is_one_cluster_and_two_materials_stay_two():
-    """fit_clusters.find_eta_cut: k-means cuts one material (one albedo, eta 1.48 +- 0.06) at its median eta when it has a
-    centre too many: the halves' mean albedos are 0 pooled sd apart and their features have one mode along the line
-    between the centres, so they are one material. Two materials of one albedo whose eta differ by 0.3 (two modes),
-    or of the same eta but another albedo (5+ sd apart), stay two."""
+    """fit_clusters.find_eta_cut: k-means cuts one material (one albedo, eta 1.48 +- 0.06) at its median eta when it
+    has a centre too many: the halves' mean albedos are 0 pooled sd apart and their features have one mode along the
+    line between the centres, so they are one material. Two materials of one albedo whose eta differ by 0.3
+    (two modes), or of the same eta but another albedo (5+ sd apart), stay two."""
     rng = np.random.default_rng(3)
     n = 3000
     brightness = np.exp(rng.normal(0, 0.1, (n, 1)))
@@ -501,8 +506,8 @@ def test_a_region_is_kept_when_its_cluster_also_takes_scattered_vertices_of_a_si
     albedo = np.where(caps[:, None], [0.42, 0.28, 0.06], np.where(scattered[:, None], [0.62, 0.40, 0.045],
                                                                    [0.22, 0.14, 0.075]))
     rho_d = albedo * np.exp(rng.normal(0, 0.1, (n, 1))) * rng.uniform(0.99, 1.01, (n, 3))
-    found = fit_clusters.cluster_materials(eta, rho_d, np.zeros(n, np.int32), np.ones(n), AugmentSettings(min_coherence=0.5),
-                                      vertices=vertices)
+    found = fit_clusters.cluster_materials(eta, rho_d, np.zeros(n, np.int32), np.ones(n),
+                                           AugmentSettings(min_coherence=0.5), vertices=vertices)
     assert len(found.regions) == 1 and found.regions[0]["coherence"] > 0.8 and not found.merges
     assert len(found.centres) == 2
     region = found.labels == found.labels[np.argmax(caps)]

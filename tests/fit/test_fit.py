@@ -6,9 +6,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import make_params, unit
 from scipy import optimize
 
+from helpers import make_params, unit
 from sellip.fit import parameterization, vertex_fit
 from sellip.fit import residuals as fit_residuals
 from sellip.fit import solver as fit_solver
@@ -42,6 +42,7 @@ def _errors(result, params, normals):
     return angle, eta, albedo
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("flash_offset_m", [0.0, FLASH_3_5_DEG], ids=["coaxial", "flash_3.5deg"])
 def test_clean_data_recovers_the_parameters(flash_offset_m):
     params, normals, obs, start = _scene(48, seed=1, flash_offset_m=flash_offset_m)
@@ -54,6 +55,7 @@ def test_clean_data_recovers_the_parameters(flash_offset_m):
     assert np.all(result.confidence > 0.5)
 
 
+@pytest.mark.slow
 def test_noise_degrades_gracefully():
     """Errors grow with the noise and stay moderate: the fit does not break down."""
     medians = []
@@ -69,6 +71,7 @@ def test_noise_degrades_gracefully():
     assert angle < 0.5 and eta < 0.04 and albedo < 0.02, medians
 
 
+@pytest.mark.slow
 def test_views_from_several_azimuths_resolve_the_pi_ambiguity():
     """Views spread around an axis 30 deg from the normal. Started from the normal mirrored
     about that axis (60 deg away: the same zenith, and the same polarization angle modulo pi, in
@@ -90,6 +93,7 @@ def test_views_from_several_azimuths_resolve_the_pi_ambiguity():
     assert np.median(angle) < 0.5 and np.mean(angle < 1.0) >= 0.75, np.sort(angle)
 
 
+@pytest.mark.slow
 def test_eta_is_not_bent_by_a_diffuse_falloff_that_texture_below_the_pixel_makes():
     """A vertex brighter than the texture around it looks darker at grazing views, whose pixel footprint (1 / cos
     theta_o larger) takes in its darker surroundings, and one darker looks brighter: the diffuse part of every view
@@ -122,6 +126,7 @@ def test_eta_is_not_bent_by_a_diffuse_falloff_that_texture_below_the_pixel_makes
     assert max(abs(b) for b in bias[True]) < 1.0, bias
 
 
+@pytest.mark.slow
 def test_outlier_views_do_not_move_the_fit():
     """10 % of the views corrupted (a spurious bright reflection in all four analyzers)."""
     params, normals, obs, start = _scene(32, seed=4, noise=0.005)
@@ -140,6 +145,7 @@ def test_outlier_views_do_not_move_the_fit():
     assert np.mean(robust.views_used) < np.mean(clean.views_used) - 2
 
 
+@pytest.mark.slow
 def test_three_views_mean_too_few_views_and_finite_values():
     params, normals, obs, start = _scene(8, seed=6)
     usable = np.zeros(np.shape(obs.usable), bool)
@@ -153,6 +159,7 @@ def test_three_views_mean_too_few_views_and_finite_values():
     np.testing.assert_allclose(result.params.eta, 1.5)
 
 
+@pytest.mark.slow
 def test_sharded_and_unsharded_runs_agree():
     """Each vertex is an independent problem: splitting the vertices into shards changes nothing
     but floating-point round-off (different batch shapes vectorize differently; a poorly determined
@@ -161,7 +168,8 @@ def test_sharded_and_unsharded_runs_agree():
     prior = default_prior(40, np.float64)
     whole = fit_vertices(obs, start, prior)
     halves = [fit_vertices(Observations(*[np.asarray(x)[part] for x in obs]), start[part],
-                           type(prior)(*[np.asarray(x)[part] for x in prior])) for part in (slice(0, 23), slice(23, 40))]
+                           type(prior)(*[np.asarray(x)[part] for x in prior]))
+              for part in (slice(0, 23), slice(23, 40))]
     np.testing.assert_array_equal(whole.status, np.concatenate([h.status for h in halves]))
     np.testing.assert_array_equal(whole.views_used, np.concatenate([h.views_used for h in halves]))
     for name in ("normal", "confidence", "loss"):
@@ -171,21 +179,23 @@ def test_sharded_and_unsharded_runs_agree():
         np.testing.assert_allclose(a, np.concatenate(parts), rtol=1e-6, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_levenberg_marquardt_agrees_with_scipy_least_squares():
     """Same residuals, same start: scipy's trust-region solver reaches the same minimum. One fixed objective: the
     diffuse eta is not held (hold_diffuse_eta moves the objective between LM stages)."""
     params, normals, obs, start = _scene(6, seed=8, noise=0.01)
     settings = FitSettings(hold_diffuse_eta=False)
     result = fit_vertices(obs, start, default_prior(6, np.float64), settings)
-    keep, records, frames, z0 = vertex_fit.select_and_prepare(obs, jnp.asarray(start), default_prior(6, np.float64), settings)
+    keep, records, frames, z0 = vertex_fit.select_and_prepare(obs, jnp.asarray(start), default_prior(6, np.float64),
+                                                              settings)
     z0 = fit_solver.pick_best_start(z0, records, frames, settings)
     residual = jax.jit(lambda z, v, f: fit_residuals.vertex_residuals(z, v, f, settings))
     jacobian = jax.jit(jax.jacfwd(lambda z, v, f: fit_residuals.vertex_residuals(z, v, f, settings)))
     for i in range(6):
-        v = jax.tree_util.tree_map(lambda x: x[i], records)
-        f = jax.tree_util.tree_map(lambda x: x[i], frames)
-        theirs = optimize.least_squares(lambda z: np.asarray(residual(jnp.asarray(z), v, f)), np.asarray(z0[i]),
-                                        jac=lambda z: np.asarray(jacobian(jnp.asarray(z), v, f)), method="trf",
+        v = jax.tree_util.tree_map(lambda x: x[i], records)  # noqa: B023 - called in this iteration
+        f = jax.tree_util.tree_map(lambda x: x[i], frames)  # noqa: B023 - called in this iteration
+        theirs = optimize.least_squares(lambda z: np.asarray(residual(jnp.asarray(z), v, f)), np.asarray(z0[i]),  # noqa: B023 - called in this iteration
+                                        jac=lambda z: np.asarray(jacobian(jnp.asarray(z), v, f)), method="trf",  # noqa: B023 - called in this iteration
                                         xtol=1e-12, ftol=1e-12, gtol=1e-12)
         their_loss = 2 * theirs.cost
         assert result.loss[i] <= their_loss * 1.01 + 1e-10, (i, result.loss[i], their_loss)
@@ -203,8 +213,8 @@ def test_specular_nnls_matches_scipy():
         weight = rng.uniform(0.1, 1, k)
         ridge = 1e-3
         prior = rng.uniform(0, 0.5, 4)
-        ours = np.asarray(fit_residuals.nnls_specular(jnp.asarray(a), jnp.asarray(b), jnp.asarray(y), jnp.asarray(weight),
-                                             jnp.asarray(prior), ridge))
+        ours = np.asarray(fit_residuals.nnls_specular(jnp.asarray(a), jnp.asarray(b), jnp.asarray(y),
+                                                      jnp.asarray(weight), jnp.asarray(prior), ridge))
         # The same problem as one stacked non-negative least squares, solved by scipy.
         sw = np.sqrt(weight)
         rows = [np.c_[sw * a, *(sw * b * (c == j) for j in range(3))] for c in range(3)]
@@ -222,6 +232,7 @@ def test_solve_spd_matches_numpy():
     np.testing.assert_allclose(solve_spd(jnp.asarray(spd), jnp.asarray(rhs)), np.linalg.solve(spd, rhs), rtol=1e-10)
 
 
+@pytest.mark.slow
 def test_float32_fit_runs_and_is_accurate():
     params, normals, obs, start = _scene(32, seed=11)
     obs32 = Observations(*[np.asarray(x).astype(np.float32) if np.asarray(x).dtype == np.float64 else np.asarray(x)
@@ -240,10 +251,13 @@ def test_zero_weight_virtual_samples_change_nothing():
     settings = FitSettings()
     virtual = VirtualSamples(theta_h=np.tile(np.radians(np.arange(180) * 0.5), (2, 1)),
                              reflectance=np.full((2, 180, 3), 0.3), weight=np.zeros((2, 180)))
-    _, plain, frames, z0 = vertex_fit.select_and_prepare(obs, jnp.asarray(start), default_prior(2, np.float64), settings)
-    _, zero, _, _ = vertex_fit.select_and_prepare(obs, jnp.asarray(start), default_prior(2, np.float64), settings, virtual)
+    _, plain, frames, z0 = vertex_fit.select_and_prepare(obs, jnp.asarray(start), default_prior(2, np.float64),
+                                                         settings)
+    _, zero, _, _ = vertex_fit.select_and_prepare(obs, jnp.asarray(start), default_prior(2, np.float64), settings,
+                                                  virtual)
     v, w, f = (jax.tree_util.tree_map(lambda x: x[0], r) for r in (plain, zero, frames))
-    r_plain, r_zero = fit_residuals.vertex_residuals(z0[0], v, f, settings), fit_residuals.vertex_residuals(z0[0], w, f, settings)
+    r_plain, r_zero = (fit_residuals.vertex_residuals(z0[0], v, f, settings),
+                       fit_residuals.vertex_residuals(z0[0], w, f, settings))
     np.testing.assert_allclose(r_zero[:r_plain.size], r_plain, rtol=1e-12, atol=1e-15)  # sums reordered: round-off
     np.testing.assert_array_equal(r_zero[r_plain.size:], 0)
     assert fit_solver.free_parameters(FitSettings(fit_normal=False)) == (2, 3, 4)

@@ -115,6 +115,7 @@ def _fit_script(tmp_path) -> str:
     """)
 
 
+@pytest.mark.slow
 def test_a_second_process_loads_the_fit_kernels_instead_of_tracing(tmp_path):
     """The fit's kernels through two processes: the second traces (almost) nothing and fits the same."""
     script = _fit_script(tmp_path)
@@ -128,6 +129,7 @@ def test_a_second_process_loads_the_fit_kernels_instead_of_tracing(tmp_path):
     assert reports[1].get("trace", 0.0) < 0.25 * reports[0]["trace"]
 
 
+@pytest.mark.slow
 def test_processes_that_start_together_compile_once(tmp_path):
     """Two fits started together on an empty cache (the shards of a pass): one compiles each kernel while the
     other waits for it and loads the compilation from the cache; both fit the same."""

@@ -1,4 +1,5 @@
-"""Model selection (sellip.fit.selection, docs/design.md §7): which lobes a cluster needs, and fitting vertices by model.
+"""Model selection (sellip.fit.selection, docs/design.md §7): which lobes a cluster needs, and fitting vertices by
+model.
 
 One synthetic scene (the renderer and cameras of test_augment.py: the full model, 40 views within
 25 deg of +z, 0.5 % noise): three materials of 48 surface points each, a quarter of them facing the
@@ -48,8 +49,8 @@ def _rows(obs, rows):
 
 def _select(scene, name, seed=0, selection=SELECTION):
     rows = np.flatnonzero(scene["material"] == scene["names"].index(name))
-    return fit_selection.select_model(_rows(scene["obs"], rows), scene["normals"][rows], scene["params"].rho_d[rows], 1.5,
-                               HELD, selection, LOBES, seed=seed)
+    return fit_selection.select_model(_rows(scene["obs"], rows), scene["normals"][rows], scene["params"].rho_d[rows],
+                                      1.5, HELD, selection, LOBES, seed=seed)
 
 
 CLUSTER_KERNELS = ("_stacked", "_stacked_jacobian", "_delta_step_jit", "_pool_solution", "_sample_losses")
@@ -67,6 +68,7 @@ def scene():
     return s
 
 
+@pytest.mark.slow
 def test_every_candidate_model_runs_one_compiled_program(scene):
     """The model is data to the cluster kernels, not a static argument: the four candidates of three
     clusters (twelve lobe fits and held-out scorings) compile each kernel once."""
@@ -116,7 +118,8 @@ def test_the_rule_takes_the_simplest_model_within_the_tolerance():
     spread = rng.normal(0, 1, 20)
     spread = 0.3 * (spread - spread.mean()) / spread.std()
     flat = np.full(20, 1.5)
-    chosen, best, table = fit_selection.choose({1: flat * (1.03 + spread), 3: flat}, tolerance=0.01, standard_errors=1.0)
+    chosen, best, table = fit_selection.choose({1: flat * (1.03 + spread), 3: flat}, tolerance=0.01,
+                                               standard_errors=1.0)
     assert best == 3 and chosen == 1 and table[1]["excess"] == pytest.approx(0.03 * table[3]["held_out_loss"])
     assert fit_selection.choose({1: flat * (1.03 + spread), 3: flat}, tolerance=0.0, standard_errors=0.0)[0] == 3
 
@@ -177,6 +180,7 @@ def _lobe(loss, rho_s=1.0, rho_ss=(0.0, 0.0, 0.0), sigma_s=0.1, sigma_ss=0.5):
                                  samples=100, loss=loss, theta_h_deg=np.zeros(0), value=np.zeros(0))
 
 
+@pytest.mark.slow
 def test_nested_fits_give_each_model_the_best_training_fit_of_its_family():
     """The near-mirror of the stability suite: model 3's fit ended with no single scattering at a worse training loss
     than model 1's; it must then score as model 1's fit, not as a lobe of its own (and the other way round)."""
@@ -198,6 +202,7 @@ def test_nested_fits_give_each_model_the_best_training_fit_of_its_family():
     assert fit_selection.in_family(_lobe(1.0, rho_ss=(0.1, 0, 0), sigma_ss=0.9), 2, 0.9)
 
 
+@pytest.mark.slow
 def test_the_candidate_fits_have_no_half_angle_error_unless_asked():
     augment = fit_clusters.AugmentSettings()
     assert augment.max_theta_error_deg > 0 and augment.alternations > 0  # the chosen lobe's fit keeps it
@@ -210,6 +215,7 @@ def test_the_candidate_fits_have_no_half_angle_error_unless_asked():
         fit_selection.SelectionSettings(max_theta_error_deg=-1.0)
 
 
+@pytest.mark.slow
 def test_selection_drops_the_lobes_a_cluster_does_not_need_and_keeps_those_it_needs(scene):
     chosen = {name: s.model for name, s in scene["selection"].items()}
     print({name: s.reason for name, s in scene["selection"].items()})
@@ -226,6 +232,7 @@ def test_selection_drops_the_lobes_a_cluster_does_not_need_and_keeps_those_it_ne
     assert table[0]["excess"] > 10 * table[1]["held_out_loss"]  # the specular lobe is needed
 
 
+@pytest.mark.slow
 def test_selection_is_deterministic_for_a_seed(scene):
     again = _select(scene, "specular")
     first = scene["selection"]["specular"]
@@ -238,6 +245,7 @@ def _refit_models(scene):
     return np.where(scene["material"] == scene["names"].index("diffuse"), 0, 1)
 
 
+@pytest.mark.slow
 def test_fit_by_model_fits_every_vertex_with_its_model(scene):
     """A real grouped fit: the rows of each model are the plain fit of that model on them (to round-off), and
     the models are data to one compilation: a mix of every model compiles no LM kernel anew."""
@@ -259,15 +267,17 @@ def test_fit_by_model_fits_every_vertex_with_its_model(scene):
                                        atol=1e-9, err_msg=f"model {code}: {name}")
         np.testing.assert_array_equal(grouped.status[m], alone.status)
         if code == 1:  # every vertex of one model: the same as the plain fit with that model's settings
-            same = fit_selection.fit_by_model(_rows(obs, m), normals[m], PBRDFParams(*[np.asarray(x)[m] for x in prior]),
-                                       np.ones(m.sum(), int), HELD, virtual=records.VirtualSamples(
-                                           *[np.asarray(x)[m] for x in virtual]))
+            same = fit_selection.fit_by_model(_rows(obs, m), normals[m],
+                                              PBRDFParams(*[np.asarray(x)[m] for x in prior]),
+                                              np.ones(m.sum(), int), HELD, virtual=records.VirtualSamples(
+                                                  *[np.asarray(x)[m] for x in virtual]))
             for a, b in zip(jax_leaves(same), jax_leaves(alone)):
                 np.testing.assert_array_equal(a, b)
     compiled = solver.lm_rounds._cache_size()
     mixed = fit_selection.fit_by_model(obs, normals, prior, np.arange(n) % 4, HELD, virtual=virtual)
     assert solver.lm_rounds._cache_size() == compiled
-    assert np.all(mixed.params.rho_s[np.arange(n) % 4 == 0] == 0) and np.all(mixed.params.rho_ss[np.arange(n) % 4 < 2] == 0)
+    assert (np.all(mixed.params.rho_s[np.arange(n) % 4 == 0] == 0)
+            and np.all(mixed.params.rho_ss[np.arange(n) % 4 < 2] == 0))
     np.testing.assert_allclose(mixed.params.sigma_ss[np.arange(n) % 4 == 2], 0.9, rtol=1e-12)
     assert np.all(grouped.status == 0) and np.all(grouped.params.rho_ss == 0)
     assert np.all(grouped.params.rho_s[vertex_models == 0] == 0)
@@ -301,6 +311,7 @@ def _write_stores(folder, scene):
                                        "status": np.zeros(n, np.int8)}, chunk=64)
 
 
+@pytest.mark.slow
 def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, scene, caplog, monkeypatch):
     from sellip.fit import finalize as fit_finalize
     from sellip.model.params import read_params
@@ -327,7 +338,8 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     assert table[0].endswith(",model") and sorted(int(line.split(",")[-1]) for line in table[1:]) == [0, 1, 1]
 
     # The refit: every vertex with its cluster's model (the grouped fit's compiled shapes above).
-    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--prior", str(tmp_path / "fit.zarr"),
+    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"),
+                     "--prior", str(tmp_path / "fit.zarr"),
                      "--lobes", str(tmp_path / "clusters"), "--output", str(tmp_path / "refit.npz"),
                      "--dtype", "float64", "--settings", '{"fit_normal": false}']) == 0
     with np.load(tmp_path / "refit.npz") as refit:
@@ -356,8 +368,8 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     vertex, _ = read_ply(tmp_path / "model.ply")
     np.testing.assert_array_equal(vertex["model"], vertex_models)
     # ... and its cluster's selection margin, which lowers the confidence where it is small.
-    margins, runner_up = fit_selection.cluster_margins(json.loads((tmp_path / "clusters" / "clusters.json").read_text()),
-                                                       int(labels.max()) + 1)
+    record = json.loads((tmp_path / "clusters" / "clusters.json").read_text())
+    margins, runner_up = fit_selection.cluster_margins(record, int(labels.max()) + 1)
     assert np.isfinite(margins).all()
     final = read_params(tmp_path / "final.zarr")
     np.testing.assert_allclose(final["selection_margin"], margins[labels], rtol=1e-6)
@@ -399,6 +411,6 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     # A bad models.npy is refused, naming the file; nothing is written.
     np.save(tmp_path / "clusters" / "models.npy", np.full(n, 7, np.uint8))
     caplog.clear()
-    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--lobes", str(tmp_path / "clusters"),
-                     "--output", str(tmp_path / "bad.npz")]) == 1
+    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"),
+                     "--lobes", str(tmp_path / "clusters"), "--output", str(tmp_path / "bad.npz")]) == 1
     assert "models.npy" in caplog.text and not (tmp_path / "bad.npz").exists()

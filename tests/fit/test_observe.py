@@ -183,7 +183,7 @@ def test_samples_at_visible_vertices_agree_with_the_model(rendered, observed):
     c = {name: np.concatenate(values) for name, values in columns.items()}
     assert len(c["vertex"]) > 0.25 * rendered["n_big"]
     params = PBRDFParams(*[jnp.asarray(np.asarray(p)[c["vertex"]]) for p in mesh.params])
-    as_f64 = lambda x: jnp.asarray(x, jnp.float64)  # noqa: E731
+    as_f64 = lambda x: jnp.asarray(x, jnp.float64)
     stokes = full_stokes(as_f64(mesh.normals[c["vertex"]]), as_f64(c["to_light"]), as_f64(c["to_camera"]),
                          as_f64(c["distance"]), as_f64(c["light_axis"]), as_f64(c["camera_up"]), params)
     model = observations_from_analyzers(np.asarray(stokes_to_analyzers(stokes, axis=-2)))

@@ -118,6 +118,7 @@ def test_an_allocation_that_fails_is_reported_with_the_count_that_fits(tmp_path,
     assert text.startswith("out of memory (MemoryError): fit shard 1 of 1 needs about") and "fit.shards: 2" in text
 
 
+@pytest.mark.slow
 def test_a_job_killed_from_outside_says_so_on_the_console_with_its_memory_line(tmp_path):
     logs = tmp_path / "logs"
     logs.mkdir()

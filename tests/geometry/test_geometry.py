@@ -22,8 +22,8 @@ WIDTH, HEIGHT = 320, 256
 
 
 def random_similarity(rng) -> geometry_alignment.Similarity:
-    return geometry_alignment.Similarity(float(rng.uniform(0.3, 3.0)), Rotation.random(random_state=rng.integers(1 << 31))
-                               .as_matrix(), rng.normal(size=3))
+    rotation = Rotation.random(random_state=rng.integers(1 << 31)).as_matrix()
+    return geometry_alignment.Similarity(float(rng.uniform(0.3, 3.0)), rotation, rng.normal(size=3))
 
 
 def orbit(views: int, seed: int = 1) -> list[Camera]:
@@ -142,8 +142,8 @@ def test_align_cameras_and_pose_errors_report_known_perturbations():
 
 
 def test_refine_to_surface_removes_a_millimetre_misalignment_and_keeps_an_exact_one():
-    """A noisy reconstruction of an ellipsoid, aligned 1 % off in scale, 1° off in rotation and 3 mm off in place (as the
-    camera centres of a narrow-field SfM leave it), lands within a tenth of that; an exact alignment stays exact."""
+    """A noisy reconstruction of an ellipsoid, aligned 1 % off in scale, 1° off in rotation and 3 mm off in place (as
+    the camera centres of a narrow-field SfM leave it), lands within a tenth of that; an exact alignment stays exact."""
     rng = np.random.default_rng(3)
     vertices, faces = sphere(1.0)
     truth_vertices = vertices * np.array([0.06, 0.04, 0.025])
@@ -275,14 +275,17 @@ def test_boundary_distance_measures_a_sub_pixel_shift_of_a_dim_limb():
     inner = limb(radius)
     for shift in (0.1, 0.3, 0.7):
         outer = limb(radius + shift)
-        found = geometry_silhouettes.boundary_distance(inner, points, outward) - geometry_silhouettes.boundary_distance(outer, points, outward)
-        by_mask = np.subtract(*(ndimage.map_coordinates(geometry_silhouettes.signed_distance(s.mask), points[:, ::-1].T, order=1)
+        found = (geometry_silhouettes.boundary_distance(inner, points, outward)
+                 - geometry_silhouettes.boundary_distance(outer, points, outward))
+        by_mask = np.subtract(*(ndimage.map_coordinates(geometry_silhouettes.signed_distance(s.mask), points[:, ::-1].T,
+                                                        order=1)
                                 for s in (inner, outer)))
         assert abs(np.mean(found) - shift) < 0.02, (shift, np.mean(found))
         error, mask_error = (np.sqrt(np.mean((x - shift) ** 2)) for x in (found, by_mask))
         assert error < 0.15 and error < 0.5 * mask_error, (shift, error, mask_error)
 
 
+@pytest.mark.slow
 def test_visual_hull_tolerates_a_bad_mask_and_reports_it():
     vertices, faces = sphere(0.05)
     cameras = orbit(24)
@@ -298,6 +301,7 @@ def test_visual_hull_tolerates_a_bad_mask_and_reports_it():
     assert np.delete(carving.disagreement, 5).max() < 0.02
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shape", ["sphere", "torus"])
 def test_initial_mesh_from_silhouettes(shape):
     """Convex (sphere) and concave, genus-1 (torus) objects: Chamfer distance < 3% of the object's size."""
@@ -320,6 +324,7 @@ def test_initial_mesh_from_silhouettes(shape):
     assert np.mean(np.einsum("ij,ij->i", mesh.normals, mesh.vertices - centre) > 0) > 0.98
 
 
+@pytest.mark.slow
 def test_sparse_points_open_a_concavity_the_silhouettes_cannot():
     """A bowl: silhouettes fill it to the rim; SfM-like points on its inside, seen from above, hollow it out."""
     vertices, faces = bowl()

@@ -57,7 +57,8 @@ def test_unconfident_normals_leave_the_surface_where_it_was():
     random = rng.normal(size=vertices.shape)
     random /= np.linalg.norm(random, axis=1, keepdims=True)
     for reference in (None, 1.1 * vertices):  # held where it is, not pulled to the reference, when unsure
-        refined = geometry_update.refine_from_normals(vertices, faces, random, np.zeros(len(vertices)), reference=reference)
+        refined = geometry_update.refine_from_normals(vertices, faces, random, np.zeros(len(vertices)),
+                                                      reference=reference)
         np.testing.assert_allclose(refined, vertices, rtol=0, atol=1e-12)
     trusted = geometry_update.refine_from_normals(vertices, faces, random, np.ones(len(vertices)))
     assert np.max(np.abs(trusted - vertices)) > 1e-3
@@ -95,6 +96,7 @@ def test_failed_fits_leave_the_surface_where_it_was():
     assert errors["flagged"] < 0.3 * errors["trusted"], errors
 
 
+@pytest.mark.slow
 def test_bumps_converge_from_a_smooth_start():
     """tiny_bumpy's 4 mm bumps and dents, from the plain sphere (what the hull gives where no silhouette shows
     them): with the normals a perfect fit would find at each vertex (the true surface's at its nearest point),
@@ -228,7 +230,8 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
 
     # A store that does not belong to the mesh is refused, naming both files.
     with pytest.raises(ParamsError, match="params.zarr.*mesh.ply"):
-        fit_finalize.finalize_model(tmp_path / "params.zarr", tmp_path / "mesh.ply", tmp_path / "x.ply", tmp_path / "x.zarr")
+        fit_finalize.finalize_model(tmp_path / "params.zarr", tmp_path / "mesh.ply", tmp_path / "x.ply",
+                                    tmp_path / "x.zarr")
 
 
 def fitted_sphere(vertices):
@@ -238,6 +241,7 @@ def fitted_sphere(vertices):
     return solution[:3], float(np.sqrt(solution[3] + solution[:3] @ solution[:3]))
 
 
+@pytest.mark.slow
 def test_silhouettes_move_the_mean_offset_that_normals_cannot_tell():
     """A sphere 0.5 mm low and 0.3 mm small, with its own (exact-shape) normals: normals alone leave it where
     it is (the anchor holds it); the silhouette constraints of 12 views (1 px = 0.5 mm) take it to the observed
@@ -254,19 +258,21 @@ def test_silhouettes_move_the_mean_offset_that_normals_cannot_tell():
     for _ in range(3):
         normals = meshes.vertex_normals(vertices, faces)
         constraints = geometry_update.SilhouetteConstraints.concatenate([
-            geometry_update.silhouette_constraints(vertices, normals, camera.intrinsics, camera.rotation, camera.translation,
-                                            seen, coverage_masks(vertices, faces, [camera])[0])
+            geometry_update.silhouette_constraints(vertices, normals, camera.intrinsics, camera.rotation,
+                                                   camera.translation, seen,
+                                                   coverage_masks(vertices, faces, [camera])[0])
             for camera, seen in zip(cameras, observed)])
         assert len(constraints) > 200
         # 12 views give a tenth of the constraints per vertex of a real capture: ten times the default weight.
-        vertices = geometry_update.refine_from_normals(vertices, faces, unit, np.ones(len(unit)), silhouettes=constraints,
-                                                silhouette_weight=0.1)
+        vertices = geometry_update.refine_from_normals(vertices, faces, unit, np.ones(len(unit)),
+                                                       silhouettes=constraints, silhouette_weight=0.1)
     centre, radius = fitted_sphere(vertices)
     assert np.linalg.norm(centre) < 0.1e-3, centre
     assert abs(radius - RADIUS) < 0.1e-3, radius
     assert np.std(np.linalg.norm(vertices - centre, axis=1)) < 0.03e-3
 
 
+@pytest.mark.slow
 def test_silhouettes_do_not_roughen_a_part_the_normals_do_not_see():
     """The same low, small sphere with confidence 0 below 17 degrees of latitude south (a part no fit sees): over
     five updates with the silhouettes, the stiff offsets there (smoothness_unconfident) keep it a sphere (radial std
@@ -319,6 +325,7 @@ def tiny_capture(tmp_path_factory):
             "truth": read_param_mesh(folder / GROUND_TRUTH_MESH)}
 
 
+@pytest.mark.slow
 def test_the_true_model_predicts_the_photographs_silhouettes(tiny_capture):
     """The operator that cuts a dim limb cuts the render of the true model alike: the observed silhouettes lie
     within 0.05 pixel of the true model's rendered and developed like a photograph (mean over the contour of
@@ -345,9 +352,11 @@ def test_the_true_model_predicts_the_photographs_silhouettes(tiny_capture):
             assert np.sqrt(np.mean(explained ** 2)) > 0.4 and np.corrcoef(offset_px, explained)[0, 1] > 0.7
 
 
+@pytest.mark.slow
 def test_the_prediction_is_the_photograph_of_the_render(tiny_capture):
     """predicted_diffuse (a render of the 90-degree analyzer's raw pixels inside the model's box, one analyzer
-    developed) equals the whole chain: every raw pixel rendered, sampled by the mosaic (sellip.capture.sensor), developed
+    developed) equals the whole chain: every raw pixel rendered, sampled by the mosaic (sellip.capture.sensor),
+    developed
     by the ingest's code (all four analyzers), I_d = 2 I90."""
     from sellip.capture.ingest import develop, make_ingest_plan
     from sellip.capture.reader import read_capture
@@ -372,6 +381,7 @@ def test_the_prediction_is_the_photograph_of_the_render(tiny_capture):
         np.testing.assert_allclose(predicted, np.where(whole > 0, whole, 1e-12), atol=1e-6 * whole.max())
 
 
+@pytest.mark.slow
 def test_the_stage_moves_a_displaced_model_onto_the_silhouettes(tiny_capture, tmp_path):
     """The true sphere 1.5 mm low (about 0.8 HDR pixel) with its normals: the update leaves it there without the
     silhouettes (normals cannot tell a translation) and takes it most of the way back with the photographs'
@@ -397,12 +407,12 @@ def test_the_stage_moves_a_displaced_model_onto_the_silhouettes(tiny_capture, tm
                   hdr_path=tiny_capture["hdr"], capture_path=tiny_capture["folder"])
     low = []
     for weight in (0.0, 0.1):
-        summary = geometry_jobs.refine_geometry(tmp_path / "params.zarr", tmp_path / "low.ply", tmp_path / f"{weight}.ply",
-                                            silhouette=weight, **common)
+        summary = geometry_jobs.refine_geometry(tmp_path / "params.zarr", tmp_path / "low.ply",
+                                                tmp_path / f"{weight}.ply", silhouette=weight, **common)
         low.append(-1e3 * fitted_sphere(read_mesh(tmp_path / f"{weight}.ply").vertices)[0][2])
         assert json.loads((tmp_path / f"{weight}.ply.json").read_text())["silhouette_constraints"] == \
             summary["silhouette_constraints"]
-    print("mm low: normals only %.3f, with silhouettes %.3f" % tuple(low))
+    print(f"mm low: normals only {low[0]:.3f}, with silhouettes {low[1]:.3f}")
     assert low[0] > 1.4 and low[1] < 0.15, low  # 1.500 and 0.082 mm
     assert summary["silhouette_constraints"] > 500 and len(summary["silhouette_offset_px"]) == 8
 

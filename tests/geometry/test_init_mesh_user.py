@@ -23,6 +23,8 @@ from sellip.geometry import scan as geometry_scan
 from sellip.geometry.initial import InitMeshError
 from sellip.model.ply import read_ply
 
+pytestmark = pytest.mark.slow  # the whole module: `make test-fast` leaves it out
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -233,8 +235,9 @@ def test_cameras_that_disagree_with_the_silhouettes_stop_the_stage(capture, tmp_
     assert str(bad) in message and "covers a median" in message and "do not describe these photographs" in message
     assert "cam_from_world" in message and "camera.fx, fy, cx, cy" in message
     assert not (tmp_path / "out").exists()
-    report = geometry_initial.make_initial_mesh(capture["hdr"], capture["root"] / "cameras.csv", capture["root"] / "sfm",
-                                                tmp_path / "good" / "init.ply", options=options)
+    report = geometry_initial.make_initial_mesh(capture["hdr"], capture["root"] / "cameras.csv",
+                                                capture["root"] / "sfm", tmp_path / "good" / "init.ply",
+                                                options=options)
     assert min(report["silhouette_coverage"].values()) > 0.95
 
 

@@ -28,7 +28,8 @@ def _painted_sphere(radius: float = 0.05) -> ParamMesh:
     return ParamMesh(vertices, faces, np.asarray(sphere.vertex_normals), params)
 
 
-def _camera(rotation=np.eye(3), translation=(0.0, 0.0, 0.5)) -> Camera:
+def _camera(rotation=None, translation=(0.0, 0.0, 0.5)) -> Camera:
+    rotation = np.eye(3) if rotation is None else rotation
     return Camera(np.array([[900.0, 0, 80], [0, 900.0, 60], [0, 0, 1]]), np.asarray(rotation, np.float64),
                   np.asarray(translation, np.float64), 160, 120)
 

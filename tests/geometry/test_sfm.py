@@ -21,6 +21,8 @@ from sellip.model.conventions import camera_center
 from sellip.model.ply import read_ply
 from sellip.model.render import Renderer, flash_light
 
+pytestmark = pytest.mark.slow  # the whole module: `make test-fast` leaves it out
+
 VIEWS, WIDTH, HEIGHT = 36, 320, 256
 DISTANCE_M = 0.9
 

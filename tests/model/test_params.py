@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+
 import numpy as np
 import pytest
 
@@ -21,12 +23,13 @@ def test_shards_cover_every_vertex_once_in_whole_chunks(total, chunk, shards):
 
 def test_shard_argument_and_settings_overrides():
     assert parse_shard("2-of-4") == (1, 4)
-    with pytest.raises(Exception):
+    with pytest.raises(argparse.ArgumentTypeError, match="i must be in 1..n"):
         parse_shard("5-of-4")
     settings = record_from_mapping(FitSettings, {"lambda_d": 10, "max_iterations": 12, "sigma_ss_fixed": None})
     assert settings.lambda_d == 10.0 and settings.max_iterations == 12 and settings.sigma_ss_fixed is None
     assert record_from_mapping(FitSettings, {"sigma_ss_fixed": 0.9}).sigma_ss_fixed == 0.9
-    with pytest.raises(SettingsError, match="unknown setting 'fit.settings.lambda_q'; did you mean 'fit.settings.lambda"):
+    with pytest.raises(SettingsError,
+                       match="unknown setting 'fit.settings.lambda_q'; did you mean 'fit.settings.lambda"):
         record_from_mapping(FitSettings, {"lambda_q": 1}, "fit.settings")
 
 

@@ -6,9 +6,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import camera_geometry, make_params
 from scipy import integrate
 
+from helpers import camera_geometry, make_params
 from sellip.model import conventions, polar
 from sellip.model.fresnel import brewster_angle, diffuse_dop, fresnel, reflection_mueller, transmission_mueller
 from sellip.model.microfacet import ggx_d, smith_g
@@ -39,7 +39,8 @@ def test_rotator_composes():
 
 def test_rotator_matches_mitsuba_example():
     # Mitsuba's documented example: R(45 deg) turns [1, 1, 0, 0] into [1, 0, -1, 0].
-    np.testing.assert_allclose(polar.rotator(jnp.asarray(np.pi / 4)) @ jnp.array([1.0, 1, 0, 0]), [1, 0, -1, 0], atol=1e-12)
+    np.testing.assert_allclose(polar.rotator(jnp.asarray(np.pi / 4)) @ jnp.array([1.0, 1, 0, 0]), [1, 0, -1, 0],
+                               atol=1e-12)
 
 
 def test_s0_and_dolp_invariant_under_frame_rotation():
@@ -177,6 +178,7 @@ def _observations(stokes):
     return conventions.observations_from_analyzers(conventions.stokes_to_analyzers(stokes, axis=-2))
 
 
+@pytest.mark.slow
 def test_full_model_tends_to_coaxial_model():
     """At exact coaxial geometry, full = coaxial model times the incident T- factors the paper drops.
 
@@ -234,7 +236,7 @@ def test_full_model_is_physical():
     normal = rng.normal(size=(n, 3))
     to_light = rng.normal(size=(n, 3))
     to_camera = rng.normal(size=(n, 3))
-    unit = lambda v: jnp.asarray(v / np.linalg.norm(v, axis=-1, keepdims=True))  # noqa: E731
+    unit = lambda v: jnp.asarray(v / np.linalg.norm(v, axis=-1, keepdims=True))
     params = make_params((n,), eta=jnp.asarray(rng.uniform(1.3, 2.3, n)), sigma_s=jnp.asarray(rng.uniform(0.05, 1, n)))
     stokes = full_stokes(unit(normal), unit(to_light), unit(to_camera), jnp.asarray(rng.uniform(0.5, 1.5, n)),
                          unit(rng.normal(size=(n, 3))), unit(rng.normal(size=(n, 3))), params)
@@ -272,6 +274,7 @@ def test_float32_in_float32_out():
                                 geom["camera_up"], params).diffuse.dtype == jnp.float32
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["normal_incidence", "grazing", "theta_h_zero", "small_sigma", "retro"])
 def test_gradients_are_finite_at_edge_cases(case):
     theta, offset, sigma = {"normal_incidence": (0.0, 3.5, 0.3), "grazing": (89.9, 3.5, 0.3),
@@ -323,7 +326,7 @@ def test_full_pbrdf_matches_mitsuba_pplastic():
             ctx.type_mask = flag
             theirs = np.array(bsdf.eval(ctx, si, mi.Vector3f(*to_light)))
             theirs = theirs[..., 0] if theirs.ndim == 3 else theirs
-            f64 = lambda x: jnp.asarray(np.asarray(x, np.float64))  # noqa: E731
+            f64 = lambda x: jnp.asarray(np.asarray(x, np.float64))
             params = PBRDFParams(eta=f64(eta), rho_d=f64(np.full(3, 0.0 if specular else rho_d / np.pi)),
                                  rho_s=f64(1.0 if specular else 0.0), sigma_s=f64(alpha), rho_ss=f64(np.zeros(3)),
                                  sigma_ss=f64(0.5))

@@ -214,6 +214,7 @@ def test_stage_timings_sum_per_rule_and_count_vertex_fits(tmp_path):
 # --------------------------------------------------------------------------- the stage
 
 
+@pytest.mark.slow
 def test_evaluate_cli_on_a_perfect_model(tiny_run, tmp_path):
     results = tiny_run["results"]
     bench = _fake_benchmarks(results)
@@ -264,8 +265,8 @@ def test_evaluate_aligns_an_sfm_world_model_and_reports_nulls_without_ground_tru
     turned = rotations.copy()
     turned[1] = Rotation.from_euler("z", 0.1, degrees=True).as_matrix() @ turned[1]
     write_cameras(run / "initial.csv", view_ids, *sim.apply_to_poses(turned, translations))
-    metrics = report_metrics.evaluate_model(run / "model.ply", run / "cameras.csv", tiny_run["hdr"], tiny_run["capture"],
-                                       run / "metrics.json", params_path=run / "params.zarr",
+    metrics = report_metrics.evaluate_model(run / "model.ply", run / "cameras.csv", tiny_run["hdr"],
+                                            tiny_run["capture"], run / "metrics.json", params_path=run / "params.zarr",
                                        held_out=[view_ids[0]], geometry_samples=5000, supersample=1,
                                        initial_cameras=run / "initial.csv")
     assert metrics["alignment"]["method"] == "sim3+icp"

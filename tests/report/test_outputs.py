@@ -88,7 +88,8 @@ def _params(count, **values) -> PBRDFParams:
 
 
 def _tilted_plane():
-    """A 0.8 m square at z = 1 (filling the view) tilted about the y axis (normal (sin 25°, 0, -cos 25°)), camera at the origin."""
+    """A 0.8 m square at z = 1 (filling the view) tilted about the y axis (normal (sin 25°, 0, -cos 25°)), camera at
+    the origin."""
     tilt = np.radians(25.0)
     normal = np.array([np.sin(tilt), 0.0, -np.cos(tilt)])
     u = np.array([np.cos(tilt), 0.0, np.sin(tilt)])
@@ -100,6 +101,7 @@ def _tilted_plane():
     return mesh, camera, normal
 
 
+@pytest.mark.slow
 def test_mueller_block_of_the_renderer_matches_full_mueller_at_each_pixel():
     """Three renders with incident Stokes basis states give the pBRDF's 3x3 Mueller block, pixel by pixel."""
     mesh, camera, normal = _tilted_plane()
@@ -183,6 +185,7 @@ def test_fit_scale_recovers_a_global_factor():
 # --------------------------------------------------------------------------- the stage
 
 
+@pytest.mark.slow
 def test_render_outputs_cli_writes_the_documented_files(tiny_run, tmp_path):
     out = tmp_path / "renders"
     views = tiny_run["view_ids"][1:3]
@@ -210,6 +213,7 @@ def test_render_outputs_cli_writes_the_documented_files(tiny_run, tmp_path):
     assert not any(p.name.startswith(".") for p in tmp_path.iterdir())
 
 
+@pytest.mark.slow
 def test_render_outputs_names_a_missing_model(tiny_run, tmp_path):
     missing = tmp_path / "nothing.ply"
     run = subprocess.run([sys.executable, "-m", "sellip.cli", "render-outputs", "--model", str(missing),
@@ -220,6 +224,7 @@ def test_render_outputs_names_a_missing_model(tiny_run, tmp_path):
     assert not (tmp_path / "r").exists()
 
 
+@pytest.mark.slow
 def test_render_outputs_skips_views_without_a_pose_and_defaults_when_none_is_given(tiny_run, tmp_path):
     from sellip.report import outputs as report_outputs
 

@@ -29,8 +29,8 @@ def written(results):
 
 
 def test_materials_table_recovers_the_scene_materials(results, written):
-    from sellip.report.materials import read_materials
     from sellip.capture.scenes import TINY_MATERIALS
+    from sellip.report.materials import read_materials
 
     table = read_materials(written["materials"])
     assert list(table["cluster"]) == [0, 1]
@@ -46,9 +46,9 @@ def test_materials_table_recovers_the_scene_materials(results, written):
 
 
 def test_materials_table_with_ground_truth_and_its_checks(results):
+    from sellip.capture.scenes import build_scene
     from sellip.model.params import read_params
     from sellip.report.materials import MaterialsError, material_table, validate_materials
-    from sellip.capture.scenes import build_scene
 
     truth = build_scene("tiny").mesh
     store = read_params(results / "final" / "params.zarr")
@@ -166,6 +166,7 @@ def test_viewer_folder_holds_the_model_arrays(results, written):
     assert meta["intrinsics"]["width"] == 512 and len(meta["materials"]["rows"]) == 2
 
 
+@pytest.mark.slow
 def test_no_finished_model_is_a_clear_error(tmp_path):
     from sellip.report.viewer import ViewerError, load_inputs
 
@@ -205,6 +206,7 @@ def test_an_older_model_without_some_properties_disables_those_maps(tmp_path):
     assert "rho_ss" not in meta["arrays"] and "eta" in meta["arrays"]
 
 
+@pytest.mark.slow
 def test_serve_answers_on_localhost(results, written):
     import socket
     import time
@@ -234,9 +236,9 @@ def test_serve_answers_on_localhost(results, written):
 
 
 def test_a_store_without_clusters_or_stds_is_one_material(results):
+    from sellip.capture.scenes import build_scene
     from sellip.model.params import read_params
     from sellip.report.materials import material_table
-    from sellip.capture.scenes import build_scene
 
     store = read_params(results / "final" / "params.zarr")
     for name in ("cluster", "eta_vertex", "eta_std", "model", "eta_source", "lobe_source", "confidence"):

@@ -26,8 +26,8 @@ BROWSER_ARGS = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-sw
 RESULTS = os.environ.get("SELLIP_VIEWER_RESULTS")
 HELD_OUT = os.environ.get("SELLIP_VIEWER_VIEW", "v005")
 
-pytestmark = pytest.mark.skipif(not shutil.which("chromium"),
-                                reason="needs Debian's chromium (apt-get install chromium)")
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(not shutil.which("chromium"),
+                                                    reason="needs Debian's chromium (apt-get install chromium)")]
 
 
 def srgb(linear: np.ndarray) -> np.ndarray:
@@ -42,8 +42,7 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 @pytest.fixture(scope="module")
 def viewer(tmp_path_factory):
     """(results folder, index.html, the flash of its capture)."""
-    from sellip.report.viewer import load_inputs, write_viewer
-    from sellip.report.viewer import find_capture
+    from sellip.report.viewer import find_capture, load_inputs, write_viewer
 
     if RESULTS:
         results = Path(RESULTS)

@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+
 from sellip.geometry.cameras import write_cameras
 
 VIEWS = 12
@@ -18,9 +19,9 @@ def write_results(root: Path, scene: str = "tiny", seed: int = 0, drop: tuple[st
     """results/NAME under ``root`` for ``scene``; ``drop``: model.ply properties to leave out (an older run)."""
     import zarr
 
-    from sellip.model.ply import write_ply
-    from sellip.model.params import write_params
     from sellip.capture.scenes import build_scene, handheld_orbit
+    from sellip.model.params import write_params
+    from sellip.model.ply import write_ply
 
     rng = np.random.default_rng(seed)
     built = build_scene(scene)

@@ -27,7 +27,8 @@ FLASH_SETTINGS = {"f0": 4, "f1": 8, "f2": 16}
 
 def _sellip(*args: str) -> subprocess.CompletedProcess:
     result = subprocess.run([sys.executable, "-m", "sellip.cli", *args], capture_output=True, text=True, check=False)
-    assert result.returncode == 0, f"sellip {' '.join(args[:2])} failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
+    assert result.returncode == 0, \
+        f"sellip {' '.join(args[:2])} failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
     return result
 
 

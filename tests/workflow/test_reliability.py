@@ -21,6 +21,8 @@ import yaml
 
 from sellip import workflow_support
 
+pytestmark = pytest.mark.slow  # the whole module: `make test-fast` leaves it out
+
 REPO = Path(__file__).resolve().parents[2]
 NAME = "tïny run"
 INGEST = {"linearize_frames", "merge_hdr", "run_sfm", "init_mesh"}

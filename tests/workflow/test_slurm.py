@@ -18,6 +18,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow  # the whole module: `make test-fast` leaves it out
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -28,7 +30,6 @@ def test_family_environments():
     assert result.returncode == 0, f"{result.stdout}\n{result.stderr}"
 
 
-@pytest.mark.slow
 @pytest.mark.skipif(os.environ.get("SELLIP_SLURM_TEST") != "1",
                     reason="needs root and apt: set SELLIP_SLURM_TEST=1 to run the localhost SLURM test")
 def test_tiny_scene_on_a_localhost_slurm_cluster(tmp_path):

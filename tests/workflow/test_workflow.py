@@ -19,6 +19,8 @@ import numpy as np
 import pytest
 import yaml
 
+pytestmark = pytest.mark.slow  # the whole module: `make test-fast` leaves it out
+
 REPO = Path(__file__).resolve().parents[2]
 ITERATIONS = 1
 SHARDS = 2

@@ -60,8 +60,9 @@ config.update(workflow_support.coerce_to_schema(dict(config), CONFIG_SCHEMA))
 
 # A key given twice in a config file: Snakemake's reader keeps the second value without a word.
 try:
-    workflow_support.check_config_files(dict.fromkeys([Path(workflow.basedir) / "config" / "config.yaml",
-                                                       *workflow.config_settings.configfiles]))
+    workflow_support.check_config_files(
+        dict.fromkeys([Path(workflow.basedir) / "config" / "config.yaml", *workflow.config_settings.configfiles])
+    )
 except ValueError as exc:
     raise WorkflowError(str(exc)) from None
 
@@ -78,16 +79,19 @@ if not config["capture"]:
 
 # init.mode mesh without a mesh: say so in words (the schema's own message would be "'' is too short").
 if (config.get("init") or {}).get("mode") == "mesh" and not (config.get("init") or {}).get("mesh_path"):
-    raise WorkflowError("config: init.mode 'mesh' needs init.mesh_path, the mesh file to start from (PLY or OBJ, "
-                        "in the world of the poses, metres; relative to the capture folder unless absolute)")
+    raise WorkflowError(
+        "config: init.mode 'mesh' needs init.mesh_path, the mesh file to start from (PLY or OBJ, "
+        "in the world of the poses, metres; relative to the capture folder unless absolute)"
+    )
 
 validate(config, "../../config/config.schema.yaml")
 
 # Views named in the config must be the capture's: a wrong id would surface as a store problem in a later job.
 if config["capture"]:
     try:
-        workflow_support.check_config_views(config["evaluate"], workflow_support.capture_view_ids(config["capture"]),
-                                            config["capture"])
+        workflow_support.check_config_views(
+            config["evaluate"], workflow_support.capture_view_ids(config["capture"]), config["capture"]
+        )
     except ValueError as exc:
         raise WorkflowError(str(exc)) from None
 
@@ -126,8 +130,11 @@ def raw_frames():
 def poses_file():
     """The capture's poses.csv as a list (empty when it has none): an input of run_sfm (and tracked by content), so
     that adding, removing or editing it re-runs the poses and what follows."""
-    return [capture_file("poses.csv")] if not config["capture"] else workflow_support.optional_file(
-        capture_dir(), "poses.csv")
+    return (
+        [capture_file("poses.csv")]
+        if not config["capture"]
+        else workflow_support.optional_file(capture_dir(), "poses.csv")
+    )
 
 
 def ground_truth_file():
@@ -150,19 +157,27 @@ def content_of(*files):
     """A `params:` value: the digest of the content of the capture's files that `files` (functions returning lists of
     paths) name, so that Snakemake's params trigger re-runs the rule when any of them changes, whatever its mtime
     (docs/reliability.md). Empty for the built-in demo, whose capture files are outputs of synth_capture."""
+
     def digest(wildcards):
         if not config["capture"]:
             return ""
         return INPUT_DIGESTS.digest([path for listed in files for path in listed()], capture_dir())
+
     return digest
 
 
 RESULTS = f"results/{config['name']}"
 
-# The command every rule runs: `sellip` from the rule's conda env with --sdm conda, or when it is
+# The command of each job: `sellip` from the rule's conda env with --sdm conda, or when it is
 # on PATH (an activated venv); else the sellip of the Python that runs Snakemake (.venv/bin/snakemake).
 _CONDA = DeploymentMethod.CONDA in workflow.deployment_settings.deployment_method
 SELLIP = "sellip" if _CONDA or shutil.which("sellip") else f"{shlex.quote(sys.executable)} -m sellip.cli"
+
+
+def sellip_shell(arguments):
+    """A rule's shell command: SELLIP running the `sellip` subcommand and ``arguments`` (one command per rule)."""
+    return f"{SELLIP} {arguments}"
+
 
 # The env files (envs/*.yaml) install sellip from ${SELLIP_ROOT}: this checkout.
 os.environ.setdefault("SELLIP_ROOT", str(Path(workflow.basedir).resolve()))
@@ -249,6 +264,59 @@ def get_lobes(wildcards):
 
 
 def get_final_outputs():
-    """What `rule all` builds: the reconstructed model, its renders and its metrics."""
-    return [f"{RESULTS}/previews", f"{RESULTS}/final/model.ply", f"{RESULTS}/final/params.zarr",
-            f"{RESULTS}/final/renders", f"{RESULTS}/metrics.json", f"{RESULTS}/viewer"]
+    """What the target `all` builds: the reconstructed model, its renders and its metrics."""
+    return [
+        f"{RESULTS}/previews",
+        f"{RESULTS}/final/model.ply",
+        f"{RESULTS}/final/params.zarr",
+        f"{RESULTS}/final/renders",
+        f"{RESULTS}/metrics.json",
+        f"{RESULTS}/viewer",
+    ]
+
+
+# config fit/augment/final/model_selection settings as the arguments of rules fit_pbrdf and cluster_lobes.
+def fit_settings(wildcards):
+    """`--settings` (sellip.fit.records.FitSettings as JSON) of this iteration and pass: config `fit.settings`
+    (lists are per iteration), then `augment.settings` for a pass with virtual samples (a refit, and the final
+    pass's first fit: get_lobes), then `final.settings` for the final pass (iteration ITERATIONS: normals from the
+    final geometry, pBRDF only)."""
+    it = int(wildcards.it)
+    settings = {key: at_iteration(value, it) for key, value in config["fit"]["settings"].items()}
+    if get_lobes(wildcards):
+        settings.update(config["augment"]["settings"])
+    if it == ITERATIONS:
+        settings.update(config["final"]["settings"])
+    return settings_json(settings)
+
+
+def cluster_settings(wildcards):
+    """`--settings` of the cluster lobe fits of this iteration: config `fit.settings` (its loss weights, view
+    selection, and the most complex model allowed: `lobes`, `sigma_ss_fixed`)."""
+    it = int(wildcards.it)
+    return settings_json({key: at_iteration(value, it) for key, value in config["fit"]["settings"].items()})
+
+
+MODEL_SELECTION_WORKFLOW_KEYS = ("every",)
+"""Keys of config `model_selection` that the workflow reads itself; the others are SelectionSettings fields."""
+
+
+def model_selection_settings():
+    """`--model-selection` (sellip.fit.selection.SelectionSettings as JSON): config `model_selection`."""
+    return settings_json(
+        {key: value for key, value in config["model_selection"].items() if key not in MODEL_SELECTION_WORKFLOW_KEYS}
+    )
+
+
+def inherit_models(wildcards):
+    """`--inherit-models` where cluster_lobes fits no candidate: candidates are fitted at iteration 0, every
+    `model_selection.every`-th iteration and the final pass; the others inherit their vertices' models."""
+    it = int(wildcards.it)
+    return "--inherit-models" if it % int(config["model_selection"]["every"]) and it != ITERATIONS else ""
+
+
+def model2_sigma_ss():
+    """`--model2-sigma-ss` of the fit jobs where config `model_selection.model2_sigma_ss` is set (else the job takes
+    its declared default)."""
+    value = config["model_selection"].get("model2_sigma_ss")
+    return "" if value is None else f"--model2-sigma-ss {float(value)}"

@@ -12,23 +12,25 @@ rule finalize_model:
     output:
         model=f"{RESULTS}/final/model.ply",
         params=directory(f"{RESULTS}/final/params.zarr"),
+    log:
+        f"{RESULTS}/logs/finalize_model.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/finalize_model.tsv"
+    conda:
+        "../../envs/fit.yaml"
     params:
         clusters=lambda wildcards, input: f"--clusters {shlex.join(input.clusters)}" if input.clusters else "",
         eta_deviation_sigmas=config["final"]["eta_deviation_sigmas"],
         lobe_deviation_sigmas=config["final"]["lobe_deviation_sigmas"],
         deviation_support=config["final"]["deviation_support"],
-    conda:
-        "../../envs/fit.yaml"
-    log:
-        f"{RESULTS}/logs/finalize_model.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/finalize_model.tsv"
     shell:
-        SELLIP + " finalize --params {input.params:q} --mesh {input.mesh:q} --output-model {output.model:q}"
-        " --output-params {output.params:q} {params.clusters}"
-        " --eta-deviation-sigmas {params.eta_deviation_sigmas}"
-        " --lobe-deviation-sigmas {params.lobe_deviation_sigmas}"
-        " --deviation-support {params.deviation_support} > {log:q} 2>&1"
+        sellip_shell(
+            "finalize --params {input.params:q} --mesh {input.mesh:q} --output-model {output.model:q}"
+            " --output-params {output.params:q} {params.clusters}"
+            " --eta-deviation-sigmas {params.eta_deviation_sigmas}"
+            " --lobe-deviation-sigmas {params.lobe_deviation_sigmas}"
+            " --deviation-support {params.deviation_support} > {log:q} 2>&1"
+        )
 
 
 rule render_outputs:
@@ -45,20 +47,22 @@ rule render_outputs:
             category="Renders",
             labels={"image": "{image}"},
         ),
-    params:
-        capture=lambda wildcards, input: Path(input.capture).parent,
-        views=config["evaluate"]["render_views"],
-        supersample=config["evaluate"]["supersample"],
-    conda:
-        "../../envs/report.yaml"
     log:
         f"{RESULTS}/logs/render_outputs.log",
     benchmark:
         f"{RESULTS}/benchmarks/render_outputs.tsv"
+    conda:
+        "../../envs/report.yaml"
+    params:
+        capture=lambda wildcards, input: Path(input.capture).parent,
+        views=config["evaluate"]["render_views"],
+        supersample=config["evaluate"]["supersample"],
     shell:
-        SELLIP + " render-outputs --model {input.model:q} --cameras {input.cameras:q} --hdr {input.hdr:q}"
-        " --capture {params.capture:q} --output {output:q} --views {params.views:q}"
-        " --supersample {params.supersample} > {log:q} 2>&1"
+        sellip_shell(
+            "render-outputs --model {input.model:q} --cameras {input.cameras:q} --hdr {input.hdr:q}"
+            " --capture {params.capture:q} --output {output:q} --views {params.views:q}"
+            " --supersample {params.supersample} > {log:q} 2>&1"
+        )
 
 
 rule evaluate_model:
@@ -77,27 +81,30 @@ rule evaluate_model:
     output:
         metrics=report(f"{RESULTS}/metrics.json", caption="../report/metrics.rst", category="Metrics"),
         timings=report(f"{RESULTS}/final/timings.png", caption="../report/timings.rst", category="Metrics"),
-        convergence=report(f"{RESULTS}/final/geometry_convergence.png", caption="../report/convergence.rst",
-                           category="Metrics"),
+        convergence=report(
+            f"{RESULTS}/final/geometry_convergence.png", caption="../report/convergence.rst", category="Metrics"
+        ),
+    log:
+        f"{RESULTS}/logs/evaluate_model.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/evaluate_model.tsv"
+    conda:
+        "../../envs/report.yaml"
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
         benchmarks=f"{RESULTS}/benchmarks",
         logs=f"{RESULTS}/logs",
         held_out=config["evaluate"]["held_out_views"],
         content=content_of(ground_truth_file, poses_file),  # the ground truth, by its content
-    conda:
-        "../../envs/report.yaml"
-    log:
-        f"{RESULTS}/logs/evaluate_model.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/evaluate_model.tsv"
     shell:
-        SELLIP + " evaluate --model {input.model:q} --params {input.params:q} --cameras {input.cameras:q}"
-        " --hdr {input.hdr:q} --capture {params.capture:q} --benchmarks {params.benchmarks:q}"
-        " --held-out {params.held_out:q} --output {output.metrics:q} --timings-plot {output.timings:q}"
-        " --iteration-meshes {input.meshes:q} --iteration-fits {input.fits:q} --convergence-plot {output.convergence:q}"
-        " --logs {params.logs:q} --sfm-report {input.sfm:q}/report.json --initial-cameras {input.initial_cameras:q}"
-        " > {log:q} 2>&1"
+        sellip_shell(
+            "evaluate --model {input.model:q} --params {input.params:q} --cameras {input.cameras:q}"
+            " --hdr {input.hdr:q} --capture {params.capture:q} --benchmarks {params.benchmarks:q}"
+            " --held-out {params.held_out:q} --output {output.metrics:q} --timings-plot {output.timings:q}"
+            " --iteration-meshes {input.meshes:q} --iteration-fits {input.fits:q} --convergence-plot {output.convergence:q}"
+            " --logs {params.logs:q} --sfm-report {input.sfm:q}/report.json --initial-cameras {input.initial_cameras:q}"
+            " > {log:q} 2>&1"
+        )
 
 
 rule export_viewer:
@@ -115,17 +122,17 @@ rule export_viewer:
         glb=f"{RESULTS}/final/model.glb",
         maps=directory(f"{RESULTS}/final/maps"),
         viewer=directory(f"{RESULTS}/viewer"),
-    params:
-        results=RESULTS,
-        capture=lambda wildcards, input: Path(input.capture).parent,
-    conda:
-        "../../envs/report.yaml"
     log:
         f"{RESULTS}/logs/export_viewer.log",
     benchmark:
         f"{RESULTS}/benchmarks/export_viewer.tsv"
+    conda:
+        "../../envs/report.yaml"
+    params:
+        results=lambda wildcards, output: Path(output.viewer).parent,
+        capture=lambda wildcards, input: Path(input.capture).parent,
     shell:
-        SELLIP + " view {params.results:q} --capture {params.capture:q} > {log:q} 2>&1"
+        sellip_shell("view {params.results:q} --capture {params.capture:q} > {log:q} 2>&1")
 
 
 RUN_STARTED = []
@@ -151,22 +158,31 @@ onsuccess:
         normal = (metrics.get("normal_error_deg") or {}).get("all") or {}
         eta = metrics.get("eta_relative_error_pct") or {}
         psnr = (metrics.get("psnr_held_out") or {}).get("mean_db")
-        print(f"\nsellip: reconstruction of {capture_dir()} in {RESULTS}/", "  model:    final/model.ply (+ final/params.zarr)",
-              "  renders:  final/renders/ (index.json lists them)", "  metrics:  metrics.json, final/timings.png",
-              f"  viewer:   open {Path(RESULTS).resolve()}/viewer/index.html in a browser (or: sellip view {RESULTS} --serve)",
-              "  exports:  final/materials.csv, final/model.glb, final/maps/map_*.ply",
-              "  report:   make report (or snakemake --report results/report.html)", sep="\n")
+        print(
+            f"\nsellip: reconstruction of {capture_dir()} in {RESULTS}/",
+            "  model:    final/model.ply (+ final/params.zarr)",
+            "  renders:  final/renders/ (index.json lists them)",
+            "  metrics:  metrics.json, final/timings.png",
+            f"  viewer:   open {Path(RESULTS).resolve()}/viewer/index.html in a browser (or: sellip view {RESULTS} --serve)",
+            "  exports:  final/materials.csv, final/model.glb, final/maps/map_*.ply",
+            "  report:   make report (or snakemake --report results/report.html)",
+            sep="\n",
+        )
         if normal:
-            print(f"  normal error mean {normal['mean']:.2f} deg, eta error mean {eta.get('mean', float('nan')):.2f} %, "
-                  f"held-out PSNR {psnr if psnr is None else round(psnr, 1)} dB")
+            print(
+                f"  normal error mean {normal['mean']:.2f} deg, eta error mean {eta.get('mean', float('nan')):.2f} %, "
+                f"held-out PSNR {psnr if psnr is None else round(psnr, 1)} dB"
+            )
 
 
 onerror:
     # A failed job's own message (file, row, what was expected) on the console, not only in its log file; then,
     # when a model from an earlier run is on disk, that it no longer stands for the inputs (docs/reliability.md).
     workflow_support.record_run(RESULTS, "failed", log, started=(RUN_STARTED or [None])[0])
-    for text in (workflow_support.format_failures(log),
-                 workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs")),
-                 *(f"sellip: {line}" for line in workflow_support.stale_model(RESULTS, capture_dir()))):
+    for text in (
+        workflow_support.format_failures(log),
+        workflow_support.format_warnings(workflow_support.collect_warnings(f"{RESULTS}/logs")),
+        *(f"sellip: {line}" for line in workflow_support.stale_model(RESULTS, capture_dir())),
+    ):
         if text:
             print(text, file=sys.stderr)

@@ -13,6 +13,13 @@ rule run_sfm:
     output:
         cameras=f"{RESULTS}/cameras.csv",
         sfm=directory(f"{RESULTS}/sfm"),
+    log:
+        f"{RESULTS}/logs/run_sfm.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/run_sfm.tsv"
+    conda:
+        "../../envs/geometry.yaml"
+    threads: config["sfm"]["threads"]
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
         content=content_of(poses_file),
@@ -27,21 +34,16 @@ rule run_sfm:
         min_registered_fraction=config["sfm"]["min_registered_fraction"],
         silhouette_settings=settings_json(config["silhouette"]),
         seed=config["seed"],
-    threads: config["sfm"]["threads"]
-    conda:
-        "../../envs/geometry.yaml"
-    log:
-        f"{RESULTS}/logs/run_sfm.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/run_sfm.tsv"
     shell:
-        SELLIP + " sfm --hdr {input.hdr:q} --capture {params.capture:q} --cameras {output.cameras:q}"
-        " --output {output.sfm:q} --mode {params.mode} --matching {params.matching}"
-        " --exhaustive-max-views {params.exhaustive_max_views} --retrieval-neighbors {params.retrieval_neighbors}"
-        " --max-features {params.max_features} --feature-object-px {params.feature_object_px}"
-        " --max-upscale {params.max_upscale} {params.refine_intrinsics}"
-        " --min-registered-fraction {params.min_registered_fraction} --silhouette-settings {params.silhouette_settings}"
-        " --seed {params.seed} --threads {threads} > {log:q} 2>&1"
+        sellip_shell(
+            "sfm --hdr {input.hdr:q} --capture {params.capture:q} --cameras {output.cameras:q}"
+            " --output {output.sfm:q} --mode {params.mode} --matching {params.matching}"
+            " --exhaustive-max-views {params.exhaustive_max_views} --retrieval-neighbors {params.retrieval_neighbors}"
+            " --max-features {params.max_features} --feature-object-px {params.feature_object_px}"
+            " --max-upscale {params.max_upscale} {params.refine_intrinsics}"
+            " --min-registered-fraction {params.min_registered_fraction} --silhouette-settings {params.silhouette_settings}"
+            " --seed {params.seed} --threads {threads} > {log:q} 2>&1"
+        )
 
 
 rule init_mesh:
@@ -52,6 +54,13 @@ rule init_mesh:
     output:
         mesh=f"{RESULTS}/mesh/init.ply",
         info=f"{RESULTS}/mesh/init.json",
+    log:
+        f"{RESULTS}/logs/init_mesh.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/init_mesh.tsv"
+    conda:
+        "../../envs/geometry.yaml"
+    threads: config["init"]["threads"]
     params:
         mode=config["init"]["mode"],
         mesh_path=" ".join(f"--mesh-path {shlex.quote(p)}" for p in user_mesh()),
@@ -64,20 +73,15 @@ rule init_mesh:
         max_vertices=config["init"]["max_vertices"],
         outlier_view_z=config["init"]["outlier_view_z"],
         silhouette_settings=settings_json(config["silhouette"]),
-    threads: config["init"]["threads"]
-    conda:
-        "../../envs/geometry.yaml"
-    log:
-        f"{RESULTS}/logs/init_mesh.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/init_mesh.tsv"
     shell:
-        SELLIP + " init-mesh --hdr {input.hdr:q} --cameras {input.cameras:q} --sfm {input.sfm:q}"
-        " --output {output.mesh:q} --mode {params.mode} {params.mesh_path} --hull-resolution {params.hull_resolution}"
-        " --min-inside-fraction {params.min_inside_fraction} --poisson-depth {params.poisson_depth}"
-        " --target-depth {params.target_depth} --max-vertices {params.max_vertices}"
-        " --outlier-view-z {params.outlier_view_z}"
-        " --silhouette-settings {params.silhouette_settings} --threads {threads} > {log:q} 2>&1"
+        sellip_shell(
+            "init-mesh --hdr {input.hdr:q} --cameras {input.cameras:q} --sfm {input.sfm:q}"
+            " --output {output.mesh:q} --mode {params.mode} {params.mesh_path} --hull-resolution {params.hull_resolution}"
+            " --min-inside-fraction {params.min_inside_fraction} --poisson-depth {params.poisson_depth}"
+            " --target-depth {params.target_depth} --max-vertices {params.max_vertices}"
+            " --outlier-view-z {params.outlier_view_z}"
+            " --silhouette-settings {params.silhouette_settings} --threads {threads} > {log:q} 2>&1"
+        )
 
 
 rule refine_geometry:
@@ -91,10 +95,17 @@ rule refine_geometry:
     output:
         mesh=f"{RESULTS}/iter/{{it}}/mesh.ply",
         summary=f"{RESULTS}/iter/{{it}}/mesh.ply.json",
+    log:
+        f"{RESULTS}/logs/refine_geometry/{{it}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/refine_geometry/{{it}}.tsv"
+    conda:
+        "../../envs/geometry.yaml"
     params:
         smoothness=lambda wildcards: at_iteration(config["refine_geometry"]["smoothness"], wildcards.it),
-        smoothness_unconfident=lambda wildcards: at_iteration(config["refine_geometry"]["smoothness_unconfident"],
-                                                              wildcards.it),
+        smoothness_unconfident=lambda wildcards: at_iteration(
+            config["refine_geometry"]["smoothness_unconfident"], wildcards.it
+        ),
         anchor=lambda wildcards: at_iteration(config["refine_geometry"]["anchor"], wildcards.it),
         rounds=config["refine_geometry"]["rounds"],
         silhouette=lambda wildcards: at_iteration(config["refine_geometry"]["silhouette"], wildcards.it),
@@ -102,18 +113,14 @@ rule refine_geometry:
         capture=lambda wildcards, input: Path(input.capture).parent,
         held_out=config["evaluate"]["held_out_views"],
         silhouette_settings=settings_json(config["silhouette"]),
-    conda:
-        "../../envs/geometry.yaml"
-    log:
-        f"{RESULTS}/logs/refine_geometry/{{it}}.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/refine_geometry/{{it}}.tsv"
     shell:
-        SELLIP + " refine-geometry --params {input.params:q} --mesh {input.mesh:q} --output {output.mesh:q}"
-        " --reference-mesh {input.reference:q} --smoothness {params.smoothness}"
-        " --smoothness-unconfident {params.smoothness_unconfident} --anchor {params.anchor} --rounds {params.rounds}"
-        " --silhouette {params.silhouette} {params.keep_surface} --cameras {input.cameras:q} --hdr {input.hdr:q} --capture {params.capture:q}"
-        " --exclude-views {params.held_out:q} --silhouette-settings {params.silhouette_settings} > {log:q} 2>&1"
+        sellip_shell(
+            "refine-geometry --params {input.params:q} --mesh {input.mesh:q} --output {output.mesh:q}"
+            " --reference-mesh {input.reference:q} --smoothness {params.smoothness}"
+            " --smoothness-unconfident {params.smoothness_unconfident} --anchor {params.anchor} --rounds {params.rounds}"
+            " --silhouette {params.silhouette} {params.keep_surface} --cameras {input.cameras:q} --hdr {input.hdr:q} --capture {params.capture:q}"
+            " --exclude-views {params.held_out:q} --silhouette-settings {params.silhouette_settings} > {log:q} 2>&1"
+        )
 
 
 rule refine_poses:
@@ -128,20 +135,23 @@ rule refine_poses:
     output:
         cameras=f"{RESULTS}/iter/{{it}}/cameras.csv",
         summary=f"{RESULTS}/iter/{{it}}/cameras.csv.json",
-    wildcard_constraints:
-        it=r"[1-9]\d*",
-    params:
-        capture=lambda wildcards, input: Path(input.capture).parent,
-        # The PoseRefinementSettings fields of config refine_poses (enabled, after_iteration: cameras_of).
-        settings=settings_json({key: value for key, value in config["refine_poses"].items()
-                                if key not in ("enabled", "after_iteration")}),
-    conda:
-        "../../envs/geometry.yaml"
     log:
         f"{RESULTS}/logs/refine_poses/{{it}}.log",
     benchmark:
         f"{RESULTS}/benchmarks/refine_poses/{{it}}.tsv"
+    wildcard_constraints:
+        it=r"[1-9]\d*",
+    conda:
+        "../../envs/geometry.yaml"
+    params:
+        capture=lambda wildcards, input: Path(input.capture).parent,
+        # The PoseRefinementSettings fields of config refine_poses (enabled, after_iteration: cameras_of).
+        settings=settings_json(
+            {key: value for key, value in config["refine_poses"].items() if key not in ("enabled", "after_iteration")}
+        ),
     shell:
-        SELLIP + " refine-poses --params {input.params:q} --mesh {input.mesh:q} --cameras {input.cameras:q}"
-        " --hdr {input.hdr:q} --capture {params.capture:q} --output {output.cameras:q} --settings {params.settings}"
-        " > {log:q} 2>&1"
+        sellip_shell(
+            "refine-poses --params {input.params:q} --mesh {input.mesh:q} --cameras {input.cameras:q}"
+            " --hdr {input.hdr:q} --capture {params.capture:q} --output {output.cameras:q} --settings {params.settings}"
+            " > {log:q} 2>&1"
+        )

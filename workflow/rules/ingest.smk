@@ -8,24 +8,25 @@ rule linearize_frames:
         frames=capture_file("frames.csv"),
     output:
         temp(directory(f"{RESULTS}/ingest/linear.zarr")),
-    params:
-        capture=lambda wildcards, input: Path(input.capture).parent,
-        # The content of every file ingest reads: a replaced, added or removed frame re-runs ingest and what follows.
-        content=content_of(lambda: [capture_file("capture.yaml"), capture_file("frames.csv")], raw_frames),
-        saturation=config["ingest"]["saturation"],
-        black_level_from=config["ingest"]["black_level_from"],
-        bad_frames=config["ingest"].get("bad_frames", "error"),
-    threads: config["ingest"]["threads"]
-    conda:
-        "../../envs/ingest.yaml"
     log:
         f"{RESULTS}/logs/linearize_frames.log",
     benchmark:
         f"{RESULTS}/benchmarks/linearize_frames.tsv"
+    conda:
+        "../../envs/ingest.yaml"
+    threads: config["ingest"]["threads"]
+    params:
+        capture=lambda wildcards, input: Path(input.capture).parent,
+        saturation=config["ingest"]["saturation"],
+        # A function: its value `capture` would read to `snakemake --lint` as a hard-coded prefix of captures/.
+        black_level_from=lambda wildcards: config["ingest"]["black_level_from"],
+        bad_frames=config["ingest"].get("bad_frames", "error"),
     shell:
-        SELLIP + " linearize --capture {params.capture:q} --output {output:q} --threads {threads}"
-        " --saturation {params.saturation} --black-level-from {params.black_level_from}"
-        " --bad-frames {params.bad_frames} > {log:q} 2>&1"
+        sellip_shell(
+            "linearize --capture {params.capture:q} --output {output:q} --threads {threads}"
+            " --saturation {params.saturation} --black-level-from {params.black_level_from}"
+            " --bad-frames {params.bad_frames} > {log:q} 2>&1"
+        )
 
 
 rule merge_hdr:
@@ -33,18 +34,20 @@ rule merge_hdr:
         f"{RESULTS}/ingest/linear.zarr",
     output:
         directory(f"{RESULTS}/hdr.zarr"),
-    params:
-        flash_ratio_tolerance=config["ingest"]["flash_ratio_tolerance"],
-    threads: config["ingest"]["threads"]
-    conda:
-        "../../envs/ingest.yaml"
     log:
         f"{RESULTS}/logs/merge_hdr.log",
     benchmark:
         f"{RESULTS}/benchmarks/merge_hdr.tsv"
+    conda:
+        "../../envs/ingest.yaml"
+    threads: config["ingest"]["threads"]
+    params:
+        flash_ratio_tolerance=config["ingest"]["flash_ratio_tolerance"],
     shell:
-        SELLIP + " merge-hdr --linear {input:q} --output {output:q} --threads {threads}"
-        " --flash-ratio-tolerance {params.flash_ratio_tolerance} > {log:q} 2>&1"
+        sellip_shell(
+            "merge-hdr --linear {input:q} --output {output:q} --threads {threads}"
+            " --flash-ratio-tolerance {params.flash_ratio_tolerance} > {log:q} 2>&1"
+        )
 
 
 rule plot_hdr_previews:
@@ -59,11 +62,11 @@ rule plot_hdr_previews:
             subcategory="{kind}",
             labels={"view": "{view}", "image": "{kind}"},
         ),
-    conda:
-        "../../envs/ingest.yaml"
     log:
         f"{RESULTS}/logs/plot_hdr_previews.log",
     benchmark:
         f"{RESULTS}/benchmarks/plot_hdr_previews.tsv"
+    conda:
+        "../../envs/ingest.yaml"
     shell:
-        SELLIP + " hdr-previews --hdr {input:q} --output {output:q} > {log:q} 2>&1"
+        sellip_shell("hdr-previews --hdr {input:q} --output {output:q} > {log:q} 2>&1")

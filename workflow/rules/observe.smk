@@ -12,8 +12,15 @@ rule gather_observations:
         capture=capture_file("capture.yaml"),
     output:
         temp(directory(f"{RESULTS}/iter/{{it}}/observations.zarr")),
+    log:
+        f"{RESULTS}/logs/gather_observations/{{it}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/gather_observations/{{it}}.tsv"
     wildcard_constraints:
         it=r"\d+",
+    conda:
+        "../../envs/geometry.yaml"
+    threads: config["observe"]["threads"]
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
         vertex_chunk=config["observe"]["vertex_chunk"],
@@ -26,21 +33,17 @@ rule gather_observations:
         max_slope=config["observe"]["max_slope"],
         missing_poses=config["observe"]["missing_poses"],
         held_out=config["evaluate"]["held_out_views"],
-        max_views=(f"--max-views {config['observe']['max_views']}"
-                   if config["observe"].get("max_views") is not None else ""),
-    threads: config["observe"]["threads"]
-    conda:
-        "../../envs/geometry.yaml"
-    log:
-        f"{RESULTS}/logs/gather_observations/{{it}}.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/gather_observations/{{it}}.tsv"
+        max_views=(
+            f"--max-views {config['observe']['max_views']}" if config["observe"].get("max_views") is not None else ""
+        ),
     shell:
-        SELLIP + " observe --mesh {input.mesh:q} --cameras {input.cameras:q} --hdr {input.hdr:q}"
-        " --capture {params.capture:q} --output {output:q} --vertex-chunk {params.vertex_chunk}"
-        " --view-chunk {params.view_chunk} --occlusion-tolerance {params.occlusion_tolerance}"
-        " --shadow-offset {params.shadow_offset} --min-cos {params.min_cos}"
-        " --edge-margin {params.edge_margin} --silhouette-settings {params.silhouette_settings}"
-        " --max-slope {params.max_slope}"
-        " --missing-poses {params.missing_poses} --exclude-views {params.held_out:q} {params.max_views}"
-        " --threads {threads} > {log:q} 2>&1"
+        sellip_shell(
+            "observe --mesh {input.mesh:q} --cameras {input.cameras:q} --hdr {input.hdr:q}"
+            " --capture {params.capture:q} --output {output:q} --vertex-chunk {params.vertex_chunk}"
+            " --view-chunk {params.view_chunk} --occlusion-tolerance {params.occlusion_tolerance}"
+            " --shadow-offset {params.shadow_offset} --min-cos {params.min_cos}"
+            " --edge-margin {params.edge_margin} --silhouette-settings {params.silhouette_settings}"
+            " --max-slope {params.max_slope}"
+            " --missing-poses {params.missing_poses} --exclude-views {params.held_out:q} {params.max_views}"
+            " --threads {threads} > {log:q} 2>&1"
+        )

@@ -7,7 +7,7 @@ a synthetic calibration set of the same device (docs/calibration.md, "How carefu
 Public API::
 
     Perturbation(label, change)                       # one row: a change of the capture.yaml description
-    PERTURBATIONS                                     # the rows of the table, in the order they run (most telling first)
+    PERTURBATIONS                                     # the rows of the table, in the order they run (telling first)
     FULL_SIZE_ERRORS                                  # what the calibration got wrong at 2448x2048, seed 1
     perturb_description(config, change, width=None) -> dict       # capture.yaml's dict with ``change`` applied
     perturbed_capture(capture, out, change) -> Path   # a capture sharing the frames, capture.yaml changed
@@ -90,8 +90,8 @@ def perturb_description(config: Mapping, change: Mapping, width: int | None = No
             if section in change["device"]:
                 config[section] = {**config.get(section, {}), **copy.deepcopy(change["device"][section])}
     if "flash_mm" in change:
-        config["light"]["position_m"] = [float(p) + float(d) / 1000
-                                         for p, d in zip(config["light"]["position_m"], change["flash_mm"], strict=True)]
+        config["light"]["position_m"] = [
+            float(p) + float(d) / 1000 for p, d in zip(config["light"]["position_m"], change["flash_mm"], strict=True)]
     if "polarizer_deg" in change:
         config["light"]["polarizer_deg"] = float(config["light"].get("polarizer_deg", 0.0)) + change["polarizer_deg"]
     if "fx_rel" in change:

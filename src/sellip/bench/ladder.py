@@ -132,8 +132,8 @@ def figures(fit: dict, truth) -> dict:
 
 
 def resampled_truth(truth, vertices: int):
-    """The true ParamMesh on a mesh of about ``vertices`` vertices (:func:`sellip.geometry.scan.resample_to_count`, as the
-    ``mesh`` rung's initial mesh), each vertex with the parameters and material of its nearest true vertex."""
+    """The true ParamMesh on a mesh of about ``vertices`` vertices (:func:`sellip.geometry.scan.resample_to_count`, as
+    the ``mesh`` rung's initial mesh), each vertex with the parameters and material of its nearest true vertex."""
     from scipy.spatial import cKDTree
 
     from sellip.geometry.meshes import vertex_normals

@@ -128,7 +128,7 @@ def summarise(rows: list[dict]) -> dict:
         chosen = [r["decisions"] for r in rows if kind == "all" or r["kind"] == kind]
         if not chosen:
             continue
-        count = lambda values: dict(sorted(Counter(values).items()))  # noqa: E731
+        count = lambda values: dict(sorted(Counter(values).items()))
         materials = {}
         for label in sorted({m for d in chosen for m in d["materials"]}, key=int):
             per = [d["materials"][label] for d in chosen if label in d["materials"]]

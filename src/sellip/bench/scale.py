@@ -86,7 +86,8 @@ def job_costs(benchmarks_dir: str | Path):
             if not token.isdigit():
                 raise ValueError(f"{path}: a {rule} benchmark outside an iteration folder ({relative})")
             iteration = int(token)
-        rows.append({"rule": rule, "iteration": iteration, **read_benchmark(path), "job": str(relative.with_suffix(""))})
+        rows.append({"rule": rule, "iteration": iteration, **read_benchmark(path),
+                     "job": str(relative.with_suffix(""))})
     if not rows:
         raise ValueError(f"no benchmark files under {benchmarks_dir}")
     return pd.DataFrame(rows)

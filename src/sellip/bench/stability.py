@@ -52,7 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sellip.bench.stability_table import Case, format_cell, case_row, stability_markdown, validate_table
+from sellip.bench.stability_table import Case, case_row, format_cell, stability_markdown, validate_table
 from sellip.bench.sweep_plan import merge
 
 log = logging.getLogger(__name__)
@@ -404,8 +404,9 @@ def run_suite(cases: Sequence[Case], out: str | Path, snakefile: str | Path, cor
         rows.append(row)
         log.info("[%d/%d] %s: %s in %.0f s (CPU %s s); normal median %s deg, eta median %s %%, finite %s, "
                  "bad flagged %s", index, len(cases), case.name, row["status"], row["wall_s"],
-                 format_cell(row["cpu_s"], 0), format_cell(row["normal_median_deg"], 2), format_cell(row["eta_median_pct"]),
-                 row["outputs_finite"], format_cell(row["bad_flagged"], percent=True))
+                 format_cell(row["cpu_s"], 0), format_cell(row["normal_median_deg"], 2),
+                 format_cell(row["eta_median_pct"]), row["outputs_finite"],
+                 format_cell(row["bad_flagged"], percent=True))
         if row["status"] != "ok":
             log.warning("%s failed: %s (see %s)", case.name, row["error"], workdir / "snakemake.log")
     write_tables(rows, out)

@@ -345,8 +345,8 @@ def stability_markdown(table) -> str:
             format_cell(row["psnr_new_light_db"]), f"{format_cell(row['wall_s'], 0)} / {format_cell(row['cpu_s'], 0)}"])
         finite = "yes" if row["outputs_finite"] else f"**no**: {row['nonfinite'][:120]}"
         flags.append([
-            row["case"], finite, format_cell(row["confident_share"], percent=True), format_cell(row["confidence_median"], 2),
-            format_cell(row["flagged_share"], percent=True),
+            row["case"], finite, format_cell(row["confident_share"], percent=True),
+            format_cell(row["confidence_median"], 2), format_cell(row["flagged_share"], percent=True),
             f"{_share_count(row['bad_share'], row['vertices'])} / "
             + " / ".join(format_cell(row[k], percent=True) for k in ("bad_flagged", "flagged_bad")),
             format_cell(row["auc"], 2), format_cell(row["worst_auc"], 2),

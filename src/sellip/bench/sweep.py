@@ -48,9 +48,9 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 from sellip.bench.sweep_plan import (
     FACTORS,
@@ -153,7 +153,8 @@ class SnakemakeRunner:
         cpu = _children_cpu() - before
         if result.returncode != 0:
             tail = "".join(log_path.read_text().splitlines(keepends=True)[-25:])
-            raise SweepError(f"snakemake for {config['name']} failed (exit {result.returncode}); log {log_path}:\n{tail}")
+            raise SweepError(f"snakemake for {config['name']} failed (exit {result.returncode}); "
+                             f"log {log_path}:\n{tail}")
         return wall, cpu
 
 

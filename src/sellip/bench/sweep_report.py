@@ -16,8 +16,8 @@ from sellip.report.outputs import save_figure
 
 
 def ior_of_results(results: Path, capture: Path):
-    """bench_sweep_tables.ior_table of one finished run: results/NAME/final/{model.ply,params.zarr} against the capture's
-    ground truth, in the ground truth's world (metrics.json ``alignment``)."""
+    """bench_sweep_tables.ior_table of one finished run: results/NAME/final/{model.ply,params.zarr} against the
+    capture's ground truth, in the ground truth's world (metrics.json ``alignment``)."""
     from sellip.capture.files import GROUND_TRUTH_MESH
     from sellip.geometry.alignment import Similarity
     from sellip.model.ply import read_param_mesh
@@ -37,7 +37,8 @@ def ior_of_results(results: Path, capture: Path):
 
 
 SWEEP_MD = {"label": ("variant", ""), "cpu_s": ("CPU s", ".0f"), "fit_cpu_s": ("fit CPU s", ".0f"),
-            "total_s": ("wall s", ".0f"), "run_s": ("own run wall s", ".0f"), "normal_median_deg": ("normal med. °", ".2f"),
+            "total_s": ("wall s", ".0f"), "run_s": ("own run wall s", ".0f"),
+            "normal_median_deg": ("normal med. °", ".2f"),
             "eta_median_pct": ("η per vertex med. %", ".2f"),
             "eta_material_mean_pct": ("η per material mean %", ".2f"),
             "eta_material_max_pct": ("η per material worst %", ".2f"), "rho_d_rmse": ("ρd RMSE", ".3f"),
@@ -101,7 +102,8 @@ def tables_markdown(table, ior, preset: str, models: dict | None = None) -> str:
         parts += [f"\n## {scene}\n\n", bench_sweep_tables.markdown_table(table[table["scene"] == scene], SWEEP_MD)]
     if ior is not None and not ior.empty:
         mean = {"material": "average", "error_pct": ior["error_pct"].mean(),
-                "vertex_error_pct": ior["vertex_error_pct"].mean(), "paper_error_pct": bench_sweep_tables.PAPER_TABLE1_AVERAGE_PCT}
+                "vertex_error_pct": ior["vertex_error_pct"].mean(),
+                "paper_error_pct": bench_sweep_tables.PAPER_TABLE1_AVERAGE_PCT}
         import pandas as pd
 
         shown = pd.concat([ior, pd.DataFrame([mean])], ignore_index=True)
@@ -111,7 +113,8 @@ def tables_markdown(table, ior, preset: str, models: dict | None = None) -> str:
         parts += ["\n## Augmentation on/off\n\n", bench_sweep_tables.markdown_table(aug, AUG_MD)]
     sigma = bench_sweep_tables.sigma_ss_table(table)
     if not sigma.empty:
-        parts += [f"\n## σss free vs fixed (paper: fixing saves up to ~{bench_sweep_tables.PAPER_SIGMA_SS_SAVING_PCT:.0f} %)\n\n",
+        saving = bench_sweep_tables.PAPER_SIGMA_SS_SAVING_PCT
+        parts += [f"\n## σss free vs fixed (paper: fixing saves up to ~{saving:.0f} %)\n\n",
                   bench_sweep_tables.markdown_table(sigma, SIGMA_MD)]
     selection = bench_sweep_tables.model_selection_table(table, models or {})
     if not selection.empty:
@@ -130,7 +133,8 @@ def write_outputs(variants, records, preset: str, out: Path, workdir: Path) -> d
     for variant, record in zip(variants, records):
         folder = paths.results / variant.name
         metrics = json.loads((folder / "metrics.json").read_text())
-        rows.append(bench_sweep_tables.sweep_row(variant, metrics, record, preset, bench_sweep_tables.job_cpu_seconds(folder / "benchmarks")))
+        rows.append(bench_sweep_tables.sweep_row(variant, metrics, record, preset,
+                                                 bench_sweep_tables.job_cpu_seconds(folder / "benchmarks")))
     table = bench_sweep_tables.sweep_table(rows)
     iors = []
     for variant in variants:

@@ -28,9 +28,9 @@ def pareto_front(cost, loss) -> np.ndarray:
     if cost.shape != loss.shape or cost.ndim != 1:
         raise ValueError(f"cost and loss must be (N,) arrays of one length, got {cost.shape} and {loss.shape}")
     finite = np.isfinite(cost) & np.isfinite(loss)
-    c, l = cost[finite], loss[finite]
-    no_worse = (c[None, :] <= c[:, None]) & (l[None, :] <= l[:, None])  # [i, j]: j no worse than i
-    better = (c[None, :] < c[:, None]) | (l[None, :] < l[:, None])
+    c, e = cost[finite], loss[finite]
+    no_worse = (c[None, :] <= c[:, None]) & (e[None, :] <= e[:, None])  # [i, j]: j no worse than i
+    better = (c[None, :] < c[:, None]) | (e[None, :] < e[:, None])
     dominated = np.any(no_worse & better, axis=1)
     front = np.zeros(cost.shape, bool)
     front[np.flatnonzero(finite)[~dominated]] = True
@@ -69,7 +69,8 @@ upstream run plus the variant's own run (snakemake and every job); fit_cpu_s tha
 the Snakemake benchmark files sample it (``cpu_time``: sampled every 30 s after a job's first 15 s, so an
 undercount for long jobs); compiled, compile_s the XLA compilations in the variant's jobs (not from the
 cache) and their wall time; cold_* the same of the variant's first run (when repeated); deterministic:
-1 when the repeated runs gave the same figures (0 if not, empty for one run); the other ``*_s`` wall-clock seconds; figures as in metrics.json."""
+1 when the repeated runs gave the same figures (0 if not, empty for one run); the other ``*_s`` wall-clock seconds;
+figures as in metrics.json."""
 
 TIME_AXIS = "cpu_s"
 """The cost axis of the chart and the Pareto fronts: CPU time is what a variant costs, and unlike wall time
@@ -288,7 +289,7 @@ def ior_table(model, truth, confident, paper=PAPER_TABLE1):
     eta = np.asarray(model.params.eta, np.float64)
     eta_true = np.asarray(truth.params.eta, np.float64)
     rows = []
-    for index, (name, eta_m, eta_paper, paper_error) in enumerate(paper):
+    for index, (name, _eta_m, eta_paper, paper_error) in enumerate(paper):
         members = confident & (material[nearest] == index)
         truth_eta = float(np.median(eta_true[material == index])) if np.any(material == index) else np.nan
         if members.any():

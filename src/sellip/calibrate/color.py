@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sellip.capture import ingest
 from sellip.calibrate.intrinsics import CalibrationError
+from sellip.capture import ingest
 from sellip.capture.mosaic import mosaic_layout
 
 MIN_PATCH_LEVEL = 0.02
@@ -135,7 +135,8 @@ class ColorResult:
     def record(self) -> dict:
         used = np.isfinite(self.delta_e)
         return {"delta_e2000_mean": float(np.nanmean(self.delta_e)), "delta_e2000_max": float(np.nanmax(self.delta_e)),
-                "delta_e2000": {n: (float(e) if np.isfinite(e) else None) for n, e in zip(self.patch_names, self.delta_e)},
+                "delta_e2000": {n: (float(e) if np.isfinite(e) else None)
+                                for n, e in zip(self.patch_names, self.delta_e)},
                 "patches_used": int(used.sum()), "left_out": self.left_out}
 
 

@@ -26,8 +26,7 @@ from pathlib import Path
 import jsonschema
 import yaml
 
-from sellip.capture import capture_yaml
-from sellip.capture import files
+from sellip.capture import capture_yaml, files
 from sellip.capture.writer import yaml_safe
 from sellip.yaml_files import DuplicateKeyError, load_yaml_file
 

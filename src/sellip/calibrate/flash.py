@@ -37,8 +37,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from sellip.capture import ingest
 from sellip.calibrate.intrinsics import CalibrationError
+from sellip.capture import ingest
 from sellip.capture.mosaic import mosaic_layout
 
 MIN_HIGHLIGHTS = 6
@@ -108,7 +108,8 @@ def pixel_rays(px: np.ndarray, intrinsics: Mapping) -> np.ndarray:
 
 
 def _outline(s0: np.ndarray, centroid: np.ndarray, radius: float, level: float) -> np.ndarray:
-    """(K, 2) sub-pixel points where s0 first falls below ``level`` coming in from outside, along rays from the centroid."""
+    """(K, 2) sub-pixel points where s0 first falls below ``level`` coming in from outside, along rays from the
+    centroid."""
     angles = np.linspace(0, 2 * np.pi, OUTLINE_SAMPLES, endpoint=False)
     radii = np.arange(1.4 * radius, 0.6 * radius, -0.25)
     dirs = np.stack([np.cos(angles), np.sin(angles)], axis=-1)
@@ -436,7 +437,8 @@ class FlashResult:
                 out.append(f"{count} sphere(s) {words}" if key != "no sphere" else f"{count} {words}")
         count = len(self.highlights)
         if count < 2 * MIN_HIGHLIGHTS:
-            out.append(f"only {count} highlights: take more frames, 2-3 spheres each ({3 * MIN_HIGHLIGHTS} recommended)")
+            out.append(f"only {count} highlights: take more frames, 2-3 spheres each "
+                       f"({3 * MIN_HIGHLIGHTS} recommended)")
         if self.highlights and self.image_size[0]:
             px = np.asarray([h["highlight_px"] for h in self.highlights])
             extent = (px.max(axis=0) - px.min(axis=0)) / np.asarray(self.image_size, np.float64)

@@ -271,7 +271,7 @@ def calibrate_intrinsics(frames: Mapping[str, np.ndarray], sensor: Mapping, cols
     for n in names:
         ij = np.floor(corners[n] / [width, height] * COVERAGE_GRID).astype(int).clip(0, COVERAGE_GRID - 1)
         cells[ij[:, 1], ij[:, 0]] = True
-    return IntrinsicsResult(field_coverage=float(cells.mean()), fx=float(k[0, 0]), fy=float(k[1, 1]), cx=float(k[0, 2]), cy=float(k[1, 2]),
-                            distortion=[float(c) for c in dist[:5]], rms_px=float(rms),
+    return IntrinsicsResult(field_coverage=float(cells.mean()), fx=float(k[0, 0]), fy=float(k[1, 1]), cx=float(k[0, 2]),
+                            cy=float(k[1, 2]), distortion=[float(c) for c in dist[:5]], rms_px=float(rms),
                             per_frame={n: float(e) for n, e in zip(names, per_view)}, left_out=left_out,
                             std={"fx": float(std[0]), "fy": float(std[1]), "cx": float(std[2]), "cy": float(std[3])})

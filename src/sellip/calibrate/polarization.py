@@ -178,7 +178,8 @@ class PolarizationReport:
     def record(self) -> dict:
         return {"ok": self.ok, "claimed_layout": self.claimed_layout, "best_layout": self.best_layout,
                 "claimed_score": self.claimed_score, "best_score": self.best_score, "second_score": self.second_score,
-                "limb_pixels": self.limb_pixels, "rim_score": self.rim_score, "polarizer_deg_measured": self.polarizer_deg,
+                "limb_pixels": self.limb_pixels, "rim_score": self.rim_score,
+                "polarizer_deg_measured": self.polarizer_deg,
                 "polarizer_std_deg": self.polarizer_std_deg, "polarizer_deg_claimed": self.claimed_polarizer_deg,
         "highlights": self.highlights, "messages": self.messages(), "left_out": self.left_out}
 
@@ -226,7 +227,7 @@ def _turned(layout) -> list:
     return (np.asarray(layout) + 90) % 180
 
 
-def _check_cues(report: "PolarizationReport", claimed, best, claimed_highlight_deg: float) -> None:
+def _check_cues(report: PolarizationReport, claimed, best, claimed_highlight_deg: float) -> None:
     """Raise CalibrationError when the two independent cues disagree about a 90-degree turn: the diffuse light
     (polarized radially, :data:`DIFFUSE_ZENITH_DEG`) and the highlights (the flash's polarization, kept by a
     mirror reflection) read with the claimed layout. Either the diffuse light says "turned by 90" while the

@@ -62,7 +62,8 @@ DEVICE_FLASH_M = (0.0, 0.05, 0.0)
 SPHERE_RADIUS_M = 0.02
 """Radius of the synthetic glossy spheres (40 mm balls)."""
 
-SPHERE_PARAMS = {"eta": 1.5, "rho_d": (0.06, 0.06, 0.06), "rho_s": 1.0, "sigma_s": 0.08, "rho_ss": (0.0, 0.0, 0.0), "sigma_ss": 0.3}
+SPHERE_PARAMS = {"eta": 1.5, "rho_d": (0.06, 0.06, 0.06), "rho_s": 1.0, "sigma_s": 0.08, "rho_ss": (0.0, 0.0, 0.0),
+                 "sigma_ss": 0.3}
 """A black glossy dielectric ball (a snooker ball, a glazed ceramic sphere): faint diffuse, one sharp lobe."""
 
 SHADE_STEP = 4
@@ -110,7 +111,8 @@ class _Rays:
             u, v = np.meshgrid(np.arange(-1, width + 1, dtype=np.float64), np.arange(-1, height + 1, dtype=np.float64))
             xd, yd = (u - camera["cx"]) / camera["fx"], (v - camera["cy"]) / camera["fy"]
             distortion = camera.get("distortion", [0.0] * 5)
-            _RAY_CACHE[key] = undistort_normalized(xd, yd, distortion, iterations=30) if np.any(distortion) else (xd, yd)
+            _RAY_CACHE[key] = (undistort_normalized(xd, yd, distortion, iterations=30) if np.any(distortion)
+                               else (xd, yd))
         self.x, self.y = _RAY_CACHE[key]
 
     def block(self, rows: slice, supersample: int) -> tuple[np.ndarray, np.ndarray]:
@@ -357,7 +359,8 @@ def panel_reflection(points: np.ndarray, normals: np.ndarray, eta: float, panel:
     mirror = d + 2 * cos_i[:, None] * normals
     t = (PANEL_DISTANCE_M - points[:, 2]) / np.where(mirror[:, 2] > 1e-9, mirror[:, 2], np.nan)
     hit = points + t[:, None] * mirror
-    on_panel = (mirror[:, 2] > 1e-9) & (np.abs(hit[:, 0]) <= PANEL_HALF_SIZE_M) & (np.abs(hit[:, 1]) <= PANEL_HALF_SIZE_M)
+    on_panel = ((mirror[:, 2] > 1e-9) & (np.abs(hit[:, 0]) <= PANEL_HALF_SIZE_M)
+                & (np.abs(hit[:, 1]) <= PANEL_HALF_SIZE_M))
     sin2_t = (1 - cos_i ** 2) / eta ** 2
     cos_t = np.sqrt(1 - sin2_t)
     r_s = ((cos_i - eta * cos_t) / (cos_i + eta * cos_t)) ** 2

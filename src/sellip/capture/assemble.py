@@ -1,4 +1,5 @@
-"""A capture folder (docs/design.md §3) from a folder of raw frames and a calibrated device.yaml (``sellip capture new``).
+"""A capture folder (docs/design.md §3) from a folder of raw frames and a calibrated device.yaml
+(``sellip capture new``).
 
 Public API::
 
@@ -30,12 +31,9 @@ from pathlib import Path
 import pandas as pd
 import yaml
 
-from sellip.capture import files as capture_files
-from sellip.capture import reader
-from sellip.capture import tables
-from sellip.capture import writer
-from sellip.capture import capture_yaml
 from sellip import jobs
+from sellip.capture import capture_yaml, reader, tables, writer
+from sellip.capture import files as capture_files
 
 RAW_SUFFIXES = capture_files.RAWPY_SUFFIXES + capture_files.TIFF_SUFFIXES + capture_files.PNG_SUFFIXES
 FIELDS = {"view": r"(?P<view>[A-Za-z0-9._-]+?)", "level": r"(?P<level>[0-9]+(?:[.][0-9]+)?)"}
@@ -130,9 +128,10 @@ def fill_exposure(frames: pd.DataFrame, frames_dir: Path, given_by: str) -> pd.D
         given = float(row.exposure_s)
         if given == given:  # not NaN
             if recorded is not None and abs(given - recorded) > EXPOSURE_RTOL * recorded:
-                raise AssembleError(str(path), "ExposureTime", f"the file records {recorded:g} s but {given_by} says "
-                                                               f"{given:g} s; leave the exposure out to use the file's, "
-                                                               "or correct it")
+                raise AssembleError(str(path), "ExposureTime",
+                                    f"the file records {recorded:g} s but {given_by} says "
+                                    f"{given:g} s; leave the exposure out to use the file's, "
+                                    "or correct it")
             times.append(given)
         elif recorded is not None:
             times.append(recorded)
@@ -181,7 +180,9 @@ def assemble_capture(frames_dir: str | Path, device: Mapping, distance_m: float,
         raise AssembleError(str(frames_dir), None, "not a folder; expected the folder of raw frames")
     if (pattern is None) == (csv is None):
         raise AssembleError("sellip capture new", None, "give exactly one of --pattern and --csv")
-    out = Path(out) if out is not None else (frames_dir.parent if frames_dir.name == capture_files.RAW_DIR else frames_dir)
+    if out is None:
+        out = frames_dir.parent if frames_dir.name == capture_files.RAW_DIR else frames_dir
+    out = Path(out)
     if not distance_m > 0:
         raise AssembleError("--distance-m", None, f"expected the typical camera-object distance in metres (> 0), "
                                                   f"got {distance_m}")
@@ -202,7 +203,8 @@ def assemble_capture(frames_dir: str | Path, device: Mapping, distance_m: float,
     for row in frames.itertuples(index=False):
         path = Path(os.path.normpath(out / row.file))  # `out` itself may not exist yet
         if not path.is_file():
-            raise capture_files.MissingFileError(str(out / capture_files.FRAMES_CSV), f"frame {row.frame_id!r}", f"file {path} missing")
+            raise capture_files.MissingFileError(str(out / capture_files.FRAMES_CSV), f"frame {row.frame_id!r}",
+                                                 f"file {path} missing")
         if check_raw:
             reader.read_raw_file(path, checked["sensor"], file_label=f"{path} (frame {row.frame_id!r})")
     texts = {capture_files.FRAMES_CSV: frames.to_csv(index=False, float_format="%.10g"),

@@ -83,8 +83,8 @@ CONFIG_SCHEMA: dict = {
         },
     },
 }
-"""JSON schema of capture.yaml (docs/design.md §3). ``synthetic``, ``calibration``, ``notes`` and ``x_*`` sections are kept
-as they are;
+"""JSON schema of capture.yaml (docs/design.md §3). ``synthetic``, ``calibration``, ``notes`` and ``x_*`` sections are
+kept as they are;
 another top-level key is an error, as inside the sections."""
 
 
@@ -104,8 +104,9 @@ def schema_problem(error: jsonschema.ValidationError) -> tuple[str, str]:
         missing = error.message.split("'")[1] if "'" in error.message else error.message
         return _key_path(path + [missing]), "missing; this key is required"
     if error.validator == "additionalProperties":
+        patterns = error.schema.get("patternProperties", {})
         unknown = sorted(key for key in set(error.instance) - set(error.schema["properties"])
-                         if not any(re.match(pattern, str(key)) for pattern in error.schema.get("patternProperties", {})))
+                         if not any(re.match(pattern, str(key)) for pattern in patterns))
         allowed = sorted(error.schema["properties"]) + [f"{p.lstrip('^')}..." for p in error.schema.get(
             "patternProperties", {})]
         return _key_path(path + unknown[:1]), f"unknown key; expected only {allowed}"

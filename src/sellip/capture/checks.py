@@ -96,11 +96,11 @@ def check_pose_units(rotations: np.ndarray, translations: np.ndarray, distance_m
             f"{ratio:.4g} times scene.distance_m = {distance_m:g} m in {capture_label}")
     guess = likely_unit(ratio)
     if guess is None:
-        advice = (f"expected translations in metres (docs/design.md §3) within {DISTANCE_TOLERANCE:g}x of scene.distance_m; "
-                  "check the units of tx, ty, tz and scene.distance_m")
+        advice = (f"expected translations in metres (docs/design.md §3) within {DISTANCE_TOLERANCE:g}x of "
+                  "scene.distance_m; check the units of tx, ty, tz and scene.distance_m")
     elif guess[1] == "poses":
-        advice = (f"the translations look like {guess[0]}; poses.csv needs metres (docs/design.md §3): divide tx, ty, tz "
-                  f"by {guess[2]:.4g}")
+        advice = (f"the translations look like {guess[0]}; poses.csv needs metres (docs/design.md §3): "
+                  f"divide tx, ty, tz by {guess[2]:.4g}")
     else:
         advice = (f"scene.distance_m looks like {guess[0]} (it needs metres): {distance_m / guess[2]:.4g} m "
                   "would fit the poses")

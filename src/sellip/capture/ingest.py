@@ -157,7 +157,8 @@ def analyzer_phases(layout: MosaicLayout) -> np.ndarray:
     cell = layout.analyzer[:CELL, :CELL]
     reps = layout.period // CELL
     if not np.array_equal(layout.analyzer, np.tile(cell, (reps, reps))):
-        raise MosaicError(f"the analyzer pattern must repeat every {CELL}x{CELL} pixels, got {layout.analyzer.tolist()}")
+        raise MosaicError(f"the analyzer pattern must repeat every {CELL}x{CELL} pixels, "
+                          f"got {layout.analyzer.tolist()}")
     return np.array([np.argwhere(cell == k)[0] for k in range(len(ANALYZER_ANGLES_DEG))], np.int64)
 
 

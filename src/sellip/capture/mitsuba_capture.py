@@ -2,7 +2,8 @@
 
 Public API::
 
-    MITSUBA_VARIANTS                                   # preferred first: ("llvm_ad_mono_polarized", "scalar_spectral_polarized")
+    MITSUBA_VARIANTS                                   # preferred first: ("llvm_ad_mono_polarized",
+                                                       #                   "scalar_spectral_polarized")
     mitsuba_available() -> bool                        # is the ``mitsuba`` package importable (the ``test`` extra)
     choose_variant(requested=None) -> str              # the variant to use (sets DRJIT_LIBLLVM_PATH when it can)
     PPlasticMaterial(eta, alpha, specular)             # one pplastic material (Mitsuba's units)
@@ -198,7 +199,8 @@ def mitsuba_camera(camera: Camera) -> dict:
     to_world = np.eye(4)
     to_world[:3, :3] = rotation.T @ np.diag([-1.0, -1.0, 1.0])
     to_world[:3, 3] = camera.center
-    return {"type": "perspective", "fov_axis": "x", "fov": float(np.degrees(2 * np.arctan(camera.width / (2 * k[0, 0])))),
+    return {"type": "perspective", "fov_axis": "x",
+            "fov": float(np.degrees(2 * np.arctan(camera.width / (2 * k[0, 0])))),
             "principal_point_offset_x": float(0.5 - (k[0, 2] + 0.5) / camera.width),
             "principal_point_offset_y": float(0.5 - (k[1, 2] + 0.5) / camera.height),
             "near_clip": 0.01, "far_clip": 100.0, "to_world": mi.ScalarTransform4f(to_world.tolist())}
@@ -375,7 +377,8 @@ class MitsubaRenderer:
         import mitsuba as mi
 
         if not np.allclose(np.asarray(light.stokes, np.float64), FLASH_STOKES):
-            raise ValueError(f"the Mitsuba generator renders the rig's flash (Stokes {FLASH_STOKES}), got {light.stokes}")
+            raise ValueError(f"the Mitsuba generator renders the rig's flash (Stokes {FLASH_STOKES}), "
+                             f"got {light.stokes}")
         seed = self.seed * 100003 + self._views
         self._views += 1
         stokes = np.zeros((camera.height, camera.width, 4, 3), np.float32)

@@ -185,7 +185,7 @@ def read_raw_file(path: str | Path, sensor: Mapping, file_label: str | None = No
         raise
     except FileNotFoundError:
         raise MissingFileError(label, None, "raw frame does not exist") from None
-    except Exception as exc:  # rawpy/tifffile/imageio raise many unrelated types for corrupt files
+    except Exception as exc:  # noqa: BLE001 - rawpy/tifffile/imageio raise many unrelated types for corrupt files
         raise RawFrameError(label, None, f"cannot be read as a raw frame ({type(exc).__name__}: {exc})") from None
     expected = (int(sensor["height"]), int(sensor["width"]))
     if image.shape != expected:

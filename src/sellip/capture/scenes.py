@@ -512,7 +512,8 @@ _BUILDERS = {"demo": _demo, "demo_fine": _demo_fine, "demo_feathers": _demo_feat
              "tiny": _tiny,
              "tiny_dark": _tiny_dark, "tiny_white": _tiny_white, "tiny_mirror": _tiny_mirror, "tiny_bumpy": _tiny_bumpy,
              "tiny_relief": _tiny_relief, "tiny_speckle": _tiny_speckle, "uniform_dark": _uniform_dark,
-             "uniform_bright": _uniform_bright, "cow": _cow, "cow_painted": _cow_painted, "tiny_plain": _tiny_plain, "pplastic_set": _pplastic_set}
+             "uniform_bright": _uniform_bright, "cow": _cow, "cow_painted": _cow_painted, "tiny_plain": _tiny_plain,
+             "pplastic_set": _pplastic_set}
 
 
 def build_scene(name: str) -> Scene:

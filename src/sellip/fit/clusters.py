@@ -25,7 +25,8 @@ log = logging.getLogger(__name__)
 CHROMA_SCALE = 0.02
 LOG_BRIGHTNESS_SCALE = 0.2
 ETA_SCALE = 0.05
-VARIANCE_FLOOR = 0.5**2  # per-dimension variance floor of the BIC Gaussians (feature units): spreads below half a unit are not structure
+# per-dimension variance floor of the BIC Gaussians (feature units): spreads below half a unit are not structure
+VARIANCE_FLOOR = 0.5**2
 REGION_OUTLIER_P = 1e-3  # an albedo in this tail of its cluster's robust Gaussian is an outlier (_region_centres)
 REGION_EPS = 1.0  # outliers within this many albedo feature units of each other are one group (DBSCAN)
 REGION_MIN_SAMPLES = 5  # ... with at least this many in a group's core
@@ -34,8 +35,10 @@ REGION_CORE_SHARE = 0.25  # ... and the core must be at least this share of the 
 REGION_FIT_POINTS = 500  # the robust Gaussian is fitted to at most this many of a cluster's vertices (seeded): 0.03 s
 CUT_ALBEDO_SD = 3.0  # two clusters whose mean albedos are closer than this many pooled sd may be one material ...
 CUT_MODE_POINTS = 4000  # ... cut along its eta: their features along the line between the centres have one mode
-CUT_ETA_SE = 3.0  # ... or, within CUT_MODES_ALBEDO_SD, two albedo modes whose etas split by albedo are this many SE apart
-CUT_MODES_ALBEDO_SD = 5.0  # the albedo modes of one textured material: 2.4-4.1 sd apart; two real materials 5.45 and more
+CUT_ETA_SE = 3.0  # ... or, within CUT_MODES_ALBEDO_SD, two albedo modes whose etas split by albedo are this many
+                  # SE apart
+CUT_MODES_ALBEDO_SD = 5.0  # the albedo modes of one textured material: 2.4-4.1 sd apart; two real materials 5.45
+                           # and more
 SUPPORT_KEEP = 0.9  # share of the clustered vertices each repeat of clustering_support keeps (seeded)
 RECOVERED_JACCARD = 0.5  # a cluster is found again by a repeat's cluster that shares at least this Jaccard with it
 
@@ -476,7 +479,8 @@ def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings 
     rng = np.random.default_rng(seed)
     features = cluster_features(eta, rho_d)
     used = (np.asarray(status) == records.STATUS_FITTED) & (np.asarray(confidence) >= settings.min_confidence)
-    used &= ~parameterization.eta_at_bound(eta)  # no eta to cluster on: dark_noisy's vertices at 1.05 were a cluster of their own
+    # no eta to cluster on: dark_noisy's vertices at 1.05 were a cluster of their own
+    used &= ~parameterization.eta_at_bound(eta)
     used &= np.all(np.isfinite(features), 1)
     if not used.any():  # nothing to cluster on: one cluster, said so (the stage fits its lobe on every vertex)
         note = (f"no vertex is fitted with confidence >= {settings.min_confidence} and an eta inside its range "
@@ -529,8 +533,8 @@ def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings 
 
     merges = []
     centres, _ = _merge_while(centres, np.zeros(len(centres), bool), too_small, merges)
-    near = nearest_vertices(vertices, settings.coherence_neighbours) if vertices is not None and settings.min_coherence > 0 \
-        else None
+    coherent = vertices is not None and settings.min_coherence > 0
+    near = nearest_vertices(vertices, settings.coherence_neighbours) if coherent else None
     regions, notes = [], []
     if near is not None:
         centres, regions, notes = _region_centres(features, used, centres, near, settings, rng)

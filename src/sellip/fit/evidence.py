@@ -33,8 +33,9 @@ def fitted_share(status: np.ndarray, usable: np.ndarray) -> tuple[int, int]:
 def check_evidence(status: np.ndarray, usable: np.ndarray, view_ids: list[str],
                    min_share: float = MIN_FITTED_SHARE, where: str = "the fit") -> float:
     """The fitted share of the visible surface (fitted / visible, 0 when nothing is visible); raises EvidenceError
-    below ``min_share`` (a fraction in [0, 1]; 0 turns the check off) naming the counts per status and what is missing: views (the
-    store has few), coverage (few views see each point), exposure (the views see the object but the fit fails)."""
+    below ``min_share`` (a fraction in [0, 1]; 0 turns the check off) naming the counts per status and what is missing:
+    views (the store has few), coverage (few views see each point), exposure (the views see the object but the fit
+    fails)."""
     if not 0 <= min_share <= 1:
         raise ValueError(f"fit.min_fitted_share must be a fraction in [0, 1], got {min_share}")
     status = np.asarray(status)

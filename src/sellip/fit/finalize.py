@@ -26,8 +26,8 @@ def finalize_model(params_path: Path, mesh_path: Path, output_model: Path, outpu
     with its rho_s) unless the vertex's sigma_s differs by more than ``lobe_deviation_sigmas`` of its std (at
     least 0.01, the rule's floor), and either way only where at least ``deviation_support`` of its 6 nearest vertices
     deviate the same way (:func:`sellip.fit.lobes.material_or_own`; <= 0: every vertex's own). An eta pinned at a bound
-    (:func:`sellip.fit.parameterization.eta_at_bound`) is no estimate: the vertex takes its material's, and is not in its median.
-    With ``clusters``, each vertex also carries its cluster's model-selection margin and runner-up
+    (:func:`sellip.fit.parameterization.eta_at_bound`) is no estimate: the vertex takes its material's, and is not in
+    its median. With ``clusters``, each vertex also carries its cluster's model-selection margin and runner-up
     (``selection_margin``, ``selection_runner_up``; :func:`sellip.fit.selection.cluster_margins`), and its confidence
     is multiplied by :func:`sellip.fit.selection.margin_confidence` (halved where the lobe choice sat on the rule's
     boundary), and its cluster's support (``cluster_support``, ``cluster_alternative``: how often repeats of the

@@ -33,8 +33,8 @@ def predicted_diffuse(renderer, camera, capture, plan) -> np.ndarray:
     """I_d = 2 I90 (H, W, C) of the current model as the photograph of ``camera`` (HDR resolution) would show it:
     rendered at the raw sensor's resolution and lens (:func:`raw_camera`) under the capture's flash, sampled by
     its polarization and colour mosaic and developed like a photograph (``plan``:
-    :func:`sellip.capture.ingest.make_ingest_plan`; :func:`sellip.capture.ingest.develop`), so that the demosaicing blurs its
-    silhouette as it blurs the photograph's. The background is a tiny positive value: the silhouette
+    :func:`sellip.capture.ingest.make_ingest_plan`; :func:`sellip.capture.ingest.develop`), so that the demosaicing
+    blurs its silhouette as it blurs the photograph's. The background is a tiny positive value: the silhouette
     operator then ranks the same pixels as in a photograph, whose background is noise, not zero
     (:func:`sellip.geometry.silhouettes.silhouette_level` takes its level from a percentile of the positive pixels).
 
@@ -84,9 +84,9 @@ def measure_silhouettes(mesh, mesh_normals: np.ndarray, shading_normals: np.ndar
     the observed silhouette of each photograph against the same operator's silhouette of the current model
     (``mesh`` with its geometric ``mesh_normals`` (V, 3), shaded with ``shading_normals`` (V, 3) and ``params``)
     as the camera would photograph it (:func:`predicted_diffuse`), both placed to a fraction of a pixel
-    (:class:`sellip.geometry.silhouettes.Silhouette`, :func:`sellip.geometry.update.silhouette_constraints`). Returns the constraints
-    and a per-view summary (constraints; the mean and RMS offset in pixels, positive where the photograph's
-    silhouette lies outside)."""
+    (:class:`sellip.geometry.silhouettes.Silhouette`, :func:`sellip.geometry.update.silhouette_constraints`). Returns
+    the constraints and a per-view summary (constraints; the mean and RMS offset in pixels, positive where the
+    photograph's silhouette lies outside)."""
     from sellip.capture.ingest import make_ingest_plan
     from sellip.capture.reader import read_capture
     from sellip.geometry.cameras import diffuse_view, load_cameras
@@ -119,7 +119,8 @@ def measure_silhouettes(mesh, mesh_normals: np.ndarray, shading_normals: np.ndar
 def iteration_model(params_path: Path, mesh_path: Path):
     """One iteration's model: (the params store, its mesh (:func:`sellip.fit.observe.read_mesh`), the pBRDF
     parameters (float64), each vertex's confidence (V,) (1 where the store has none), its normal confidence (V,)
-    from the fit's normal uncertainty, or the confidence where the store has none). Raises ParamsError when the store's vertices are not the mesh's."""
+    from the fit's normal uncertainty, or the confidence where the store has none). Raises ParamsError when the store's
+    vertices are not the mesh's."""
     from sellip.fit.observe import read_mesh
     from sellip.fit.vertex_fit import confidence_from_uncertainty
     from sellip.model.params import PARAM_FIELDS, ParamsError, params_from, read_params, same_vertices
@@ -277,9 +278,9 @@ def refine_poses(params_path: Path, mesh_path: Path, cameras_path: Path, hdr_pat
 def _step_text(report: dict) -> str:
     if not report["refined"]:
         return "kept: " + report["reason"]
-    return ("rotated %.4f deg, centre moved %.3f mm, the object %.3f px, robust cost %.4g -> %.4g (%d pixels)"
-            % tuple(report[key] for key in ("rotation_deg", "shift_mm", "motion_px", "cost_start", "cost_end",
-                                           "pixels")))
+    return (f"rotated {report['rotation_deg']:.4f} deg, centre moved {report['shift_mm']:.3f} mm, the object "
+            f"{report['motion_px']:.3f} px, robust cost {report['cost_start']:.4g} -> {report['cost_end']:.4g} "
+            f"({report['pixels']:d} pixels)")
 
 
 def _spread(values) -> dict | None:

@@ -78,7 +78,8 @@ def _register_namedtuples(*treedefs) -> None:
     candidates = set()
     for name, module in list(sys.modules.items()):
         if name.startswith("sellip.") and module is not None:
-            candidates |= {cls for cls in list(vars(module).values()) if inspect.isclass(cls) and cls.__module__ == name}
+            candidates |= {cls for cls in list(vars(module).values())
+                           if inspect.isclass(cls) and cls.__module__ == name}
     for treedef in treedefs:
         candidates |= _node_types(treedef)
     for cls in candidates - _REGISTERED:

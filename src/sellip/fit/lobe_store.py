@@ -63,7 +63,8 @@ def read_lobes(directory: Path):
     table = table.sort_values("cluster")
     if list(table["cluster"]) != list(range(len(table))):
         raise ValueError(f"{lobes_path}: clusters must be numbered 0..K-1, got {list(table['cluster'])}")
-    if labels.ndim != 1 or labels.dtype.kind != "i" or (labels.size and (labels.min() < 0 or labels.max() >= len(table))):
+    if (labels.ndim != 1 or labels.dtype.kind != "i"
+            or (labels.size and (labels.min() < 0 or labels.max() >= len(table)))):
         raise ValueError(f"{labels_path}: expected (N,) integer labels in 0..{len(table) - 1}")
     lobes = [ClusterLobe(eta=row.eta, sigma_s=row.sigma_s, sigma_ss=row.sigma_ss, rho_s=row.rho_s,
                          rho_ss=np.array([row.rho_ss_r, row.rho_ss_g, row.rho_ss_b]), samples=int(row.samples),
@@ -92,9 +93,9 @@ def read_models(directory: Path, count: int | None = None) -> np.ndarray:
 
 
 def recorded_fit_settings(clusters_json: dict, path: Path | str = "clusters.json"):
-    """The :class:`sellip.fit.records.FitSettings` of a pass's lobe fits, as its ``clusters.json`` (parsed, read from ``path``)
-    records them: the workflow's ``fit.settings`` for that pass. Raises ValueError for a file written before they were
-    recorded (2026-11-26), naming the job to run again."""
+    """The :class:`sellip.fit.records.FitSettings` of a pass's lobe fits, as its ``clusters.json`` (parsed, read from
+    ``path``) records them: the workflow's ``fit.settings`` for that pass. Raises ValueError for a file written before
+    they were recorded (2026-11-26), naming the job to run again."""
     from sellip.fit.records import FitSettings
 
     if "fit_settings" not in clusters_json:
@@ -105,9 +106,9 @@ def recorded_fit_settings(clusters_json: dict, path: Path | str = "clusters.json
 
 
 def clustering_settings(clusters_json: dict, overrides: dict | None = None):
-    """The :class:`sellip.fit.clusters.AugmentSettings` a ``clusters.json`` (its parsed dict) was made with, ``overrides``
-    (field: value) over them: how a replay re-runs a pass's clustering or lobe fit as the workflow ran it (the
-    :class:`sellip.fit.records.FitSettings` of the lobe fit are its ``fit_settings``)."""
+    """The :class:`sellip.fit.clusters.AugmentSettings` a ``clusters.json`` (its parsed dict) was made with,
+    ``overrides`` (field: value) over them: how a replay re-runs a pass's clustering or lobe fit as the workflow ran it
+    (the :class:`sellip.fit.records.FitSettings` of the lobe fit are its ``fit_settings``)."""
     from sellip.fit.clusters import AugmentSettings
 
     fields = {f.name for f in dataclasses.fields(AugmentSettings)}
@@ -120,7 +121,8 @@ def clustering_settings(clusters_json: dict, overrides: dict | None = None):
 
 
 def load_rows(group, rows: np.ndarray):
-    """Observations (:class:`sellip.fit.records.Observations`) of the store rows ``rows`` (sorted), reading only their chunks."""
+    """Observations (:class:`sellip.fit.records.Observations`) of the store rows ``rows`` (sorted), reading only their
+    chunks."""
     from sellip.fit.observe import PER_VIEW_ARRAYS, VIEW_AXES
     from sellip.fit.records import Observations
 

@@ -67,15 +67,17 @@ def _solve_spec(terms, target_s, w, prior):
 def _cluster_residuals(z, delta, spec, samples: _Samples, settings: FitSettings, lambda_theta):
     """Residual matrix (J, 5) of the cluster fit: DoP, specular RGB, Delta theta_h (paper Eq. 25).
 
-    z (5,) as :func:`sellip.fit.parameterization.decode_parameters` (the normal entries unused); delta (J,) radians; spec (4,)
-    rho_s, rho_ss RGB, or None to solve them (closed form, variable projection). The lobes are
+    z (5,) as :func:`sellip.fit.parameterization.decode_parameters` (the normal entries unused); delta (J,) radians;
+    spec (4,) rho_s, rho_ss RGB, or None to solve them (closed form, variable projection). The lobes are
     those of the record's model (``lobe_mask``, ``sigma_ss_fixed``: :func:`_with_model`; a lobe left
     out contributes nothing). Returns (res, spec).
     """
     v = samples.record
     frame = fit_parameterization.Frame(*(jnp.array([0.0, 0.0, 1.0], z.dtype),) * 3)
-    _, eta, sigma_s, sigma_ss = fit_parameterization.decode_parameters(z, frame, fit_residuals.fixed_sigma_ss(v, settings))
-    terms = fit_residuals.model_terms(samples.normal, eta, sigma_s, sigma_ss, v, theta_h_offset=delta, lobes=settings.lobes)
+    _, eta, sigma_s, sigma_ss = fit_parameterization.decode_parameters(z, frame,
+                                                                       fit_residuals.fixed_sigma_ss(v, settings))
+    terms = fit_residuals.model_terms(samples.normal, eta, sigma_s, sigma_ss, v, theta_h_offset=delta,
+                                      lobes=settings.lobes)
     w = v.weight * terms["lit"]
     diffuse_s = samples.rho_d * terms["d_is"][:, None]
     if spec is None:
@@ -126,7 +128,7 @@ def pool_samples(obs: Observations, normals, rho_d, settings: FitSettings, max_s
     size = fit_solver.bucket(max_samples, minimum=256)
     index_v = np.resize(vertex, size) if count else np.zeros(size, int)
     index_k = np.resize(view, size) if count else np.zeros(size, int)
-    take = lambda x: np.asarray(x)[index_v, index_k]  # noqa: E731
+    take = lambda x: np.asarray(x)[index_v, index_k]
     diffuse = take(obs.diffuse)
     valid = np.arange(size) < count
     scale = float(np.median(diffuse[:count].mean(-1))) if count else 1.0
@@ -183,7 +185,8 @@ def _pool_solution(z, delta, samples: _Samples, settings: FitSettings, lambda_th
     :func:`lobe_curve`, plotted against theta_h + delta). One compiled kernel, not op-by-op dispatch."""
     res, spec = _cluster_residuals(z, delta, None, samples, settings, lambda_theta)
     frame = fit_parameterization.Frame(*(jnp.array([0.0, 0.0, 1.0], z.dtype),) * 3)
-    _, eta, sigma_s, sigma_ss = fit_parameterization.decode_parameters(z, frame, fit_residuals.fixed_sigma_ss(samples.record, settings))
+    _, eta, sigma_s, sigma_ss = fit_parameterization.decode_parameters(
+        z, frame, fit_residuals.fixed_sigma_ss(samples.record, settings))
     terms = fit_residuals.model_terms(samples.normal, eta, sigma_s, sigma_ss, samples.record, theta_h_offset=delta)
     measured = (samples.record.obs_s - samples.rho_d * terms["d_is"][:, None]) @ samples.record.color
     shading = terms["r_is"] / model_fresnel.fresnel(jnp.ones((), z.dtype), eta).r_plus
@@ -218,7 +221,8 @@ def _with_model(samples: _Samples, settings: FitSettings) -> _Samples:
     """``samples`` whose record carries the model of ``settings`` (:func:`sellip.fit.records.model_of`) as the
     per-vertex fit's kernels take it: lobe_mask (2,) and the fixed sigma_ss (NaN: free)."""
     dtype = samples.record.obs_d.dtype
-    lobe_mask, fixed = fit_records.model_arrays(np.array([fit_records.model_of(settings)]), settings.sigma_ss_fixed or 0.0)
+    lobe_mask, fixed = fit_records.model_arrays(np.array([fit_records.model_of(settings)]),
+                                                settings.sigma_ss_fixed or 0.0)
     return samples._replace(record=samples.record._replace(lobe_mask=jnp.asarray(lobe_mask[0], dtype),
                                                            sigma_ss_fixed=jnp.asarray(fixed[0], dtype)))
 
@@ -312,8 +316,9 @@ def fit_pool(pool: _Pool, eta0: float, fit_settings: FitSettings, settings: Augm
     free = _free_lobe_parameters(fit_settings)
     # Start: eta0 with the fit's roughness grid, the lowest loss.
     grid = np.asarray(fit_solver.ROUGHNESS_GRID)
-    starts = np.asarray(fit_parameterization.encode_parameters(jnp.full(len(grid), eta0, dtype), jnp.asarray(grid[:, 0], dtype),
-                                    jnp.asarray(grid[:, 1], dtype), dtype))
+    starts = np.asarray(fit_parameterization.encode_parameters(jnp.full(len(grid), eta0, dtype),
+                                                               jnp.asarray(grid[:, 0], dtype),
+                                                               jnp.asarray(grid[:, 1], dtype), dtype))
     if fit_settings.lobes == "diffuse":  # no roughness to start from: one start
         starts = starts[:1]
     costs = [float(jnp.sum(_stacked(jnp.asarray(s), delta, samples, static, lambda_theta) ** 2)) for s in starts]
@@ -358,8 +363,9 @@ def fit_pool(pool: _Pool, eta0: float, fit_settings: FitSettings, settings: Augm
 def no_lobe(eta: float) -> ClusterLobe:
     """The lobe of a cluster without a usable sample: no specular and no single scattering (albedos 0), ``eta``,
     the roughness starts of the fit; ``samples`` 0. Its model is diffuse only (code 0)."""
-    return ClusterLobe(eta=float(eta), sigma_s=float(fit_solver.ROUGHNESS_GRID[0][0]), sigma_ss=float(fit_solver.ROUGHNESS_GRID[0][1]),
-                       rho_s=0.0, rho_ss=np.zeros(3), samples=0, loss=0.0, theta_h_deg=np.zeros(0), value=np.zeros(0))
+    return ClusterLobe(eta=float(eta), sigma_s=float(fit_solver.ROUGHNESS_GRID[0][0]),
+                       sigma_ss=float(fit_solver.ROUGHNESS_GRID[0][1]), rho_s=0.0, rho_ss=np.zeros(3), samples=0,
+                       loss=0.0, theta_h_deg=np.zeros(0), value=np.zeros(0))
 
 
 def lobe_sample_losses(lobe: ClusterLobe, pool: _Pool, fit_settings: FitSettings,
@@ -390,8 +396,9 @@ def _unit(v):
 def lobe_curve(theta_h_deg, lobe: ClusterLobe, color=(1 / 3, 1 / 3, 1 / 3)) -> np.ndarray:
     """The mono coaxial lobe value per unit shading (:func:`sellip.fit.parameterization.virtual_reflectance` weighted by
     ``color``) at half angles theta_h_deg (M,) degrees. Returns (M,)."""
-    values = fit_parameterization.virtual_reflectance(jnp.radians(jnp.asarray(theta_h_deg, jnp.float64 if jax.config.jax_enable_x64
-                                                             else jnp.float32)), *_lobe_arrays([lobe]))
+    dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+    theta_h = jnp.radians(jnp.asarray(theta_h_deg, dtype))
+    values = fit_parameterization.virtual_reflectance(theta_h, *_lobe_arrays([lobe]))
     return np.asarray(values[0] @ jnp.asarray(color, values.dtype))
 
 
@@ -426,8 +433,8 @@ def virtual_samples(labels, lobes: list[ClusterLobe] | None, settings: FitSettin
     labels = np.asarray(labels)
     theta = virtual_theta_h(settings)
     if lobes:
-        table = np.asarray(fit_parameterization.virtual_reflectance(jnp.asarray(np.broadcast_to(theta, (len(lobes), theta.size))),
-                                                   *_lobe_arrays(lobes)))  # (K, M, 3)
+        theta_k = jnp.asarray(np.broadcast_to(theta, (len(lobes), theta.size)))
+        table = np.asarray(fit_parameterization.virtual_reflectance(theta_k, *_lobe_arrays(lobes)))  # (K, M, 3)
     else:
         table = np.zeros((0, theta.size, 3))
     if labels.size and labels.max(initial=-1) >= len(table):
@@ -472,9 +479,10 @@ def material_or_own(value, value_std, labels, cluster_value, deviation_sigmas: f
     off on noise. ``neighbours`` (N, k) int: each vertex's nearest vertices (:func:`nearest_vertices`). Isolated
     deviations are the per-vertex fits' outliers: on the tiny stability sphere 63 of 2,384 vertices passed 3 std
     alone, every one 18-30 % off (a fit pinned at eta's lower bound by a depolarized sample, or a highlight between
-    the views), and together cost 1.5 dB of held-out PSNR (docs/accuracy.md, "A deviation is a spot"). ``deviation_sigmas`` <= 0 keeps every
-    vertex's own value. Returns (value (N,), source (N,) uint8 with :data:`VALUE_SOURCES` codes). The map is then
-    piecewise constant where the object is, and keeps a real boundary or a deviating spot where the data demand it.
+    the views), and together cost 1.5 dB of held-out PSNR (docs/accuracy.md, "A deviation is a spot").
+    ``deviation_sigmas`` <= 0 keeps every vertex's own value. Returns (value (N,), source (N,) uint8 with
+    :data:`VALUE_SOURCES` codes). The map is then piecewise constant where the object is, and keeps a real boundary or a
+    deviating spot where the data demand it.
     """
     value = np.asarray(value, np.float64)
     if deviation_sigmas <= 0:

@@ -41,8 +41,8 @@ class FitSettings:
     """Settings of the per-vertex fit (config sections ``fit.settings``, ``augment.settings``, ``final.settings``;
     each field declared once here: :func:`sellip.settings.setting`)."""
 
-    lambda_psi: float = setting(100.0, "weight of the degree-of-polarization residual (docs/design.md §5 starts at 1; 100 with dimensionless "
-                                "residuals, docs/fit.md)", minimum=0, per_iteration=True)
+    lambda_psi: float = setting(100.0, "weight of the degree-of-polarization residual (docs/design.md §5 starts at 1; "
+                                "100 with dimensionless residuals, docs/fit.md)", minimum=0, per_iteration=True)
     lambda_d: float = setting(100.0, "weight of the diffuse intensity residual", minimum=0, per_iteration=True)
     lambda_s: float = setting(1.0, "weight of the specular intensity residual", minimum=0, per_iteration=True)
     lambda_phi: float = setting(100.0, "weight of the polarization azimuth residual", minimum=0, per_iteration=True)

@@ -19,7 +19,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from sellip.fit.parameterization import decode_parameters, Frame, Virtual
+from sellip.fit.parameterization import Frame, Virtual, decode_parameters
 from sellip.fit.records import FitSettings
 from sellip.model import polar
 from sellip.model.conventions import observations_from_analyzers, stokes_to_analyzers
@@ -277,7 +277,8 @@ def residuals_from_terms(terms, v: Vertex, settings: FitSettings):
     parts = [res_psi, res_d.ravel(), res_s.ravel(), res_phi.ravel()]
     if v.virtual is not None:  # lambda_s lambda_g sum_m w^a_m sum_c (I_s_hat - I_s_virtual)^2 (paper Eq. 24)
         pred_virtual = terms["virt_s"][:, None] * spec[0] + terms["virt_ss"][:, None] * spec[None, 1:]
-        parts.append((jnp.sqrt(settings.lambda_s * v.virtual.weight)[:, None] * (pred_virtual - v.virtual.target)).ravel())
+        sqrt_w_virtual = jnp.sqrt(settings.lambda_s * v.virtual.weight)[:, None]
+        parts.append((sqrt_w_virtual * (pred_virtual - v.virtual.target)).ravel())
     return jnp.concatenate(parts)
 
 

@@ -51,8 +51,15 @@ import numpy as np
 
 from sellip.fit import clusters
 from sellip.fit import lobes as fit_lobes
-from sellip.fit.records import (DEFAULT_FIXED_SIGMA_SS, MODELS, FitResult, FitSettings, Observations, VirtualSamples,
-                                model_of)
+from sellip.fit.records import (
+    DEFAULT_FIXED_SIGMA_SS,
+    MODELS,
+    FitResult,
+    FitSettings,
+    Observations,
+    VirtualSamples,
+    model_of,
+)
 from sellip.fit.vertex_fit import fit_vertices
 from sellip.model.pbrdf import PBRDFParams
 from sellip.settings import setting
@@ -340,7 +347,7 @@ def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: F
         top = candidates[-1]
         return Selection(top, {}, None, f"{n} vertices: too few to hold {selection.min_held_out_vertices} out "
                                         f"(kept the most complex candidate, {top})", train_count, held_count, 0)
-    take = lambda rows: Observations(*[np.asarray(x)[rows] for x in obs])  # noqa: E731
+    take = lambda rows: Observations(*[np.asarray(x)[rows] for x in obs])
     normals, rho_d = np.asarray(normals), np.asarray(rho_d)
     pools = []
     for fold, (train, held) in enumerate(splits):  # fold 0's generators are those of the single split
@@ -364,7 +371,8 @@ def select_model(obs: Observations, normals, rho_d, eta0: float, fit_settings: F
         margins.append(decision_margin(first, chosen))
         table.update(first)  # model 1's row is the which-lobes question's where that is asked
     if len(lobed) > 1:  # which lobes: no Delta theta_h (selection.max_theta_error_deg); recorded after a "none" too
-        losses = _held_out_losses(lobed, pools, eta0, fit_settings, selection, selection.lobe_settings(augment_settings))
+        losses = _held_out_losses(lobed, pools, eta0, fit_settings, selection,
+                                  selection.lobe_settings(augment_settings))
         which, which_best, second = choose(losses, selection.tolerance, selection.standard_errors)
         table.update(second)
         if chosen != 0:

@@ -195,7 +195,8 @@ def fit_shard(observations: Path, shard: tuple[int, int], output: Path, prior: P
               lobes: Path | None = None, fixed_sigma_ss: float | None = None, mem_mb: float | None = None) -> dict:
     """Fit one shard and write ``output`` (.npz, atomically); with ``lobes`` the augmented refit.
     Every vertex is fitted with its model (module docstring); ``fixed_sigma_ss`` is model 2's
-    sigma_ss when ``settings.sigma_ss_fixed`` is None (None: config ``model_selection.model2_sigma_ss``'s default). Returns a summary dict. Before reading the observations,
+    sigma_ss when ``settings.sigma_ss_fixed`` is None (None: config ``model_selection.model2_sigma_ss``'s default).
+    Returns a summary dict. Before reading the observations,
     the memory the shard needs (:data:`SHARD_MEMORY`) is checked against :func:`memory_budget` (``mem_mb``: the
     job's limit); :class:`ShardMemoryError` names the shard count that fits, then and when an allocation fails.
 

@@ -49,7 +49,7 @@ def vertex_observations(rng: np.random.Generator, params: PBRDFParams, normals, 
     analyzers = np.empty((n, n_views, 4, 3), dtype)
     for start in range(0, n, chunk):
         rows = slice(start, min(n, start + chunk))
-        as_j = lambda x: jnp.asarray(x[rows], dtype)  # noqa: E731
+        as_j = lambda x: jnp.asarray(x[rows], dtype)  # noqa: B023 - called in this iteration
         point_params = PBRDFParams(*[jnp.broadcast_to(jnp.asarray(np.asarray(p)[rows], dtype)[:, None],
                                                       (rows.stop - rows.start, n_views) + np.shape(p)[1:])
                                      for p in params])
@@ -62,7 +62,7 @@ def vertex_observations(rng: np.random.Generator, params: PBRDFParams, normals, 
         analyzers = analyzers + (noise * level * rng.normal(size=analyzers.shape)).astype(dtype)
     i_d, i_a, i_s = conventions.observations_from_analyzers(analyzers)
     usable = (np.sum(normals[:, None] * to_camera, -1) > 0.05) & (np.sum(normals[:, None] * to_light, -1) > 0.05)
-    cast = lambda x: np.asarray(x, dtype)  # noqa: E731
+    cast = lambda x: np.asarray(x, dtype)
     return Observations(diffuse=cast(i_d), diffuse_pol=cast(i_a), specular=cast(i_s), to_light=cast(to_light),
                         to_camera=cast(to_camera), light_distance=cast(light_distance), camera_up=cast(up),
                         light_axis=cast(right), usable=usable)

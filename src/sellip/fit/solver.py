@@ -12,16 +12,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from sellip.fit.kernels import kernel
-from sellip.fit.parameterization import decode_parameters, encode_parameters, eta_from, Frame
+from sellip.fit.parameterization import Frame, decode_parameters, encode_parameters, eta_from
 from sellip.fit.records import FitSettings
 from sellip.fit.residuals import (
+    Vertex,
     fixed_sigma_ss,
     lobe_terms,
     residuals_and_jacobian,
     residuals_from_terms,
-    Vertex,
-    view_terms,
     solve_spd,
+    view_terms,
 )
 
 # --- Levenberg-Marquardt --------------------------------------------------------------------
@@ -123,7 +123,7 @@ def _lm_step(state: _LMState, v: Vertex, frame: Frame, settings: FitSettings, fr
     flat = (better & (rel_gain < tolerance) & (damping < 1e-2)) | (model_gain < tolerance)
     converged = stationary | flat | (loss_new < 1e-14)
     stalled = (~better) & (damping > 1e8)
-    pick = lambda new, old: jnp.where(better, new, old)  # noqa: E731
+    pick = lambda new, old: jnp.where(better, new, old)
     damping = jnp.where(fresh, damping, jnp.where(better, damping * 0.3, damping * 4.0))
     return (pick(z_new, z), pick(loss_new, loss), damping, pick(hess_new, hess), pick(grad_new, grad),
             jnp.where(fresh, ~better, converged | stalled), fresh)
@@ -142,7 +142,7 @@ def lm_rounds(state: _LMState, records: Vertex, frames: Frame, settings: FitSett
         st, count = carry
         z, loss, damping, hess, grad, converged, fresh = step(st, records, frames)
         active = ~st.done
-        pick = lambda new, old: jnp.where(active.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)  # noqa: E731
+        pick = lambda new, old: jnp.where(active.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
         iterations = st.iterations + (active & ~fresh).astype(jnp.int32)
         loss = pick(loss, st.loss)
         # No progress: less than the tolerance gained over the last PROGRESS_ITERATIONS iterations
@@ -180,7 +180,8 @@ def pick_best_start(z0, records: Vertex, frames: Frame, settings: FitSettings):
     The starts differ in roughness only: the view terms are evaluated once per vertex."""
     grid = jnp.asarray(ROUGHNESS_GRID, z0.dtype)
     eta = eta_from(z0[:, 2])
-    grid_starts = jax.vmap(lambda e: encode_parameters(jnp.full(len(ROUGHNESS_GRID), e), grid[:, 0], grid[:, 1], z0.dtype))(eta)
+    grid_starts = jax.vmap(lambda e: encode_parameters(jnp.full(len(ROUGHNESS_GRID), e), grid[:, 0], grid[:, 1],
+                                                       z0.dtype))(eta)
     starts = jnp.concatenate([z0[:, None], grid_starts.at[:, :, :2].set(z0[:, None, :2])], axis=1)
 
     def losses(zs, v, f):
@@ -262,7 +263,7 @@ def map_batches(kernel, rows: np.ndarray, records: Vertex, frames: Frame, batch:
         part = jax.tree_util.tree_map(np.asarray, part)
         if out is None:
             n = len(records.weight)
-            out = jax.tree_util.tree_map(lambda x: np.zeros((n,) + x.shape[1:], x.dtype), part)
+            out = jax.tree_util.tree_map(lambda x: np.zeros((n,) + x.shape[1:], x.dtype), part)  # noqa: B023 - called in this iteration
 
         def scatter(full, new, index=index):
             full[(index,) + tuple(slice(0, k) for k in new.shape[1:])] = new

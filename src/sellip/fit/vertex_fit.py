@@ -12,7 +12,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from sellip.fit.kernels import kernel
-from sellip.fit.parameterization import decode_parameters, encode_parameters, eta_from, Frame, Virtual, tangent_basis, virtual_geometry
+from sellip.fit.parameterization import (
+    Frame,
+    Virtual,
+    decode_parameters,
+    encode_parameters,
+    eta_from,
+    tangent_basis,
+    virtual_geometry,
+)
 from sellip.fit.records import (
     DEFAULT_FIXED_SIGMA_SS,
     ETA_BOUNDS,
@@ -29,22 +37,22 @@ from sellip.fit.records import (
     model_of,
 )
 from sellip.fit.residuals import (
+    Vertex,
     fixed_sigma_ss,
     linear_solution,
     model_terms,
-    residuals_and_jacobian,
-    Vertex,
     per_view_error,
+    residuals_and_jacobian,
     solve_spd,
 )
 from sellip.fit.solver import (
     HOLD_ETA_TOLERANCE,
     HOLD_ROUNDS,
-    pick_best_start,
     bucket,
     fitted_columns,
     free_parameters,
     map_batches,
+    pick_best_start,
     run_lm,
     to_host,
     view_bucket,
@@ -80,7 +88,8 @@ def select_views(obs: Observations, normal, settings: FitSettings):
         # The fixed threshold, widened where the vertex's own colours spread more (texture finer
         # than a pixel, noise in dark vertices): only outliers of its own distribution go.
         spread = 1.4826 * _masked_median(distance, keep)
-        keep = usable & (distance < jnp.maximum(settings.chroma_threshold, settings.outlier_threshold * spread)[:, None])
+        threshold = jnp.maximum(settings.chroma_threshold, settings.outlier_threshold * spread)
+        keep = usable & (distance < threshold[:, None])
     cos_i = jnp.clip(jnp.sum(normal[:, None, :] * obs.to_light, -1), 0.05, 1)
     distance = jnp.where(keep, obs.light_distance, 1)
     log_albedo = jnp.log(jnp.maximum(mono, 1e-30) * distance**2 / cos_i)
@@ -118,7 +127,7 @@ def _prepare(obs: Observations, keep, prior: PBRDFParams, virtual: VirtualSample
     color = jnp.where(jnp.sum(mean_color, -1, keepdims=True) > 0, color, 1.0 / 3)
     s = scale[:, None, None]
     # Unused slots may hold anything (NaN, zeros): give them harmless finite values; their weight is 0.
-    clean = lambda x, fill: jnp.where(keep.reshape(keep.shape + (1,) * (x.ndim - 2)), jnp.nan_to_num(x), fill)  # noqa: E731
+    clean = lambda x, fill: jnp.where(keep.reshape(keep.shape + (1,) * (x.ndim - 2)), jnp.nan_to_num(x), fill)
     obs = Observations(
         diffuse=clean(obs.diffuse, 0.0), diffuse_pol=clean(obs.diffuse_pol, 0.0), specular=clean(obs.specular, 0.0),
         to_light=clean(obs.to_light, 0.0), to_camera=clean(obs.to_camera, 0.0),
@@ -239,7 +248,7 @@ def _compact_views(obs: Observations, usable: np.ndarray) -> Observations:
     order = np.argsort(~usable, axis=1, kind="stable")
     width = min(view_bucket(int(usable.sum(1).max(initial=1))), usable.shape[1])
     order = order[:, :width]
-    gather = lambda x: np.take_along_axis(np.asarray(x), order.reshape(order.shape + (1,) * (np.ndim(x) - 2)), 1)  # noqa: E731
+    gather = lambda x: np.take_along_axis(np.asarray(x), order.reshape(order.shape + (1,) * (np.ndim(x) - 2)), 1)
     return Observations(*[gather(x) for x in obs._replace(usable=usable)])
 
 
@@ -261,7 +270,7 @@ def _fit_chunk(obs: Observations, normal0, prior: PBRDFParams, settings: FitSett
     active[rows] = True
     batch = min(settings.lm_batch, bucket(n))
     # Every per-vertex kernel runs on the vertices fitted, in batches of similar view counts.
-    best_start = lambda z: map_batches(partial(pick_best_start, settings=settings), rows, records, frames, batch, z,  # noqa: E731
+    best_start = lambda z: map_batches(partial(pick_best_start, settings=settings), rows, records, frames, batch, z,
                                         out=np.array(z))
     z = best_start(z0)
     # Stage 1: normal and eta with the roughnesses held; stage 2: everything.
@@ -366,14 +375,14 @@ def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSe
     finite = np.all(np.stack([np.all(np.isfinite(x.reshape(n, -1)), -1) for x in values]), 0)
     ok = out["enough"] & finite
     status = np.where(~out["enough"], STATUS_TOO_FEW_VIEWS, np.where(finite, STATUS_FITTED, STATUS_FAILED))
-    pick = lambda new, old: np.where(ok.reshape((-1,) + (1,) * (new.ndim - 1)), new, old).astype(dtype)  # noqa: E731
+    pick = lambda new, old: np.where(ok.reshape((-1,) + (1,) * (new.ndim - 1)), new, old).astype(dtype)
     params = PBRDFParams(
         eta=pick(out["eta"], prior.eta), rho_d=pick(out["rho_d"], prior.rho_d), rho_s=pick(out["rho_s"], prior.rho_s),
         sigma_s=pick(out["sigma_s"], prior.sigma_s), rho_ss=pick(out["rho_ss"], prior.rho_ss),
         sigma_ss=pick(out["sigma_ss"], prior.sigma_ss))
     confidence = np.asarray(confidence_from_uncertainty(out["normal_std_deg"], out["eta_std"]))
     confidence = np.where(ok & np.isfinite(confidence), confidence, 0.0).astype(dtype)
-    uncertain = lambda std: np.where(ok & np.isfinite(std), std, np.inf).astype(dtype)  # noqa: E731
+    uncertain = lambda std: np.where(ok & np.isfinite(std), std, np.inf).astype(dtype)
     normal0 = np.asarray(polar.safe_normalize(jnp.asarray(normal0), fallback=jnp.array([0.0, 0.0, 1.0], dtype)))
     return FitResult(normal=pick(out["normal"], normal0), params=params, status=status.astype(np.int32),
                      confidence=confidence, loss=np.where(ok, out["loss"], 0.0).astype(dtype),
@@ -384,6 +393,6 @@ def fit_vertices(obs: Observations, normal0, prior: PBRDFParams, settings: FitSe
 
 def default_prior(n, dtype=np.float32) -> PBRDFParams:
     """The starting parameters of the first iteration (docs/design.md §5: eta = 1.5)."""
-    full = lambda value, *shape: jnp.full((n,) + shape, value, dtype)  # noqa: E731
+    full = lambda value, *shape: jnp.full((n,) + shape, value, dtype)
     return PBRDFParams(eta=full(1.5), rho_d=full(0.5, 3), rho_s=full(0.0), sigma_s=full(0.3),
                        rho_ss=full(0.0, 3), sigma_ss=full(0.6))

@@ -48,7 +48,7 @@ class MeshCheck:
 
     def stats(self, view_ids: list[str]) -> dict:
         """The figures for the stage's report (JSON-ready)."""
-        finite = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
+        finite = lambda x: float(x) if np.isfinite(x) else None
         return {"inside_fraction": {v: float(f) for v, f in zip(view_ids, self.inside_fraction)},
                 "extent_ratio": {v: finite(r) for v, r in zip(view_ids, self.extent_ratio)},
                 "median_inside_fraction": self.median_inside_fraction, "scale_ratio": finite(self.scale_ratio),

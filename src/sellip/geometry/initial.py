@@ -17,8 +17,8 @@ from sellip.geometry import hull as geometry_hull
 from sellip.geometry import scan as geometry_scan
 from sellip.geometry import sfm
 from sellip.geometry.cameras import diffuse_view, intrinsics_matrix, read_cameras, view_masks
-from sellip.model.ply import read_ply, write_ply
 from sellip.jobs import atomic_file, write_text
+from sellip.model.ply import read_ply, write_ply
 
 log = logging.getLogger(__name__)
 

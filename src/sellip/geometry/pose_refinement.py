@@ -161,11 +161,12 @@ def align_pose(points: np.ndarray, reference: np.ndarray, image: np.ndarray, cam
     for sigma in blur_px:
         blurred = (np.stack([gaussian_filter(image[..., c], sigma) for c in range(image.shape[-1])], axis=-1)
                    if sigma > 0 else image)
-        basis = _determined_directions(lambda step: residual(step, rotation, translation, blurred), min_singular_ratio)
+        basis = _determined_directions(lambda step: residual(step, rotation, translation, blurred), min_singular_ratio)  # noqa: B023 - called in this iteration
         directions_kept = basis.shape[1]
         if not directions_kept:  # a photograph that does not change with the pose (a flat, dark one)
             continue
-        solution = least_squares(lambda y: residual(basis @ y, rotation, translation, blurred), np.zeros(basis.shape[1]),
+        solution = least_squares(lambda y: residual(basis @ y, rotation, translation, blurred),  # noqa: B023 - called in this iteration
+                                 np.zeros(basis.shape[1]),
                                  loss="soft_l1", f_scale=robust_scale, diff_step=1e-4, max_nfev=max_evaluations)
         rotation, translation = moved_pose(basis @ solution.x, rotation, translation, distance)
     cost_start = robust_cost(residual(np.zeros(6), rotation0, translation0, blurred))

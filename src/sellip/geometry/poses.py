@@ -18,7 +18,7 @@ from sellip.capture.checks import check_pose_units
 from sellip.capture.files import POSES_CSV
 from sellip.capture.reader import read_capture
 from sellip.geometry import alignment, sfm
-from sellip.geometry.cameras import pose_arrays, diffuse_view, intrinsics_matrix, view_masks, write_cameras
+from sellip.geometry.cameras import diffuse_view, intrinsics_matrix, pose_arrays, view_masks, write_cameras
 from sellip.model.ply import write_ply
 
 log = logging.getLogger(__name__)

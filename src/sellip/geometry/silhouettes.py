@@ -107,7 +107,8 @@ def _levels(image: np.ndarray, valid: np.ndarray | None, threshold: float,
     return luminance, level, floor
 
 
-def level_map(luminance: np.ndarray, level: float, floor: float, local_fraction: float = DEFAULT_SILHOUETTE.local_fraction,
+def level_map(luminance: np.ndarray, level: float, floor: float,
+              local_fraction: float = DEFAULT_SILHOUETTE.local_fraction,
               local_px: int = DEFAULT_SILHOUETTE.local_px) -> np.ndarray:
     """(H, W) float32 per-pixel level of a (H, W) ``luminance``: the view's ``level`` (:func:`silhouette_level`),
     except in dim neighbourhoods, where ``local_fraction`` of the brightest pixel within ``local_px`` (a square

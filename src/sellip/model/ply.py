@@ -116,7 +116,8 @@ def write_param_mesh(path: str | Path, mesh, extra: Mapping[str, np.ndarray] | N
     for name, values in (extra or {}).items():
         values = np.asarray(values)
         if values.shape != (mesh.num_vertices,):
-            raise ValueError(f"{path}: extra property {name!r} has shape {values.shape}, expected ({mesh.num_vertices},)")
+            raise ValueError(f"{path}: extra property {name!r} has shape {values.shape}, "
+                             f"expected ({mesh.num_vertices},)")
         vertex[name] = values
     write_ply(path, vertex, np.asarray(mesh.faces))
 

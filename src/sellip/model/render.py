@@ -230,7 +230,8 @@ def coverage_masks(vertices: np.ndarray, faces: np.ndarray, cameras: list) -> np
 
 def _sample_geometry(points, prim_ids, barycentric, faces, vertex_normals, vertex_params, camera_position,
                      camera_up_axis, light_position, light_axis):
-    """The arguments of :func:`sellip.model.pbrdf.full_stokes` / ``full_mueller`` at N hit samples (see _shade_samples)."""
+    """The arguments of :func:`sellip.model.pbrdf.full_stokes` / ``full_mueller`` at N hit samples (see
+    _shade_samples)."""
     corners = faces[prim_ids]  # (N, 3)
     normal = jnp.einsum("nk,nkc->nc", barycentric, vertex_normals[corners])
     normal = normal / jnp.linalg.norm(normal, axis=-1, keepdims=True)

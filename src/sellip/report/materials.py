@@ -20,8 +20,8 @@ confidence > 0, whose own eta is not pinned at a bound of the fit, :func:`sellip
   so it is optimistic by the square root of the number of vertices per independent patch.
   ``eta_spread`` = 1.4826 MAD of their own eta (how much vertices differ), ``eta_fit_std`` = the median of their
   Gauss-Newton std ``eta_std`` (the fit's own uncertainty per vertex; NaN where the store has none).
-- ``rho_d_*``, ``rho_ss_*``: the mean over the cluster's vertices (relative: one global scale is free, docs/design.md §4);
-  ``rho_s``, ``sigma_s``, ``sigma_ss``: the median over them.
+- ``rho_d_*``, ``rho_ss_*``: the mean over the cluster's vertices (relative: one global scale is free,
+  docs/design.md §4); ``rho_s``, ``sigma_s``, ``sigma_ss``: the median over them.
 - ``model``: the most common per-vertex ``model`` code (:data:`sellip.params.MODEL_NAMES`); ``eta_own_vertices``,
   ``lobe_own_vertices``: how many keep their own eta / specular lobe (``eta_source``/``lobe_source`` = 1).
 - ``selection_margin``, ``runner_up_model``: how far the cluster's model choice was from the selection rule's

@@ -108,12 +108,13 @@ def _mean_db(per_view: dict) -> float | None:
 
 
 def view_psnr(renderer, camera: Camera, light, hdr, view_id: str, supersample: int = 2) -> dict:
-    """:func:`sellip.report.figures_of_merit.psnr` of ``renderer``'s image at ``camera`` under ``light`` against the HDR store's view
-    ``view_id``, inside :func:`sellip.report.figures_of_merit.render_mask`: how a model (or the ground truth) scores at a captured
-    view."""
+    """:func:`sellip.report.figures_of_merit.psnr` of ``renderer``'s image at ``camera`` under ``light`` against the HDR
+    store's view ``view_id``, inside :func:`sellip.report.figures_of_merit.render_mask`: how a model (or the ground
+    truth) scores at a captured view."""
     result = renderer.render(camera, light, supersample=supersample)
     analyzers, valid = hdr.view(view_id)
-    return figures_of_merit.psnr(analyzers, result.analyzers, figures_of_merit.render_mask(analyzers, valid, result.coverage))
+    return figures_of_merit.psnr(analyzers, result.analyzers,
+                                 figures_of_merit.render_mask(analyzers, valid, result.coverage))
 
 
 
@@ -134,7 +135,8 @@ def _refined_alignment(model, truth, cameras: Similarity, mode: str, geometry_sa
     record = {"method": "sim3+icp", "sfm_mode": mode,
               "source": "cameras.csv centres -> poses.csv centres, refined by ICP of the model's vertices onto the "
                         "true surface",
-              "scale": refined.scale, "rotation": refined.rotation.tolist(), "translation": refined.translation.tolist(),
+              "scale": refined.scale, "rotation": refined.rotation.tolist(),
+              "translation": refined.translation.tolist(),
               "cameras": {"scale": cameras.scale, "rotation": cameras.rotation.tolist(),
                           "translation": cameras.translation.tolist(),
                           "chamfer_mm": figures_of_merit.geometry_errors(model, truth, cameras,
@@ -317,7 +319,8 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
     held_out = list(held_out or [])
     reasons: dict[str, str] = {}
     metrics: dict = {"model": str(model_path), "cameras": str(cameras_path), "capture": str(capture_path),
-                     "settings": {"supersample": supersample, "psnr_peak_percentile": figures_of_merit.PSNR_PEAK_PERCENTILE,
+                     "settings": {"supersample": supersample,
+                                  "psnr_peak_percentile": figures_of_merit.PSNR_PEAK_PERCENTILE,
                                   "psnr_max_db": figures_of_merit.PSNR_MAX_DB, "geometry_samples": geometry_samples,
                                   "new_light_offset_cam_m": list(map(float, new_light_offset_cam))}}
     renderer = Renderer(model)
@@ -384,7 +387,8 @@ def headline_figures(metrics: dict) -> dict:
     eta = metrics.get("eta_relative_error_pct") or {}
     normals = (metrics.get("normal_error_deg") or {}).get("all") or {}
     return {"eta_per_material": metrics.get("eta_per_material"),
-            "eta_per_material_mean_pct": per.get("mean_error_pct"), "eta_per_material_max_pct": per.get("max_error_pct"),
+            "eta_per_material_mean_pct": per.get("mean_error_pct"),
+            "eta_per_material_max_pct": per.get("max_error_pct"),
             "eta_vertex_median_pct": eta.get("median"), "eta_vertex_p90_pct": eta.get("p90"),
             "normal_median_deg": normals.get("median"), "normal_p90_deg": normals.get("p90"),
             "held_out_psnr_db": (metrics.get("psnr_held_out") or {}).get("mean_db")}

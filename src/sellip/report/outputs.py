@@ -1,4 +1,5 @@
-"""Renders, Mueller-matrix images, AoLP/DoP images and parameter maps of a model (docs/design.md §1 outputs, paper Fig. 10).
+"""Renders, Mueller-matrix images, AoLP/DoP images and parameter maps of a model (docs/design.md §1 outputs,
+paper Fig. 10).
 
 Public API::
 
@@ -341,8 +342,9 @@ def timings_figure(rules: dict[str, dict]):
 
 
 def convergence_figure(rows: list[dict]):
-    """The geometry over the loop (rows of :func:`sellip.report.figures_of_merit.geometry_series`): Chamfer to the previous
-    mesh and to the truth (mm, left), median normal error of the mesh and of the fitted normals (deg, right)."""
+    """The geometry over the loop (rows of :func:`sellip.report.figures_of_merit.geometry_series`): Chamfer to the
+    previous mesh and to the truth (mm, left), median normal error of the mesh and of the fitted normals (deg,
+    right)."""
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(8.0, 3.2), dpi=110, layout="constrained")

@@ -7,7 +7,8 @@ Runs the workflow once per variant (:mod:`sellip.bench.sweep`: the preset's base
 changed at a time) in OUT/work/PRESET (a Snakemake working directory: captures/, results/NAME/,
 jax_cache/, logs/, configs/), then writes into OUT:
 
-- ``sweep.csv``: one row per variant (:data:`sellip.bench.sweep_tables.SWEEP_COLUMNS`, pandera-checked): times and figures;
+- ``sweep.csv``: one row per variant (:data:`sellip.bench.sweep_tables.SWEEP_COLUMNS`, pandera-checked): times and
+  figures;
 - ``sweep.png``: accuracy (normal median error, eta median error, held-out PSNR) against total time per scene,
   each variant labelled, the Pareto front marked;
 - ``ior.csv``: fitted eta per material of the paper's Table 1, for every sphere_ior variant (column ``name``);

@@ -130,10 +130,8 @@ def _apply(args, step: str, report, targets: dict | None = None) -> None:
 
 
 def _intrinsics(args, device) -> int:
-    from sellip.calibrate.intrinsics import calibrate_intrinsics
+    from sellip.calibrate.intrinsics import calibrate_intrinsics, intrinsics_uncertainty
     from sellip.calibrate.report import intrinsics_report
-
-    from sellip.calibrate.intrinsics import intrinsics_uncertainty
 
     cols, rows = args.board
     result = calibrate_intrinsics(_frames(args.frames, device["sensor"]), device["sensor"], cols, rows,

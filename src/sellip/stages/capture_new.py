@@ -17,8 +17,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from sellip.capture import files
-from sellip.capture import reader
+from sellip.capture import files, reader
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +37,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="use a device.yaml whose calibration records a failed step (ok: false)")
     parser.add_argument("--out", type=Path, help="capture folder (default: see above)")
     parser.add_argument("--force", action="store_true",
-                        help="replace a capture.yaml or frames.csv already there that differs from what would be written")
+                        help="replace a capture.yaml or frames.csv already there that differs from what would be "
+                             "written")
     parser.add_argument("--no-check-raw", action="store_true", help="do not open every frame to check it")
 
 

@@ -19,8 +19,8 @@ Writes the directory ``--output`` (built under a temporary name, then renamed) w
   share of repeats on resampled vertices that found it again, and what it became otherwise;
   ``degenerate``: what could not be computed on these data and what was done instead (a cluster without a
   confident vertex or a usable sample, albedos without spread; the run goes on, lower in confidence),
-  the settings (``settings``: the clustering's; ``fit_settings``: the lobe fit's) and the seed, and under ``model_selection`` per cluster the chosen model, the held-out loss of
-  every candidate and why.
+  the settings (``settings``: the clustering's; ``fit_settings``: the lobe fit's) and the seed, and under
+  ``model_selection`` per cluster the chosen model, the held-out loss of every candidate and why.
 
 Model selection (docs/design.md §7, :mod:`sellip.fit.selection`; ``--model-selection`` is
 :class:`sellip.fit.selection.SelectionSettings` as one JSON object, config ``model_selection``; on unless its

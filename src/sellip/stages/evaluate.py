@@ -1,4 +1,5 @@
-"""``sellip evaluate``: figures of merit of the final model (docs/design.md §8) -> metrics.json (rule ``evaluate_model``).
+"""``sellip evaluate``: figures of merit of the final model (docs/design.md §8) -> metrics.json
+(rule ``evaluate_model``).
 
     sellip evaluate --model results/NAME/final/model.ply --params results/NAME/final/params.zarr
                     --cameras results/NAME/cameras.csv --hdr results/NAME/hdr.zarr --capture CAPTURE

@@ -40,7 +40,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="... and only when at least this many of its 6 nearest vertices deviate the same way "
                              "(a spot, not one vertex; 0: any vertex)")
     parser.add_argument("--model", type=int, default=3,
-                        help="model code of every vertex when the store has no model array (sellip.model.params.MODEL_NAMES)")
+                        help="model code of every vertex when the store has no model array "
+                             "(sellip.model.params.MODEL_NAMES)")
 
 
 def main(args: argparse.Namespace) -> int:

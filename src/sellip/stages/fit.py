@@ -47,7 +47,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--shard", type=parse_shard, default=(0, 1), help="i-of-n (default 1-of-1: all vertices)")
     parser.add_argument("--output", type=Path, required=True, help="shard result (.npz)")
     parser.add_argument("--prior", type=Path, default=None,
-                        help="a parameter store to warm-start from (the previous iteration's, or this one's first pass)")
+                        help="a parameter store to warm-start from "
+                             "(the previous iteration's, or this one's first pass)")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     from sellip.fit.records import FitSettings
     from sellip.settings import add_renamed_argument, add_settings_argument

@@ -33,7 +33,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--output", type=Path, required=True)
     parser.add_argument("--min-fitted-share", type=float, default=MIN_FITTED_SHARE,
                         help="stop (nothing written) when the fitted vertices are less than this share of the "
-                             f"vertices seen in a usable view (default {MIN_FITTED_SHARE}; config fit.min_fitted_share)")
+                             f"vertices seen in a usable view (default {MIN_FITTED_SHARE}; "
+                             "config fit.min_fitted_share)")
 
 
 def main(args: argparse.Namespace) -> int:

@@ -27,7 +27,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     from sellip.geometry.pose_refinement import PoseRefinementSettings
     from sellip.settings import add_settings_argument
 
-    parser.add_argument("--params", type=Path, required=True, help="the iteration's params store (fitted normals, pBRDF)")
+    parser.add_argument("--params", type=Path, required=True,
+                        help="the iteration's params store (fitted normals, pBRDF)")
     parser.add_argument("--mesh", type=Path, required=True, help="the iteration's mesh (the store's vertices)")
     parser.add_argument("--cameras", type=Path, required=True, help="the iteration's cameras.csv")
     parser.add_argument("--hdr", type=Path, required=True, help="hdr.zarr")
@@ -37,8 +38,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sellip.fit.observe import ObserveError
     from sellip.fit.geometry_jobs import refine_poses
+    from sellip.fit.observe import ObserveError
     from sellip.model.params import ParamsError
 
     try:

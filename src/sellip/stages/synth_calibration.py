@@ -45,7 +45,8 @@ def main(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     try:
         out = synthesize_calibration(args.out, args.width, args.height, args.seed, board_frames=args.board_frames,
-                                     sphere_frames=args.sphere_frames, spec=BoardSpec(cols, rows, args.square_mm / 1000),
+                                     sphere_frames=args.sphere_frames,
+                                     spec=BoardSpec(cols, rows, args.square_mm / 1000),
                                      raw_format=args.raw_format, polarizer_deg=args.polarizer_deg, burst=args.burst,
                                      force=args.force)
     except WouldReplaceError as exc:

@@ -37,10 +37,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     from sellip.report.materials import MaterialsError
-    from sellip.report.viewer import export_results
-    from sellip.report.viewer import ViewerError, serve
-
-    from sellip.report.viewer import find_capture
+    from sellip.report.viewer import ViewerError, export_results, find_capture, serve
     from sellip.workflow_support import stale_model
 
     logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
