@@ -357,8 +357,7 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
         if metrics["poses"] is None:
             reasons["poses"] = "the cameras are poses.csv's"
 
-    # How the geometry converged over the loop.
-    metrics["geometry_iterations"] = None
+    metrics["geometry_iterations"] = None  # how the geometry converged over the loop
     if iteration_meshes:
         metrics["geometry_iterations"] = geometry_convergence(iteration_meshes, iteration_fits or [], truth,
                                                               similarity)
