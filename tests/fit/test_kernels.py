@@ -125,7 +125,7 @@ def test_a_second_process_loads_the_fit_kernels_instead_of_tracing(tmp_path):
                               text=True, check=True)
         reports.append(json.loads(done.stdout.strip().splitlines()[-1]))
     np.testing.assert_array_equal(np.load(tmp_path / "eta0.npy"), np.load(tmp_path / "eta1.npy"))
-    assert list((tmp_path / "cache" / "exported").glob("_lm_rounds-*.jaxexport"))
+    assert list((tmp_path / "cache" / "exported").glob("lm_rounds-*.jaxexport"))
     assert reports[1].get("trace", 0.0) < 0.25 * reports[0]["trace"]
 
 
@@ -142,6 +142,6 @@ def test_processes_that_start_together_compile_once(tmp_path):
         assert run.returncode == 0, err
         reports.append(json.loads(out.strip().splitlines()[-1]))
     np.testing.assert_array_equal(np.load(tmp_path / "eta0.npy"), np.load(tmp_path / "eta1.npy"))
-    assert list((tmp_path / "cache" / "exported").glob("_lm_rounds-*.lock"))
+    assert list((tmp_path / "cache" / "exported").glob("lm_rounds-*.lock"))
     compiled = sorted(report.get("compile", 0.0) for report in reports)
     assert compiled[0] < 0.25 * compiled[1], reports

@@ -147,7 +147,13 @@ def user_mesh():
     folder, an absolute one is used as is), as a list: empty in the other modes. Tracked by content for init_mesh."""
     if config["init"]["mode"] != "mesh":
         return []
-    return [capture_file(os.path.expanduser(config["init"]["mesh_path"]))]  # Path(capture) / absolute = absolute
+    path = capture_file(os.path.expanduser(config["init"]["mesh_path"]))  # Path(capture) / absolute = absolute
+    if not Path(path).is_file():
+        raise WorkflowError(
+            f"config init.mesh_path: {path} does not exist (a relative path lies in the capture folder); "
+            "give the scan's file, or init.mode hull"
+        )
+    return [path]
 
 
 INPUT_DIGESTS = workflow_support.ContentDigests(workflow_support.DIGEST_CACHE)

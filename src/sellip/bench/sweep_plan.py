@@ -142,6 +142,30 @@ def load_defaults(repo: Path = REPO) -> dict:
     return yaml.safe_load(path.read_text())
 
 
+def declared_default(key: str, repo: Path = REPO):
+    """The default of a dotted config ``key`` that config/config.yaml leaves to its settings record: the section
+    that holds it is marked ``x-record: module:Class`` in config/config.schema.yaml, and the record's field
+    declares the default (``sellip.settings``). KeyError naming the key when no record declares it."""
+    import dataclasses
+    import importlib
+
+    import yaml
+
+    node = yaml.safe_load((Path(repo) / "config" / "config.schema.yaml").read_text())
+    *section, name = key.split(".")
+    for part in section:
+        node = (node.get("properties") or {}).get(part)
+        if not isinstance(node, dict):
+            raise KeyError(key)
+    if "x-record" not in node:
+        raise KeyError(key)
+    module, record = node["x-record"].split(":")
+    fields = {f.name: f for f in dataclasses.fields(getattr(importlib.import_module(module), record))}
+    if name not in fields:
+        raise KeyError(key)
+    return fields[name].default
+
+
 def value_label(value) -> str:
     """A config value as text for names and labels: on/off, free (None), 0.9, float64, 12."""
     if isinstance(value, bool):
@@ -177,7 +201,7 @@ def plan_variants(scenes: list[str], preset: str, only: list[str] | None = None,
                   factors: tuple[Factor, ...] = FACTORS, defaults: dict | None = None) -> list[Variant]:
     """Per scene: the base, then every value of every factor (``only``: these factors; :data:`SCENE_FACTORS`
     may narrow them per scene) that differs from the base's own value (base of ``preset`` over ``defaults``,
-    config/config.yaml when None)."""
+    config/config.yaml when None; a key it leaves out takes its settings record's declared default)."""
     if preset not in PRESETS:
         raise SweepError(f"unknown preset {preset!r}; expected one of {sorted(PRESETS)}")
     known = {f.name for f in factors}
@@ -196,8 +220,11 @@ def plan_variants(scenes: list[str], preset: str, only: list[str] | None = None,
                 continue
             try:
                 own = get_key(base, factor.key)
-            except KeyError:
-                own = None
+            except KeyError:  # config.yaml leaves it to the record's declaration
+                try:
+                    own = declared_default(factor.key)
+                except KeyError:
+                    own = None
             for value in factor.values_for(preset):
                 if value == own and type(value) is type(own):
                     continue
