@@ -17,6 +17,8 @@ rule linearize_frames:
     threads: config["ingest"]["threads"]
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
+        # The content of every file ingest reads: a replaced, added or removed frame re-runs ingest and what follows.
+        content=content_of(lambda: [capture_file("capture.yaml"), capture_file("frames.csv")], raw_frames),
         saturation=config["ingest"]["saturation"],
         # A function: its value `capture` would read to `snakemake --lint` as a hard-coded prefix of captures/.
         black_level_from=lambda wildcards: config["ingest"]["black_level_from"],
