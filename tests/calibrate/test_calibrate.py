@@ -271,6 +271,7 @@ def test_polarization_layout_and_flash_polarizer_checked(calib, claimed, polariz
         assert what in " ".join(report.messages())
 
 
+@pytest.mark.slow
 def test_polarization_cues_that_disagree_fail_instead_of_naming_a_layout(calib):
     """The calibration set's spheres mirror their panel: the limbs (60-85 deg) alone would call the true layout
     turned by 90 deg (score < 0); the diffuse band decides. A claim turned by 90 deg with the flash polarizer

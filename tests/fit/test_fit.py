@@ -243,6 +243,7 @@ def test_float32_fit_runs_and_is_accurate():
     assert np.median(angle) < 0.2 and np.median(eta) < 0.01 and np.median(albedo) < 0.01
 
 
+@pytest.mark.slow
 def test_zero_weight_virtual_samples_change_nothing():
     """Virtual samples of weight 0 add zero rows: the same loss and linear solution as none (to round-off)."""
     from sellip.fit.records import VirtualSamples

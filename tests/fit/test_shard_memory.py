@@ -83,6 +83,7 @@ def _store(folder, vertices=256, views=12):
     return folder / "observations.zarr"
 
 
+@pytest.mark.slow
 def test_a_shard_over_its_memory_stops_before_reading_and_the_count_it_names_fits(tmp_path, caplog):
     store = _store(tmp_path)
     chunk = 8192

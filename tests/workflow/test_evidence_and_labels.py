@@ -129,6 +129,7 @@ def test_check_evidence_names_what_is_missing():
         check_evidence(status, np.zeros((10, 3), bool), ["v0", "v1", "v2"], 0.25)
 
 
+@pytest.mark.slow
 def test_a_two_view_capture_stops_before_a_model_saying_views_are_missing(tmp_path):
     """The tiny sphere seen from 2 views, as far as iteration 0's gathered fit (about 2 minutes on 2 cores): before
     issue #52 it ran to the end with 0 of 1,445 vertices fitted and materials.csv holding the prior; now gather_fit
