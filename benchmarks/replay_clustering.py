@@ -39,7 +39,7 @@ def replay(run: Path, iteration: int, overrides: dict | None = None):
 
 
 def main(argv=None) -> int:
-    from sellip.bench.replay import ignore_snakemake_zarr_warnings, replay_parser
+    from sellip.bench.replay import clustering_overrides_and_truth, ignore_snakemake_zarr_warnings, replay_parser
 
     parser = replay_parser(__doc__, "the pass whose fit is clustered (iter/N)")
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
@@ -52,17 +52,9 @@ def main(argv=None) -> int:
 
     from sellip.fit import clusters as fit_clusters
     from sellip.fit import lobes
-    from sellip.fit.shard import overrides_from_pairs
-    from sellip.model.ply import read_param_mesh
     from sellip.report.figures_of_merit import eta_per_material
 
-    try:
-        overrides = overrides_from_pairs(args.set, fit_clusters.AugmentSettings)
-    except ValueError as error:
-        parser.error(str(error))
-    truth = read_param_mesh(args.truth)
-    if truth.material is None:
-        parser.error(f"{args.truth}: the ground truth has no material labels")
+    overrides, truth = clustering_overrides_and_truth(parser, args.set, args.truth)
     start = time.perf_counter()
     try:
         clustering, settings, store = replay(args.run, args.iteration, overrides)

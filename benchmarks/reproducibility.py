@@ -25,7 +25,7 @@ from pathlib import Path
 def main(argv=None) -> int:
     import argparse
 
-    from sellip.bench.replay import ignore_snakemake_zarr_warnings
+    from sellip.bench.replay import clustering_overrides_and_truth, ignore_snakemake_zarr_warnings
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run", type=Path, help="the run's results folder (results/<name>)")
@@ -43,19 +43,10 @@ def main(argv=None) -> int:
     from scipy.spatial import cKDTree
 
     from sellip.bench import reproducibility as rep
-    from sellip.fit import clusters as fit_clusters
     from sellip.fit.lobe_store import clustering_settings
-    from sellip.fit.shard import overrides_from_pairs
     from sellip.model.params import read_params
-    from sellip.model.ply import read_param_mesh
 
-    try:
-        overrides = overrides_from_pairs(args.set, fit_clusters.AugmentSettings)
-    except ValueError as error:
-        parser.error(str(error))
-    truth = read_param_mesh(args.truth)
-    if truth.material is None:
-        parser.error(f"{args.truth}: the ground truth has no material labels")
+    overrides, truth = clustering_overrides_and_truth(parser, args.set, args.truth)
     iterations = args.iterations
     if iterations is None:
         iterations = sorted(int(p.parent.parent.name) for p in (args.run / "iter").glob("*/clusters/clusters.json"))

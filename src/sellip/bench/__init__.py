@@ -20,7 +20,7 @@ Modules and what they export (each name is importable from here too)::
         single_scattering_shares, false_single_scattering, renderer_markdown
     replay: The command line shared by the replay benchmarks (``benchmarks/replay_*.py``): a run's results folder, one
       of its passes and the capture's ground truth
-        replay_parser, ignore_snakemake_zarr_warnings
+        replay_parser, ignore_snakemake_zarr_warnings, clustering_overrides_and_truth
     reproducibility: Reproducibility of the material clustering's discrete decisions (issue #49): the clustering of a
       finished run's stored per-vertex fit replayed under perturbations that carry no information (1e-9 noise, vertex
       order, seed, a 90 % subsample) and the distribution of each decision (``benchmarks/reproducibility.py``;
@@ -66,7 +66,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "noisy_chart_matrix", "description_errors", "sensitivity_markdown", "run_sensitivity"),
     "ladder": ("render_hdr", "fit_true_mesh", "figures", "resampled_truth", "psnr_ceiling"),
     "renderers": ("single_scattering_shares", "false_single_scattering", "renderer_markdown"),
-    "replay": ("replay_parser", "ignore_snakemake_zarr_warnings"),
+    "replay": ("replay_parser", "ignore_snakemake_zarr_warnings", "clustering_overrides_and_truth"),
     "reproducibility": ("KINDS", "perturbed_inputs", "replay", "decisions", "summarise", "merge_rule"),
     "scale": ("CaptureSize", "size_terms", "job_costs", "rule_costs", "fit_cost_model", "predict"),
     "silhouettes": ("agreement", "silhouette_agreement", "cut_difference"),

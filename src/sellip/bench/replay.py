@@ -21,3 +21,20 @@ def replay_parser(doc: str, iteration_help: str = "the pass (iter/N)") -> argpar
 def ignore_snakemake_zarr_warnings() -> None:
     """Silence zarr's warning about Snakemake's timestamp files inside a run's stores."""
     warnings.filterwarnings("ignore", message=".*not recognized as a component of a Zarr hierarchy")
+
+
+def clustering_overrides_and_truth(parser: argparse.ArgumentParser, pairs: list[str], truth_path: Path):
+    """The ``--set FIELD=VALUE`` pairs as AugmentSettings overrides and the ground truth with its material labels,
+    for a replay of a run's clustering; a bad pair or a truth without labels is ``parser.error``."""
+    from sellip.fit.clusters import AugmentSettings
+    from sellip.fit.shard import overrides_from_pairs
+    from sellip.model.ply import read_param_mesh
+
+    try:
+        overrides = overrides_from_pairs(pairs, AugmentSettings)
+    except ValueError as error:
+        parser.error(str(error))
+    truth = read_param_mesh(truth_path)
+    if truth.material is None:
+        parser.error(f"{truth_path}: the ground truth has no material labels")
+    return overrides, truth
