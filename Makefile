@@ -8,7 +8,7 @@ CORES ?= 2
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-fast lint dry-run report view bench-sweep bench-stability clean-results
+.PHONY: install demo test test-fast lint dry-run report view figures bench-sweep bench-stability clean-results
 
 install: $(STAMP)
 
@@ -55,6 +55,13 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/snakefmt --check Snakefile workflow/
 	$(BIN)/snakemake --lint --workflow-profile workflow/profiles/default
+
+# The README's accuracy table regenerated and compared, number by number, within the README's tolerances
+# (docs/benchmarks.md, "Paper figures by one command"). FIGURES=small: the demo (minutes on 2 cores; CI runs it);
+# FIGURES=all: the two sphere_ior rows too (about 1.5 h more). The comparison, commit and versions: results/figures.json.
+FIGURES ?= small
+figures: $(STAMP)
+	$(BIN)/sellip figures run --size $(FIGURES) --record results/figures.json
 
 # The stability suite (docs/benchmarks.md): failure-mode cases run end to end -> results/bench/stability/.
 bench-stability: $(STAMP)

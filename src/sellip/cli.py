@@ -40,6 +40,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "view": ("view", "materials table, glTF and map-PLY exports, and the offline browser viewer of a final model"),
     "bench-sweep": ("bench_sweep", "speed-accuracy sweep of the whole workflow: chart, CSV and tables"),
     "bench-stability": ("bench_stability", "the stability suite: failure-mode cases run end to end, one table"),
+    "figures": ("figures", "the documented figures: rerun their recorded commands (run) and compare them (check)"),
     "config-schema": ("config_schema", "write config/config.schema.yaml's settings sections from their declarations"),
 }
 

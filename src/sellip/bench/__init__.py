@@ -12,6 +12,11 @@ Modules and what they export (each name is importable from here too)::
       calibrate`` measured on a synthetic calibration set of the same device (docs/calibration.md, "How careful to be")
         FULL_SIZE_ERRORS, PERTURBATIONS, perturb_description, perturbed_capture, noisy_chart_matrix, description_errors,
         sensitivity_markdown, run_sensitivity
+    figures: The documented figures (issue #49 item 6): the README's accuracy table, each number read from its table
+      row (found by its command) and from the run's metrics.json, compared within a tolerance per kind
+      (``sellip figures``; docs/benchmarks.md, "Paper figures by one command")
+        FiguresError, Run, Figure, TOLERANCES, RUNS, FIGURES, NOT_COVERED, run_named, table_row, documented, measured,
+        Comparison, compare, select, tolerance_line, document_problems, check, report_lines, provenance, record
     ladder: The accuracy ladder (docs/accuracy.md): where the error of a reconstruction enters, rung by rung
         render_hdr, fit_true_mesh, figures, resampled_truth, psnr_ceiling
     renderers: Both renderers side by side (issue #36): the figures of runs on captures of the same scenes rendered by
@@ -64,6 +69,9 @@ from sellip._exports import lazy_exports
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "calibration": ("FULL_SIZE_ERRORS", "PERTURBATIONS", "perturb_description", "perturbed_capture",
            "noisy_chart_matrix", "description_errors", "sensitivity_markdown", "run_sensitivity"),
+    "figures": ("FiguresError", "Run", "Figure", "TOLERANCES", "RUNS", "FIGURES", "NOT_COVERED", "run_named",
+           "table_row", "documented", "measured", "Comparison", "compare", "select", "tolerance_line",
+           "document_problems", "check", "report_lines", "provenance", "record"),
     "ladder": ("render_hdr", "fit_true_mesh", "figures", "resampled_truth", "psnr_ceiling"),
     "renderers": ("single_scattering_shares", "false_single_scattering", "renderer_markdown"),
     "replay": ("replay_parser", "ignore_snakemake_zarr_warnings", "clustering_overrides_and_truth"),
