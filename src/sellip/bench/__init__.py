@@ -16,7 +16,8 @@ Modules and what they export (each name is importable from here too)::
       row (found by its command) and from the run's metrics.json, compared within a tolerance per kind
       (``sellip figures``; docs/benchmarks.md, "Paper figures by one command")
         FiguresError, Run, Figure, TOLERANCES, RUNS, FIGURES, NOT_COVERED, run_named, table_row, documented, measured,
-        Comparison, compare, select, tolerance_line, document_problems, check, report_lines, provenance, record
+        Comparison, tolerance_of, compare, select, tolerance_line, document_problems, check, report_lines, provenance,
+        record
     ladder: The accuracy ladder (docs/accuracy.md): where the error of a reconstruction enters, rung by rung
         render_hdr, fit_true_mesh, figures, resampled_truth, psnr_ceiling
     renderers: Both renderers side by side (issue #36): the figures of runs on captures of the same scenes rendered by
@@ -70,7 +71,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "calibration": ("FULL_SIZE_ERRORS", "PERTURBATIONS", "perturb_description", "perturbed_capture",
            "noisy_chart_matrix", "description_errors", "sensitivity_markdown", "run_sensitivity"),
     "figures": ("FiguresError", "Run", "Figure", "TOLERANCES", "RUNS", "FIGURES", "NOT_COVERED", "run_named",
-           "table_row", "documented", "measured", "Comparison", "compare", "select", "tolerance_line",
+           "table_row", "documented", "measured", "Comparison", "tolerance_of", "compare", "select", "tolerance_line",
            "document_problems", "check", "report_lines", "provenance", "record"),
     "ladder": ("render_hdr", "fit_true_mesh", "figures", "resampled_truth", "psnr_ceiling"),
     "renderers": ("single_scattering_shares", "false_single_scattering", "renderer_markdown"),

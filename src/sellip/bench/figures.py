@@ -286,7 +286,8 @@ def select(only: list[str] | None = None, size: str = "all") -> tuple[Run, ...]:
 
 
 def tolerance_line() -> str:
-    """The README's sentence of the tolerances (it must appear as it is, line breaks aside: :func:`document_problems`)."""
+    """The README's sentence of the tolerances (it must appear as it is, line breaks aside:
+    :func:`document_problems`)."""
     def amount(value: float, unit: str) -> str:
         return "exact" if value == 0 else f"±{value:g}" + ("" if unit in ("°", "") else " ") + unit
 
@@ -356,7 +357,8 @@ def provenance(root: Path, runs: tuple[Run, ...]) -> dict:
     git = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)
     dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
                            capture_output=True, text=True)
-    return {"commit": git.stdout.strip() or None, "modified": bool(dirty.stdout.strip()) if git.returncode == 0 else None,
+    return {"commit": git.stdout.strip() or None,
+            "modified": bool(dirty.stdout.strip()) if git.returncode == 0 else None,
             "versions": {p: version(p) for p in ("sellip", "jax", "jaxlib", "numpy", "scipy", "scikit-learn",
                                                   "snakemake", "open3d", "pycolmap")},
             "python": platform.python_version(), "machine": platform.machine(), "processor": platform.processor(),
