@@ -294,6 +294,7 @@ def tolerance_line() -> str:
     """The README's sentence of the tolerances (it must appear as it is, line breaks aside:
     :func:`document_problems`)."""
     def amount(value: float, unit: str) -> str:
+        unit = "point" if unit == "points" and value == 1 else unit
         return "exact" if value == 0 else f"±{value:g}" + ("" if unit in ("°", "") else " ") + unit
 
     parts = [f"{what} {amount(value, unit)}" for value, unit, what in TOLERANCES.values()]
