@@ -10,7 +10,7 @@ each selected run's recorded command from the repository root (they write under 
 runs: ``demo`` (small: ``make demo``, minutes on 2 cores), ``sphere_ior_scale`` and ``sphere_ior_mitsuba`` (large:
 about an hour each). ``--record`` writes the comparison as JSON with the commit, package versions, machine and seeds.
 Exit status 0 when every figure passed, 1 otherwise (a figure outside its tolerance, a missing run, a document row
-that no longer parses).
+that no longer parses, a command of ``run`` that failed).
 """
 
 from __future__ import annotations
@@ -62,14 +62,15 @@ def main(args: argparse.Namespace) -> int:
     if not runs:
         log.error("no registered run is selected by --only %s --size %s", args.only, args.size)
         return 1
-    results = args.results
+    results, failed_commands = args.results, []
     if args.action == "run":
         results = root / "results"
         for run in runs:
             status = _run_command(run, root)
             if status != 0:
-                log.error("%s: `%s` failed with exit status %d; its figures are checked as they are", run.name,
-                          run.command, status)
+                failed_commands.append(run.command)
+                log.error("%s: `%s` failed with exit status %d; what it left is checked, and the check fails",
+                          run.name, run.command, status)
     problems = figures.document_problems(root)
     for problem in problems:
         log.error("%s", problem)
@@ -80,6 +81,9 @@ def main(args: argparse.Namespace) -> int:
     if args.record is not None:
         write_text(json.dumps(figures.record(comparisons, root, runs), indent=2), args.record)
     failed = [c for c in comparisons if c.status != "PASS"]
+    if failed_commands:
+        log.error("these commands failed: %s", "; ".join(failed_commands))
+        return 1
     if failed:
         log.error("%d of %d documented figures were not reproduced within their tolerance: %s", len(failed),
                   len(comparisons), ", ".join(c.figure.name for c in failed))
