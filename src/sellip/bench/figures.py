@@ -8,7 +8,7 @@ they are (:class:`Figure`) and how they are measured (:class:`Run`). A row whose
 with the file, line, column and cell text (:class:`FiguresError`).
 
 Tolerances are per kind (:data:`TOLERANCES`), chosen from the spread measured between runs that should agree
-(another CPU, another seed: docs/reproducibility.md, docs/benchmarks.md); the README states them in the line
+(another machine, another seed: docs/reproducibility.md, docs/benchmarks.md); the README states them in the line
 :func:`tolerance_line` writes, and :func:`document_problems` fails the check when that line is not in the README.
 
 Sizes: ``small`` runs are what a 2-core machine runs in minutes (the demo); ``large`` ones take an hour or more.
@@ -67,7 +67,7 @@ class Figure:
 
 # kind -> (tolerance, unit, what it is), absolute, but relative where the unit is "%" (the vertex count, which the
 # documents round to hundreds or thousands). η per material: a material's median η moved 0.05 points between
-# two CPUs (plumage 0.09 / 0.14 %) and 0.4 points between runs of one setting (docs/benchmarks.md, the sweep's
+# two machines (plumage 0.09 / 0.14 %) and 0.4 points between runs of one setting (docs/benchmarks.md, the sweep's
 # noise); a small material (the demo's eyes, 54 vertices) moves more: 1.76-2.29 % over runs and replays.
 # Normals 0.730 / 0.733 deg, held-out PSNR 31.6-31.73 dB and Chamfer 0.063-0.064 mm across machines and versions.
 TOLERANCES: dict[str, tuple[float, str, str]] = {
@@ -84,12 +84,12 @@ RUNS: tuple[Run, ...] = (
     Run("demo", "make demo", "demo", "small", 7, "seed 0, demo.seed 0 (the capture's sensor noise)"),
     Run("sphere_ior_scale", "python benchmarks/scale.py --sizes 72x1224x1024:100000:10",
         "bench/scale/sphere_ior_72v_1224x1024_100000n_10it/results/run", "large", 58,
-        "seed 0; the capture's noise seed 0 (sellip.capture.synthetic defaults)"),
+        "seed 0; the capture's seed 0 (sellip.capture.synthetic.synthesize_capture default)"),
     Run("sphere_ior_mitsuba",
         "python benchmarks/accuracy_ladder.py --scene sphere_ior --renderer mitsuba --views 72 --width 1224 "
         "--height 1024 --rungs hull --iterations 3 --max-vertices 30000",
         "bench/ladder/sphere_ior_72v_1224x1024_mitsuba/results/sphere_ior_72v_1224x1024_mitsuba_hull_3it_30000v",
-        "large", 25, "seed 0; the capture's noise seed 0 (sellip.capture.synthetic defaults)"),
+        "large", 25, "seed 0; the capture's seed 0 (sellip.capture.synthetic.synthesize_capture default)"),
 )
 
 _ETA = "η per material"
