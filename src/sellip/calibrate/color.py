@@ -140,8 +140,11 @@ class PatchStats:
 
     @property
     def unpolarized(self) -> np.ndarray:
-        """(24, 3) the patches' unpolarized light: the diffuse colour without the flash's sheen (module docstring)."""
-        return self.rgb - self.polarized
+        """(24, 3) the patches' light without the flash's sheen (module docstring): the unpolarized part where the
+        polarized part exceeds :data:`SHEEN_MIN` of it (in green), the whole light elsewhere (a patch's diffuse
+        light is polarized by well under that, and removing noise's polarization would bias it)."""
+        sheen = self.polarized[:, 1] > SHEEN_MIN * self.rgb[:, 1]
+        return np.where(sheen[:, None], self.rgb - self.polarized, self.rgb)
 
 
 def fit_color_matrix(camera: np.ndarray, reference: np.ndarray) -> np.ndarray:
@@ -226,6 +229,9 @@ def detect_chart(camera_rgb: np.ndarray) -> np.ndarray:
     outline = np.array([[0, 0, 1], [6, 0, 1], [6, 4, 1], [0, 4, 1]], np.float64) @ homography.T
     return outline[:, :2] / outline[:, 2:]
 
+
+SHEEN_MIN = 0.03
+"""A patch whose light is more than this fraction linearly polarized (green) has the flash's sheen taken out."""
 
 SHEEN_FRACTION = 0.2
 """A patch whose light is more than this fraction linearly polarized shows the flash's sheen (named as a cause)."""

@@ -498,11 +498,18 @@ def chart_texture(reference: np.ndarray):
     return texture
 
 
+CHART_SHEEN = {"rho_s": 0.05, "sigma_s": 0.25}
+"""The chart's surface sheen: a faint, broad specular lobe (a printed chart's semi-matte varnish), which
+mirrors the polarized flash where the chart faces it."""
+
+
 def render_chart(device: dict, rotation: np.ndarray, translation: np.ndarray, supersample: int = 2,
-                 shadow: float = 1.0) -> np.ndarray:
-    """Analyzer images (H, W, 4, 3) of a ColorChecker at pose (R, t) (chart -> camera); ``shadow`` < 1 dims the
-    flash on it (a chart in shadow)."""
-    out = _render_plane(device, rotation, translation, chart_texture(chart_reference_srgb()), supersample, MATTE)
+                 shadow: float = 1.0, sheen: float = 0.0) -> np.ndarray:
+    """Analyzer images (H, W, 4, 3) of a ColorChecker at pose (R, t) (chart -> camera) under the flash (its
+    fall-off across the chart included); ``shadow`` < 1 dims the flash on it (a chart in shadow); ``sheen``
+    scales :data:`CHART_SHEEN`'s lobe (0, the default: matte)."""
+    params = {**MATTE, "rho_s": CHART_SHEEN["rho_s"] * sheen, "sigma_s": CHART_SHEEN["sigma_s"]}
+    out = _render_plane(device, rotation, translation, chart_texture(chart_reference_srgb()), supersample, params)
     return out * np.float32(shadow)
 
 
