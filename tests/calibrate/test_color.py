@@ -1,0 +1,102 @@
+"""The colour step on rendered ColorChecker frames (612x512, the sensor simulator's noise): the chart found
+without corners and its order checked, the flash's fall-off and sheen taken out, and a frame that cannot give
+a colour matrix failing with its cause."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from sellip.calibrate import color, synthetic
+from sellip.calibrate.intrinsics import CalibrationError
+
+W, H = 612, 512
+
+
+def _chart(tilt_deg=(10.0, 0.0), fill=0.8, peak=0.6, shadow=1.0, sheen=0.0, seed=0):
+    """(device, raw, true corners (4, 2), (R, t)) of a chart tilted by ``tilt_deg`` (about x, y) whose patch area
+    spans ``fill`` of the frame's width, exposed so that the lit chart's 99.9th percentile reads ``peak`` of
+    full scale."""
+    device = synthetic.true_device(W, H)
+    rotation = Rotation.from_euler("xy", tilt_deg, degrees=True).as_matrix()
+    distance = 6 * synthetic.CHART_PATCH_M * device["camera"]["fx"] / (fill * W)
+    translation = np.array([0.0, 0.0, distance]) - rotation @ synthetic.chart_corners_board().mean(axis=0)
+    lit = synthetic.render_chart(device, rotation, translation, sheen=sheen)
+    shown = lit * np.float32(shadow)
+    white = device["sensor"]["white_level"] - float(np.max(device["sensor"]["black_level"]))
+    raw = synthetic.expose(shown, device, peak * white, np.random.default_rng(seed),
+                           reference=float(np.percentile(lit, 99.9)))
+    corners = synthetic.project(device, synthetic.chart_corners_board() @ rotation.T + translation)
+    return device, raw, corners, (rotation, translation)
+
+
+@pytest.fixture(scope="module")
+def tilted():
+    """A chart tilted 25° at 0.6 m, the flash 5 cm below the lens: its irradiance varies by about 20 %."""
+    return _chart(tilt_deg=(25.0, 8.0), fill=0.75)
+
+
+def test_chart_found_without_corners_in_the_documented_order(tilted):
+    device, raw, corners, _ = tilted
+    result = color.calibrate_color(raw, device)  # no corners: cv2.mcc finds the chart, the colours fix its order
+    # dark skin's corner first, then clockwise: each found corner lies by its true one (a patch pitch is ~75 px)
+    assert np.linalg.norm(result.corners_px - corners, axis=1).max() < 10.0
+    assert np.nanmean(result.delta_e) <= 1.5 and not result.left_out
+
+
+def test_falloff_follows_the_charts_pose_and_is_divided_out(tilted):
+    device, raw, corners, (rotation, translation) = tilted
+    falloff = color.chart_falloff(corners, device, synthetic.CHART_PATCH_M)
+    i, j = np.divmod(np.arange(24), 6)
+    centres = np.stack([(j + 0.5), (i + 0.5), np.zeros(24)], -1) * synthetic.CHART_PATCH_M @ rotation.T + translation
+    to_light = np.asarray(device["light"]["position_m"]) - centres
+    d = np.linalg.norm(to_light, axis=-1)
+    truth = np.abs(to_light @ rotation[:, 2]) / d ** 3
+    np.testing.assert_allclose(falloff, truth / truth.mean(), rtol=2e-3)
+    assert falloff.max() / falloff.min() > 1.15  # a fall-off that matters
+    result = color.calibrate_color(raw, device, corners)
+    assert np.nanmean(result.delta_e) <= 0.5
+    # without the correction (a flat fall-off) the same frame fits far worse
+    stats = color.patch_stats(color.analyzer_images(raw, device["sensor"]), corners)
+    reference = color.reference_srgb()
+    m = color.fit_color_matrix(stats.rgb, reference)
+    assert np.mean(color.delta_e_2000(stats.rgb @ m.T, reference)) > 2 * np.nanmean(result.delta_e)
+
+
+def test_given_corners_in_another_order_are_named(tilted):
+    device, raw, corners, _ = tilted
+    result = color.calibrate_color(raw, device, corners[::-1])
+    assert np.nanmean(result.delta_e) > 5
+    causes = color.corner_order_causes(raw, device, corners[::-1], 1.5)
+    assert causes and "counter-clockwise, dark skin's corner given as number 4" in causes[0]
+
+
+def test_sheen_of_the_polarized_flash_is_taken_out():
+    device, raw, corners, _ = _chart(tilt_deg=(0.0, 0.0), sheen=20.0)
+    stats = color.patch_stats(color.analyzer_images(raw, device["sensor"]), corners)
+    fraction = stats.polarized[:, 1] / stats.rgb[:, 1]
+    assert np.median(fraction) > color.SHEEN_MIN  # the flash's mirror reflection is on the chart, polarized
+    result = color.calibrate_color(raw, device, corners)
+    assert np.nanmean(result.delta_e) <= 1.5 and np.nanmax(result.sheen) > color.SHEEN_MIN
+
+
+@pytest.mark.parametrize("case, match", [
+    ("dark", r"too dark"),  # found or not, each frame's cause is named
+    ("saturated", r"\(saturated samples\): lower the flash|of the frame is saturated: lower the flash"),
+    ("small", r"no ColorChecker 24 found.*fill a good part of the frame"),
+])
+def test_a_chart_that_cannot_be_found_fails_naming_the_cause(case, match):
+    kwargs = {"dark": {"shadow": 0.02}, "saturated": {"peak": 6.0}, "small": {"fill": 0.12}}[case]
+    device, raw, corners, _ = _chart(**kwargs)
+    with pytest.raises(CalibrationError, match=match):
+        color.calibrate_color(raw, device)
+
+
+def test_given_corners_of_a_chart_too_small_dark_or_saturated_name_the_patches():
+    device, raw, corners, _ = _chart(fill=0.08)
+    with pytest.raises(CalibrationError, match=r"too small: \d+ cells sampled, expected at least 16"):
+        color.calibrate_color(raw, device, corners)
+    device, raw, corners, _ = _chart(peak=6.0)
+    with pytest.raises(CalibrationError, match=r"clipped \(saturated samples\): lower the flash"):
+        color.calibrate_color(raw, device, corners)
