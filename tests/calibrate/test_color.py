@@ -100,3 +100,34 @@ def test_given_corners_of_a_chart_too_small_dark_or_saturated_name_the_patches()
     device, raw, corners, _ = _chart(peak=6.0)
     with pytest.raises(CalibrationError, match=r"clipped \(saturated samples\): lower the flash"):
         color.calibrate_color(raw, device, corners)
+
+
+def test_color_command_finds_the_chart_gates_and_records(tmp_path, tilted):
+    """``sellip calibrate color`` without --corners writes the matrix, ΔE and the corners it found; a dark frame
+    fails naming the cause and leaves device.yaml as it was."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    from sellip.capture import writer
+
+    device, raw, corners, _ = tilted
+    device_path = tmp_path / "device.yaml"
+    device_path.write_text(yaml.safe_dump({k: device[k] for k in ("sensor", "camera", "light")}, sort_keys=False))
+    writer.write_raw_file(tmp_path / "chart.dng", raw, device["sensor"])
+    run = [sys.executable, "-m", "sellip.cli", "calibrate", "color", "--device", str(device_path)]
+    subprocess.run(run + [str(tmp_path / "chart.dng")], check=True, capture_output=True, text=True)
+    record = yaml.safe_load(device_path.read_text())["calibration"]["color"]
+    assert record["ok"] and record["delta_e2000_mean"] <= 1.5 and record["targets"]["delta_e_mean"] == 1.5
+    assert np.abs(np.asarray(record["corners_px"]) - corners).max() < 10.0
+    assert record["falloff_range"][1] / record["falloff_range"][0] > 1.15
+    before = device_path.read_bytes()
+    _, dark, _, _ = _chart(tilt_deg=(25.0, 8.0), fill=0.75, shadow=0.02)
+    writer.write_raw_file(tmp_path / "dark.dng", dark, device["sensor"])
+    failed = subprocess.run(run + [str(tmp_path / "dark.dng")], check=False, capture_output=True, text=True)
+    assert failed.returncode != 0 and "too dark" in failed.stderr and device_path.read_bytes() == before
+    # a target the fit cannot meet: the step fails, names the target, writes nothing
+    failed = subprocess.run(run + [str(tmp_path / "chart.dng"), "--max-delta-e-mean", "0.01"], check=False,
+                            capture_output=True, text=True)
+    assert failed.returncode != 0 and "(--max-delta-e-mean)" in failed.stderr and device_path.read_bytes() == before
