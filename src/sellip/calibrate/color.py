@@ -4,21 +4,28 @@ Public API::
 
     reference_srgb() -> (24, 3)                       # linear sRGB (D65) of the ColorChecker 24 (colour-science)
     PATCH_NAMES                                       # the 24 names, row by row
-    patch_means(camera_rgb, corners_px) -> (means (24, 3), spread (24,))   # camera RGB per patch
-    fit_color_matrix(camera (24, 3), reference (24, 3)) -> (M (3, 3), scale)
+    analyzer_images(raw, sensor) -> (4, H/2, W/2, 3)  # demosaiced analyzers, NaN where saturated
+    detect_chart(camera_rgb (H/2, W/2, 3)) -> corners_px (4, 2)   # cv2.mcc; the order is checked by the fit
+    patch_stats(analyzers, corners_px) -> PatchStats  # per patch: RGB, its polarized part, spread, clipped, cells
+    chart_falloff(corners_px, device, pitch_m) -> (24,)   # the flash's relative irradiance from the chart's pose
+    fit_color_matrix(camera (N, 3), reference (N, 3)) -> M (3, 3)
     delta_e_2000(srgb_a, srgb_b) -> (N,)              # CIEDE2000 between linear sRGB colours (colour-science)
-    calibrate_color(raw, device, corners_px) -> ColorResult
+    calibrate_color(raw, device, corners_px=None) -> ColorResult   # None: the chart is found
     corner_orders(corners_px) -> [(words, (4, 2))]    # the 7 other orders of four corners around the chart
     corner_order_causes(raw, device, corners_px, max_delta_e) -> [str]   # why ΔE is high: the order that fits, sheen
 
 The chart: the four corners of its patch area in raw pixels, dark skin's outer corner first, then clockwise
-(along the top row to bluish green, down to black, back to white). Each patch is sampled in its central
-40 % (a homography from the corners places it; lens distortion moves a patch centre by far less than that
-margin). Camera RGB is the demosaiced mean of the four analyzers (s0 / 2 per colour), without any colour
-matrix. The matrix M minimizes sum |M c_i - k r_i|^2 over patches i with the flash's unknown level k (the
-chart's white reads what it reads); it is then scaled so that the neutral patches keep their green level
-(albedos are relative anyway, docs/design.md §4). Patches darker than 2 % of full scale in green, or with a clipped
-sample, are left out and named (a chart in shadow: all of them).
+(along the top row to bluish green, down to black, back to white); given, or found by OpenCV's Macbeth chart
+detector, the order that fits the colours best kept. Each patch is sampled in its central 40 % (a homography
+from the corners places it; lens distortion moves a patch centre by far less than that margin). Camera RGB is
+the demosaiced mean of the four analyzers (s0 / 2 per colour), without any colour matrix; where a patch's light
+is more than :data:`SHEEN_MIN` linearly polarized, that part (the polarized flash's mirror reflection, the
+sheen) is taken out. Each patch is divided by the flash's relative irradiance there (cos(incidence) /
+distance^2, the chart's pose from its corners, the flash at ``light.position_m``). The matrix M minimizes
+sum |M c_i - k r_i|^2 over patches i with the flash's unknown level k (the chart's white reads what it reads);
+it is then scaled so that the neutral patches keep their green level (albedos are relative anyway,
+docs/design.md §4). Patches darker than 2 % of full scale in green, with a clipped sample, or sampled by fewer
+than :data:`MIN_PATCH_CELLS` cells are left out and named (a chart in shadow: all of them).
 """
 
 from __future__ import annotations
