@@ -221,6 +221,11 @@ def detect_chart(camera_rgb: np.ndarray) -> np.ndarray:
     level = float(np.percentile(image, 99.5))
     encoded = np.clip(image / max(level, 1e-6), 0, 1) ** (1 / 2.2)
     bgr = np.ascontiguousarray((encoded[..., ::-1] * 255).round().astype(np.uint8))
+    # the detector places its squares best on an image about 600 px wide (measured: a 1224 px cell grid put
+    # them 10 cells off, its half 3)
+    factor = max(1, int(round(bgr.shape[1] / DETECT_WIDTH_PX)))
+    if factor > 1:
+        bgr = cv2.resize(bgr, (bgr.shape[1] // factor, bgr.shape[0] // factor), interpolation=cv2.INTER_AREA)
     detector = cv2.mcc.CCheckerDetector_create()
     detector.setColorChartType(cv2.mcc.MCC24)
     found = detector.process(bgr)
@@ -229,7 +234,7 @@ def detect_chart(camera_rgb: np.ndarray) -> np.ndarray:
         raise CalibrationError("no ColorChecker 24 found in the frame" + _frame_causes(camera_rgb)
                                + "; or give its corners with --corners")
     squares = np.asarray(detector.getBestColorChecker().getColorCharts(), np.float64).reshape(24, 4, 2)
-    centres = squares.mean(axis=1) * 2 + 0.5  # cell -> raw pixels
+    centres = ((squares.mean(axis=1) + 0.5) * factor - 0.5) * 2 + 0.5  # detector's image -> cell -> raw pixels
     i, j = np.divmod(np.arange(24), 6)
     chart = np.stack([j + 0.5, i + 0.5], axis=-1)
     homography, _ = cv2.findHomography(chart, centres, 0)
@@ -242,6 +247,9 @@ SHEEN_MIN = 0.03
 
 SHEEN_FRACTION = 0.2
 """A patch whose light is more than this fraction linearly polarized shows the flash's sheen (named as a cause)."""
+
+DETECT_WIDTH_PX = 612
+"""The chart is found on the cell-grid image binned to about this width."""
 
 MIN_PATCH_CELLS = 16
 """Cells (2x2 raw pixels) a patch's sampled centre needs: fewer, the chart is too small in the frame."""
