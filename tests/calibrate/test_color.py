@@ -14,12 +14,12 @@ from sellip.calibrate.intrinsics import CalibrationError
 W, H = 612, 512
 
 
-def _chart(tilt_deg=(10.0, 0.0), fill=0.8, peak=0.6, shadow=1.0, sheen=0.0, seed=0):
-    """(device, raw, true corners (4, 2), (R, t)) of a chart tilted by ``tilt_deg`` (about x, y) whose patch area
-    spans ``fill`` of the frame's width, exposed so that the lit chart's 99.9th percentile reads ``peak`` of
-    full scale."""
+def _chart(tilt_deg=(10.0, 0.0), fill=0.8, peak=0.6, shadow=1.0, sheen=0.0, seed=0, roll_deg=0.0):
+    """(device, raw, true corners (4, 2), (R, t)) of a chart turned by ``roll_deg`` in its plane and tilted by
+    ``tilt_deg`` (about x, y), whose patch area spans ``fill`` of the frame's width (its long side), exposed so
+    that the lit chart's 99.9th percentile reads ``peak`` of full scale."""
     device = synthetic.true_device(W, H)
-    rotation = Rotation.from_euler("xy", tilt_deg, degrees=True).as_matrix()
+    rotation = Rotation.from_euler("zxy", (roll_deg, *tilt_deg), degrees=True).as_matrix()
     distance = 6 * synthetic.CHART_PATCH_M * device["camera"]["fx"] / (fill * W)
     translation = np.array([0.0, 0.0, distance]) - rotation @ synthetic.chart_corners_board().mean(axis=0)
     lit = synthetic.render_chart(device, rotation, translation, sheen=sheen)
@@ -43,6 +43,14 @@ def test_chart_found_without_corners_in_the_documented_order(tilted):
     # dark skin's corner first, then clockwise: each found corner lies by its true one (a patch pitch is ~75 px)
     assert np.linalg.norm(result.corners_px - corners, axis=1).max() < 10.0
     assert np.nanmean(result.delta_e) <= 1.5 and not result.left_out
+
+
+@pytest.mark.parametrize("roll_deg", [180.0, 90.0])
+def test_a_chart_upside_down_or_on_its_side_is_found_in_the_documented_order(roll_deg):
+    device, raw, corners, _ = _chart(roll_deg=roll_deg, fill=0.8 if roll_deg == 180 else 0.55)
+    result = color.calibrate_color(raw, device)
+    assert np.linalg.norm(result.corners_px - corners, axis=1).max() < 15.0  # dark skin's corner is still first
+    assert np.nanmean(result.delta_e) <= 1.5
 
 
 def test_falloff_follows_the_charts_pose_and_is_divided_out(tilted):
