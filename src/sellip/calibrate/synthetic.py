@@ -498,9 +498,10 @@ def chart_texture(reference: np.ndarray):
     return texture
 
 
-CHART_SHEEN = {"rho_s": 0.05, "sigma_s": 0.25}
-"""The chart's surface sheen: a faint, broad specular lobe (a printed chart's semi-matte varnish), which
-mirrors the polarized flash where the chart faces it."""
+CHART_SHEEN = {"rho_s": 1.0, "sigma_s": 0.1}
+"""The chart's surface sheen at ``render_chart(..., sheen=1)``: a specular lobe (a printed chart's semi-matte
+varnish) that mirrors the polarized flash where the chart faces it; facing the camera squarely at 0.9 m with
+the flash 5 cm below the lens, its patches' light is 10 % polarized (median; 24 % the darkest)."""
 
 
 def render_chart(device: dict, rotation: np.ndarray, translation: np.ndarray, supersample: int = 2,
