@@ -6,8 +6,9 @@ Writes the calibration folder with ``sellip synth-calibration`` (unless ``--fold
 protocol docs/calibration.md recommends: 48 poses of a 14x10-corner, 10 mm board; 6 layouts of 3 glossy 40 mm
 spheres before a light panel; every pose a burst of 4 frames (192 board frames, 24 sphere frames); a
 ColorChecker, then runs each step of ``sellip calibrate`` as a library call, the flash and the polarization
-check with the CALIBRATED intrinsics, and prints the error of each against truth.yaml and the targets it misses
-(sellip.calibrate.targets), one line each, and a JSON summary on the last line (docs/calibration.md records the
+check with the CALIBRATED intrinsics (the colour step with the chart's true corners and found without
+them), and prints the error of each against truth.yaml and the targets it misses (sellip.calibrate.targets),
+one line each, and a JSON summary on the last line (docs/calibration.md records the
 figures). The spheres mirror their light panel unless ``--no-panel-reflection``.
 """
 
@@ -90,12 +91,21 @@ def main() -> None:
     print("polarization:", json.dumps(summary["polarization"]), flush=True)
 
     raw = reader.read_raw_file(args.folder / "chart" / truth["chart"]["file"], sensor)
-    c = color.calibrate_color(raw, device, np.asarray(truth["chart"]["corners_px"]))
     m_true = np.asarray(cam["color_matrix"])
-    summary["color"] = {"delta_e2000_mean": float(np.nanmean(c.delta_e)),
-                        "delta_e2000_max": float(np.nanmax(c.delta_e)),
-                        "matrix_max_rel_error": float(np.abs(c.matrix - m_true).max() / np.abs(m_true).max()),
-                        "missed_targets": targets.check("color", {"delta_e_mean": float(np.nanmean(c.delta_e))})}
+    true_corners = np.asarray(truth["chart"]["corners_px"])
+    summary["color"] = {}
+    for how, corners in (("given_corners", true_corners), ("found", None)):
+        try:
+            c = color.calibrate_color(raw, device, corners)
+        except CalibrationError as exc:
+            summary["color"][how] = {"failed": str(exc)}
+            continue
+        summary["color"][how] = {
+            "delta_e2000_mean": float(np.nanmean(c.delta_e)), "delta_e2000_max": float(np.nanmax(c.delta_e)),
+            "corner_error_px": float(np.linalg.norm(c.corners_px - true_corners, axis=1).max()),
+            "falloff_range": [float(c.falloff.min()), float(c.falloff.max())],
+            "matrix_max_rel_error": float(np.abs(c.matrix - m_true).max() / np.abs(m_true).max()),
+            "missed_targets": targets.check("color", {"delta_e_mean": float(np.nanmean(c.delta_e))})}
     print("color:", json.dumps(summary["color"]), flush=True)
     print(json.dumps(summary))
 

@@ -7,7 +7,7 @@ Public API (raw frames are (H, W) uint16 mosaics; a device is device.yaml's mapp
     intrinsics.half_to_raw(p) = 2 p + 0.5                       # half-resolution -> raw pixel centres
     flash.calibrate_flash(frames, device, radius_m) -> FlashResult   # spheres -> mirror rays -> nearest point
     polarization.check_polarization(frames, device, radius_m) -> PolarizationReport   # layout, flash polarizer
-    color.calibrate_color(raw, device, corners_px (4, 2)) -> ColorResult   # 3x3 camera RGB -> linear sRGB, dE2000
+    color.calibrate_color(raw, device, corners_px=None) -> ColorResult   # 3x3 camera RGB -> sRGB, dE2000
     report.intrinsics_report / flash_report / polarization_report / color_report -> StepReport
                                                                   # each step's log lines, sections and record
     device.read_device / write_device / update_device            # device.yaml, validated, atomic

@@ -3,7 +3,7 @@
     sellip calibrate intrinsics FRAME... --device device.yaml --board 9x7 --square-mm 15 [--k3]
     sellip calibrate flash FRAME... --device device.yaml --sphere-radius-mm 20 [--max-flash-std-mm 2 ...]
     sellip calibrate polarization FRAME... --device device.yaml --sphere-radius-mm 20 [--write]
-    sellip calibrate color FRAME --device device.yaml --corners X,Y X,Y X,Y X,Y
+    sellip calibrate color FRAME --device device.yaml [--corners X,Y X,Y X,Y X,Y]
 
 device.yaml must exist with at least its ``sensor`` section (docs/calibration.md); each step reads raw frames
 (DNG / 16-bit TIFF / PNG, checked against the sensor), logs every frame it leaves out with why, gates on its own
@@ -89,9 +89,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     _add_targets(p, "polarization")
     p = sub.add_parser("color", parents=[common], help="3x3 colour matrix from a ColorChecker under the flash")
     p.add_argument("frame", type=Path, help="raw frame of the chart")
-    p.add_argument("--corners", required=True, type=_point, nargs=4, metavar="X,Y",
+    p.add_argument("--corners", type=_point, nargs=4, metavar="X,Y",
                    help="the patch area's corners in raw pixels: dark skin's outer corner first, then clockwise "
-                        "(bluish green's, black's, white's)")
+                        "(bluish green's, black's, white's); default: the chart is found and its order checked")
     _add_targets(p, "color")
 
 
@@ -171,11 +171,12 @@ def _color(args, device) -> int:
     from sellip.calibrate.report import color_report
 
     raw = reader.read_raw_file(_existing(args.frame), device["sensor"])
-    corners = np.asarray(args.corners, np.float64)
+    corners = None if args.corners is None else np.asarray(args.corners, np.float64)
     result = calibrate_color(raw, device, corners)
     measured = {"delta_e_mean": float(np.nanmean(result.delta_e))}
     limit = _targets(args, "color")["delta_e_mean"]
-    causes = corner_order_causes(raw, device, corners, limit) if not measured["delta_e_mean"] <= limit else []
+    causes = (corner_order_causes(raw, device, result.corners_px, limit)
+              if not measured["delta_e_mean"] <= limit else [])
     targets = _gate(args, "color", measured, causes)
     _apply(args, "color", color_report(result), targets)
     return 0
