@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
@@ -80,13 +81,16 @@ NO_SPHERE = "no sphere found (expected dark spheres in front of a bright backgro
 @dataclass
 class Sphere:
     """One sphere in a frame: centre (3,) camera coordinates (m), radius_px (output pixels), centroid_px (x, y),
-    outline_rms_px (how well the outline fits a sphere), problem (None or why it is left out)."""
+    outline_rms_px (how well the outline fits a sphere), problem (None or why it is left out), outline_centre (3,):
+    the centre from the half-level outline alone (before the rim model; the flash's systematic 1-sigma compares the
+    two)."""
 
     centre: np.ndarray | None
     radius_px: float
     centroid_px: np.ndarray
     outline_rms_px: float = float("nan")
     problem: str | None = None
+    outline_centre: np.ndarray | None = None
 
 
 def develop_frame(raw: np.ndarray, device: Mapping) -> tuple[np.ndarray, dict]:
@@ -306,9 +310,10 @@ def find_spheres(s0: np.ndarray, intrinsics: Mapping, radius_m: float, rim_eta: 
         axis, cos_alpha, residual = _fit_cone(pixel_rays(outline, intrinsics))
         rms = float(np.sqrt(np.mean(residual ** 2)) / pixel_scale)
         alpha = float(np.arccos(cos_alpha))
+        outline_centre = axis * radius_m / np.sin(alpha)
         if rim_eta is not None:
             axis, alpha = rim_silhouette(s0, intrinsics, axis, alpha, background, rim_eta)
-        sphere = Sphere(axis * radius_m / np.sin(alpha), radius, centroid, rms)
+        sphere = Sphere(axis * radius_m / np.sin(alpha), radius, centroid, rms, outline_centre=outline_centre)
         if rms > MAX_OUTLINE_RMS_PX:
             sphere.problem = (f"outline is {rms:.2f} px RMS from a sphere's silhouette (at most {MAX_OUTLINE_RMS_PX}"
                               " expected): occluded, touching another object, or not a sphere")
@@ -410,8 +415,10 @@ def nearest_point(points: np.ndarray, directions: np.ndarray, scale_m: float = 1
 
 @dataclass
 class FlashResult:
-    """position_m (3,) camera coordinates; std_m (3,) one-sigma from the lines' spread; highlights: one record per
-    used highlight (frame, sphere index, centre, residual_mm); left_out: {"frame[#k]": why}."""
+    """position_m (3,) camera coordinates; std_m (3,) one-sigma: the lines' spread and the sphere centres' error
+    together (:func:`solve_flash`); centre_std_m (3,) the centres' part alone; highlights: one record per used
+    highlight (frame, sphere index, centre, residual_mm); left_out: {"frame[#k]": why}; protocol: "board" (spheres
+    resting on the board, centres from its pose) or "outline" (spheres before a bright background)."""
 
     position_m: np.ndarray
     std_m: np.ndarray
@@ -419,6 +426,8 @@ class FlashResult:
     highlights: list[dict]
     left_out: dict[str, str] = field(default_factory=dict)
     image_size: tuple[int, int] = (0, 0)
+    centre_std_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    protocol: str = "outline"
 
     def uncertainty(self) -> dict[str, float]:
         """What :mod:`sellip.calibrate.targets` gates the flash on: {flash_std_mm (largest axis), flash_rms_mm}."""
@@ -426,15 +435,18 @@ class FlashResult:
 
     def causes(self) -> list[str]:
         """Why the position may be uncertain, as far as the frames show it: spheres left out (clipped, touching,
-        saturated), too few highlights, highlights all near the image centre, large residuals."""
+        saturated), too few highlights, highlights all near the image centre or at one distance, large residuals,
+        sphere centres that the rim reflection makes uncertain."""
         out = []
         kinds = {"clipped": "clipped by the frame edge", "touching": "touching another sphere or object",
                  "saturated": "with a saturated highlight (lower the flash)", "no sphere": "frames without a sphere "
-                 "against a bright background", "no mirror highlight": "without a mirror highlight"}
+                 "against a bright background", "no mirror highlight": "without a mirror highlight",
+                 "board not found": "frames whose board was not found"}
         for key, words in kinds.items():
             count = sum(key in why for why in self.left_out.values())
             if count:
-                out.append(f"{count} sphere(s) {words}" if key != "no sphere" else f"{count} {words}")
+                out.append(f"{count} sphere(s) {words}" if key not in ("no sphere", "board not found")
+                           else f"{count} {words}")
         count = len(self.highlights)
         if count < 2 * MIN_HIGHLIGHTS:
             out.append(f"only {count} highlights: take more frames, 2-3 spheres each "
@@ -446,12 +458,30 @@ class FlashResult:
                 out.append(f"the spheres were all near the image centre: their highlights span {100 * extent[0]:.0f} % "
                            f"of the width and {100 * extent[1]:.0f} % of the height (at least {100 * FIELD_SPREAD:.0f} "
                            "% expected): place them over the whole field")
+            depth = np.asarray([h["centre_m"][2] for h in self.highlights])
+            if depth.max() - depth.min() < DEPTH_SPREAD * np.median(depth):
+                out.append(f"the spheres were all at one distance ({1e3 * depth.min():.0f}-{1e3 * depth.max():.0f} mm):"
+                           f" expected depths {100 * DEPTH_SPREAD:.0f} % apart or more (near and far spheres, or the "
+                           "board tilted)")
             worst = max(self.highlights, key=lambda h: h.get("residual_mm", 0.0))
             if worst.get("residual_mm", 0.0) > 3 * max(np.median([h["residual_mm"] for h in self.highlights]), 0.1):
                 out.append(f"highlight residuals up to {worst['residual_mm']:.1f} mm ({worst['frame']} sphere "
                            f"{worst['sphere']}): a sphere's outline or centre is wrong there (a bright rim "
-                           "reflection, a wrong --sphere-radius-mm)")
+                           "reflection, a wrong --sphere-radius-mm, a sphere off its square's centre)")
+        centre = float(np.max(self.centre_std_m) * 1e3)
+        if self.protocol == "outline" and centre > 0.5 * float(np.max(self.std_m) * 1e3):
+            out.append(f"the sphere centres from their outlines are uncertain: the flash moves by {centre:.1f} mm "
+                       "between the half-level outline and the rim model (glossy spheres mirror the bright background "
+                       "at their rims): set the spheres down on the board instead (--board, docs/calibration.md)")
+        elif self.protocol == "board" and centre > 0.5 * float(np.max(self.std_m) * 1e3):
+            out.append(f"the board's pose (and the intrinsics' 1-sigma) move the flash by {centre:.1f} mm: the board "
+                       "too small or too far in the frame, or the intrinsics uncertain")
         return out
+
+
+DEPTH_SPREAD = 0.1
+"""Sphere centres whose depths span less than this share of their median: all at one distance (depth poorly
+determined)."""
 
 
 def intensity(analyzers: np.ndarray) -> np.ndarray:
@@ -459,12 +489,45 @@ def intensity(analyzers: np.ndarray) -> np.ndarray:
     return analyzers.sum(axis=-2).mean(axis=-1) / 2
 
 
+def solve_flash(points: np.ndarray, directions: np.ndarray, scale_m: float = 1e-3,
+                centre_samples: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The flash X (3,) from mirror lines (points, unit directions (N, 3), :func:`nearest_point`) with its
+    covariance: the lines' spread (sigma^2 (sum_i w_i (I - d_i d_i^T))^-1, sigma^2 from the weighted residuals,
+    2 N - 3 degrees of freedom) plus ``centre_samples`` (S, 3): the flash recomputed with the sphere centres
+    (and whatever else they hang on) drawn from their error model, whose covariance is added -- the lines' spread
+    cannot see an error that all centres share. Returns (X, covariance (3, 3), distances (N,), centre part (3, 3))."""
+    position, distances, weights = nearest_point(points, directions, scale_m)
+    projectors = np.eye(3) - directions[:, :, None] * directions[:, None, :]
+    dof = max(len(points) * 2 - 3, 1)
+    sigma2 = float(np.sum(weights * distances ** 2) / dof)
+    cov = sigma2 * np.linalg.inv(np.einsum("n,nij->ij", weights, projectors))
+    centre = np.zeros((3, 3))
+    if centre_samples is not None and len(centre_samples) > 1:
+        centre = np.atleast_2d(np.cov(np.asarray(centre_samples).T, bias=True))
+    return position, cov + centre, distances, centre
+
+
+def _too_few_highlights(count: int, min_highlights: int, left_out: Mapping[str, str]) -> CalibrationError:
+    lines = "".join(f"\n  {k}: {v}" for k, v in left_out.items())
+    return CalibrationError(f"{count} usable sphere highlight(s), at least {min_highlights} needed: take "
+                            f"{min_highlights - count} more (spheres wholly in view, over the whole field, "
+                            f"highlights below the white level).{lines}")
+
+
 def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m: float,
-                    min_highlights: int = MIN_HIGHLIGHTS, scale_m: float = 1e-3, log=None) -> FlashResult:
+                    board: tuple[int, int, float] | None = None, min_highlights: int = MIN_HIGHLIGHTS,
+                    scale_m: float = 1e-3, log=None) -> FlashResult:
     """The flash position from raw frames {name: (H, W)} of glossy spheres of radius ``radius_m`` (module
-    docstring). ``device`` needs sensor and camera (intrinsics calibrated). Every sphere left out is named with
-    why; fewer than ``min_highlights`` usable highlights raise CalibrationError saying how many more are needed."""
-    points, directions, records, left_out = [], [], [], {}
+    docstring). ``device`` needs sensor and camera (intrinsics calibrated; ``calibration.intrinsics.std_px``, when
+    there, enters the 1-sigma). ``board`` (cols, rows, square_m): the spheres rest on that checkerboard at square
+    centres and ``frames`` hold pairs NAME / NAME_board (:func:`calibrate_flash_on_board`); else the spheres stand
+    before a bright background and their centres come from their outlines, the 1-sigma including how far the flash
+    moves between the half-level outline's centres and the rim model's. Every sphere left out is named with why;
+    fewer than ``min_highlights`` usable highlights raise CalibrationError saying how many more are needed."""
+    if board is not None:
+        return calibrate_flash_on_board(frames, device, radius_m, *board, min_highlights=min_highlights,
+                                        scale_m=scale_m, log=log)
+    points, directions, records, left_out, outline_lines = [], [], [], {}, []
     image_size = (0, 0)
     for name, raw in frames.items():
         analyzers, intrinsics = develop_frame(raw, device)
@@ -481,10 +544,11 @@ def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m:
             highlight = None
             if problem is None:
                 highlight, problem = find_highlight(s0, sphere)
-            line = None
+            line = outline_line = None
             if problem is None:
                 line = mirror_ray(sphere.centre, radius_m, highlight, intrinsics)
-                if line is None:
+                outline_line = mirror_ray(sphere.outline_centre, radius_m, highlight, intrinsics)
+                if line is None or outline_line is None:
                     problem = "the highlight's ray misses the fitted sphere (wrong --sphere-radius-mm?)"
             if problem is not None:
                 left_out[label] = problem
@@ -493,21 +557,238 @@ def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m:
                 continue
             points.append(line[0])
             directions.append(line[1])
+            outline_lines.append(outline_line)
             records.append({"frame": name, "sphere": k, "centre_m": sphere.centre.tolist(),
                             "outline_rms_px": sphere.outline_rms_px, "highlight_px": highlight.tolist()})
     if len(points) < min_highlights:
-        lines = "".join(f"\n  {k}: {v}" for k, v in left_out.items())
-        raise CalibrationError(f"{len(points)} usable sphere highlight(s), at least {min_highlights} needed: take "
-                               f"{min_highlights - len(points)} more (spheres wholly in view, over the whole field, "
-                               f"highlights below the white level).{lines}")
+        raise _too_few_highlights(len(points), min_highlights, left_out)
     points, directions = np.asarray(points), np.asarray(directions)
-    position, distances, weights = nearest_point(points, directions, scale_m)
+    # the rim model's correction of the centres, taken as their systematic error: the flash from the half-level
+    # outline's centres is one draw at +1 sigma and its mirror at -1 sigma
+    outline, *_ = nearest_point(np.asarray([p for p, _ in outline_lines]),
+                                np.asarray([d for _, d in outline_lines]), scale_m)
+    position, *_ = nearest_point(points, directions, scale_m)
+    samples = np.stack([outline, 2 * position - outline])
+    position, cov, distances, centre = solve_flash(points, directions, scale_m, samples)
     for record, distance in zip(records, distances):
         record["residual_mm"] = float(distance * 1e3)
-    projectors = np.eye(3) - directions[:, :, None] * directions[:, None, :]
-    dof = max(len(points) * 2 - 3, 1)
-    sigma2 = float(np.sum(weights * distances ** 2) / dof)
-    cov = sigma2 * np.linalg.inv(np.einsum("n,nij->ij", weights, projectors))
     return FlashResult(position_m=position, std_m=np.sqrt(np.diag(cov)),
                        rms_mm=float(np.sqrt(np.mean(distances ** 2)) * 1e3), highlights=records, left_out=left_out,
-                       image_size=image_size)
+                       image_size=image_size, centre_std_m=np.sqrt(np.diag(centre)), protocol="outline")
+
+
+# --------------------------------------------------------------------------- spheres resting on the board
+
+BOARD_SUFFIX = "_board"
+"""The board frame of the sphere frame NAME.ext is NAME_board.ext: the board alone, from the same camera position,
+before the spheres were set down on it."""
+
+MARK_TOLERANCE = 0.3
+"""A highlight's ray must meet the plane of the sphere centres within this share of a square from a square's
+centre (a sphere set down off its square's centre, or something else bright, is left out)."""
+
+CENTRE_SAMPLES = 200
+"""Draws of the board poses and intrinsics from their 1-sigma for the flash's centre error (:func:`solve_flash`)."""
+
+
+@dataclass
+class BoardPose:
+    """A board frame's pose: rvec, tvec (board -> camera, OpenCV), corners (N, 2) raw px, object (N, 3) board
+    coordinates (m), cov (6, 6) of (rvec, tvec) from the corners' reprojection residuals."""
+
+    rvec: np.ndarray
+    tvec: np.ndarray
+    corners: np.ndarray
+    object: np.ndarray
+    cov: np.ndarray
+
+    @property
+    def rotation(self) -> np.ndarray:
+        import cv2
+
+        return cv2.Rodrigues(self.rvec)[0]
+
+
+def _camera_matrix(camera: Mapping) -> np.ndarray:
+    return np.array([[camera["fx"], 0, camera["cx"]], [0, camera["fy"], camera["cy"]], [0, 0, 1]], np.float64)
+
+
+def board_pose(raw: np.ndarray, device: Mapping, cols: int, rows: int, square_m: float
+               ) -> tuple[BoardPose | None, str | None]:
+    """The board's pose in a raw frame (cv2.solvePnP on its refined corners, the device's intrinsics and
+    distortion) with its covariance, or (None, why)."""
+    import cv2
+
+    from sellip.calibrate.intrinsics import detect_board, intensity_image, opencv_single_threaded
+
+    found = detect_board(intensity_image(raw, device["sensor"]), cols, rows)
+    if found.problem:
+        return None, found.problem
+    camera = device["camera"]
+    k, dist = _camera_matrix(camera), np.asarray(camera.get("distortion", [0.0] * 5), np.float64)
+    obj = np.zeros((rows * cols, 3), np.float64)
+    obj[:, :2] = np.mgrid[0:cols, 0:rows].T.reshape(-1, 2) * square_m
+    with opencv_single_threaded():
+        ok, rvec, tvec = cv2.solvePnP(obj, found.corners, k, dist, flags=cv2.SOLVEPNP_ITERATIVE)
+        projected, jacobian = cv2.projectPoints(obj, rvec, tvec, k, dist)
+    residual = projected.reshape(-1, 2) - found.corners
+    j = jacobian[:, :6]
+    sigma2 = float(np.sum(residual ** 2) / max(residual.size - 6, 1))
+    cov = sigma2 * np.linalg.inv(j.T @ j)
+    return BoardPose(rvec.ravel(), tvec.ravel(), found.corners, obj, cov), None
+
+
+def board_sphere_marks(s0_spheres: np.ndarray, s0_board: np.ndarray, intrinsics: Mapping, pose: BoardPose,
+                       cols: int, rows: int, square_m: float, radius_m: float
+                       ) -> tuple[list[np.ndarray], dict[str, str]]:
+    """The square centres (x, y board coordinates, m) that spheres rest on: every bright spot that the sphere frame
+    has and its board frame has not (a mirror highlight) is followed along its ray to the plane of the sphere
+    centres (``radius_m`` above the board) and snapped to the nearest square centre (:data:`MARK_TOLERANCE`).
+    Returns (marks, {spot: why left out})."""
+    finite = np.isfinite(s0_spheres)
+    diff = np.where(finite, s0_spheres - np.nan_to_num(s0_board), np.inf)
+    values = diff[np.isfinite(diff)]
+    noise = 1.4826 * float(np.median(np.abs(values - np.median(values))))
+    peak = float(np.max(values)) if np.all(finite) else float(np.nanmax(s0_board)) + 1.0
+    bright = diff > max(0.2 * peak, 30 * noise)
+    labels, count = ndimage.label(bright)
+    rotation, tvec = pose.rotation, pose.tvec
+    best: dict[tuple[int, int], tuple[float, np.ndarray]] = {}
+    left_out = {}
+    for index in range(1, count + 1):
+        spot = labels == index
+        at = np.unravel_index(int(np.argmax(np.where(spot, np.nan_to_num(diff, posinf=1e30), -np.inf))), diff.shape)
+        px = np.array([at[1], at[0]], np.float64)
+        ray = rotation.T @ pixel_rays(px, intrinsics)
+        origin = -rotation.T @ tvec  # the camera in board coordinates
+        # board z points away from the camera: the centres lie on z = -radius
+        lam = (-radius_m - origin[2]) / ray[2]
+        x, y = (origin + lam * ray)[:2]
+        j, i = np.round(x / square_m + 0.5), np.round(y / square_m + 0.5)
+        mark = np.array([(j - 0.5) * square_m, (i - 0.5) * square_m])
+        where = f"spot at ({px[0]:.0f}, {px[1]:.0f})"
+        if not (0 <= j <= cols and 0 <= i <= rows):
+            left_out[where] = "a bright spot off the board (not a sphere on it)"
+        elif np.hypot(x - mark[0], y - mark[1]) > MARK_TOLERANCE * square_m:
+            left_out[where] = (f"a highlight {1e3 * np.hypot(x - mark[0], y - mark[1]):.1f} mm from the nearest "
+                               f"square's centre (at most {1e3 * MARK_TOLERANCE * square_m:.1f} expected): a sphere "
+                               "not set down on a square's centre, or a wrong --sphere-radius-mm")
+        else:
+            key = (int(i), int(j))
+            strength = float(np.nan_to_num(diff[at], posinf=1e30))
+            if key not in best or best[key][0] < strength:
+                best[key] = (strength, mark)
+    return [mark for _, mark in best.values()], left_out
+
+
+def _perturbed(camera: Mapping, draw: np.ndarray, std: Mapping) -> dict:
+    return {**camera, **{key: float(camera[key]) + draw[n] * float(std.get(key, 0.0))
+                         for n, key in enumerate(("fx", "fy", "cx", "cy"))}}
+
+
+def calibrate_flash_on_board(frames: Mapping[str, np.ndarray], device: Mapping, radius_m: float, cols: int,
+                             rows: int, square_m: float, min_highlights: int = MIN_HIGHLIGHTS, scale_m: float = 1e-3,
+                             samples: int = CENTRE_SAMPLES, seed: int = 0, log=None) -> FlashResult:
+    """The flash position from spheres resting on the checkerboard (``cols`` x ``rows`` inner corners, squares of
+    ``square_m``) at square centres. ``frames``: pairs NAME (spheres on the board) and NAME_board (the board alone,
+    same camera position, :data:`BOARD_SUFFIX`). The board frame's pose (:func:`board_pose`) fixes each sphere's
+    centre: ``radius_m`` above its square's centre (:func:`board_sphere_marks`); the highlight's mirror line as in
+    the module docstring. The 1-sigma adds to the lines' spread the flash's spread over ``samples`` draws of every
+    board's pose (its covariance) and the intrinsics (``device['calibration']['intrinsics']['std_px']``, when
+    there): the error the centres share (:func:`solve_flash`)."""
+    import cv2
+
+    from sellip.capture.ingest import output_intrinsics
+
+    left_out: dict[str, str] = {}
+    names = {n: Path(n) for n in frames}
+    boards = {p.stem[: -len(BOARD_SUFFIX)]: n for n, p in names.items() if p.stem.endswith(BOARD_SUFFIX)}
+    pairs = {}
+    for name, path in names.items():
+        if path.stem.endswith(BOARD_SUFFIX):
+            if path.stem[: -len(BOARD_SUFFIX)] not in {p.stem for p in names.values()}:
+                left_out[name] = "a board frame without its sphere frame (expected " \
+                                 f"{path.stem[: -len(BOARD_SUFFIX)]}{path.suffix} beside it)"
+            continue
+        if path.stem not in boards:
+            left_out[name] = (f"no board frame {path.stem}{BOARD_SUFFIX}{path.suffix} beside it: expected the board "
+                              "alone, shot from the same camera position before the spheres were set down")
+            continue
+        pairs[name] = boards[path.stem]
+    sensor = device["sensor"]
+    std = (device.get("calibration") or {}).get("intrinsics", {}).get("std_px", {}) or {}
+    points, directions, records, used = [], [], [], []
+    image_size = (0, 0)
+    poses: dict[str, BoardPose] = {}
+    for name, board_name in pairs.items():
+        pose, problem = board_pose(frames[board_name], device, cols, rows, square_m)
+        if problem:
+            left_out[board_name] = f"board not found or unusable: {problem}"
+            if log:
+                log(f"{board_name}: {problem}")
+            continue
+        poses[name] = pose
+        analyzers, intrinsics = develop_frame(frames[name], device)
+        s0 = intensity(analyzers)
+        s0_board = intensity(develop_frame(frames[board_name], device)[0])
+        image_size = (s0.shape[1], s0.shape[0])
+        marks, spots = board_sphere_marks(s0, s0_board, intrinsics, pose, cols, rows, square_m, radius_m)
+        for where, why in spots.items():
+            left_out[f"{name} {where}"] = why
+        if not marks:
+            left_out[name] = "no sphere highlight on the board (expected glossy spheres set down on squares' centres)"
+        f = float(np.sqrt(intrinsics["fx"] * intrinsics["fy"]))
+        for k, mark in enumerate(marks):
+            centre = pose.rotation @ np.array([mark[0], mark[1], -radius_m]) + pose.tvec
+            centroid = np.array([intrinsics["fx"] * centre[0] / centre[2] + intrinsics["cx"],
+                                 intrinsics["fy"] * centre[1] / centre[2] + intrinsics["cy"]])
+            sphere = Sphere(centre, f * radius_m / float(np.linalg.norm(centre)), centroid)
+            label = f"{name}#{k} on square ({1e3 * mark[0]:.0f}, {1e3 * mark[1]:.0f}) mm"
+            highlight, problem = find_highlight(s0, sphere)
+            line = None if problem else mirror_ray(centre, radius_m, highlight, intrinsics)
+            if problem is None and line is None:
+                problem = "the highlight's ray misses the sphere (wrong --sphere-radius-mm or --square-mm?)"
+            if problem is not None:
+                left_out[label] = problem
+                if log:
+                    log(f"{label}: {problem}")
+                continue
+            points.append(line[0])
+            directions.append(line[1])
+            used.append((name, mark, highlight))
+            records.append({"frame": name, "sphere": k, "mark_m": mark.tolist(), "centre_m": centre.tolist(),
+                            "highlight_px": highlight.tolist()})
+    if len(points) < min_highlights:
+        raise _too_few_highlights(len(points), min_highlights, left_out)
+    points, directions = np.asarray(points), np.asarray(directions)
+    # the centres' error: every board's pose from its covariance and from intrinsics drawn from their 1-sigma
+    rng = np.random.default_rng(seed)
+    camera = device["camera"]
+    dist = np.asarray(camera.get("distortion", [0.0] * 5), np.float64)
+    height, width = int(sensor["height"]), int(sensor["width"])
+    draws = []
+    for _ in range(samples):
+        drawn = _perturbed(camera, rng.standard_normal(4), std)
+        k = _camera_matrix(drawn)
+        grid = output_intrinsics(drawn, height, width)
+        drawn_poses = {}
+        for name, pose in poses.items():
+            _, rvec, tvec = cv2.solvePnP(pose.object, pose.corners, k, dist, pose.rvec.copy(), pose.tvec.copy(),
+                                         useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+            delta = rng.multivariate_normal(np.zeros(6), pose.cov)
+            drawn_poses[name] = (cv2.Rodrigues(rvec.ravel() + delta[:3])[0], tvec.ravel() + delta[3:])
+        lines = []
+        for name, mark, highlight in used:
+            rotation, tvec = drawn_poses[name]
+            line = mirror_ray(rotation @ np.array([mark[0], mark[1], -radius_m]) + tvec, radius_m, highlight, grid)
+            if line is not None:
+                lines.append(line)
+        if len(lines) >= min_highlights:
+            draws.append(nearest_point(np.asarray([p for p, _ in lines]), np.asarray([d for _, d in lines]),
+                                       scale_m)[0])
+    position, cov, distances, centre = solve_flash(points, directions, scale_m, np.asarray(draws))
+    for record, distance in zip(records, distances):
+        record["residual_mm"] = float(distance * 1e3)
+    return FlashResult(position_m=position, std_m=np.sqrt(np.diag(cov)),
+                       rms_mm=float(np.sqrt(np.mean(distances ** 2)) * 1e3), highlights=records, left_out=left_out,
+                       image_size=image_size, centre_std_m=np.sqrt(np.diag(centre)), protocol="board")

@@ -33,6 +33,8 @@ A calibration folder (``sellip synth-calibration --out DIR``)::
     truth.yaml                 the true device (sensor, camera, light), board poses, sphere centres, chart corners
     board/board_NN.dng         checkerboard frames (board_NN_bK.dng: frame K of a burst of pose NN)
     spheres/spheres_NN.dng     frames of glossy spheres of known radius (likewise)
+    board_spheres/spheres_NN_board.dng, spheres_NN.dng   the board alone, then spheres resting on it at square
+                               centres, from one camera position (the flash step's board protocol)
     chart/chart_00.dng         a ColorChecker under the flash
 """
 
@@ -381,10 +383,13 @@ def panel_reflection(points: np.ndarray, normals: np.ndarray, eta: float, panel:
 
 
 def render_spheres(device: dict, spheres: list[tuple[np.ndarray, float]], supersample: int = 2,
-                   panel: float = 0.5, params: dict | None = None, reflect_panel: bool = True) -> np.ndarray:
+                   panel: float = 0.5, params: dict | None = None, reflect_panel: bool = True,
+                   background: np.ndarray | None = None) -> np.ndarray:
     """Analyzer images (H, W, 4, 3) of glossy spheres (centre (3,) camera coordinates, radius) in front of an
     unpolarized light panel of radiance ``panel`` (analyzer images read panel / 2 each). With ``reflect_panel``
-    the spheres mirror the panel (:func:`panel_reflection`), as real glossy spheres do at their limbs."""
+    the spheres mirror the panel (:func:`panel_reflection`), as real glossy spheres do at their limbs.
+    ``background`` (H, W, 4, 3): what is seen where no sphere is, instead of the panel (the board the spheres
+    stand on, :func:`render_board`; exact when every sphere lies on the camera's side of it)."""
     params = params or SPHERE_PARAMS
     sensor = device["sensor"]
     width, height = sensor["width"], sensor["height"]
@@ -405,7 +410,10 @@ def render_spheres(device: dict, spheres: list[tuple[np.ndarray, float]], supers
             closer = t < t_best
             t_best = np.where(closer, t, t_best)
             which = np.where(closer, k, which)
-        samples = np.full(x.shape + (4, 3), panel / 2, np.float32)
+        if background is None:
+            samples = np.full(x.shape + (4, 3), panel / 2, np.float32)
+        else:
+            samples = np.repeat(background[rows][:, :, None], n_sub, axis=2).astype(np.float32)
         hit = np.isfinite(t_best)
         if hit.any():
             points = d[hit] * t_best[hit][:, None]
@@ -456,6 +464,51 @@ def sphere_layouts(device: dict, frames: int, rng: np.random.Generator, radius: 
         raise ValueError(f"cannot place {per_frame} spheres of radius {radius} m wholly in a {sensor['width']}x"
                          f"{sensor['height']} frame at {distance_m} m; fewer or smaller spheres")
     return layouts
+
+
+def square_centres(spec: BoardSpec) -> np.ndarray:
+    """(K, 2) board coordinates (x, y) of the centres of the board's (cols + 1) x (rows + 1) squares: where a sphere
+    may be set down (docs/calibration.md, "Flash position")."""
+    j, i = np.meshgrid(np.arange(spec.cols + 1), np.arange(spec.rows + 1))
+    return np.stack([(j.ravel() - 0.5) * spec.square_m, (i.ravel() - 0.5) * spec.square_m], axis=-1)
+
+
+def sphere_on_board(rotation: np.ndarray, translation: np.ndarray, mark: np.ndarray, radius: float) -> np.ndarray:
+    """Camera coordinates (3,) of the centre of a sphere of ``radius`` resting on the board (pose R, t: board ->
+    camera) at the board point ``mark`` (x, y): ``radius`` above it on the camera's side (board z points away)."""
+    return rotation @ np.array([mark[0], mark[1], -radius]) + translation
+
+
+def board_sphere_layouts(spec: BoardSpec, device: dict, frames: int, rng: np.random.Generator, radius: float,
+                         per_frame: int = 3, max_tries: int = 100000
+                         ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``frames`` layouts of ``per_frame`` spheres resting on the board at square centres (:func:`square_centres`),
+    each (R, t, marks (per_frame, 2)): the board at a pose of :func:`board_poses`, every sphere wholly in view
+    and apart from the others in the image."""
+    sensor, cam = device["sensor"], device["camera"]
+    margin = 20.0 * sensor["width"] / 2448
+    marks = square_centres(spec)
+    layouts = []
+    for _ in range(max_tries):
+        if len(layouts) == frames:
+            return layouts
+        rotation, translation = board_poses(spec, device, 1, rng)[0]
+        chosen = marks[rng.choice(len(marks), size=per_frame, replace=False)]
+        centres = [sphere_on_board(rotation, translation, m, radius) for m in chosen]
+        ok = True
+        for c in centres:
+            r_px = cam["fx"] * radius / c[2] * 1.15
+            u, v = project(device, c)
+            ok &= margin + r_px < u < sensor["width"] - margin - r_px
+            ok &= margin + r_px < v < sensor["height"] - margin - r_px
+        for a in range(per_frame):
+            for b in range(a):
+                gap = np.linalg.norm(project(device, centres[a]) - project(device, centres[b]))
+                ok &= gap > cam["fx"] * radius * (1 / centres[a][2] + 1 / centres[b][2]) * 1.3
+        if ok:
+            layouts.append((rotation, translation, chosen))
+    raise ValueError(f"cannot set {per_frame} spheres of radius {radius} m on the board wholly in a "
+                     f"{sensor['width']}x{sensor['height']} frame; fewer or smaller spheres")
 
 
 # --------------------------------------------------------------------------- colour chart
@@ -540,7 +593,7 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
                            board_frames: int = 24, sphere_frames: int = 6, spheres_per_frame: int = 3,
                            spec: BoardSpec = BoardSpec(), raw_format: str = "dng", polarizer_deg: float = 0.0,
                            progress: bool = False, burst: int = 1, reflect_panel: bool = True,
-                           force: bool = False) -> Path:
+                           board_sphere_frames: int = 6, force: bool = False) -> Path:
     """Write a calibration folder (module docstring) for the synthetic device; returns it. Atomic: written to a
     temporary sibling and renamed. The same seed gives the same files. An existing ``out`` without truth.yaml (not
     one this function wrote) stops it with :class:`sellip.jobs.WouldReplaceError`, unless ``force``.
@@ -550,7 +603,10 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
     The first frame of every pose is the same as with ``burst`` = 1. docs/calibration.md recommends
     ``board_frames=96`` (benchmarks/calibration_accuracy.py) and measures ``board_frames=48, burst=4`` too; the
     tests use the defaults or fewer frames. ``reflect_panel``: the spheres mirror the light panel (as real glossy
-    spheres do; False: the panel is seen but not mirrored, as before 2026-11-27)."""
+    spheres do; False: the panel is seen but not mirrored, as before 2026-11-27). ``board_sphere_frames``: layouts
+    of 3 spheres resting on the board (:func:`board_sphere_layouts`), each a pair of frames from one tripod
+    position: ``board_spheres/spheres_NN_board`` (the board alone) and ``board_spheres/spheres_NN`` (the spheres
+    set down on it), exposed alike (the flash step's board protocol, docs/calibration.md)."""
     out = Path(out)
     refuse_to_replace_folder(out, "sellip synth-calibration", lambda path: (path / "truth.yaml").is_file(), force)
     device = true_device(width, height, polarizer_deg)
@@ -563,9 +619,10 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
     truth = {"device": device, "board": {"cols": spec.cols, "rows": spec.rows, "square_m": spec.square_m,
                                           "poses": {}},
              "spheres": {"radius_m": SPHERE_RADIUS_M, "centres_m": {}, "reflect_panel": bool(reflect_panel)},
+             "board_spheres": {"radius_m": SPHERE_RADIUS_M, "marks_m": {}, "centres_m": {}, "poses": {}},
              "chart": {}}
     try:
-        for sub in ("board", "spheres", "chart"):
+        for sub in ("board", "spheres", "board_spheres", "chart"):
             (tmp / sub).mkdir(parents=True)
         rng = np.random.default_rng([seed, 10])
         for k, (rotation, translation) in enumerate(board_poses(spec, device, board_frames, rng)):
@@ -593,6 +650,25 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
                 truth["spheres"]["centres_m"][name] = [c.tolist() for c in centres]
             if progress:
                 print(f"spheres {k + 1}/{sphere_frames}", flush=True)
+        rng = np.random.default_rng([seed, 40])
+        truth["board_spheres"]["radius_m"] = radius
+        for k, (rotation, translation, marks) in enumerate(
+                board_sphere_layouts(spec, device, board_sphere_frames, rng, radius)):
+            board = render_board(device, spec, rotation, translation)
+            centres = [sphere_on_board(rotation, translation, m, radius) for m in marks]
+            analyzers = render_spheres(device, [(c, radius) for c in centres], reflect_panel=False, background=board)
+            peak = float(np.max(analyzers))
+            name = f"spheres_{k:02d}"
+            for image, stem in ((board, f"{name}_board"), (analyzers, name)):
+                raw = expose(image, device, 0.75 * white, np.random.default_rng([seed, 41, k, len(stem)]),
+                             reference=peak)
+                write_raw_file(tmp / "board_spheres" / f"{stem}{suffix}", raw, device["sensor"])
+            truth["board_spheres"]["marks_m"][name + suffix] = marks.tolist()
+            truth["board_spheres"]["centres_m"][name + suffix] = [c.tolist() for c in centres]
+            truth["board_spheres"]["poses"][name + suffix] = {"rotation": rotation.tolist(),
+                                                              "translation_m": translation.tolist()}
+            if progress:
+                print(f"spheres on the board {k + 1}/{board_sphere_frames}", flush=True)
         rng = np.random.default_rng([seed, 30])
         rotation = look_at(np.zeros(3), 10.0, rng)
         distance = 1.1 * 6 * CHART_PATCH_M * device["camera"]["fx"] / (0.8 * width)
