@@ -246,6 +246,96 @@ def test_dark_background_touching_spheres_and_spheres_near_the_centre_are_named(
         "1-sigma of the flash position, largest of x, y, z is 50 mm, target <= 2 mm (--max-flash-std-mm)"]
 
 
+# --------------------------------------------------------------------------- flash: spheres resting on the board
+
+
+BOARD = (SPEC.cols, SPEC.rows, SPEC.square_m)
+
+
+@pytest.mark.slow
+def test_flash_from_spheres_resting_on_the_board(calib):
+    """The board protocol on spheres that mirror what is around them: the board frame's pose fixes each centre, the
+    flash is within 2 mm and within 3 sigma on every axis, and passes its gate; a sphere frame without its board
+    frame is named and left out."""
+    folder, truth = calib
+    device = _calibrated(truth)
+    radius = truth["board_spheres"]["radius_m"]
+    frames = _frames(folder / "board_spheres", device["sensor"])
+    result = flash.calibrate_flash(frames, device, radius, board=BOARD)
+    error = result.position_m - np.asarray(device["light"]["position_m"])
+    assert len(result.highlights) == 18 and not result.left_out and result.protocol == "board"
+    assert np.linalg.norm(error) < 2e-3, error
+    assert np.all(np.abs(error) <= 3 * result.std_m), (error, result.std_m)
+    assert targets.check("flash", result.uncertainty()) == []
+    for record in result.highlights:
+        centres = np.asarray(truth["board_spheres"]["centres_m"][record["frame"]])
+        assert np.min(np.linalg.norm(centres - np.asarray(record["centre_m"]), axis=1)) < 0.3e-3
+    del frames["spheres_00_board.tiff"]
+    result = flash.calibrate_flash(frames, device, radius, board=BOARD)
+    assert len(result.highlights) == 15
+    assert result.left_out == {"spheres_00.tiff": "no board frame spheres_00_board.tiff beside it: expected the "
+                               "board alone, shot from the same camera position before the spheres were set down"}
+
+
+def _mirror_point(centre: np.ndarray, radius: float, light: np.ndarray) -> np.ndarray:
+    """The point of a sphere that mirrors ``light`` into the camera (at the origin): its normal halves the
+    directions to the camera and to the light."""
+    normal = -centre / np.linalg.norm(centre)
+    for _ in range(200):
+        point = centre + radius * normal
+        to_camera, to_light = -point / np.linalg.norm(point), (light - point) / np.linalg.norm(light - point)
+        normal = (to_camera + to_light) / np.linalg.norm(to_camera + to_light)
+    return centre + radius * normal
+
+
+def _flash_from_geometry(centres, radius, rng, centre_std_m=2e-5, highlight_std_px=0.05):
+    """FlashResult of exact mirror highlights on spheres at ``centres`` (the synthetic device at W x H, its true
+    flash), the highlights with noise, the centres known to ``centre_std_m`` (their draws give the centres' part
+    of the 1-sigma, as the board protocol's do)."""
+    device = synthetic.true_device(W, H)
+    grid = ingest.output_intrinsics(device["camera"], H, W)
+    light = np.asarray(device["light"]["position_m"])
+    true = [c + rng.normal(0, centre_std_m, 3) for c in centres]  # where the spheres really are
+    pixels = []
+    for c in true:
+        point = _mirror_point(c, radius, light)
+        pixels.append(np.array([grid["fx"] * point[0] / point[2] + grid["cx"],
+                                grid["fy"] * point[1] / point[2] + grid["cy"]]) + rng.normal(0, highlight_std_px, 2))
+    lines = [flash.mirror_ray(c, radius, p, grid) for c, p in zip(centres, pixels)]
+    draws = []
+    for _ in range(100):
+        drawn = [flash.mirror_ray(c + rng.normal(0, centre_std_m, 3), radius, p, grid) for c, p in zip(centres, pixels)]
+        draws.append(flash.nearest_point(np.asarray([a for a, _ in drawn]), np.asarray([b for _, b in drawn]))[0])
+    position, cov, distances, centre = flash.solve_flash(np.asarray([a for a, _ in lines]),
+                                                         np.asarray([b for _, b in lines]), centre_samples=draws)
+    records = [{"frame": "f", "sphere": k, "highlight_px": p.tolist(), "centre_m": c.tolist(), "residual_mm": 1e3 * d}
+               for k, (p, c, d) in enumerate(zip(pixels, centres, distances))]
+    result = flash.FlashResult(position, np.sqrt(np.diag(cov)), float(1e3 * np.sqrt(np.mean(distances ** 2))),
+                               records, image_size=(W // 2, H // 2), centre_std_m=np.sqrt(np.diag(centre)),
+                               protocol="board")
+    return result, position - light
+
+
+def test_weak_geometry_fails_the_flash_gate_and_names_why():
+    """18 spheres over the field at 0.4-0.55 m pass the gate; 18 near the image centre at one distance, with the
+    same highlight and centre errors, miss it, and the causes name both."""
+    device = synthetic.true_device(W, H)
+    cam, radius = device["camera"], 0.012
+    rng = np.random.default_rng(5)
+    spread = [c for layout in synthetic.sphere_layouts(device, 6, rng, radius=radius) for c in layout]
+    good, error = _flash_from_geometry(spread, radius, rng)
+    assert targets.check("flash", good.uncertainty()) == [] and np.all(np.abs(error) <= 3 * good.std_m)
+    near = [np.array([(W / 2 + du - cam["cx"]) / cam["fx"], (H / 2 + dv - cam["cy"]) / cam["fy"], 1.0]) * 0.5
+            for du in (-60, 0, 60) for dv in (-60, 0, 60)] * 2
+    weak, error = _flash_from_geometry(near, radius, rng)
+    missed = targets.check("flash", weak.uncertainty())
+    assert missed and missed[0].startswith("1-sigma of the flash position, largest of x, y, z is ")
+    causes = weak.causes()
+    assert any("spheres were all near the image centre" in c for c in causes), causes
+    assert any("the spheres were all at one distance (500-500 mm)" in c for c in causes), causes
+    assert np.all(np.abs(error) <= 3 * weak.std_m)
+
+
 # --------------------------------------------------------------------------- polarization
 
 

@@ -458,8 +458,8 @@ class FlashResult:
                 out.append(f"the spheres were all near the image centre: their highlights span {100 * extent[0]:.0f} % "
                            f"of the width and {100 * extent[1]:.0f} % of the height (at least {100 * FIELD_SPREAD:.0f} "
                            "% expected): place them over the whole field")
-            depth = np.asarray([h["centre_m"][2] for h in self.highlights])
-            if depth.max() - depth.min() < DEPTH_SPREAD * np.median(depth):
+            depth = np.asarray([h["centre_m"][2] for h in self.highlights if "centre_m" in h])
+            if depth.size > 1 and depth.max() - depth.min() < DEPTH_SPREAD * np.median(depth):
                 out.append(f"the spheres were all at one distance ({1e3 * depth.min():.0f}-{1e3 * depth.max():.0f} mm):"
                            f" expected depths {100 * DEPTH_SPREAD:.0f} % apart or more (near and far spheres, or the "
                            "board tilted)")
@@ -583,9 +583,13 @@ BOARD_SUFFIX = "_board"
 """The board frame of the sphere frame NAME.ext is NAME_board.ext: the board alone, from the same camera position,
 before the spheres were set down on it."""
 
-MARK_TOLERANCE = 0.3
-"""A highlight's ray must meet the plane of the sphere centres within this share of a square from a square's
-centre (a sphere set down off its square's centre, or something else bright, is left out)."""
+CHANGE_LEVEL = 0.05
+"""What changed between a board frame and its sphere frame: more than this share of the board's white."""
+
+MIN_MARK_IOU = 0.6
+"""A sphere's silhouette (what changed between the board frame and the sphere frame) must overlap the disc of a
+sphere on a square's centre by this much (intersection over union; 0.7-0.95 measured on the synthetic frames,
+where the next square's disc overlaps it by about 0.3), else it is left out."""
 
 CENTRE_SAMPLES = 200
 """Draws of the board poses and intrinsics from their 1-sigma for the flash's centre error (:func:`solve_flash`)."""
@@ -638,47 +642,81 @@ def board_pose(raw: np.ndarray, device: Mapping, cols: int, rows: int, square_m:
     return BoardPose(rvec.ravel(), tvec.ravel(), found.corners, obj, cov), None
 
 
+def _toward_camera(rotation: np.ndarray, tvec: np.ndarray) -> float:
+    """-1 when the board's z axis points away from the camera (its pose as drawn), +1 when the corners' order
+    (a symmetric board's is ambiguous) made it point towards it: a sphere's centre is at z = -that * radius... in
+    board coordinates, i.e. on the camera's side."""
+    return -1.0 if rotation[:, 2] @ tvec > 0 else 1.0
+
+
+def sphere_centre(rotation: np.ndarray, tvec: np.ndarray, mark: np.ndarray, radius_m: float) -> np.ndarray:
+    """Camera coordinates (3,) of a sphere of ``radius_m`` resting on the board (pose R, t) at board point ``mark``
+    (x, y): ``radius_m`` above it on the camera's side."""
+    side = _toward_camera(rotation, tvec)
+    return rotation @ np.array([mark[0], mark[1], side * radius_m]) + tvec
+
+
 def board_sphere_marks(s0_spheres: np.ndarray, s0_board: np.ndarray, intrinsics: Mapping, pose: BoardPose,
                        cols: int, rows: int, square_m: float, radius_m: float
                        ) -> tuple[list[np.ndarray], dict[str, str]]:
-    """The square centres (x, y board coordinates, m) that spheres rest on: every bright spot that the sphere frame
-    has and its board frame has not (a mirror highlight) is followed along its ray to the plane of the sphere
-    centres (``radius_m`` above the board) and snapped to the nearest square centre (:data:`MARK_TOLERANCE`).
-    Returns (marks, {spot: why left out})."""
-    finite = np.isfinite(s0_spheres)
-    diff = np.where(finite, s0_spheres - np.nan_to_num(s0_board), np.inf)
-    values = diff[np.isfinite(diff)]
+    """The square centres (x, y board coordinates, m) that spheres rest on. What changed between the board frame
+    and the sphere frame (|difference| above 8x its noise, closed over a square, holes filled) are the spheres'
+    silhouettes (|difference| also above :data:`CHANGE_LEVEL` of the board's white); each one's centroid ray meets the plane of the sphere centres (``radius_m`` above the board), and
+    of the square centres within 1.5 squares of that point the one whose sphere's projected disc overlaps the
+    silhouette best (intersection over union, at least :data:`MIN_MARK_IOU`) is the sphere's. Returns (marks,
+    {blob: why left out})."""
+    finite = np.isfinite(s0_spheres) & np.isfinite(s0_board)
+    diff = np.where(finite, s0_spheres - s0_board, np.inf)
+    values = diff[finite]
     noise = 1.4826 * float(np.median(np.abs(values - np.median(values))))
-    peak = float(np.max(values)) if np.all(finite) else float(np.nanmax(s0_board)) + 1.0
-    bright = diff > max(0.2 * peak, 30 * noise)
-    labels, count = ndimage.label(bright)
     rotation, tvec = pose.rotation, pose.tvec
-    best: dict[tuple[int, int], tuple[float, np.ndarray]] = {}
-    left_out = {}
+    f = float(np.sqrt(intrinsics["fx"] * intrinsics["fy"]))
+    depth = float(tvec[2])
+    square_px = f * square_m / depth
+    radius_px = f * radius_m / depth
+    # the noise grows with the signal (shot noise on the white squares): a change must also exceed a share of the
+    # board's white
+    white = float(np.percentile(s0_board[finite], 99))
+    changed = np.abs(diff) > max(8 * noise, CHANGE_LEVEL * white)
+    changed = ndimage.binary_opening(changed, iterations=2)
+    size = max(int(round(0.6 * square_px)), 1)
+    changed = ndimage.binary_closing(changed, structure=np.ones((3, 3)), iterations=size)
+    changed = ndimage.binary_fill_holes(changed)
+    labels, count = ndimage.label(changed)
+    height, width = s0_spheres.shape
+    yy, xx = np.mgrid[0:height, 0:width]
+    side = _toward_camera(rotation, tvec)
+    origin = -rotation.T @ tvec  # the camera in board coordinates
+    j_all, i_all = np.meshgrid(np.arange(cols + 1), np.arange(rows + 1))
+    squares = np.stack([(j_all.ravel() - 0.5) * square_m, (i_all.ravel() - 0.5) * square_m], axis=-1)
+    marks, left_out = [], {}
     for index in range(1, count + 1):
-        spot = labels == index
-        at = np.unravel_index(int(np.argmax(np.where(spot, np.nan_to_num(diff, posinf=1e30), -np.inf))), diff.shape)
-        px = np.array([at[1], at[0]], np.float64)
-        ray = rotation.T @ pixel_rays(px, intrinsics)
-        origin = -rotation.T @ tvec  # the camera in board coordinates
-        # board z points away from the camera: the centres lie on z = -radius
-        lam = (-radius_m - origin[2]) / ray[2]
-        x, y = (origin + lam * ray)[:2]
-        j, i = np.round(x / square_m + 0.5), np.round(y / square_m + 0.5)
-        mark = np.array([(j - 0.5) * square_m, (i - 0.5) * square_m])
-        where = f"spot at ({px[0]:.0f}, {px[1]:.0f})"
-        if not (0 <= j <= cols and 0 <= i <= rows):
-            left_out[where] = "a bright spot off the board (not a sphere on it)"
-        elif np.hypot(x - mark[0], y - mark[1]) > MARK_TOLERANCE * square_m:
-            left_out[where] = (f"a highlight {1e3 * np.hypot(x - mark[0], y - mark[1]):.1f} mm from the nearest "
-                               f"square's centre (at most {1e3 * MARK_TOLERANCE * square_m:.1f} expected): a sphere "
-                               "not set down on a square's centre, or a wrong --sphere-radius-mm")
-        else:
-            key = (int(i), int(j))
-            strength = float(np.nan_to_num(diff[at], posinf=1e30))
-            if key not in best or best[key][0] < strength:
-                best[key] = (strength, mark)
-    return [mark for _, mark in best.values()], left_out
+        blob = labels == index
+        area = float(blob.sum())
+        if area < 0.3 * np.pi * radius_px ** 2:
+            continue  # noise, not a sphere
+        centroid = np.array([xx[blob].mean(), yy[blob].mean()])
+        where = f"blob at ({centroid[0]:.0f}, {centroid[1]:.0f})"
+        ray = rotation.T @ pixel_rays(centroid, intrinsics)
+        lam = (side * radius_m - origin[2]) / ray[2]
+        point = (origin + lam * ray)[:2]
+        near = squares[np.linalg.norm(squares - point, axis=1) < 1.5 * square_m]
+        best, best_iou = None, 0.0
+        for mark in near:
+            centre = sphere_centre(rotation, tvec, mark, radius_m)
+            u = intrinsics["fx"] * centre[0] / centre[2] + intrinsics["cx"]
+            v = intrinsics["fy"] * centre[1] / centre[2] + intrinsics["cy"]
+            disc = np.hypot(xx - u, yy - v) < f * radius_m / float(np.linalg.norm(centre))
+            iou = float(np.sum(disc & blob) / np.sum(disc | blob))
+            if iou > best_iou:
+                best, best_iou = mark, iou
+        if best is None or best_iou < MIN_MARK_IOU:
+            left_out[where] = (f"a change between the frames that is not a sphere on a square's centre (overlap "
+                               f"{best_iou:.2f} with the best one's disc, at least {MIN_MARK_IOU} expected): a sphere "
+                               "set down off a square's centre, something moved, or a wrong --sphere-radius-mm")
+            continue
+        marks.append(best)
+    return marks, left_out
 
 
 def _perturbed(camera: Mapping, draw: np.ndarray, std: Mapping) -> dict:
@@ -739,7 +777,7 @@ def calibrate_flash_on_board(frames: Mapping[str, np.ndarray], device: Mapping, 
             left_out[name] = "no sphere highlight on the board (expected glossy spheres set down on squares' centres)"
         f = float(np.sqrt(intrinsics["fx"] * intrinsics["fy"]))
         for k, mark in enumerate(marks):
-            centre = pose.rotation @ np.array([mark[0], mark[1], -radius_m]) + pose.tvec
+            centre = sphere_centre(pose.rotation, pose.tvec, mark, radius_m)
             centroid = np.array([intrinsics["fx"] * centre[0] / centre[2] + intrinsics["cx"],
                                  intrinsics["fy"] * centre[1] / centre[2] + intrinsics["cy"]])
             sphere = Sphere(centre, f * radius_m / float(np.linalg.norm(centre)), centroid)
@@ -780,7 +818,7 @@ def calibrate_flash_on_board(frames: Mapping[str, np.ndarray], device: Mapping, 
         lines = []
         for name, mark, highlight in used:
             rotation, tvec = drawn_poses[name]
-            line = mirror_ray(rotation @ np.array([mark[0], mark[1], -radius_m]) + tvec, radius_m, highlight, grid)
+            line = mirror_ray(sphere_centre(rotation, tvec, mark, radius_m), radius_m, highlight, grid)
             if line is not None:
                 lines.append(line)
         if len(lines) >= min_highlights:
