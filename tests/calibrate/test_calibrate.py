@@ -277,6 +277,22 @@ def test_flash_from_spheres_resting_on_the_board(calib):
                                "board alone, shot from the same camera position before the spheres were set down"}
 
 
+@pytest.mark.slow
+def test_flash_on_the_board_one_sigma_covers_the_error_over_seeds(tmp_path):
+    """Five more synthetic sets (6 layouts of 3 spheres on the board, 612x512, the true intrinsics): the flash
+    is within 2 mm and within 3 of its reported sigma on every axis in each."""
+    for seed in range(1, 6):
+        out = synthetic.synthesize_calibration(tmp_path / f"s{seed}", W, H, seed=seed, board_frames=0, sphere_frames=0,
+                                               raw_format="tiff")
+        truth = yaml.safe_load((out / "truth.yaml").read_text())
+        device = _calibrated(truth)
+        result = flash.calibrate_flash(_frames(out / "board_spheres", device["sensor"]), device,
+                                       truth["board_spheres"]["radius_m"], board=BOARD)
+        error = result.position_m - np.asarray(device["light"]["position_m"])
+        assert len(result.highlights) >= 15, (seed, result.left_out)
+        assert np.linalg.norm(error) < 2e-3 and np.all(np.abs(error) <= 3 * result.std_m), (seed, error, result.std_m)
+
+
 def _mirror_point(centre: np.ndarray, radius: float, light: np.ndarray) -> np.ndarray:
     """The point of a sphere that mirrors ``light`` into the camera (at the origin): its normal halves the
     directions to the camera and to the light."""
@@ -288,12 +304,12 @@ def _mirror_point(centre: np.ndarray, radius: float, light: np.ndarray) -> np.nd
     return centre + radius * normal
 
 
-def _flash_from_geometry(centres, radius, rng, centre_std_m=2e-5, highlight_std_px=0.05):
-    """FlashResult of exact mirror highlights on spheres at ``centres`` (the synthetic device at W x H, its true
-    flash), the highlights with noise, the centres known to ``centre_std_m`` (their draws give the centres' part
-    of the 1-sigma, as the board protocol's do)."""
-    device = synthetic.true_device(W, H)
-    grid = ingest.output_intrinsics(device["camera"], H, W)
+def _flash_from_geometry(device, centres, radius, rng, centre_std_m=1e-5, highlight_std_px=0.02):
+    """FlashResult of exact mirror highlights on spheres at ``centres`` (``device``, its true flash), the
+    highlights with noise, the centres known to ``centre_std_m`` (their draws give the centres' part of the
+    1-sigma, as the board protocol's do)."""
+    width, height = device["sensor"]["width"], device["sensor"]["height"]
+    grid = ingest.output_intrinsics(device["camera"], height, width)
     light = np.asarray(device["light"]["position_m"])
     true = [c + rng.normal(0, centre_std_m, 3) for c in centres]  # where the spheres really are
     pixels = []
@@ -311,23 +327,26 @@ def _flash_from_geometry(centres, radius, rng, centre_std_m=2e-5, highlight_std_
     records = [{"frame": "f", "sphere": k, "highlight_px": p.tolist(), "centre_m": c.tolist(), "residual_mm": 1e3 * d}
                for k, (p, c, d) in enumerate(zip(pixels, centres, distances))]
     result = flash.FlashResult(position, np.sqrt(np.diag(cov)), float(1e3 * np.sqrt(np.mean(distances ** 2))),
-                               records, image_size=(W // 2, H // 2), centre_std_m=np.sqrt(np.diag(centre)),
+                               records, image_size=(width // 2, height // 2), centre_std_m=np.sqrt(np.diag(centre)),
                                protocol="board")
     return result, position - light
 
 
 def test_weak_geometry_fails_the_flash_gate_and_names_why():
-    """18 spheres over the field at 0.4-0.55 m pass the gate; 18 near the image centre at one distance, with the
-    same highlight and centre errors, miss it, and the causes name both."""
-    device = synthetic.true_device(W, H)
-    cam, radius = device["camera"], 0.012
+    """At the device's size, 18 spheres (20 mm) over the field at 0.4-0.55 m pass the gate; 18 near the image
+    centre at one distance, with the same highlight (0.02 px) and centre (0.01 mm) errors, miss it, and the causes
+    name both."""
+    device = synthetic.true_device()
+    cam, radius = device["camera"], synthetic.SPHERE_RADIUS_M
+    width, height = device["sensor"]["width"], device["sensor"]["height"]
     rng = np.random.default_rng(5)
     spread = [c for layout in synthetic.sphere_layouts(device, 6, rng, radius=radius) for c in layout]
-    good, error = _flash_from_geometry(spread, radius, rng)
-    assert targets.check("flash", good.uncertainty()) == [] and np.all(np.abs(error) <= 3 * good.std_m)
-    near = [np.array([(W / 2 + du - cam["cx"]) / cam["fx"], (H / 2 + dv - cam["cy"]) / cam["fy"], 1.0]) * 0.5
-            for du in (-60, 0, 60) for dv in (-60, 0, 60)] * 2
-    weak, error = _flash_from_geometry(near, radius, rng)
+    good, error = _flash_from_geometry(device, spread, radius, rng)
+    assert targets.check("flash", good.uncertainty()) == [], good.std_m
+    assert np.all(np.abs(error) <= 3 * good.std_m)
+    near = [np.array([(width / 2 + du - cam["cx"]) / cam["fx"], (height / 2 + dv - cam["cy"]) / cam["fy"], 1.0]) * 0.5
+            for du in (-250, 0, 250) for dv in (-250, 0, 250)] * 2
+    weak, error = _flash_from_geometry(device, near, radius, rng)
     missed = targets.check("flash", weak.uncertainty())
     assert missed and missed[0].startswith("1-sigma of the flash position, largest of x, y, z is ")
     causes = weak.causes()
@@ -634,7 +653,19 @@ def test_calibrate_commands_write_device_yaml(calib, tmp_path):
     assert "24 board poses used" in failed.stderr
     subprocess.run(run + intrinsics_args + ["--max-c-std-px", "3"], check=True)
     radius_mm = str(truth["spheres"]["radius_m"] * 1000)
-    subprocess.run(run + ["flash", *spheres, "--device", str(device_path), "--sphere-radius-mm", radius_mm], check=True)
+    # spheres before the panel that they mirror: the centres from their outlines are uncertain by more than the
+    # target allows (the flash is 4.4 mm off in depth): the step fails, names why and writes nothing
+    before = device_path.read_bytes()
+    failed = subprocess.run(run + ["flash", *spheres, "--device", str(device_path), "--sphere-radius-mm", radius_mm],
+                            check=False, capture_output=True, text=True)
+    assert failed.returncode != 0 and device_path.read_bytes() == before
+    assert "1-sigma of the flash position, largest of x, y, z is" in failed.stderr
+    assert "the sphere centres from their outlines are uncertain" in failed.stderr and "--board" in failed.stderr
+    # spheres resting on the board: at this size the 1-sigma is about 6 mm (pose, intrinsics); relaxed as the docs do
+    pairs = sorted(str(p) for p in (folder / "board_spheres").iterdir())
+    subprocess.run(run + ["flash", *pairs, "--device", str(device_path), "--sphere-radius-mm", radius_mm,
+                          "--board", f"{SPEC.cols}x{SPEC.rows}", "--square-mm", str(SPEC.square_m * 1000),
+                          "--max-flash-std-mm", "8"], check=True)
     subprocess.run(run + ["polarization", *spheres, "--device", str(device_path), "--sphere-radius-mm", radius_mm],
                    check=True)
     corners = [f"{x},{y}" for x, y in truth["chart"]["corners_px"]]
@@ -645,13 +676,13 @@ def test_calibrate_commands_write_device_yaml(calib, tmp_path):
     # every step records its 1-sigma and the targets it met
     record = device["calibration"]
     assert record["intrinsics"]["targets"]["c_std_px"] == 3 and record["intrinsics"]["std_px"]["cx"] < 3
-    assert max(record["flash"]["std_mm"]) <= record["flash"]["targets"]["flash_std_mm"] == 2
+    assert max(record["flash"]["std_mm"]) <= record["flash"]["targets"]["flash_std_mm"] == 8
+    assert record["flash"]["protocol"] == "board" and len(record["flash"]["centre_std_mm"]) == 3
     assert record["polarization"]["polarizer_std_deg"] <= 0.5 and record["color"]["targets"]["delta_e_mean"] == 1.5
     assert all(record[step]["ok"] for step in record)
     assert abs(device["camera"]["fx"] / truth["device"]["camera"]["fx"] - 1) < 5e-3
-    # the spheres mirror their panel: with the calibrated intrinsics the flash is 7-9 mm off in depth at this size
-    # (docs/calibration.md, "Spheres that mirror their background": not met, the 1-sigma does not show it)
-    assert np.linalg.norm(np.subtract(device["light"]["position_m"], truth["device"]["light"]["position_m"])) < 12e-3
+    error = np.subtract(device["light"]["position_m"], truth["device"]["light"]["position_m"])
+    assert np.all(np.abs(error) <= 3e-3 * np.asarray(record["flash"]["std_mm"])), error
     assert device["calibration"]["polarization"]["ok"]
     assert device["calibration"]["color"]["delta_e2000_mean"] <= 1.0
     # too few frames: a clear error, exit status not 0

@@ -660,11 +660,11 @@ def board_sphere_marks(s0_spheres: np.ndarray, s0_board: np.ndarray, intrinsics:
                        cols: int, rows: int, square_m: float, radius_m: float
                        ) -> tuple[list[np.ndarray], dict[str, str]]:
     """The square centres (x, y board coordinates, m) that spheres rest on. What changed between the board frame
-    and the sphere frame (|difference| above 8x its noise, closed over a square, holes filled) are the spheres'
-    silhouettes (|difference| also above :data:`CHANGE_LEVEL` of the board's white); each one's centroid ray meets the plane of the sphere centres (``radius_m`` above the board), and
-    of the square centres within 1.5 squares of that point the one whose sphere's projected disc overlaps the
-    silhouette best (intersection over union, at least :data:`MIN_MARK_IOU`) is the sphere's. Returns (marks,
-    {blob: why left out})."""
+    and the sphere frame (|difference| above 8x its noise and :data:`CHANGE_LEVEL` of the board's white, opened,
+    closed over a square, holes filled) are the spheres' silhouettes; each one's centroid ray meets the plane of
+    the sphere centres (``radius_m`` above the board), and of the square centres within 1.5 squares of that point
+    the one whose sphere's projected disc overlaps the silhouette best (intersection over union, at least
+    :data:`MIN_MARK_IOU`) is the sphere's. Returns (marks, {blob: why left out})."""
     finite = np.isfinite(s0_spheres) & np.isfinite(s0_board)
     diff = np.where(finite, s0_spheres - s0_board, np.inf)
     values = diff[finite]
