@@ -399,16 +399,20 @@ def mirror_ray(centre: np.ndarray, radius_m: float, highlight_px: np.ndarray, in
 
 def nearest_point(points: np.ndarray, directions: np.ndarray, scale_m: float = 1e-3, iterations: int = 50
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The point X (3,) nearest lines P_i + t d_i (points, unit directions (N, 3)) in the Huber sense (scale
-    ``scale_m``): IRLS on sum_i w_i |(I - d_i d_i^T)(X - P_i)|^2. Returns (X, distances (N,), final weights (N,))."""
+    """The point X (3,) nearest lines P_i + t d_i (points, unit directions (N, 3)) in the Huber sense: IRLS on
+    sum_i w_i |(I - d_i d_i^T)(X - P_i)|^2, the Huber scale ``scale_m`` or, when the lines scatter more, twice the
+    median distance of the unweighted solution (so that the lines' ordinary scatter keeps full weight and only an
+    outlier is down-weighted). Returns (X, distances (N,), final weights (N,))."""
     projectors = np.eye(3) - directions[:, :, None] * directions[:, None, :]
     weights = np.ones(len(points))
     x = np.zeros(3)
-    for _ in range(iterations):
+    for iteration in range(iterations):
         a = np.einsum("n,nij->ij", weights, projectors)
         b = np.einsum("n,nij,nj->i", weights, projectors, points)
         x = np.linalg.solve(a, b)
         distances = np.linalg.norm(np.einsum("nij,nj->ni", projectors, x - points), axis=-1)
+        if iteration == 0:
+            scale_m = max(scale_m, 2 * float(np.median(distances)))
         weights = np.where(distances <= scale_m, 1.0, scale_m / np.maximum(distances, 1e-15))
     return x, distances, weights
 
@@ -661,7 +665,8 @@ def board_sphere_marks(s0_spheres: np.ndarray, s0_board: np.ndarray, intrinsics:
                        ) -> tuple[list[np.ndarray], dict[str, str]]:
     """The square centres (x, y board coordinates, m) that spheres rest on. What changed between the board frame
     and the sphere frame (|difference| above 8x its noise and :data:`CHANGE_LEVEL` of the board's white, opened,
-    closed over a square, holes filled) are the spheres' silhouettes; each one's centroid ray meets the plane of
+    closed over a square, holes filled) are the spheres' silhouettes; from its deepest point (the distance
+    transform's maximum, one sphere at a time, spheres that merge in the image taken apart) a ray meets the plane of
     the sphere centres (``radius_m`` above the board), and of the square centres within 1.5 squares of that point
     the one whose sphere's projected disc overlaps the silhouette best (intersection over union, at least
     :data:`MIN_MARK_IOU`) is the sphere's. Returns (marks, {blob: why left out})."""
@@ -690,32 +695,42 @@ def board_sphere_marks(s0_spheres: np.ndarray, s0_board: np.ndarray, intrinsics:
     j_all, i_all = np.meshgrid(np.arange(cols + 1), np.arange(rows + 1))
     squares = np.stack([(j_all.ravel() - 0.5) * square_m, (i_all.ravel() - 0.5) * square_m], axis=-1)
     marks, left_out = [], {}
+    distance = ndimage.distance_transform_edt(changed)
     for index in range(1, count + 1):
         blob = labels == index
-        area = float(blob.sum())
-        if area < 0.3 * np.pi * radius_px ** 2:
+        if float(blob.sum()) < 0.3 * np.pi * radius_px ** 2:
             continue  # noise, not a sphere
-        centroid = np.array([xx[blob].mean(), yy[blob].mean()])
-        where = f"blob at ({centroid[0]:.0f}, {centroid[1]:.0f})"
-        ray = rotation.T @ pixel_rays(centroid, intrinsics)
-        lam = (side * radius_m - origin[2]) / ray[2]
-        point = (origin + lam * ray)[:2]
-        near = squares[np.linalg.norm(squares - point, axis=1) < 1.5 * square_m]
-        best, best_iou = None, 0.0
-        for mark in near:
-            centre = sphere_centre(rotation, tvec, mark, radius_m)
-            u = intrinsics["fx"] * centre[0] / centre[2] + intrinsics["cx"]
-            v = intrinsics["fy"] * centre[1] / centre[2] + intrinsics["cy"]
-            disc = np.hypot(xx - u, yy - v) < f * radius_m / float(np.linalg.norm(centre))
-            iou = float(np.sum(disc & blob) / np.sum(disc | blob))
-            if iou > best_iou:
-                best, best_iou = mark, iou
-        if best is None or best_iou < MIN_MARK_IOU:
-            left_out[where] = (f"a change between the frames that is not a sphere on a square's centre (overlap "
-                               f"{best_iou:.2f} with the best one's disc, at least {MIN_MARK_IOU} expected): a sphere "
-                               "set down off a square's centre, something moved, or a wrong --sphere-radius-mm")
-            continue
-        marks.append(best)
+        # one sphere at a time: the blob's deepest point is a sphere's middle (spheres close in the image merge)
+        while True:
+            inner = np.where(blob, distance, 0.0)
+            deepest = np.unravel_index(int(np.argmax(inner)), inner.shape)
+            if inner[deepest] < 0.5 * radius_px:
+                break
+            middle = np.array([deepest[1], deepest[0]], np.float64)
+            near_middle = blob & (np.hypot(xx - middle[0], yy - middle[1]) < 1.3 * radius_px)
+            where = f"blob at ({middle[0]:.0f}, {middle[1]:.0f})"
+            ray = rotation.T @ pixel_rays(middle, intrinsics)
+            lam = (side * radius_m - origin[2]) / ray[2]
+            point = (origin + lam * ray)[:2]
+            near = squares[np.linalg.norm(squares - point, axis=1) < 1.5 * square_m]
+            best, best_iou, best_disc = None, 0.0, near_middle
+            for mark in near:
+                centre = sphere_centre(rotation, tvec, mark, radius_m)
+                u = intrinsics["fx"] * centre[0] / centre[2] + intrinsics["cx"]
+                v = intrinsics["fy"] * centre[1] / centre[2] + intrinsics["cy"]
+                disc = np.hypot(xx - u, yy - v) < f * radius_m / float(np.linalg.norm(centre))
+                iou = float(np.sum(disc & near_middle) / np.sum(disc | near_middle))
+                if iou > best_iou:
+                    best, best_iou, best_disc = mark, iou, disc
+            if best is None or best_iou < MIN_MARK_IOU:
+                left_out[where] = (f"a change between the frames that is not a sphere on a square's centre (overlap "
+                                   f"{best_iou:.2f} with the best one's disc, at least {MIN_MARK_IOU} expected): a "
+                                   "sphere set down off a square's centre, something moved, or a wrong "
+                                   "--sphere-radius-mm")
+                blob = blob & ~near_middle
+            else:
+                marks.append(best)
+                blob = blob & ~ndimage.binary_dilation(best_disc, iterations=2)
     return marks, left_out
 
 
