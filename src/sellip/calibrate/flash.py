@@ -9,8 +9,20 @@ Public API::
     find_highlight(s0, sphere) -> (centre (x, y) | None, problem | None)    # refine_highlight: a Gaussian fit
     mirror_ray(sphere, highlight_px, intrinsics) -> (point (3,), direction (3,))
     nearest_point(points (N, 3), directions (N, 3), scale_m=0.001) -> (X (3,), distances (N,), weights (N,))
-    calibrate_flash(frames: {name: raw}, device, radius_m) -> FlashResult
-    MIN_HIGHLIGHTS
+    solve_flash(points, directions, scale_m, centre_samples) -> (X, covariance, distances, centres' covariance)
+    calibrate_flash(frames: {name: raw}, device, radius_m, board=None) -> FlashResult
+    board_pose(raw, device, cols, rows, square_m) -> (BoardPose | None, why | None)   # solvePnP + covariance
+    board_sphere_marks(s0_spheres, s0_board, intrinsics, pose, cols, rows, square_m, radius_m) -> (marks, left out)
+    sphere_centre(R, t, mark (2,), radius_m) -> centre (3,)           # resting on the board at a square's centre
+    calibrate_flash_on_board(frames, device, radius_m, cols, rows, square_m) -> FlashResult
+    MIN_HIGHLIGHTS, BOARD_SUFFIX
+
+Two protocols (docs/calibration.md, "Flash position"). **Board** (recommended): pairs of frames from one camera
+position, the board alone (NAME_board) and glossy spheres set down on its squares' centres (NAME); the board's
+pose fixes each centre, and the 1-sigma adds the flash's spread over draws of the poses and intrinsics.
+**Outline**: spheres before a bright background, centres from their outlines (steps 1-2 below); the 1-sigma adds
+how far the flash moves between the half-level outline's centres and the rim model's (a glossy sphere mirrors
+the background at its rim, so neither is exact).
 
 Geometry (camera coordinates, metres; the images are the ingest chain's undistorted half-resolution grid,
 :func:`sellip.ingest.output_intrinsics`, so a pixel's ray is K'^-1 (x, y, 1)):
