@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from sellip.calibrate import color, flash, intrinsics, polarization, targets
+from sellip.calibrate import board_spheres, color, flash, intrinsics, polarization, targets
 from sellip.calibrate.intrinsics import CalibrationError
 from sellip.calibrate.synthetic import BoardSpec, synthesize_calibration
 from sellip.capture import reader
@@ -80,7 +80,8 @@ def main() -> None:
     for key, (sub, on_board) in protocols.items():
         started = time.perf_counter()
         try:
-            f = flash.calibrate_flash(frames(sub), device, radius, board=on_board)
+            f = (board_spheres.calibrate_flash_on_board(frames(sub), device, radius, *on_board) if on_board
+                 else flash.calibrate_flash(frames(sub), device, radius))
         except CalibrationError as exc:
             summary[key] = {"failed": str(exc)}
             print(f"{key}:", json.dumps(summary[key]), flush=True)

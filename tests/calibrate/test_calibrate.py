@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from sellip.calibrate import color, flash, intrinsics, polarization, synthetic, targets
+from sellip.calibrate import board_spheres, color, flash, intrinsics, panel, polarization, synthetic, targets
 from sellip.calibrate import device as devices
 from sellip.calibrate.intrinsics import CalibrationError
 from sellip.capture import assemble, files, ingest, reader, writer
@@ -261,7 +261,7 @@ def test_flash_from_spheres_resting_on_the_board(calib):
     device = _calibrated(truth)
     radius = truth["board_spheres"]["radius_m"]
     frames = _frames(folder / "board_spheres", device["sensor"])
-    result = flash.calibrate_flash(frames, device, radius, board=BOARD)
+    result = board_spheres.calibrate_flash_on_board(frames, device, radius, *BOARD)
     error = result.position_m - np.asarray(device["light"]["position_m"])
     assert len(result.highlights) == 18 and not result.left_out and result.protocol == "board"
     assert np.all(np.abs(error) <= 3 * result.std_m), (error, result.std_m)
@@ -270,7 +270,7 @@ def test_flash_from_spheres_resting_on_the_board(calib):
         centres = np.asarray(truth["board_spheres"]["centres_m"][record["frame"]])
         assert np.min(np.linalg.norm(centres - np.asarray(record["centre_m"]), axis=1)) < 0.2e-3
     del frames["spheres_00_board.tiff"]
-    result = flash.calibrate_flash(frames, device, radius, board=BOARD)
+    result = board_spheres.calibrate_flash_on_board(frames, device, radius, *BOARD)
     assert len(result.highlights) == 15
     assert result.left_out == {"spheres_00.tiff": "no board frame spheres_00_board.tiff beside it: expected the "
                                "board alone, shot from the same camera position before the spheres were set down"}
@@ -284,8 +284,8 @@ def test_flash_on_the_board_within_2_mm_at_half_size(tmp_path):
                                            raw_format="tiff")
     truth = yaml.safe_load((out / "truth.yaml").read_text())
     device = _calibrated(truth)
-    result = flash.calibrate_flash(_frames(out / "board_spheres", device["sensor"]), device,
-                                   truth["board_spheres"]["radius_m"], board=BOARD)
+    result = board_spheres.calibrate_flash_on_board(_frames(out / "board_spheres", device["sensor"]), device,
+                                   truth["board_spheres"]["radius_m"], *BOARD)
     error = result.position_m - np.asarray(device["light"]["position_m"])
     assert len(result.highlights) == 18, result.left_out
     assert np.linalg.norm(error) < 2e-3 and np.all(np.abs(error) <= 3 * result.std_m), (error, result.std_m)
@@ -301,8 +301,8 @@ def test_flash_on_the_board_one_sigma_covers_the_error_over_seeds(tmp_path):
                                                raw_format="tiff")
         truth = yaml.safe_load((out / "truth.yaml").read_text())
         device = _calibrated(truth)
-        result = flash.calibrate_flash(_frames(out / "board_spheres", device["sensor"]), device,
-                                       truth["board_spheres"]["radius_m"], board=BOARD)
+        result = board_spheres.calibrate_flash_on_board(_frames(out / "board_spheres", device["sensor"]), device,
+                                       truth["board_spheres"]["radius_m"], *BOARD)
         error = result.position_m - np.asarray(device["light"]["position_m"])
         assert len(result.highlights) >= 15, (seed, result.left_out)
         assert np.all(np.abs(error) <= 3 * result.std_m), (seed, error, result.std_m)
@@ -427,7 +427,7 @@ def test_panel_reflection_is_fresnel_and_s_polarized():
         # (image up is -y): n = sin(z) (cos a, -sin a, 0) - cos(z) (0, 0, 1)
         normals.append([np.sin(zenith) * np.cos(azimuth), -np.sin(zenith) * np.sin(azimuth), -np.cos(zenith)])
         points.append([0.0, 0.0, z])
-    out = synthetic.panel_reflection(np.asarray(points), np.asarray(normals), 1.5, panel=2.0)
+    out = panel.panel_reflection(np.asarray(points), np.asarray(normals), 1.5, panel=2.0)
     s0 = out.sum(axis=-1) / 2
     s1, s2 = out[:, 0] - out[:, 2], out[:, 1] - out[:, 3]
     aolp = np.degrees(0.5 * np.arctan2(s2, s1))

@@ -153,6 +153,7 @@ def calibrate_synthetic_set(folder: str | Path, spec=None) -> tuple[dict, dict]:
     import yaml
 
     from sellip.calibrate import synthetic
+    from sellip.calibrate.board_spheres import calibrate_flash_on_board
     from sellip.calibrate.color import calibrate_color
     from sellip.calibrate.flash import calibrate_flash
     from sellip.calibrate.intrinsics import calibrate_intrinsics
@@ -173,7 +174,7 @@ def calibrate_synthetic_set(folder: str | Path, spec=None) -> tuple[dict, dict]:
     spheres = frames("spheres")
     device["calibration"] = {"intrinsics": {"std_px": board.std}}
     if (folder / "board_spheres").is_dir():  # spheres resting on the board: their centres from its pose
-        flash = calibrate_flash(frames("board_spheres"), device, radius, board=(spec.cols, spec.rows, spec.square_m))
+        flash = calibrate_flash_on_board(frames("board_spheres"), device, radius, spec.cols, spec.rows, spec.square_m)
     else:
         flash = calibrate_flash(spheres, device, radius)
     del device["calibration"]

@@ -149,16 +149,17 @@ def _intrinsics(args, device) -> int:
 
 
 def _flash(args, device) -> int:
+    from sellip.calibrate.board_spheres import calibrate_flash_on_board
     from sellip.calibrate.flash import calibrate_flash
     from sellip.calibrate.report import flash_report
 
-    board = None
+    frames, radius = _frames(args.frames, device["sensor"]), args.sphere_radius_mm / 1000
     if args.board is not None:
         if args.square_mm is None:
             raise CalibrationError("--board needs --square-mm (the side of the board's squares, mm)")
-        board = (*args.board, args.square_mm / 1000)
-    result = calibrate_flash(_frames(args.frames, device["sensor"]), device, args.sphere_radius_mm / 1000, board=board,
-                             log=log.info)
+        result = calibrate_flash_on_board(frames, device, radius, *args.board, args.square_mm / 1000, log=log.info)
+    else:
+        result = calibrate_flash(frames, device, radius, log=log.info)
     report = flash_report(result, device, args.sphere_radius_mm)
     for level, line in report.lines:
         log.log(level, line)
