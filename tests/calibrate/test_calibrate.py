@@ -152,11 +152,13 @@ def test_flash_position_from_sphere_highlights(calib):
     result = flash.calibrate_flash(_frames(folder / "spheres", device["sensor"]), device, radius)
     error = result.position_m - np.asarray(device["light"]["position_m"])
     assert len(result.highlights) == 18 and not result.left_out
-    # quarter size: about 1 mm across the image, several in depth (the full-size target is in the benchmark). The
-    # spheres mirror their panel: measured (0.14, 0.03, -4.43) mm with the rim model, 1-sigma 1.1 mm in depth; the
-    # half-level outline alone gave (0.07, 6.28, 1.51) mm (docs/calibration.md, "Spheres that mirror ...")
+    # quarter size: about 1 mm across the image, several in depth. The spheres mirror their panel: measured (0.14,
+    # 0.03, -4.43) mm with the rim model; the half-level outline alone gave (0.07, 6.28, 1.51) mm, so the 1-sigma,
+    # which includes that difference, is about 6 mm and covers the error (docs/calibration.md)
     assert np.all(np.abs(error[:2]) < 2e-3), error
-    assert abs(error[2]) < max(4 * result.std_m[2], 5e-3), (error, result.std_m)
+    assert np.all(np.abs(error) <= 3 * result.std_m), (error, result.std_m)
+    assert np.max(result.centre_std_m) > 2e-3 and result.protocol == "outline"
+    assert any("the sphere centres from their outlines are uncertain" in c for c in result.causes())
     # each sphere's centre from its outline
     for record in result.highlights:
         centres = np.asarray(truth["spheres"]["centres_m"][record["frame"]])
