@@ -409,8 +409,8 @@ def nearest_point(points: np.ndarray, directions: np.ndarray, scale_m: float = 1
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The point X (3,) nearest lines P_i + t d_i (points, unit directions (N, 3)) in the Huber sense: IRLS on
     sum_i w_i |(I - d_i d_i^T)(X - P_i)|^2, the Huber scale ``scale_m`` or, when the lines scatter more, twice the
-    median distance of the unweighted solution (so that the lines' ordinary scatter keeps full weight and only an
-    outlier is down-weighted). Returns (X, distances (N,), final weights (N,))."""
+    median distance after a fifth of the iterations (so that the lines' ordinary scatter keeps full weight and
+    only an outlier is down-weighted). Returns (X, distances (N,), final weights (N,))."""
     projectors = np.eye(3) - directions[:, :, None] * directions[:, None, :]
     weights = np.ones(len(points))
     x = np.zeros(3)
@@ -419,7 +419,7 @@ def nearest_point(points: np.ndarray, directions: np.ndarray, scale_m: float = 1
         b = np.einsum("n,nij,nj->i", weights, projectors, points)
         x = np.linalg.solve(a, b)
         distances = np.linalg.norm(np.einsum("nij,nj->ni", projectors, x - points), axis=-1)
-        if iteration == 0:
+        if iteration == iterations // 5:
             scale_m = max(scale_m, 2 * float(np.median(distances)))
         weights = np.where(distances <= scale_m, 1.0, scale_m / np.maximum(distances, 1e-15))
     return x, distances, weights
