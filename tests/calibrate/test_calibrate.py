@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from sellip.calibrate import color, flash, intrinsics, polarization, synthetic, targets
+from sellip.calibrate import board_spheres, color, flash, intrinsics, panel, polarization, synthetic, targets
 from sellip.calibrate import device as devices
 from sellip.calibrate.intrinsics import CalibrationError
 from sellip.capture import assemble, files, ingest, reader, writer
@@ -152,11 +152,13 @@ def test_flash_position_from_sphere_highlights(calib):
     result = flash.calibrate_flash(_frames(folder / "spheres", device["sensor"]), device, radius)
     error = result.position_m - np.asarray(device["light"]["position_m"])
     assert len(result.highlights) == 18 and not result.left_out
-    # quarter size: about 1 mm across the image, several in depth (the full-size target is in the benchmark). The
-    # spheres mirror their panel: measured (0.14, 0.03, -4.43) mm with the rim model, 1-sigma 1.1 mm in depth; the
-    # half-level outline alone gave (0.07, 6.28, 1.51) mm (docs/calibration.md, "Spheres that mirror ...")
+    # quarter size: about 1 mm across the image, several in depth. The spheres mirror their panel: measured (0.14,
+    # 0.03, -4.43) mm with the rim model; the half-level outline alone gave (0.07, 6.28, 1.51) mm, so the 1-sigma,
+    # which includes that difference, is about 6 mm and covers the error (docs/calibration.md)
     assert np.all(np.abs(error[:2]) < 2e-3), error
-    assert abs(error[2]) < max(4 * result.std_m[2], 5e-3), (error, result.std_m)
+    assert np.all(np.abs(error) <= 3 * result.std_m), (error, result.std_m)
+    assert np.max(result.centre_std_m) > 2e-3 and result.protocol == "outline"
+    assert any("the sphere centres from their outlines are uncertain" in c for c in result.causes())
     # each sphere's centre from its outline
     for record in result.highlights:
         centres = np.asarray(truth["spheres"]["centres_m"][record["frame"]])
@@ -246,6 +248,130 @@ def test_dark_background_touching_spheres_and_spheres_near_the_centre_are_named(
         "1-sigma of the flash position, largest of x, y, z is 50 mm, target <= 2 mm (--max-flash-std-mm)"]
 
 
+# --------------------------------------------------------------------------- flash: spheres resting on the board
+
+
+BOARD = (SPEC.cols, SPEC.rows, SPEC.square_m)
+
+
+@pytest.mark.slow
+def test_flash_from_spheres_resting_on_the_board(calib):
+    """The board protocol at 612x512: the board frame's pose fixes each centre (within 0.2 mm), the flash is within
+    3 sigma on every axis, and that sigma (4-5 mm in depth at this size: the highlights' and the poses' precision)
+    misses the full-size target, so the step would fail; a sphere frame without its board frame is named."""
+    folder, truth = calib
+    device = _calibrated(truth)
+    radius = truth["board_spheres"]["radius_m"]
+    frames = _frames(folder / "board_spheres", device["sensor"])
+    result = board_spheres.calibrate_flash_on_board(frames, device, radius, *BOARD)
+    error = result.position_m - np.asarray(device["light"]["position_m"])
+    assert len(result.highlights) == 18 and not result.left_out and result.protocol == "board"
+    assert np.all(np.abs(error) <= 3 * result.std_m), (error, result.std_m)
+    assert targets.check("flash", result.uncertainty())[0].startswith("1-sigma of the flash position")
+    for record in result.highlights:
+        centres = np.asarray(truth["board_spheres"]["centres_m"][record["frame"]])
+        assert np.min(np.linalg.norm(centres - np.asarray(record["centre_m"]), axis=1)) < 0.2e-3
+    del frames["spheres_00_board.tiff"]
+    result = board_spheres.calibrate_flash_on_board(frames, device, radius, *BOARD)
+    assert len(result.highlights) == 15
+    assert result.left_out == {"spheres_00.tiff": "no board frame spheres_00_board.tiff beside it: expected the "
+                               "board alone, shot from the same camera position before the spheres were set down"}
+
+
+@pytest.mark.slow
+def test_flash_on_the_board_within_2_mm_at_half_size(tmp_path):
+    """At half the device's size (1224x1024, 6 layouts of 3 spheres of 20 mm on the board, the true intrinsics)
+    the flash is within 2 mm and within 3 sigma, and passes its gate."""
+    out = synthetic.synthesize_calibration(tmp_path / "half", 1224, 1024, seed=0, board_frames=0, sphere_frames=0,
+                                           raw_format="tiff")
+    truth = yaml.safe_load((out / "truth.yaml").read_text())
+    device = _calibrated(truth)
+    result = board_spheres.calibrate_flash_on_board(_frames(out / "board_spheres", device["sensor"]), device,
+                                   truth["board_spheres"]["radius_m"], *BOARD)
+    error = result.position_m - np.asarray(device["light"]["position_m"])
+    assert len(result.highlights) == 18, result.left_out
+    assert np.linalg.norm(error) < 2e-3 and np.all(np.abs(error) <= 3 * result.std_m), (error, result.std_m)
+    assert targets.check("flash", result.uncertainty()) == []
+
+
+@pytest.mark.slow
+def test_flash_on_the_board_one_sigma_covers_the_error_over_seeds(tmp_path):
+    """Five more synthetic sets (6 layouts of 3 spheres on the board, 612x512, the true intrinsics): the flash is
+    within 3 of its reported sigma on every axis in each (at this size up to 11 mm off in depth, sigma 4-5 mm)."""
+    for seed in range(1, 6):
+        out = synthetic.synthesize_calibration(tmp_path / f"s{seed}", W, H, seed=seed, board_frames=0, sphere_frames=0,
+                                               raw_format="tiff")
+        truth = yaml.safe_load((out / "truth.yaml").read_text())
+        device = _calibrated(truth)
+        result = board_spheres.calibrate_flash_on_board(_frames(out / "board_spheres", device["sensor"]), device,
+                                       truth["board_spheres"]["radius_m"], *BOARD)
+        error = result.position_m - np.asarray(device["light"]["position_m"])
+        assert len(result.highlights) >= 15, (seed, result.left_out)
+        assert np.all(np.abs(error) <= 3 * result.std_m), (seed, error, result.std_m)
+
+
+def _mirror_point(centre: np.ndarray, radius: float, light: np.ndarray) -> np.ndarray:
+    """The point of a sphere that mirrors ``light`` into the camera (at the origin): its normal halves the
+    directions to the camera and to the light."""
+    normal = -centre / np.linalg.norm(centre)
+    for _ in range(200):
+        point = centre + radius * normal
+        to_camera, to_light = -point / np.linalg.norm(point), (light - point) / np.linalg.norm(light - point)
+        normal = (to_camera + to_light) / np.linalg.norm(to_camera + to_light)
+    return centre + radius * normal
+
+
+def _flash_from_geometry(device, centres, radius, rng, centre_std_m=1e-5, highlight_std_px=0.02):
+    """FlashResult of exact mirror highlights on spheres at ``centres`` (``device``, its true flash), the
+    highlights with noise, the centres known to ``centre_std_m`` (their draws give the centres' part of the
+    1-sigma, as the board protocol's do)."""
+    width, height = device["sensor"]["width"], device["sensor"]["height"]
+    grid = ingest.output_intrinsics(device["camera"], height, width)
+    light = np.asarray(device["light"]["position_m"])
+    true = [c + rng.normal(0, centre_std_m, 3) for c in centres]  # where the spheres really are
+    pixels = []
+    for c in true:
+        point = _mirror_point(c, radius, light)
+        pixels.append(np.array([grid["fx"] * point[0] / point[2] + grid["cx"],
+                                grid["fy"] * point[1] / point[2] + grid["cy"]]) + rng.normal(0, highlight_std_px, 2))
+    lines = [flash.mirror_ray(c, radius, p, grid) for c, p in zip(centres, pixels)]
+    draws = []
+    for _ in range(100):
+        drawn = [flash.mirror_ray(c + rng.normal(0, centre_std_m, 3), radius, p, grid) for c, p in zip(centres, pixels)]
+        draws.append(flash.nearest_point(np.asarray([a for a, _ in drawn]), np.asarray([b for _, b in drawn]))[0])
+    position, cov, distances, centre = flash.solve_flash(np.asarray([a for a, _ in lines]),
+                                                         np.asarray([b for _, b in lines]), centre_samples=draws)
+    records = [{"frame": "f", "sphere": k, "highlight_px": p.tolist(), "centre_m": c.tolist(), "residual_mm": 1e3 * d}
+               for k, (p, c, d) in enumerate(zip(pixels, centres, distances))]
+    result = flash.FlashResult(position, np.sqrt(np.diag(cov)), float(1e3 * np.sqrt(np.mean(distances ** 2))),
+                               records, image_size=(width // 2, height // 2), centre_std_m=np.sqrt(np.diag(centre)),
+                               protocol="board")
+    return result, position - light
+
+
+def test_weak_geometry_fails_the_flash_gate_and_names_why():
+    """At the device's size, 18 spheres (20 mm) over the field at 0.4-0.55 m pass the gate; 18 near the image
+    centre at one distance, with the same highlight (0.02 px) and centre (0.01 mm) errors, miss it, and the causes
+    name both."""
+    device = synthetic.true_device()
+    cam, radius = device["camera"], synthetic.SPHERE_RADIUS_M
+    width, height = device["sensor"]["width"], device["sensor"]["height"]
+    rng = np.random.default_rng(5)
+    spread = [c for layout in synthetic.sphere_layouts(device, 6, rng, radius=radius) for c in layout]
+    good, error = _flash_from_geometry(device, spread, radius, rng)
+    assert targets.check("flash", good.uncertainty()) == [], good.std_m
+    assert np.all(np.abs(error) <= 3 * good.std_m)
+    near = [np.array([(width / 2 + du - cam["cx"]) / cam["fx"], (height / 2 + dv - cam["cy"]) / cam["fy"], 1.0]) * 0.5
+            for du in (-250, 0, 250) for dv in (-250, 0, 250)] * 2
+    weak, error = _flash_from_geometry(device, near, radius, rng)
+    missed = targets.check("flash", weak.uncertainty())
+    assert missed and missed[0].startswith("1-sigma of the flash position, largest of x, y, z is ")
+    causes = weak.causes()
+    assert any("spheres were all near the image centre" in c for c in causes), causes
+    assert any("the spheres were all at one distance (500-500 mm)" in c for c in causes), causes
+    assert np.all(np.abs(error) <= 3 * weak.std_m)
+
+
 # --------------------------------------------------------------------------- polarization
 
 
@@ -303,7 +429,7 @@ def test_panel_reflection_is_fresnel_and_s_polarized():
         # (image up is -y): n = sin(z) (cos a, -sin a, 0) - cos(z) (0, 0, 1)
         normals.append([np.sin(zenith) * np.cos(azimuth), -np.sin(zenith) * np.sin(azimuth), -np.cos(zenith)])
         points.append([0.0, 0.0, z])
-    out = synthetic.panel_reflection(np.asarray(points), np.asarray(normals), 1.5, panel=2.0)
+    out = panel.panel_reflection(np.asarray(points), np.asarray(normals), 1.5, panel=2.0)
     s0 = out.sum(axis=-1) / 2
     s1, s2 = out[:, 0] - out[:, 2], out[:, 1] - out[:, 3]
     aolp = np.degrees(0.5 * np.arctan2(s2, s1))
@@ -544,7 +670,19 @@ def test_calibrate_commands_write_device_yaml(calib, tmp_path):
     assert "24 board poses used" in failed.stderr
     subprocess.run(run + intrinsics_args + ["--max-c-std-px", "3"], check=True)
     radius_mm = str(truth["spheres"]["radius_m"] * 1000)
-    subprocess.run(run + ["flash", *spheres, "--device", str(device_path), "--sphere-radius-mm", radius_mm], check=True)
+    # spheres before the panel that they mirror: the centres from their outlines are uncertain by more than the
+    # target allows (the flash is 4.4 mm off in depth): the step fails, names why and writes nothing
+    before = device_path.read_bytes()
+    failed = subprocess.run(run + ["flash", *spheres, "--device", str(device_path), "--sphere-radius-mm", radius_mm],
+                            check=False, capture_output=True, text=True)
+    assert failed.returncode != 0 and device_path.read_bytes() == before
+    assert "1-sigma of the flash position, largest of x, y, z is" in failed.stderr
+    assert "the sphere centres from their outlines are uncertain" in failed.stderr and "--board" in failed.stderr
+    # spheres resting on the board: at this size the 1-sigma is about 6 mm (pose, intrinsics); relaxed as the docs do
+    pairs = sorted(str(p) for p in (folder / "board_spheres").iterdir())
+    subprocess.run(run + ["flash", *pairs, "--device", str(device_path), "--sphere-radius-mm", radius_mm,
+                          "--board", f"{SPEC.cols}x{SPEC.rows}", "--square-mm", str(SPEC.square_m * 1000),
+                          "--max-flash-std-mm", "8"], check=True)
     subprocess.run(run + ["polarization", *spheres, "--device", str(device_path), "--sphere-radius-mm", radius_mm],
                    check=True)
     corners = [f"{x},{y}" for x, y in truth["chart"]["corners_px"]]
@@ -555,13 +693,13 @@ def test_calibrate_commands_write_device_yaml(calib, tmp_path):
     # every step records its 1-sigma and the targets it met
     record = device["calibration"]
     assert record["intrinsics"]["targets"]["c_std_px"] == 3 and record["intrinsics"]["std_px"]["cx"] < 3
-    assert max(record["flash"]["std_mm"]) <= record["flash"]["targets"]["flash_std_mm"] == 2
+    assert max(record["flash"]["std_mm"]) <= record["flash"]["targets"]["flash_std_mm"] == 8
+    assert record["flash"]["protocol"] == "board" and len(record["flash"]["centre_std_mm"]) == 3
     assert record["polarization"]["polarizer_std_deg"] <= 0.5 and record["color"]["targets"]["delta_e_mean"] == 1.5
     assert all(record[step]["ok"] for step in record)
     assert abs(device["camera"]["fx"] / truth["device"]["camera"]["fx"] - 1) < 5e-3
-    # the spheres mirror their panel: with the calibrated intrinsics the flash is 7-9 mm off in depth at this size
-    # (docs/calibration.md, "Spheres that mirror their background": not met, the 1-sigma does not show it)
-    assert np.linalg.norm(np.subtract(device["light"]["position_m"], truth["device"]["light"]["position_m"])) < 12e-3
+    error = np.subtract(device["light"]["position_m"], truth["device"]["light"]["position_m"])
+    assert np.all(np.abs(error) <= 3e-3 * np.asarray(record["flash"]["std_mm"])), error
     assert device["calibration"]["polarization"]["ok"]
     assert device["calibration"]["color"]["delta_e2000_mean"] <= 1.0
     # too few frames: a clear error, exit status not 0

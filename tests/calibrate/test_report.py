@@ -39,9 +39,11 @@ def test_flash_report_keeps_the_polarizer_angle():
     step = report.flash_report(result, {"light": {"polarizer_deg": 12.0, "position_m": [0, 0, 0]}}, 20.0)
     assert step.lines[0] == (logging.WARNING, "left out s1.dng#0: highlight saturated")
     assert step.lines[1] == (logging.INFO, "s0.dng sphere 1: highlight residual 0.250 mm")
-    assert step.lines[2][1].startswith("flash at [0.1, 50.2, 1.3] mm (1-sigma [0.2, 0.2, 0.8] mm)")
+    assert step.lines[2][1].startswith("flash at [0.1, 50.2, 1.3] mm (1-sigma [0.2, 0.2, 0.8] mm, of which the "
+                                       "sphere centres' [0.0, 0.0, 0.0] mm)")
     assert step.sections == {"light": {"polarizer_deg": 12.0, "position_m": [0.0001, 0.0502, 0.0013]}}
     assert np.allclose(step.record["std_mm"], [0.2, 0.2, 0.8]) and step.record["sphere_radius_mm"] == 20.0
+    assert step.record["protocol"] == "outline" and step.record["centre_std_mm"] == [0.0, 0.0, 0.0]
     # a device without a light section yet: the polarizer at 0
     assert report.flash_report(result, {}, 20.0).sections["light"]["polarizer_deg"] == 0.0
 

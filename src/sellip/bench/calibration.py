@@ -146,12 +146,14 @@ def noisy_chart_matrix(device: Mapping, noise_scale: float = CHART_NOISE_SCALE, 
 
 
 def calibrate_synthetic_set(folder: str | Path, spec=None) -> tuple[dict, dict]:
-    """The four steps of ``sellip calibrate`` (intrinsics, flash, polarization with --write, colour) on a folder of
-    ``sellip synth-calibration``, from its sensor.yaml; returns the device (sensor, camera, light) and a record of
+    """The four steps of ``sellip calibrate`` (intrinsics, flash -- on the spheres resting on the board when the
+    folder has them --, polarization with --write, colour) on a folder of ``sellip synth-calibration``, from its
+    sensor.yaml; returns the device (sensor, camera, light) and a record of
     each step's residuals."""
     import yaml
 
     from sellip.calibrate import synthetic
+    from sellip.calibrate.board_spheres import calibrate_flash_on_board
     from sellip.calibrate.color import calibrate_color
     from sellip.calibrate.flash import calibrate_flash
     from sellip.calibrate.intrinsics import calibrate_intrinsics
@@ -170,7 +172,12 @@ def calibrate_synthetic_set(folder: str | Path, spec=None) -> tuple[dict, dict]:
     device["camera"] = board.camera()
     radius = float(truth["spheres"]["radius_m"])
     spheres = frames("spheres")
-    flash = calibrate_flash(spheres, device, radius)
+    device["calibration"] = {"intrinsics": {"std_px": board.std}}
+    if (folder / "board_spheres").is_dir():  # spheres resting on the board: their centres from its pose
+        flash = calibrate_flash_on_board(frames("board_spheres"), device, radius, spec.cols, spec.rows, spec.square_m)
+    else:
+        flash = calibrate_flash(spheres, device, radius)
+    del device["calibration"]
     device["light"] = {"position_m": flash.position_m.tolist(), "polarizer_deg": 0.0}
     report = check_polarization(spheres, device, radius)
     device["sensor"]["polarizer_layout"] = report.best_layout

@@ -6,6 +6,8 @@ Public API (raw frames are (H, W) uint16 mosaics; a device is device.yaml's mapp
     intrinsics.intensity_image(raw, sensor) -> (H/2, W/2)      # s0 per polarizer cell
     intrinsics.half_to_raw(p) = 2 p + 0.5                       # half-resolution -> raw pixel centres
     flash.calibrate_flash(frames, device, radius_m) -> FlashResult   # spheres -> mirror rays -> nearest point
+    board_spheres.calibrate_flash_on_board(frames, device, radius_m, cols, rows, square_m) -> FlashResult
+                                                                  # spheres resting on the board: its pose
     polarization.check_polarization(frames, device, radius_m) -> PolarizationReport   # layout, flash polarizer
     color.calibrate_color(raw, device, corners_px=None) -> ColorResult   # 3x3 camera RGB -> sRGB, dE2000
     report.intrinsics_report / flash_report / polarization_report / color_report -> StepReport

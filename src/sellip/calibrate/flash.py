@@ -9,8 +9,17 @@ Public API::
     find_highlight(s0, sphere) -> (centre (x, y) | None, problem | None)    # refine_highlight: a Gaussian fit
     mirror_ray(sphere, highlight_px, intrinsics) -> (point (3,), direction (3,))
     nearest_point(points (N, 3), directions (N, 3), scale_m=0.001) -> (X (3,), distances (N,), weights (N,))
-    calibrate_flash(frames: {name: raw}, device, radius_m) -> FlashResult
+    solve_flash(points, directions, scale_m, centre_samples) -> (X, covariance, distances, centres' covariance)
+    calibrate_flash(frames: {name: raw}, device, radius_m) -> FlashResult   # the outline protocol
     MIN_HIGHLIGHTS
+
+Two protocols (docs/calibration.md, "Flash position"). **Board** (recommended, :mod:`sellip.calibrate.board_spheres`):
+pairs of frames from one camera position, the board alone (NAME_board) and glossy spheres set down on its squares'
+centres (NAME); the board's pose fixes each centre, and the 1-sigma adds the flash's spread over draws of the poses
+and intrinsics.
+**Outline**: spheres before a bright background, centres from their outlines (steps 1-2 below); the 1-sigma adds
+how far the flash moves between the half-level outline's centres and the rim model's (a glossy sphere mirrors
+the background at its rim, so neither is exact).
 
 Geometry (camera coordinates, metres; the images are the ingest chain's undistorted half-resolution grid,
 :func:`sellip.ingest.output_intrinsics`, so a pixel's ray is K'^-1 (x, y, 1)):
@@ -80,13 +89,16 @@ NO_SPHERE = "no sphere found (expected dark spheres in front of a bright backgro
 @dataclass
 class Sphere:
     """One sphere in a frame: centre (3,) camera coordinates (m), radius_px (output pixels), centroid_px (x, y),
-    outline_rms_px (how well the outline fits a sphere), problem (None or why it is left out)."""
+    outline_rms_px (how well the outline fits a sphere), problem (None or why it is left out), outline_centre (3,):
+    the centre from the half-level outline alone (before the rim model; the flash's systematic 1-sigma compares the
+    two)."""
 
     centre: np.ndarray | None
     radius_px: float
     centroid_px: np.ndarray
     outline_rms_px: float = float("nan")
     problem: str | None = None
+    outline_centre: np.ndarray | None = None
 
 
 def develop_frame(raw: np.ndarray, device: Mapping) -> tuple[np.ndarray, dict]:
@@ -306,9 +318,10 @@ def find_spheres(s0: np.ndarray, intrinsics: Mapping, radius_m: float, rim_eta: 
         axis, cos_alpha, residual = _fit_cone(pixel_rays(outline, intrinsics))
         rms = float(np.sqrt(np.mean(residual ** 2)) / pixel_scale)
         alpha = float(np.arccos(cos_alpha))
+        outline_centre = axis * radius_m / np.sin(alpha)
         if rim_eta is not None:
             axis, alpha = rim_silhouette(s0, intrinsics, axis, alpha, background, rim_eta)
-        sphere = Sphere(axis * radius_m / np.sin(alpha), radius, centroid, rms)
+        sphere = Sphere(axis * radius_m / np.sin(alpha), radius, centroid, rms, outline_centre=outline_centre)
         if rms > MAX_OUTLINE_RMS_PX:
             sphere.problem = (f"outline is {rms:.2f} px RMS from a sphere's silhouette (at most {MAX_OUTLINE_RMS_PX}"
                               " expected): occluded, touching another object, or not a sphere")
@@ -394,24 +407,30 @@ def mirror_ray(centre: np.ndarray, radius_m: float, highlight_px: np.ndarray, in
 
 def nearest_point(points: np.ndarray, directions: np.ndarray, scale_m: float = 1e-3, iterations: int = 50
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The point X (3,) nearest lines P_i + t d_i (points, unit directions (N, 3)) in the Huber sense (scale
-    ``scale_m``): IRLS on sum_i w_i |(I - d_i d_i^T)(X - P_i)|^2. Returns (X, distances (N,), final weights (N,))."""
+    """The point X (3,) nearest lines P_i + t d_i (points, unit directions (N, 3)) in the Huber sense: IRLS on
+    sum_i w_i |(I - d_i d_i^T)(X - P_i)|^2, the Huber scale ``scale_m`` or, when the lines scatter more, twice the
+    median distance after a fifth of the iterations (so that the lines' ordinary scatter keeps full weight and
+    only an outlier is down-weighted). Returns (X, distances (N,), final weights (N,))."""
     projectors = np.eye(3) - directions[:, :, None] * directions[:, None, :]
     weights = np.ones(len(points))
     x = np.zeros(3)
-    for _ in range(iterations):
+    for iteration in range(iterations):
         a = np.einsum("n,nij->ij", weights, projectors)
         b = np.einsum("n,nij,nj->i", weights, projectors, points)
         x = np.linalg.solve(a, b)
         distances = np.linalg.norm(np.einsum("nij,nj->ni", projectors, x - points), axis=-1)
+        if iteration == iterations // 5:
+            scale_m = max(scale_m, 2 * float(np.median(distances)))
         weights = np.where(distances <= scale_m, 1.0, scale_m / np.maximum(distances, 1e-15))
     return x, distances, weights
 
 
 @dataclass
 class FlashResult:
-    """position_m (3,) camera coordinates; std_m (3,) one-sigma from the lines' spread; highlights: one record per
-    used highlight (frame, sphere index, centre, residual_mm); left_out: {"frame[#k]": why}."""
+    """position_m (3,) camera coordinates; std_m (3,) one-sigma: the lines' spread and the sphere centres' error
+    together (:func:`solve_flash`); centre_std_m (3,) the centres' part alone; highlights: one record per used
+    highlight (frame, sphere index, centre, residual_mm); left_out: {"frame[#k]": why}; protocol: "board" (spheres
+    resting on the board, centres from its pose) or "outline" (spheres before a bright background)."""
 
     position_m: np.ndarray
     std_m: np.ndarray
@@ -419,6 +438,8 @@ class FlashResult:
     highlights: list[dict]
     left_out: dict[str, str] = field(default_factory=dict)
     image_size: tuple[int, int] = (0, 0)
+    centre_std_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    protocol: str = "outline"
 
     def uncertainty(self) -> dict[str, float]:
         """What :mod:`sellip.calibrate.targets` gates the flash on: {flash_std_mm (largest axis), flash_rms_mm}."""
@@ -426,15 +447,18 @@ class FlashResult:
 
     def causes(self) -> list[str]:
         """Why the position may be uncertain, as far as the frames show it: spheres left out (clipped, touching,
-        saturated), too few highlights, highlights all near the image centre, large residuals."""
+        saturated), too few highlights, highlights all near the image centre or at one distance, large residuals,
+        sphere centres that the rim reflection makes uncertain."""
         out = []
         kinds = {"clipped": "clipped by the frame edge", "touching": "touching another sphere or object",
                  "saturated": "with a saturated highlight (lower the flash)", "no sphere": "frames without a sphere "
-                 "against a bright background", "no mirror highlight": "without a mirror highlight"}
+                 "against a bright background", "no mirror highlight": "without a mirror highlight",
+                 "board not found": "frames whose board was not found"}
         for key, words in kinds.items():
             count = sum(key in why for why in self.left_out.values())
             if count:
-                out.append(f"{count} sphere(s) {words}" if key != "no sphere" else f"{count} {words}")
+                out.append(f"{count} sphere(s) {words}" if key not in ("no sphere", "board not found")
+                           else f"{count} {words}")
         count = len(self.highlights)
         if count < 2 * MIN_HIGHLIGHTS:
             out.append(f"only {count} highlights: take more frames, 2-3 spheres each "
@@ -446,12 +470,30 @@ class FlashResult:
                 out.append(f"the spheres were all near the image centre: their highlights span {100 * extent[0]:.0f} % "
                            f"of the width and {100 * extent[1]:.0f} % of the height (at least {100 * FIELD_SPREAD:.0f} "
                            "% expected): place them over the whole field")
+            depth = np.asarray([h["centre_m"][2] for h in self.highlights if "centre_m" in h])
+            if depth.size > 1 and depth.max() - depth.min() < DEPTH_SPREAD * np.median(depth):
+                out.append(f"the spheres were all at one distance ({1e3 * depth.min():.0f}-{1e3 * depth.max():.0f} mm):"
+                           f" expected depths {100 * DEPTH_SPREAD:.0f} % apart or more (near and far spheres, or the "
+                           "board tilted)")
             worst = max(self.highlights, key=lambda h: h.get("residual_mm", 0.0))
             if worst.get("residual_mm", 0.0) > 3 * max(np.median([h["residual_mm"] for h in self.highlights]), 0.1):
                 out.append(f"highlight residuals up to {worst['residual_mm']:.1f} mm ({worst['frame']} sphere "
                            f"{worst['sphere']}): a sphere's outline or centre is wrong there (a bright rim "
-                           "reflection, a wrong --sphere-radius-mm)")
+                           "reflection, a wrong --sphere-radius-mm, a sphere off its square's centre)")
+        centre = float(np.max(self.centre_std_m) * 1e3)
+        if self.protocol == "outline" and centre > 0.5 * float(np.max(self.std_m) * 1e3):
+            out.append(f"the sphere centres from their outlines are uncertain: the flash moves by {centre:.1f} mm "
+                       "between the half-level outline and the rim model (glossy spheres mirror the bright background "
+                       "at their rims): set the spheres down on the board instead (--board, docs/calibration.md)")
+        elif self.protocol == "board" and centre > 0.5 * float(np.max(self.std_m) * 1e3):
+            out.append(f"the board's pose (and the intrinsics' 1-sigma) move the flash by {centre:.1f} mm: the board "
+                       "too small or too far in the frame, or the intrinsics uncertain")
         return out
+
+
+DEPTH_SPREAD = 0.1
+"""Sphere centres whose depths span less than this share of their median: all at one distance (depth poorly
+determined)."""
 
 
 def intensity(analyzers: np.ndarray) -> np.ndarray:
@@ -459,12 +501,40 @@ def intensity(analyzers: np.ndarray) -> np.ndarray:
     return analyzers.sum(axis=-2).mean(axis=-1) / 2
 
 
+def solve_flash(points: np.ndarray, directions: np.ndarray, scale_m: float = 1e-3,
+                centre_samples: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The flash X (3,) from mirror lines (points, unit directions (N, 3), :func:`nearest_point`) with its
+    covariance: the lines' spread (sigma^2 (sum_i w_i (I - d_i d_i^T))^-1, sigma^2 from the weighted residuals,
+    2 N - 3 degrees of freedom) plus ``centre_samples`` (S, 3): the flash recomputed with the sphere centres
+    (and whatever else they hang on) drawn from their error model, whose covariance is added -- the lines' spread
+    cannot see an error that all centres share. Returns (X, covariance (3, 3), distances (N,), centre part (3, 3))."""
+    position, distances, weights = nearest_point(points, directions, scale_m)
+    projectors = np.eye(3) - directions[:, :, None] * directions[:, None, :]
+    dof = max(len(points) * 2 - 3, 1)
+    sigma2 = float(np.sum(weights * distances ** 2) / dof)
+    cov = sigma2 * np.linalg.inv(np.einsum("n,nij->ij", weights, projectors))
+    centre = np.zeros((3, 3))
+    if centre_samples is not None and len(centre_samples) > 1:
+        centre = np.atleast_2d(np.cov(np.asarray(centre_samples).T, bias=True))
+    return position, cov + centre, distances, centre
+
+
+def too_few_highlights(count: int, min_highlights: int, left_out: Mapping[str, str]) -> CalibrationError:
+    lines = "".join(f"\n  {k}: {v}" for k, v in left_out.items())
+    return CalibrationError(f"{count} usable sphere highlight(s), at least {min_highlights} needed: take "
+                            f"{min_highlights - count} more (spheres wholly in view, over the whole field, "
+                            f"highlights below the white level).{lines}")
+
+
 def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m: float,
                     min_highlights: int = MIN_HIGHLIGHTS, scale_m: float = 1e-3, log=None) -> FlashResult:
     """The flash position from raw frames {name: (H, W)} of glossy spheres of radius ``radius_m`` (module
-    docstring). ``device`` needs sensor and camera (intrinsics calibrated). Every sphere left out is named with
-    why; fewer than ``min_highlights`` usable highlights raise CalibrationError saying how many more are needed."""
-    points, directions, records, left_out = [], [], [], {}
+    docstring), the spheres before a bright background (the outline protocol; spheres resting on the board:
+    :func:`sellip.calibrate.board_spheres.calibrate_flash_on_board`). ``device`` needs sensor and camera
+    (intrinsics calibrated). The 1-sigma includes, as the centres' systematic error, how far the flash moves
+    between the half-level outline's centres and the rim model's. Every sphere left out is named with why; fewer
+    than ``min_highlights`` usable highlights raise CalibrationError saying how many more are needed."""
+    points, directions, records, left_out, outline_lines = [], [], [], {}, []
     image_size = (0, 0)
     for name, raw in frames.items():
         analyzers, intrinsics = develop_frame(raw, device)
@@ -481,10 +551,11 @@ def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m:
             highlight = None
             if problem is None:
                 highlight, problem = find_highlight(s0, sphere)
-            line = None
+            line = outline_line = None
             if problem is None:
                 line = mirror_ray(sphere.centre, radius_m, highlight, intrinsics)
-                if line is None:
+                outline_line = mirror_ray(sphere.outline_centre, radius_m, highlight, intrinsics)
+                if line is None or outline_line is None:
                     problem = "the highlight's ray misses the fitted sphere (wrong --sphere-radius-mm?)"
             if problem is not None:
                 left_out[label] = problem
@@ -493,21 +564,21 @@ def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m:
                 continue
             points.append(line[0])
             directions.append(line[1])
+            outline_lines.append(outline_line)
             records.append({"frame": name, "sphere": k, "centre_m": sphere.centre.tolist(),
                             "outline_rms_px": sphere.outline_rms_px, "highlight_px": highlight.tolist()})
     if len(points) < min_highlights:
-        lines = "".join(f"\n  {k}: {v}" for k, v in left_out.items())
-        raise CalibrationError(f"{len(points)} usable sphere highlight(s), at least {min_highlights} needed: take "
-                               f"{min_highlights - len(points)} more (spheres wholly in view, over the whole field, "
-                               f"highlights below the white level).{lines}")
+        raise too_few_highlights(len(points), min_highlights, left_out)
     points, directions = np.asarray(points), np.asarray(directions)
-    position, distances, weights = nearest_point(points, directions, scale_m)
+    # the rim model's correction of the centres, taken as their systematic error: the flash from the half-level
+    # outline's centres is one draw at +1 sigma and its mirror at -1 sigma
+    outline, *_ = nearest_point(np.asarray([p for p, _ in outline_lines]),
+                                np.asarray([d for _, d in outline_lines]), scale_m)
+    position, *_ = nearest_point(points, directions, scale_m)
+    samples = np.stack([outline, 2 * position - outline])
+    position, cov, distances, centre = solve_flash(points, directions, scale_m, samples)
     for record, distance in zip(records, distances):
         record["residual_mm"] = float(distance * 1e3)
-    projectors = np.eye(3) - directions[:, :, None] * directions[:, None, :]
-    dof = max(len(points) * 2 - 3, 1)
-    sigma2 = float(np.sum(weights * distances ** 2) / dof)
-    cov = sigma2 * np.linalg.inv(np.einsum("n,nij->ij", weights, projectors))
     return FlashResult(position_m=position, std_m=np.sqrt(np.diag(cov)),
                        rms_mm=float(np.sqrt(np.mean(distances ** 2)) * 1e3), highlights=records, left_out=left_out,
-                       image_size=image_size)
+                       image_size=image_size, centre_std_m=np.sqrt(np.diag(centre)), protocol="outline")

@@ -59,13 +59,16 @@ def flash_report(result, device: Mapping, sphere_radius_mm: float) -> StepReport
     lines += [(logging.INFO, f"{h['frame']} sphere {h['sphere']}: highlight residual {h['residual_mm']:.3f} mm")
               for h in result.highlights]
     summary = (f"flash at {np.round(np.asarray(result.position_m) * 1e3, 2).tolist()} mm (1-sigma "
-               f"{np.round(np.asarray(result.std_m) * 1e3, 2).tolist()} mm), RMS residual {result.rms_mm:.3f} mm over "
-               f"{len(result.highlights)} highlights")
+               f"{np.round(np.asarray(result.std_m) * 1e3, 2).tolist()} mm, of which the sphere centres' "
+               f"{np.round(np.asarray(result.centre_std_m) * 1e3, 2).tolist()} mm), RMS residual "
+               f"{result.rms_mm:.3f} mm over {len(result.highlights)} highlights ({result.protocol} protocol)")
     lines.append((logging.INFO, summary))
     light = dict(device.get("light", {"polarizer_deg": 0.0}))
     light["position_m"] = np.asarray(result.position_m, np.float64).tolist()
     return StepReport(lines, {"light": light}, {
-        "sphere_radius_mm": sphere_radius_mm, "std_mm": (np.asarray(result.std_m) * 1e3).tolist(),
+        "sphere_radius_mm": sphere_radius_mm, "protocol": result.protocol,
+        "std_mm": (np.asarray(result.std_m) * 1e3).tolist(),
+        "centre_std_mm": (np.asarray(result.centre_std_m) * 1e3).tolist(),
         "rms_mm": result.rms_mm, "highlights": result.highlights, "left_out": result.left_out})
 
 

@@ -9,7 +9,7 @@ Public API::
     board_poses(spec, device, count, rng) -> list[(R (3, 3), t (3,))]   # board -> camera, board fully in view
     render_board(device, spec, rotation, translation, supersample=3, blur_px=0) -> analyzers (H, W, 4, 3)
     render_spheres(device, spheres, supersample=2, panel=0.5, reflect_panel=True) -> analyzers (H, W, 4, 3)
-    panel_reflection(points, normals, eta, panel) -> analyzers (N, 4)   # the panel mirrored, Fresnel-polarized
+    panel.panel_reflection(points, normals, eta, panel) -> analyzers (N, 4)   # the panel mirrored, Fresnel-polarized
     render_chart(device, rotation, translation, supersample=2, shadow=1.0) -> analyzers (H, W, 4, 3)
     expose(analyzers, device, peak_fraction, rng) -> raw (H, W) uint16    # sellip.sensor.simulate_raw
     synthesize_calibration(out, width=2448, height=2048, seed=0, ...) -> Path   # folder, see below
@@ -33,6 +33,8 @@ A calibration folder (``sellip synth-calibration --out DIR``)::
     truth.yaml                 the true device (sensor, camera, light), board poses, sphere centres, chart corners
     board/board_NN.dng         checkerboard frames (board_NN_bK.dng: frame K of a burst of pose NN)
     spheres/spheres_NN.dng     frames of glossy spheres of known radius (likewise)
+    board_spheres/spheres_NN_board.dng, spheres_NN.dng   the board alone, then spheres resting on it at square
+                               centres, from one camera position (the flash step's board protocol)
     chart/chart_00.dng         a ColorChecker under the flash
 """
 
@@ -47,6 +49,8 @@ import numpy as np
 import yaml
 from scipy import ndimage
 
+from sellip.calibrate.board_spheres import BOARD_SUFFIX, sphere_centre, square_centres
+from sellip.calibrate.panel import panel_reflection
 from sellip.capture.scenes import DEVICE_FX_PX, DEVICE_WIDTH_PX
 from sellip.capture.sensor import SensorModel, sensor_from_device
 from sellip.capture.writer import write_raw_file
@@ -339,52 +343,14 @@ def render_board(device: dict, spec: BoardSpec, rotation: np.ndarray, translatio
 # --------------------------------------------------------------------------- spheres
 
 
-PANEL_DISTANCE_M = 1.0
-"""The light panel behind the spheres: the plane z = this (camera coordinates), 2 m x 2 m about the optical axis."""
-
-PANEL_HALF_SIZE_M = 1.0
-
-
-def panel_reflection(points: np.ndarray, normals: np.ndarray, eta: float, panel: float) -> np.ndarray:
-    """Analyzer intensities (N, 4) of the light panel mirrored by a glossy dielectric at surface points (N, 3)
-    with normals (N, 3) (camera coordinates): where the mirror ray of the camera ray meets the panel
-    (:data:`PANEL_DISTANCE_M`), the panel's unpolarized radiance ``panel`` (s0) times the Fresnel reflectance,
-    R+ = (Rs + Rp) / 2, polarized by R- = (Rs - Rp) / 2 across the plane of incidence (s-polarized: along d x n),
-    in the ray's Stokes frame (sellip.conventions). On a sphere's limb that is tangential, perpendicular to the
-    diffuse light's radial polarization; at grazing incidence Rs, Rp -> 1, so the limb mirrors the panel."""
-    from sellip.model.conventions import stokes_to_analyzers
-
-    d = points / np.linalg.norm(points, axis=-1, keepdims=True)
-    cos_i = np.clip(-np.sum(d * normals, axis=-1), 0.0, 1.0)
-    mirror = d + 2 * cos_i[:, None] * normals
-    t = (PANEL_DISTANCE_M - points[:, 2]) / np.where(mirror[:, 2] > 1e-9, mirror[:, 2], np.nan)
-    hit = points + t[:, None] * mirror
-    on_panel = ((mirror[:, 2] > 1e-9) & (np.abs(hit[:, 0]) <= PANEL_HALF_SIZE_M)
-                & (np.abs(hit[:, 1]) <= PANEL_HALF_SIZE_M))
-    sin2_t = (1 - cos_i ** 2) / eta ** 2
-    cos_t = np.sqrt(1 - sin2_t)
-    r_s = ((cos_i - eta * cos_t) / (cos_i + eta * cos_t)) ** 2
-    r_p = ((eta * cos_i - cos_t) / (eta * cos_i + cos_t)) ** 2
-    # the ray's Stokes frame: z towards the camera, y the camera's up without its z part, x = y x z
-    z = -d
-    up = np.array([0.0, -1.0, 0.0])
-    y_axis = up - (z @ up)[:, None] * z
-    y_axis /= np.linalg.norm(y_axis, axis=-1, keepdims=True)
-    x_axis = np.cross(y_axis, z)
-    s_dir = np.cross(d, normals)
-    s_dir /= np.maximum(np.linalg.norm(s_dir, axis=-1, keepdims=True), 1e-12)
-    psi = np.arctan2(np.sum(s_dir * y_axis, -1), np.sum(s_dir * x_axis, -1))
-    level = np.where(on_panel, panel, 0.0)
-    plus, minus = level * (r_s + r_p) / 2, level * (r_s - r_p) / 2
-    stokes = np.stack([plus, minus * np.cos(2 * psi), minus * np.sin(2 * psi)], axis=-1)
-    return np.asarray(stokes_to_analyzers(stokes, axis=-1), np.float32)
-
-
 def render_spheres(device: dict, spheres: list[tuple[np.ndarray, float]], supersample: int = 2,
-                   panel: float = 0.5, params: dict | None = None, reflect_panel: bool = True) -> np.ndarray:
+                   panel: float = 0.5, params: dict | None = None, reflect_panel: bool = True,
+                   background: np.ndarray | None = None) -> np.ndarray:
     """Analyzer images (H, W, 4, 3) of glossy spheres (centre (3,) camera coordinates, radius) in front of an
     unpolarized light panel of radiance ``panel`` (analyzer images read panel / 2 each). With ``reflect_panel``
-    the spheres mirror the panel (:func:`panel_reflection`), as real glossy spheres do at their limbs."""
+    the spheres mirror the panel (:func:`panel_reflection`), as real glossy spheres do at their limbs.
+    ``background`` (H, W, 4, 3): what is seen where no sphere is, instead of the panel (the board the spheres
+    stand on, :func:`render_board`; exact when every sphere lies on the camera's side of it)."""
     params = params or SPHERE_PARAMS
     sensor = device["sensor"]
     width, height = sensor["width"], sensor["height"]
@@ -405,7 +371,10 @@ def render_spheres(device: dict, spheres: list[tuple[np.ndarray, float]], supers
             closer = t < t_best
             t_best = np.where(closer, t, t_best)
             which = np.where(closer, k, which)
-        samples = np.full(x.shape + (4, 3), panel / 2, np.float32)
+        if background is None:
+            samples = np.full(x.shape + (4, 3), panel / 2, np.float32)
+        else:
+            samples = np.repeat(background[rows][:, :, None], n_sub, axis=2).astype(np.float32)
         hit = np.isfinite(t_best)
         if hit.any():
             points = d[hit] * t_best[hit][:, None]
@@ -456,6 +425,39 @@ def sphere_layouts(device: dict, frames: int, rng: np.random.Generator, radius: 
         raise ValueError(f"cannot place {per_frame} spheres of radius {radius} m wholly in a {sensor['width']}x"
                          f"{sensor['height']} frame at {distance_m} m; fewer or smaller spheres")
     return layouts
+
+
+def board_sphere_layouts(spec: BoardSpec, device: dict, frames: int, rng: np.random.Generator, radius: float,
+                         per_frame: int = 3, max_tries: int = 100000
+                         ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``frames`` layouts of ``per_frame`` spheres resting on the board at square centres
+    (:func:`sellip.calibrate.board_spheres.square_centres`),
+    each (R, t, marks (per_frame, 2)): the board at a pose of :func:`board_poses`, every sphere wholly in view
+    and apart from the others in the image."""
+    sensor, cam = device["sensor"], device["camera"]
+    margin = 20.0 * sensor["width"] / 2448
+    marks = square_centres(spec.cols, spec.rows, spec.square_m)
+    layouts = []
+    for _ in range(max_tries):
+        if len(layouts) == frames:
+            return layouts
+        rotation, translation = board_poses(spec, device, 1, rng)[0]
+        chosen = marks[rng.choice(len(marks), size=per_frame, replace=False)]
+        centres = [sphere_centre(rotation, translation, m, radius) for m in chosen]
+        ok = True
+        for c in centres:
+            r_px = cam["fx"] * radius / c[2] * 1.15
+            u, v = project(device, c)
+            ok &= margin + r_px < u < sensor["width"] - margin - r_px
+            ok &= margin + r_px < v < sensor["height"] - margin - r_px
+        for a in range(per_frame):
+            for b in range(a):
+                gap = np.linalg.norm(project(device, centres[a]) - project(device, centres[b]))
+                ok &= gap > cam["fx"] * radius * (1 / centres[a][2] + 1 / centres[b][2]) * 1.3
+        if ok:
+            layouts.append((rotation, translation, chosen))
+    raise ValueError(f"cannot set {per_frame} spheres of radius {radius} m on the board wholly in a "
+                     f"{sensor['width']}x{sensor['height']} frame; fewer or smaller spheres")
 
 
 # --------------------------------------------------------------------------- colour chart
@@ -544,11 +546,34 @@ def _burst_name(kind: str, pose: int, frame: int, burst: int, suffix: str) -> st
     return f"{kind}_{pose:02d}{suffix}" if burst == 1 else f"{kind}_{pose:02d}_b{frame}{suffix}"
 
 
+def _write_board_spheres(folder: Path, device: dict, spec: BoardSpec, count: int, radius: float, peak_dn: float,
+                         seed: int, suffix: str, record: dict, progress: bool) -> None:
+    """``count`` pairs into ``folder``: the board alone (NAME_board) and spheres resting on it (NAME), exposed
+    alike (the sphere frame's peak at ``peak_dn``); their marks, centres and poses into ``record``."""
+    rng = np.random.default_rng([seed, 40])
+    record["radius_m"] = radius
+    for k, (rotation, translation, marks) in enumerate(board_sphere_layouts(spec, device, count, rng, radius)):
+        board = render_board(device, spec, rotation, translation)
+        centres = [sphere_centre(rotation, translation, m, radius) for m in marks]
+        analyzers = render_spheres(device, [(c, radius) for c in centres], reflect_panel=False, background=board)
+        peak = float(np.max(analyzers))
+        name = f"spheres_{k:02d}"
+        for image, stem in ((board, f"{name}{BOARD_SUFFIX}"), (analyzers, name)):
+            raw = expose(image, device, peak_dn, np.random.default_rng([seed, 41, k, len(stem)]),
+                         reference=peak)
+            write_raw_file(folder / f"{stem}{suffix}", raw, device["sensor"])
+        record["marks_m"][name + suffix] = marks.tolist()
+        record["centres_m"][name + suffix] = [c.tolist() for c in centres]
+        record["poses"][name + suffix] = {"rotation": rotation.tolist(), "translation_m": translation.tolist()}
+        if progress:
+            print(f"spheres on the board {k + 1}/{count}", flush=True)
+
+
 def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 2048, seed: int = 0,
                            board_frames: int = 24, sphere_frames: int = 6, spheres_per_frame: int = 3,
                            spec: BoardSpec = BoardSpec(), raw_format: str = "dng", polarizer_deg: float = 0.0,
                            progress: bool = False, burst: int = 1, reflect_panel: bool = True,
-                           force: bool = False) -> Path:
+                           board_sphere_frames: int = 6, force: bool = False) -> Path:
     """Write a calibration folder (module docstring) for the synthetic device; returns it. Atomic: written to a
     temporary sibling and renamed. The same seed gives the same files. An existing ``out`` without truth.yaml (not
     one this function wrote) stops it with :class:`sellip.jobs.WouldReplaceError`, unless ``force``.
@@ -558,7 +583,11 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
     The first frame of every pose is the same as with ``burst`` = 1. docs/calibration.md recommends
     ``board_frames=96`` (benchmarks/calibration_accuracy.py) and measures ``board_frames=48, burst=4`` too; the
     tests use the defaults or fewer frames. ``reflect_panel``: the spheres mirror the light panel (as real glossy
-    spheres do; False: the panel is seen but not mirrored, as before 2026-11-27)."""
+    spheres do; False: the panel is seen but not mirrored, as before 2026-11-27). ``board_sphere_frames``: layouts
+    of 3 spheres resting on the board (:func:`board_sphere_layouts`), each a pair of frames from one tripod
+    position: ``board_spheres/spheres_NN_board`` (the board alone) and ``board_spheres/spheres_NN`` (the spheres
+    set down on it), exposed alike (the flash step's board protocol, docs/calibration.md). Long: one loop per kind
+    of frame, kept together so that each kind's seeds stay visible side by side."""
     out = Path(out)
     refuse_to_replace_folder(out, "sellip synth-calibration", lambda path: (path / "truth.yaml").is_file(), force)
     device = true_device(width, height, polarizer_deg)
@@ -571,9 +600,10 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
     truth = {"device": device, "board": {"cols": spec.cols, "rows": spec.rows, "square_m": spec.square_m,
                                           "poses": {}},
              "spheres": {"radius_m": SPHERE_RADIUS_M, "centres_m": {}, "reflect_panel": bool(reflect_panel)},
+             "board_spheres": {"radius_m": SPHERE_RADIUS_M, "marks_m": {}, "centres_m": {}, "poses": {}},
              "chart": {}}
     try:
-        for sub in ("board", "spheres", "chart"):
+        for sub in ("board", "spheres", "board_spheres", "chart"):
             (tmp / sub).mkdir(parents=True)
         rng = np.random.default_rng([seed, 10])
         for k, (rotation, translation) in enumerate(board_poses(spec, device, board_frames, rng)):
@@ -601,6 +631,8 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
                 truth["spheres"]["centres_m"][name] = [c.tolist() for c in centres]
             if progress:
                 print(f"spheres {k + 1}/{sphere_frames}", flush=True)
+        _write_board_spheres(tmp / "board_spheres", device, spec, board_sphere_frames, radius, 0.75 * white, seed,
+                             suffix, truth["board_spheres"], progress)
         rng = np.random.default_rng([seed, 30])
         rotation = look_at(np.zeros(3), 10.0, rng)
         distance = 1.1 * 6 * CHART_PATCH_M * device["camera"]["fx"] / (0.8 * width)

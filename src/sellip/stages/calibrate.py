@@ -1,7 +1,8 @@
 """``sellip calibrate``: describe a real device once (docs/design.md §3), step by step, into device.yaml.
 
     sellip calibrate intrinsics FRAME... --device device.yaml --board 9x7 --square-mm 15 [--k3]
-    sellip calibrate flash FRAME... --device device.yaml --sphere-radius-mm 20 [--max-flash-std-mm 2 ...]
+    sellip calibrate flash FRAME... --device device.yaml --sphere-radius-mm 20 [--board 9x7 --square-mm 15]
+                                    [--max-flash-std-mm 2 ...]
     sellip calibrate polarization FRAME... --device device.yaml --sphere-radius-mm 20 [--write]
     sellip calibrate color FRAME --device device.yaml [--corners X,Y X,Y X,Y X,Y]
 
@@ -78,8 +79,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--k3", action="store_true", help="also fit k3 (wide-angle lenses; default: k3 = 0)")
     _add_targets(p, "intrinsics")
     p = sub.add_parser("flash", parents=[common], help="the flash position from mirror highlights on spheres")
-    p.add_argument("frames", nargs="+", type=Path, help="raw frames of glossy spheres before a bright background")
+    p.add_argument("frames", nargs="+", type=Path,
+                   help="raw frames of glossy spheres: with --board, pairs NAME.dng (spheres resting on the board) "
+                        "and NAME_board.dng (the board alone, same camera position); else spheres before a bright "
+                        "background")
     p.add_argument("--sphere-radius-mm", required=True, type=float, help="the spheres' radius (mm)")
+    p.add_argument("--board", type=_board, help="the spheres rest on this board's squares: inner corners COLSxROWS")
+    p.add_argument("--square-mm", type=float, help="with --board: side of a square (mm)")
     _add_targets(p, "flash")
     p = sub.add_parser("polarization", parents=[common],
                        help="check the polarizer layout and the flash polarizer on the sphere frames")
@@ -143,10 +149,17 @@ def _intrinsics(args, device) -> int:
 
 
 def _flash(args, device) -> int:
+    from sellip.calibrate.board_spheres import calibrate_flash_on_board
     from sellip.calibrate.flash import calibrate_flash
     from sellip.calibrate.report import flash_report
 
-    result = calibrate_flash(_frames(args.frames, device["sensor"]), device, args.sphere_radius_mm / 1000, log=log.info)
+    frames, radius = _frames(args.frames, device["sensor"]), args.sphere_radius_mm / 1000
+    if args.board is not None:
+        if args.square_mm is None:
+            raise CalibrationError("--board needs --square-mm (the side of the board's squares, mm)")
+        result = calibrate_flash_on_board(frames, device, radius, *args.board, args.square_mm / 1000, log=log.info)
+    else:
+        result = calibrate_flash(frames, device, radius, log=log.info)
     report = flash_report(result, device, args.sphere_radius_mm)
     for level, line in report.lines:
         log.log(level, line)

@@ -1,7 +1,8 @@
 """``sellip synth-calibration``: a synthetic calibration folder with known truth (board, spheres, chart).
 
     sellip synth-calibration --out calib/ [--width 2448 --height 2048 --seed 0 --board-frames 24
-                                           --sphere-frames 6 --burst 1 --polarizer-deg 0]
+                                           --sphere-frames 6 --board-sphere-frames 6 --burst 1
+                                           --polarizer-deg 0]
 
 See :mod:`sellip.calibrate.synthetic` for what is rendered and written (sensor.yaml to start a device.yaml
 from, truth.yaml to compare with).
@@ -26,6 +27,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--board", default="14x10", help="inner corners COLSxROWS (default: 14x10)")
     parser.add_argument("--square-mm", type=float, default=10.0, help="square side (mm, default: 10)")
     parser.add_argument("--sphere-frames", type=int, default=6, help="sphere frames, 3 spheres each (default: 6)")
+    parser.add_argument("--board-sphere-frames", type=int, default=6,
+                        help="pairs of frames (the board alone, then 3 spheres resting on it) for the flash "
+                             "(default: 6)")
     parser.add_argument("--burst", type=int, default=1,
                         help="frames per board pose and sphere layout, each with its own noise (default: 1; "
                              "a burst helps the flash a little, not the board: docs/calibration.md)")
@@ -45,7 +49,7 @@ def main(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     try:
         out = synthesize_calibration(args.out, args.width, args.height, args.seed, board_frames=args.board_frames,
-                                     sphere_frames=args.sphere_frames,
+                                     sphere_frames=args.sphere_frames, board_sphere_frames=args.board_sphere_frames,
                                      spec=BoardSpec(cols, rows, args.square_mm / 1000),
                                      raw_format=args.raw_format, polarizer_deg=args.polarizer_deg, burst=args.burst,
                                      force=args.force)
