@@ -63,12 +63,14 @@ def test_calibrate_capture_new_snakemake_metrics(tmp_path, tmp_path_factory):
     shutil.copy(calib / "sensor.yaml", device)
     boards = sorted(str(p) for p in (calib / "board").glob("*.dng"))
     spheres = sorted(str(p) for p in (calib / "spheres").glob("*.dng"))
+    on_board = sorted(str(p) for p in (calib / "board_spheres").glob("*.dng"))
     radius_mm = str(truth["spheres"]["radius_m"] * 1000)
     # a quarter of the device's size cannot meet the full-size targets (docs/calibration.md): relaxed, as the docs do
     _sellip("calibrate", "intrinsics", *boards, "--device", str(device), "--board", "14x10", "--square-mm", "10",
             "--max-c-std-px", "5")
-    _sellip("calibrate", "flash", *spheres, "--device", str(device), "--sphere-radius-mm", radius_mm,
-            "--max-flash-std-mm", "5")
+    # the flash from spheres resting on the board (its pose fixes their centres), relaxed as the docs do at this size
+    _sellip("calibrate", "flash", *on_board, "--device", str(device), "--sphere-radius-mm", radius_mm,
+            "--board", "14x10", "--square-mm", "10", "--max-flash-std-mm", "10")
     _sellip("calibrate", "polarization", *spheres, "--device", str(device), "--sphere-radius-mm", radius_mm)
     _sellip("calibrate", "color", str(calib / "chart" / truth["chart"]["file"]), "--device", str(device),
             "--corners", *(f"{x},{y}" for x, y in truth["chart"]["corners_px"]))
