@@ -38,11 +38,11 @@ Modules and what they export (each name is importable from here too)::
       data demand them
         ClusterLobe, fit_cluster_lobe, virtual_samples, cluster_medians, material_or_own
     observe: Per-vertex, per-view observations for the pBRDF fit (docs/design.md §2 observe, §5)
-        ObserveError, ObserveSettings, ObserveMesh, read_mesh, bilinear_sample, silhouette_distance, relative_slope,
-        Observer, ObservationWriter, open_observations, load_observations
+        MISSING_POSES, ObserveError, ObserveSettings, ObserveMesh, read_mesh, bilinear_sample, silhouette_distance,
+        relative_slope, Observer, ObservationWriter, open_observations, load_observations
     observe_mesh: Observe a mesh in every view (docs/design.md §2 observe; rule ``gather_observations``): pair the HDR
       views with the cameras, check the scale, and write the observation store (:func:`observe_mesh`)
-        MISSING_POSES, pair_views, spread_subset, observe_mesh
+        pair_views, spread_subset, observe_mesh
     parameterization: The fit's bounded parameterization (scaled sigmoids: eta in ETA_BOUNDS, sigma_s <= sigma_ss -
       LOBE_GAP) and the geometry and reflectance of the virtual specular samples (paper Eq. 24)
         eta_at_bound, decode_parameters, encode_parameters, virtual_reflectance
@@ -92,10 +92,10 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "lobe_store": ("LOBE_COLUMNS", "read_lobes", "read_models", "recorded_fit_settings", "clustering_settings",
            "load_rows"),
     "lobes": ("ClusterLobe", "fit_cluster_lobe", "virtual_samples", "cluster_medians", "material_or_own"),
-    "observe": ("ObserveError", "ObserveSettings", "ObserveMesh", "read_mesh", "bilinear_sample",
+    "observe": ("MISSING_POSES", "ObserveError", "ObserveSettings", "ObserveMesh", "read_mesh", "bilinear_sample",
            "silhouette_distance", "relative_slope", "Observer", "ObservationWriter", "open_observations",
            "load_observations"),
-    "observe_mesh": ("MISSING_POSES", "pair_views", "spread_subset", "observe_mesh"),
+    "observe_mesh": ("pair_views", "spread_subset", "observe_mesh"),
     "parameterization": ("eta_at_bound", "decode_parameters", "encode_parameters", "virtual_reflectance"),
     "records": ("STATUS_FITTED", "STATUS_TOO_FEW_VIEWS", "ETA_BOUNDS", "MODELS", "FitSettings", "model_of",
            "Observations", "VirtualSamples", "FitResult", "STATUS_FAILED"),
