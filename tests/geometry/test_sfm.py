@@ -198,7 +198,7 @@ def test_known_poses_and_initial_mesh_through_the_cli(tiny_capture, tmp_path):
 
     subprocess.run(run + ["init-mesh", "--hdr", str(hdr), "--cameras", str(tmp_path / "cameras.csv"), "--sfm",
                           str(tmp_path / "sfm"), "--output", str(tmp_path / "mesh" / "init.ply"),
-                          "--hull-resolution", "64", "--max-vertices", "3000"], check=True)
+                          "--settings", '{"hull_resolution": 64, "max_vertices": 3000}'], check=True)
     vertex, faces = read_ply(tmp_path / "mesh" / "init.ply")
     assert set(vertex) == {"x", "y", "z", "nx", "ny", "nz"} and all(v.dtype == np.float32 for v in vertex.values())
     info = json.loads((tmp_path / "mesh" / "init.json").read_text())

@@ -62,24 +62,16 @@ rule init_mesh:
         "../../envs/geometry.yaml"
     threads: config["init"]["threads"]
     params:
-        mode=config["init"]["mode"],
+        # sellip.geometry.hull.InitMeshOptions: the keys of config init that are set (mesh_path: user_mesh()).
+        settings=section_settings("init", ("mesh_path", "threads")),
         mesh_path=" ".join(f"--mesh-path {shlex.quote(p)}" for p in user_mesh()),
         # init.mode mesh: the user's mesh by its content, so a changed scan re-runs what follows.
         content=content_of(user_mesh),
-        hull_resolution=config["init"]["hull_resolution"],
-        min_inside_fraction=config["init"]["min_inside_fraction"],
-        poisson_depth=config["init"]["poisson_depth"],
-        target_depth=config["init"]["target_depth"],
-        max_vertices=config["init"]["max_vertices"],
-        outlier_view_z=config["init"]["outlier_view_z"],
         silhouette_settings=settings_json(config["silhouette"]),
     shell:
         sellip_shell(
             "init-mesh --hdr {input.hdr:q} --cameras {input.cameras:q} --sfm {input.sfm:q}"
-            " --output {output.mesh:q} --mode {params.mode} {params.mesh_path} --hull-resolution {params.hull_resolution}"
-            " --min-inside-fraction {params.min_inside_fraction} --poisson-depth {params.poisson_depth}"
-            " --target-depth {params.target_depth} --max-vertices {params.max_vertices}"
-            " --outlier-view-z {params.outlier_view_z}"
+            " --output {output.mesh:q} --settings {params.settings} {params.mesh_path}"
             " --silhouette-settings {params.silhouette_settings} --threads {threads} > {log:q} 2>&1"
         )
 

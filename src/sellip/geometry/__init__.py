@@ -17,11 +17,11 @@ Modules and what they export (each name is importable from here too)::
     hull: The visual hull and the initial mesh (docs/design.md §2 mesh_init): voxel carving from the silhouettes, the
       surface points of the occupancy, fusion with SfM's sparse points, screened Poisson at a depth and remeshing to a
       vertex count
-        visual_hull, surface_points, InitMeshOptions, hull_mesh
+        visual_hull, surface_points, INIT_MODES, InitMeshOptions, hull_mesh
     initial: The initial mesh (docs/design.md §2 mesh_init; rule ``init_mesh``): the visual hull fused with SfM's sparse
       points, or multi-view stereo points, or a mesh the user supplies (a scan), checked against the silhouettes
       (:func:`make_initial_mesh`)
-        INIT_MODES, InitMeshError, make_initial_mesh, OUTLIER_VIEW_Z, outlier_views
+        InitMeshError, make_initial_mesh, OUTLIER_VIEW_Z, outlier_views
     meshes: Triangle-mesh utilities: surface samples and mesh-to-mesh distances (docs/design.md §8 Chamfer and
       Hausdorff), point normals, screened Poisson, the largest component, isotropic remeshing to a vertex count, vertex
       normals, edges
@@ -59,8 +59,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "alignment": ("Similarity", "umeyama", "align_cameras", "refine_to_surface", "pose_errors"),
     "cameras": ("CamerasError", "write_cameras", "read_cameras", "diffuse_view", "intrinsics_matrix", "hdr_camera",
            "load_cameras"),
-    "hull": ("visual_hull", "surface_points", "InitMeshOptions", "hull_mesh"),
-    "initial": ("INIT_MODES", "InitMeshError", "make_initial_mesh", "OUTLIER_VIEW_Z", "outlier_views"),
+    "hull": ("visual_hull", "surface_points", "INIT_MODES", "InitMeshOptions", "hull_mesh"),
+    "initial": ("InitMeshError", "make_initial_mesh", "OUTLIER_VIEW_Z", "outlier_views"),
     "meshes": ("angular_error_deg", "surface_samples", "mesh_distances", "poisson_surface", "depth_vertex_count",
            "remesh_to_count", "vertex_normals", "blend_normals", "SurfaceDefects", "surface_defects"),
     "pose_refinement": ("PoseRefinementSettings", "moved_pose", "pose_change", "align_pose", "refine_view"),
