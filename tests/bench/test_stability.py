@@ -114,6 +114,7 @@ def _copy(capture, to):
 @pytest.mark.slow
 def test_bad_frames_skip_merges_from_the_other_frames_and_drops_empty_views(small_capture, tmp_path, caplog):
     from sellip.capture.hdr import merge_capture, read_hdr
+    from sellip.capture.ingest import IngestSettings
     from sellip.capture.linearize import linearize_capture
     from sellip.geometry import poses as geometry_poses
 
@@ -134,7 +135,8 @@ def test_bad_frames_skip_merges_from_the_other_frames_and_drops_empty_views(smal
     assert not (tmp_path / "error").exists() or not any((tmp_path / "error").iterdir())
     # skip: the frames are left out with a warning naming the file and row; v002 has no frame left.
     with caplog.at_level("WARNING"):
-        linear = linearize_capture(capture, tmp_path / "skip" / "linear.zarr", threads=2, bad_frames="skip")
+        linear = linearize_capture(capture, tmp_path / "skip" / "linear.zarr", threads=2,
+                                   settings=IngestSettings(bad_frames="skip"))
     assert "v001_f1.dng: cannot be read" in caplog.text and "row 4 (line 6)" in caplog.text
     assert "v000_f0.dng: raw frame does not exist" in caplog.text
     import zarr

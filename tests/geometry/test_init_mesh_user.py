@@ -213,7 +213,8 @@ def test_the_rule_passes_the_mesh_and_tracks_it_by_content(capture, tmp_path):
 
     hull = _dry_run(tmp_path, folder, {"mode": "hull"})
     job = _init_mesh_job(hull.stdout + hull.stderr)
-    assert """--settings '{"mode": "hull"}'""" in job and "--mesh-path" not in job and ".ply," not in job.split("output:")[0]
+    assert """--settings '{"mode": "hull"}'""" in job and "--mesh-path" not in job
+    assert ".ply," not in job.split("output:")[0]
 
     unset = _dry_run(tmp_path, folder, {"mode": "mesh"})
     assert unset.returncode != 0 and "init.mode 'mesh' needs init.mesh_path" in unset.stdout + unset.stderr
