@@ -158,8 +158,7 @@ def test_bad_frames_skip_merges_from_the_other_frames_and_drops_empty_views(smal
     from sellip.stages import observe
 
     cameras = tmp_path / "skip" / "cameras.csv"
-    geometry_poses.solve_poses(tmp_path / "skip" / "hdr.zarr", capture, cameras, tmp_path / "skip" / "sfm",
-                               mode="known")
+    geometry_poses.solve_poses(tmp_path / "skip" / "hdr.zarr", capture, cameras, tmp_path / "skip" / "sfm")
     assert list(pd.read_csv(cameras)["view_id"]) == ["v000", "v001"]
     observe_mesh.observe_mesh(capture / files.GROUND_TRUTH_MESH, cameras, tmp_path / "skip" / "hdr.zarr", capture,
                       tmp_path / "skip" / "observations.zarr", exclude_views=("v002",))

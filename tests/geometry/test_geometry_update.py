@@ -320,7 +320,7 @@ def tiny_capture(tmp_path_factory):
     root = tmp_path_factory.mktemp("silhouettes")
     folder = synthesize_capture("tiny", root / "capture", views=8, width=320, height=256, seed=3, progress=False)
     hdr = merge_capture(linearize_capture(folder, root / "linear.zarr"), root / "hdr.zarr")
-    geometry_poses.solve_poses(hdr, folder, root / "cameras.csv", root / "sfm", mode="known")
+    geometry_poses.solve_poses(hdr, folder, root / "cameras.csv", root / "sfm")  # sfm.mode known
     return {"folder": folder, "hdr": hdr, "cameras": root / "cameras.csv", "root": root,
             "truth": read_param_mesh(folder / GROUND_TRUTH_MESH)}
 

@@ -40,7 +40,7 @@ def capture(tmp_path_factory):
     folder = synthesize_capture("tiny", root / "capture", views=8, width=320, height=256, seed=3, supersample=1,
                                 progress=False)
     hdr = merge_capture(linearize_capture(folder, root / "linear.zarr"), root / "hdr.zarr")
-    geometry_poses.solve_poses(hdr, folder, root / "cameras.csv", root / "sfm", mode="known")
+    geometry_poses.solve_poses(hdr, folder, root / "cameras.csv", root / "sfm")  # sfm.mode known
     vertex, faces = read_ply(folder / GROUND_TRUTH_MESH)
     truth = np.stack([vertex[k] for k in "xyz"], axis=1).astype(np.float64)
     return {"folder": folder, "root": root, "hdr": hdr, "truth": (truth, faces)}

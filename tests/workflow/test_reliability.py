@@ -452,7 +452,7 @@ def test_the_sfm_stage_stops_on_poses_in_millimetres(run, tmp_path, caplog):
     poses.to_csv(capture / "poses.csv", index=False)
     hdr = run["workdir"] / "results" / NAME / "hdr.zarr"
     status = main(["sfm", "--hdr", str(hdr), "--capture", str(capture), "--cameras", str(tmp_path / "cameras.csv"),
-                   "--output", str(tmp_path / "sfm"), "--mode", "known"])
+                   "--output", str(tmp_path / "sfm"), "--settings", '{"mode": "known"}'])
     assert status == 1 and not (tmp_path / "cameras.csv").exists() and not (tmp_path / "sfm").exists()
     assert "translations look like millimetres" in caplog.text and "poses.csv" in caplog.text
 

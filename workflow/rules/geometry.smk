@@ -23,26 +23,15 @@ rule run_sfm:
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
         content=content_of(poses_file),
-        mode=config["sfm"]["mode"],
-        matching=config["sfm"]["matching"],
-        exhaustive_max_views=config["sfm"]["exhaustive_max_views"],
-        retrieval_neighbors=config["sfm"]["retrieval_neighbors"],
-        max_features=config["sfm"]["max_features"],
-        feature_object_px=config["sfm"]["feature_object_px"],
-        max_upscale=config["sfm"]["max_upscale"],
-        refine_intrinsics="--refine-intrinsics" if config["sfm"]["refine_intrinsics"] else "",
-        min_registered_fraction=config["sfm"]["min_registered_fraction"],
+        # sellip.geometry.sfm.SfmOptions: the keys of config sfm that are set (threads: the job's).
+        settings=section_settings("sfm", ("threads",)),
         silhouette_settings=settings_json(config["silhouette"]),
         seed=config["seed"],
     shell:
         sellip_shell(
             "sfm --hdr {input.hdr:q} --capture {params.capture:q} --cameras {output.cameras:q}"
-            " --output {output.sfm:q} --mode {params.mode} --matching {params.matching}"
-            " --exhaustive-max-views {params.exhaustive_max_views} --retrieval-neighbors {params.retrieval_neighbors}"
-            " --max-features {params.max_features} --feature-object-px {params.feature_object_px}"
-            " --max-upscale {params.max_upscale} {params.refine_intrinsics}"
-            " --min-registered-fraction {params.min_registered_fraction} --silhouette-settings {params.silhouette_settings}"
-            " --seed {params.seed} --threads {threads} > {log:q} 2>&1"
+            " --output {output.sfm:q} --settings {params.settings}"
+            " --silhouette-settings {params.silhouette_settings} --seed {params.seed} --threads {threads} > {log:q} 2>&1"
         )
 
 

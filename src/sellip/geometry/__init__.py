@@ -33,12 +33,13 @@ Modules and what they export (each name is importable from here too)::
     poses: The poses of a capture (docs/design.md §2 sfm; rule ``run_sfm``): known (poses.csv), SfM (pycolmap), or SfM
       verified against poses.csv; SfM poses scaled to ``scene.distance_m``; ``cameras.csv`` and the comparison with
       known poses (rotation and centre errors after a similarity alignment)
-        POSE_MODES, compare_to_known, solve_poses
+        compare_to_known, solve_poses
     scan: A mesh the user supplies (``init.mode: mesh``, a scan): oriented outward, resampled to a vertex count and
       checked against the silhouettes (scale, units, placement), with a message that names the likely problem
         UNIT_SIZES, resample_to_count, check_against_silhouettes
     sfm: Structure from motion with pycolmap on the diffuse images I_d = 2 I90 (docs/design.md §2 sfm, §3 notes)
-        RegistrationError, SfmOptions, SfmResult, tone_map, feature_upscale, feature_image, scale_intrinsics,
+        POSE_MODES, MATCHING, RegistrationError, SfmOptions, SfmResult, tone_map, feature_upscale, feature_image,
+        scale_intrinsics,
         match_pairs_by_retrieval, run_sfm, result_from_reconstruction, metric_normalization, transform_result,
         check_registration
     silhouettes: Silhouettes of the object in the HDR views: the level above the background's noise floor, the masks,
@@ -64,10 +65,10 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "meshes": ("angular_error_deg", "surface_samples", "mesh_distances", "poisson_surface", "depth_vertex_count",
            "remesh_to_count", "vertex_normals", "blend_normals", "SurfaceDefects", "surface_defects"),
     "pose_refinement": ("PoseRefinementSettings", "moved_pose", "pose_change", "align_pose", "refine_view"),
-    "poses": ("POSE_MODES", "compare_to_known", "solve_poses"),
+    "poses": ("compare_to_known", "solve_poses"),
     "scan": ("UNIT_SIZES", "resample_to_count", "check_against_silhouettes"),
-    "sfm": ("RegistrationError", "SfmOptions", "SfmResult", "tone_map", "feature_upscale", "feature_image",
-           "scale_intrinsics", "match_pairs_by_retrieval", "run_sfm", "result_from_reconstruction",
+    "sfm": ("POSE_MODES", "MATCHING", "RegistrationError", "SfmOptions", "SfmResult", "tone_map", "feature_upscale",
+           "feature_image", "scale_intrinsics", "match_pairs_by_retrieval", "run_sfm", "result_from_reconstruction",
            "metric_normalization", "transform_result", "check_registration"),
     "silhouettes": ("background_noise", "DEFAULT_SILHOUETTE", "silhouette_level", "silhouette_masks",
            "signed_distance", "Silhouette", "boundary_distance", "SilhouetteOptions"),
