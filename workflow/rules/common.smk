@@ -198,7 +198,7 @@ def settings_json(settings):
 def section_settings(section, workflow_keys=(), it=None):
     """`--settings` of a job: the keys of config `section` (a dotted path, e.g. "augment.settings") that the config
     sets, less the `workflow_keys` the workflow reads itself (threads, enabled, ...), as one JSON argument; with `it`,
-    a list of values is iteration it's (at_iteration). The job's settings record gives every key left out its
+    a list of values is iteration it's (at_iteration: for sections whose only lists are values per iteration). The job's settings record gives every key left out its
     declared default (sellip.settings)."""
     values = config
     for key in section.split("."):

@@ -83,24 +83,18 @@ rule refine_geometry:
     conda:
         "../../envs/geometry.yaml"
     params:
-        smoothness=lambda wildcards: at_iteration(config["refine_geometry"]["smoothness"], wildcards.it),
-        smoothness_unconfident=lambda wildcards: at_iteration(
-            config["refine_geometry"]["smoothness_unconfident"], wildcards.it
-        ),
-        anchor=lambda wildcards: at_iteration(config["refine_geometry"]["anchor"], wildcards.it),
-        rounds=config["refine_geometry"]["rounds"],
-        silhouette=lambda wildcards: at_iteration(config["refine_geometry"]["silhouette"], wildcards.it),
-        keep_surface="--keep-surface" if config["refine_geometry"]["keep_surface"] else "--no-keep-surface",
+        # sellip.fit.geometry_jobs.GeometryUpdateSettings: the keys of config refine_geometry that are set, this
+        # iteration's values.
+        settings=lambda wildcards: section_settings("refine_geometry", it=wildcards.it),
         capture=lambda wildcards, input: Path(input.capture).parent,
         held_out=config["evaluate"]["held_out_views"],
         silhouette_settings=settings_json(config["silhouette"]),
     shell:
         sellip_shell(
             "refine-geometry --params {input.params:q} --mesh {input.mesh:q} --output {output.mesh:q}"
-            " --reference-mesh {input.reference:q} --smoothness {params.smoothness}"
-            " --smoothness-unconfident {params.smoothness_unconfident} --anchor {params.anchor} --rounds {params.rounds}"
-            " --silhouette {params.silhouette} {params.keep_surface} --cameras {input.cameras:q} --hdr {input.hdr:q} --capture {params.capture:q}"
-            " --exclude-views {params.held_out:q} --silhouette-settings {params.silhouette_settings} > {log:q} 2>&1"
+            " --reference-mesh {input.reference:q} --settings {params.settings} --cameras {input.cameras:q}"
+            " --hdr {input.hdr:q} --capture {params.capture:q} --exclude-views {params.held_out:q}"
+            " --silhouette-settings {params.silhouette_settings} > {log:q} 2>&1"
         )
 
 
