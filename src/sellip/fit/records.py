@@ -53,8 +53,9 @@ class FitSettings:
                                exclusive_minimum=0)
     gradient_tolerance: float = setting(1e-3, "... or when the residual is this close to orthogonal to the Jacobian",
                                         exclusive_minimum=0)
-    min_views: int = setting(8, "a vertex seen in fewer usable views keeps its prior (status 'too few views')",
-                             minimum=3)
+    min_views: int = setting(4, "a vertex seen in fewer usable views keeps its prior (status 'too few views', "
+                             "confidence 0); with more, the fit's own uncertainty (the confidence) says what its "
+                             "views tell (why 4: docs/geometry_update.md)", minimum=3)
     dark_threshold: float = setting(0.02, "a view is too dark below this fraction of the vertex's median diffuse "
                                     "level", minimum=0)
     chroma_threshold: float = setting(0.2, "colour outlier: distance of the unit-norm colour to the robust mean "
