@@ -342,8 +342,8 @@ def test_nested_overrides_of_each_type_pass_the_workflow(tmp_path):
     assert result.returncode == 0, text[-3000:]
     jobs = planned_counts(result)
     assert jobs["fit_pbrdf"] == 3 * jobs["gather_fit"]  # three shards per pass
-    assert "--min-coherence 0 " in text and "--k-max 3 " in text and "--refine-intrinsics" in text
-    assert "--max-views" not in text
+    assert "--min-coherence 0 " in text and "--k-max 3 " in text and '"refine_intrinsics": true' in text
+    assert '"max_views": null' in text  # null: every view (the record's declared default too)
 
 
 def test_a_failed_jobs_message_reaches_the_console(run):
