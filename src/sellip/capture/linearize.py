@@ -46,7 +46,7 @@ def _check_file_black_level(path: Path, plan: ingest.IngestPlan) -> None:
     declared = ingest.rawpy_black_level(path)
     if declared.shape == plan.raw_shape and not np.allclose(declared, plan.black, atol=0.5):
         log.warning("%s declares black levels %s (rawpy, per position) but capture.yaml gives %s; using "
-                    "capture.yaml's (run with --black-level-from file to use the file's)", path,
+                    "capture.yaml's (set ingest.black_level_from: file to use the file's)", path,
                     np.unique(declared).tolist(), np.unique(plan.black).tolist())
 
 
