@@ -320,6 +320,12 @@ def cluster_settings(wildcards):
     return settings_json({key: at_iteration(value, it) for key, value in config["fit"]["settings"].items()})
 
 
+def fit_job_settings():
+    """`--job-settings` of the fit, gather-fit and cluster-lobes jobs (sellip.fit.records.FitJobSettings): the keys
+    of config `fit` that are set, less Snakemake's own (shards, threads, mem_mb) and the FitSettings (`settings`)."""
+    return section_settings("fit", ("shards", "threads", "mem_mb", "settings"))
+
+
 MODEL_SELECTION_WORKFLOW_KEYS = ("every",)
 """Keys of config `model_selection` that the workflow reads itself; the others are SelectionSettings fields."""
 

@@ -27,14 +27,12 @@ rule fit_pbrdf:
         lobes=lambda wildcards, input: f"--lobes {shlex.join(input.lobes)}" if input.lobes else "",
         settings=fit_settings,
         model2_sigma_ss=model2_sigma_ss(),
-        dtype=config["fit"]["dtype"],
-        cache=config["fit"]["compilation_cache"],
+        job_settings=fit_job_settings(),
     shell:
         sellip_shell(
             "fit --observations {input.observations:q} --shard {wildcards.scatteritem}"
-            " --output {output:q} {params.prior} {params.lobes} --dtype {params.dtype} --settings {params.settings}"
-            " {params.model2_sigma_ss} --compilation-cache {params.cache:q} --mem-mb {resources.mem_mb}"
-            " > {log:q} 2>&1"
+            " --output {output:q} {params.prior} {params.lobes} --job-settings {params.job_settings}"
+            " --settings {params.settings} {params.model2_sigma_ss} --mem-mb {resources.mem_mb} > {log:q} 2>&1"
         )
 
 
@@ -51,11 +49,11 @@ rule gather_fit:
     conda:
         "../../envs/fit.yaml"
     params:
-        min_fitted_share=config["fit"]["min_fitted_share"],
+        job_settings=fit_job_settings(),
     shell:
         sellip_shell(
             "gather-fit --observations {input.observations:q} --shards {input.shards:q}"
-            " --output {output:q} --min-fitted-share {params.min_fitted_share} > {log:q} 2>&1"
+            " --output {output:q} --job-settings {params.job_settings} > {log:q} 2>&1"
         )
 
 
@@ -89,7 +87,7 @@ rule cluster_lobes:
         settings=cluster_settings,
         selection=model_selection_settings(),
         inherit=inherit_models,
-        cache=config["fit"]["compilation_cache"],
+        job_settings=fit_job_settings(),
     shell:
         sellip_shell(
             "cluster-lobes --params {input.params:q} --observations {input.observations:q} --output {output:q}"
@@ -97,5 +95,5 @@ rule cluster_lobes:
             " --min-cluster-vertices {params.min_cluster_vertices} --min-coherence {params.min_coherence}"
             " --pool-min-coherence {params.pool_min_coherence} --stability-resamples {params.resamples}"
             " --settings {params.settings} --model-selection {params.selection} {params.inherit}"
-            " --compilation-cache {params.cache:q} > {log:q} 2>&1"
+            " --job-settings {params.job_settings} > {log:q} 2>&1"
         )

@@ -49,7 +49,7 @@ Modules and what they export (each name is importable from here too)::
     records: The per-vertex fit's settings and records: :class:`FitSettings`, the status codes, the model codes (which
       lobes), :class:`Observations` (the fit's input), :class:`VirtualSamples`, :class:`FitResult`
         STATUS_FITTED, STATUS_TOO_FEW_VIEWS, ETA_BOUNDS, MODELS, FitSettings, model_of, Observations, VirtualSamples,
-        FitResult, STATUS_FAILED
+        FitResult, STATUS_FAILED, DTYPES, FitJobSettings
     residuals: The residuals of one vertex (docs/design.md §5): the linear parameters (rho_d RGB, rho_s, rho_ss RGB)
       solved in closed form with non-negativity inside the residual (variable projection), then
         solve_spd, nnls_specular, model_terms, linear_solution, measured_dop, vertex_residuals
@@ -99,7 +99,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "observe_mesh": ("pair_views", "spread_subset", "observe_mesh"),
     "parameterization": ("eta_at_bound", "decode_parameters", "encode_parameters", "virtual_reflectance"),
     "records": ("STATUS_FITTED", "STATUS_TOO_FEW_VIEWS", "ETA_BOUNDS", "MODELS", "FitSettings", "model_of",
-           "Observations", "VirtualSamples", "FitResult", "STATUS_FAILED"),
+           "Observations", "VirtualSamples", "FitResult", "STATUS_FAILED", "DTYPES", "FitJobSettings"),
     "residuals": ("solve_spd", "nnls_specular", "model_terms", "linear_solution", "measured_dop",
            "vertex_residuals"),
     "selection": ("SelectionSettings", "settings_for_model", "allowed_models", "cap_models", "split_vertices",

@@ -5,7 +5,7 @@
                          --output results/NAME/iter/0/clusters --seed 0
                          [--k-max 8] [--max-samples 20000] [--min-cluster-vertices 50] [--min-coherence 0.5]
                          [--settings '{"lambda_psi": 100}'] [--model-selection '{"folds": 4}']
-                         [--inherit-models]
+                         [--job-settings '{"compilation_cache": DIR}'] [--inherit-models]
 
 Writes the directory ``--output`` (built under a temporary name, then renamed) with
 
@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     from sellip.fit.clusters import AugmentSettings
-    from sellip.fit.records import FitSettings
+    from sellip.fit.records import FitJobSettings, FitSettings
     from sellip.fit.selection import SelectionSettings
     from sellip.settings import add_renamed_argument, add_settings_argument
 
@@ -73,7 +73,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="repeat the clustering on this many seeded 90 %% subsamples and record each cluster's "
                              "support (clusters.json 'support'; 0: not measured)")
     add_settings_argument(parser, FitSettings, "--settings", "fit.settings")
-    parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
+    add_settings_argument(parser, FitJobSettings, "--job-settings", "fit")
     add_settings_argument(parser, SelectionSettings, "--model-selection", "model_selection")
     add_renamed_argument(parser, "--set", "--settings (FitSettings as one JSON object)")
     add_renamed_argument(parser, "--fixed-sigma-ss", "--model-selection '{\"model2_sigma_ss\": ...}'")
@@ -94,7 +94,7 @@ def main(args: argparse.Namespace) -> int:
                                    pool_min_coherence=args.pool_min_coherence,
                                    stability_resamples=args.stability_resamples)
         cluster_and_fit_lobes(args.params, args.observations, args.output, args.seed, settings, args.settings,
-                              args.compilation_cache, args.model_selection, args.inherit_models)
+                              args.job_settings.compilation_cache, args.model_selection, args.inherit_models)
     except (ObserveError, ParamsError, ValueError) as error:
         log.error("%s", error)
         return 1
