@@ -308,7 +308,8 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
     common = ["--params", str(tmp_path / "fit.zarr"), "--observations", str(tmp_path / "observations.zarr")]
     # The scene's materials alternate vertex by vertex (not regions of a surface): the coherence test is off.
     assert cli.main(["cluster-lobes", *NO_CACHE, *common, "--output", str(clusters), "--seed", "0",
-                     "--max-samples", "1000", "--min-cluster-vertices", "10", "--min-coherence", "0"]) == 0
+                     "--augment-settings", '{"max_samples": 1000, "min_cluster_vertices": 10, "min_coherence": 0}'
+                     ]) == 0
     assert sorted(p.name for p in clusters.iterdir()) == ["clusters.json", "labels.npy", "lobes.csv", "lobes.png",
                                                         "models.npy"]
     assert not list(tmp_path.glob("*.tmp"))
@@ -572,7 +573,8 @@ def test_stage_degrades_when_no_vertex_is_confident_or_has_a_usable_sample(tmp_p
     zarr.open_group(str(tmp_path / "observations.zarr"), mode="r+")["usable"][...] = False
     clusters = tmp_path / "clusters"
     assert cli.main(["cluster-lobes", *NO_CACHE, "--params", str(tmp_path / "bad.zarr"), "--observations",
-                     str(tmp_path / "observations.zarr"), "--output", str(clusters), "--max-samples", "1000"]) == 0
+                     str(tmp_path / "observations.zarr"), "--output", str(clusters),
+                     "--augment-settings", '{"max_samples": 1000}']) == 0
     labels, lobes = read_lobes(clusters)
     assert len(lobes) == 1 and lobes[0].samples == 0 and lobes[0].rho_s == 0 and np.all(labels == 0)
     assert np.all(read_models(clusters, 120) == 0)

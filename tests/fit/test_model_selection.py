@@ -322,7 +322,7 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     _write_stores(tmp_path, scene)
     stores = ["--params", str(tmp_path / "fit.zarr"), "--observations", str(tmp_path / "observations.zarr")]
     # Surface points placed without regard to their material (not regions): the coherence test is off.
-    small = ["--max-samples", "1000", "--min-cluster-vertices", "10", "--min-coherence", "0"]
+    small = ["--augment-settings", '{"max_samples": 1000, "min_cluster_vertices": 10, "min_coherence": 0}']
     selection = ["--model-selection", '{"max_samples": 1000}']
     # At most model 1 (lobes specular): the scattering cluster may not keep its lobe.
     assert cli.main(["cluster-lobes", *NO_CACHE, *stores, "--output", str(tmp_path / "clusters"), *small, *selection,

@@ -342,7 +342,7 @@ def test_nested_overrides_of_each_type_pass_the_workflow(tmp_path):
     assert result.returncode == 0, text[-3000:]
     jobs = planned_counts(result)
     assert jobs["fit_pbrdf"] == 3 * jobs["gather_fit"]  # three shards per pass
-    assert "--min-coherence 0 " in text and "--k-max 3 " in text and '"refine_intrinsics": true' in text
+    assert """--augment-settings '{"k_max": 3, "min_coherence": 0}'""" in text and '"refine_intrinsics": true' in text
     assert '"max_views": null' in text  # null: every view (the record's declared default too)
 
 

@@ -14,6 +14,7 @@ import pytest
 
 from sellip import cli, workflow_support
 from sellip.capture.ingest import IngestSettings
+from sellip.fit.clusters import AugmentSettings
 from sellip.fit.geometry_jobs import GeometryUpdateSettings
 from sellip.fit.observe import ObserveSettings
 from sellip.fit.records import FitJobSettings, FitSettings
@@ -25,8 +26,8 @@ from sellip.geometry.silhouettes import SilhouetteOptions
 from sellip.settings import SettingsError, nearest, record_from_mapping, record_schema
 
 REPO = Path(__file__).resolve().parents[2]
-RECORDS = (FitSettings, FitJobSettings, SelectionSettings, PoseRefinementSettings, SilhouetteOptions, IngestSettings,
-           ObserveSettings, SfmOptions, InitMeshOptions, GeometryUpdateSettings)
+RECORDS = (FitSettings, FitJobSettings, AugmentSettings, SelectionSettings, PoseRefinementSettings, SilhouetteOptions,
+           IngestSettings, ObserveSettings, SfmOptions, InitMeshOptions, GeometryUpdateSettings)
 
 # Each config section that is a settings record: (section, record, the `sellip` command whose --settings carries it,
 # a misspelt key and the key it means, a value out of its declared range).
@@ -38,8 +39,10 @@ SECTIONS = [
     ("refine_geometry", GeometryUpdateSettings, "refine-geometry", "smothness", "smoothness", {"anchor": 0.0}),
     ("refine_poses", PoseRefinementSettings, "refine-poses", "min_motion", "min_motion_px", {"rounds": 0}),
     ("fit", FitJobSettings, "gather-fit", "min_fitted_shares", "min_fitted_share", {"min_fitted_share": 1.5}),
+    ("augment", AugmentSettings, "cluster-lobes", "min_coherance", "min_coherence", {"min_coherence": 1.5}),
 ]
-FLAG = {"gather-fit": "job_settings"}  # the argument that carries the section (else --settings)
+# The argument that carries the section, where it is not --settings.
+FLAG = {"gather-fit": "job_settings", "cluster-lobes": "augment_settings"}
 REQUIRED = {"linearize": ["--capture", "c", "--output", "o"],
             "observe": ["--mesh", "m", "--cameras", "c", "--hdr", "h", "--capture", "c", "--output", "o"],
             "sfm": ["--hdr", "h", "--capture", "c", "--cameras", "c", "--output", "o"],
@@ -47,7 +50,8 @@ REQUIRED = {"linearize": ["--capture", "c", "--output", "o"],
             "refine-geometry": ["--params", "p", "--mesh", "m", "--output", "o"],
             "refine-poses": ["--params", "p", "--mesh", "m", "--cameras", "c", "--hdr", "h", "--capture", "c",
                              "--output", "o"],
-            "gather-fit": ["--observations", "o", "--shards", "s", "--output", "o"]}
+            "gather-fit": ["--observations", "o", "--shards", "s", "--output", "o"],
+            "cluster-lobes": ["--params", "p", "--observations", "o", "--output", "o"]}
 
 
 def test_the_committed_schema_is_the_one_written_from_the_records():
@@ -113,7 +117,7 @@ def test_a_declared_default_is_not_written_again_in_the_workflow():
     sections = {"ingest": (config["ingest"], IngestSettings), "observe": (config["observe"], ObserveSettings),
                 "sfm": (config["sfm"], SfmOptions), "init": (config["init"], InitMeshOptions),
                 "refine_geometry": (config["refine_geometry"], GeometryUpdateSettings),
-                "fit": (config["fit"], FitJobSettings),
+                "fit": (config["fit"], FitJobSettings), "augment": (config["augment"], AugmentSettings),
                 "fit.settings": (config["fit"]["settings"], FitSettings),
                 "augment.settings": (config["augment"]["settings"], FitSettings),
                 "final.settings": (config["final"]["settings"], FitSettings),
@@ -122,7 +126,7 @@ def test_a_declared_default_is_not_written_again_in_the_workflow():
                 "silhouette": (config["silhouette"], SilhouetteOptions)}
     for section, (values, record) in sections.items():
         for key, value in values.items():
-            field = {f.name: f for f in dataclasses.fields(record)}.get(key)
+            field = {f.name: f for f in dataclasses.fields(record) if "setting" in f.metadata}.get(key)
             # A key a user is expected to edit (sfm.mode, init.mode: the workflow reads them too) may stay, at the
             # declared default; any other record key in config.yaml would be a second default.
             if (section, key) in (("sfm", "mode"), ("init", "mode")):
@@ -218,6 +222,7 @@ def test_the_demo_jobs_get_only_the_keys_the_config_sets():
     assert settings_of("refine-geometry") and all(s == {} for s in settings_of("refine-geometry"))
     for command in ("fit", "gather-fit", "cluster-lobes"):
         assert settings_of(command, "--job-settings") and all(s == {} for s in settings_of(command, "--job-settings"))
+    assert settings_of("cluster-lobes", "--augment-settings") == [{}] * 7
     # fit.settings sets nothing (min_views 4 is the declared default): the first passes get {}, the others only what
     # augment.settings and final.settings set
     assert {} in settings_of("fit") and not any("min_views" in s for s in settings_of("fit"))

@@ -78,11 +78,9 @@ rule cluster_lobes:
     threads: config["fit"]["threads"]
     params:
         seed=config["seed"],
-        k_max=config["augment"]["k_max"],
-        max_samples=config["augment"]["max_samples"],
-        min_cluster_vertices=config["augment"]["min_cluster_vertices"],
-        min_coherence=config["augment"]["min_coherence"],
-        pool_min_coherence=config["augment"]["pool_min_coherence"],
+        # sellip.fit.clusters.AugmentSettings: the keys of config augment that are set (enabled, settings and
+        # stability_resamples, the final pass's, are the workflow's).
+        augment_settings=section_settings("augment", ("enabled", "stability_resamples", "settings")),
         resamples=lambda wildcards: config["augment"]["stability_resamples"] if int(wildcards.it) == ITERATIONS else 0,
         settings=cluster_settings,
         selection=model_selection_settings(),
@@ -91,9 +89,8 @@ rule cluster_lobes:
     shell:
         sellip_shell(
             "cluster-lobes --params {input.params:q} --observations {input.observations:q} --output {output:q}"
-            " --seed {params.seed} --k-max {params.k_max} --max-samples {params.max_samples}"
-            " --min-cluster-vertices {params.min_cluster_vertices} --min-coherence {params.min_coherence}"
-            " --pool-min-coherence {params.pool_min_coherence} --stability-resamples {params.resamples}"
+            " --seed {params.seed} --augment-settings {params.augment_settings}"
+            " --stability-resamples {params.resamples}"
             " --settings {params.settings} --model-selection {params.selection} {params.inherit}"
             " --job-settings {params.job_settings} > {log:q} 2>&1"
         )
