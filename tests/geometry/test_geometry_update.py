@@ -200,7 +200,8 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
     own = np.arange(m) < 5
     write_params(tmp_path / "last.zarr", {**final, "sigma_s_std": np.where(own, 0.005, 0.2)})
     fit_finalize.finalize_model(tmp_path / "last.zarr", tmp_path / "mesh.ply", tmp_path / "final" / "model.ply",
-                       tmp_path / "final" / "params.zarr", tmp_path / "clusters", model=3, deviation_support=0)
+                       tmp_path / "final" / "params.zarr", tmp_path / "clusters", model=3,
+                       settings=fit_finalize.FinalSettings(deviation_support=0))
     store = read_params(tmp_path / "final" / "params.zarr")
     np.testing.assert_array_equal(store["lobe_source"], own)
     np.testing.assert_allclose(store["sigma_s"], np.where(own, mesh.params.sigma_s, 0.3), rtol=1e-6)

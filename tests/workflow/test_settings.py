@@ -15,6 +15,7 @@ import pytest
 from sellip import cli, workflow_support
 from sellip.capture.ingest import IngestSettings
 from sellip.fit.clusters import AugmentSettings
+from sellip.fit.finalize import FinalSettings
 from sellip.fit.geometry_jobs import GeometryUpdateSettings
 from sellip.fit.observe import ObserveSettings
 from sellip.fit.records import FitJobSettings, FitSettings
@@ -27,7 +28,7 @@ from sellip.settings import SettingsError, nearest, record_from_mapping, record_
 
 REPO = Path(__file__).resolve().parents[2]
 RECORDS = (FitSettings, FitJobSettings, AugmentSettings, SelectionSettings, PoseRefinementSettings, SilhouetteOptions,
-           IngestSettings, ObserveSettings, SfmOptions, InitMeshOptions, GeometryUpdateSettings)
+           IngestSettings, ObserveSettings, SfmOptions, InitMeshOptions, GeometryUpdateSettings, FinalSettings)
 
 # Each config section that is a settings record: (section, record, the `sellip` command whose --settings carries it,
 # a misspelt key and the key it means, a value out of its declared range).
@@ -40,6 +41,7 @@ SECTIONS = [
     ("refine_poses", PoseRefinementSettings, "refine-poses", "min_motion", "min_motion_px", {"rounds": 0}),
     ("fit", FitJobSettings, "gather-fit", "min_fitted_shares", "min_fitted_share", {"min_fitted_share": 1.5}),
     ("augment", AugmentSettings, "cluster-lobes", "min_coherance", "min_coherence", {"min_coherence": 1.5}),
+    ("final", FinalSettings, "finalize", "deviation_suport", "deviation_support", {"deviation_support": 7}),
 ]
 # The argument that carries the section, where it is not --settings.
 FLAG = {"gather-fit": "job_settings", "cluster-lobes": "augment_settings"}
@@ -51,7 +53,8 @@ REQUIRED = {"linearize": ["--capture", "c", "--output", "o"],
             "refine-poses": ["--params", "p", "--mesh", "m", "--cameras", "c", "--hdr", "h", "--capture", "c",
                              "--output", "o"],
             "gather-fit": ["--observations", "o", "--shards", "s", "--output", "o"],
-            "cluster-lobes": ["--params", "p", "--observations", "o", "--output", "o"]}
+            "cluster-lobes": ["--params", "p", "--observations", "o", "--output", "o"],
+            "finalize": ["--params", "p", "--mesh", "m", "--output-model", "o", "--output-params", "o"]}
 
 
 def test_the_committed_schema_is_the_one_written_from_the_records():
@@ -118,6 +121,7 @@ def test_a_declared_default_is_not_written_again_in_the_workflow():
                 "sfm": (config["sfm"], SfmOptions), "init": (config["init"], InitMeshOptions),
                 "refine_geometry": (config["refine_geometry"], GeometryUpdateSettings),
                 "fit": (config["fit"], FitJobSettings), "augment": (config["augment"], AugmentSettings),
+                "final": (config["final"], FinalSettings),
                 "fit.settings": (config["fit"]["settings"], FitSettings),
                 "augment.settings": (config["augment"]["settings"], FitSettings),
                 "final.settings": (config["final"]["settings"], FitSettings),
@@ -223,6 +227,7 @@ def test_the_demo_jobs_get_only_the_keys_the_config_sets():
     for command in ("fit", "gather-fit", "cluster-lobes"):
         assert settings_of(command, "--job-settings") and all(s == {} for s in settings_of(command, "--job-settings"))
     assert settings_of("cluster-lobes", "--augment-settings") == [{}] * 7
+    assert settings_of("finalize") == [{}]
     # fit.settings sets nothing (min_views 4 is the declared default): the first passes get {}, the others only what
     # augment.settings and final.settings set
     assert {} in settings_of("fit") and not any("min_views" in s for s in settings_of("fit"))

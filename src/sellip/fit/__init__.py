@@ -23,7 +23,7 @@ Modules and what they export (each name is importable from here too)::
     finalize: The final model (rule ``finalize_model``; docs/design.md §4): per-material η and lobes with per-vertex
       deviations where a vertex's data demand them, unfitted vertices interpolated from their neighbours, confidence,
       ``model``: ``final/model.ply`` and ``final/params.zarr`` (:func:`finalize_model`)
-        finalize_model, vertex_cluster_support
+        FinalSettings, finalize_model, vertex_cluster_support
     geometry_jobs: The updates between iterations
         GeometryUpdateSettings, raw_camera, predicted_diffuse, measure_silhouettes, refine_geometry, refine_poses
     kernels: Compiled kernels that later processes load instead of tracing again (docs/speed.md)
@@ -86,7 +86,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "one_mode", "same_eta_by_albedo", "find_eta_cut", "cluster_materials", "squared_distances",
            "cluster_support", "clustering_support"),
     "evidence": ("MIN_FITTED_SHARE", "EvidenceError", "fitted_share", "check_evidence"),
-    "finalize": ("finalize_model", "vertex_cluster_support"),
+    "finalize": ("FinalSettings", "finalize_model", "vertex_cluster_support"),
     "geometry_jobs": ("GeometryUpdateSettings", "raw_camera", "predicted_diffuse", "measure_silhouettes",
            "refine_geometry", "refine_poses"),
     "kernels": ("code_version", "enable", "kernel"),
