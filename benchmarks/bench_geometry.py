@@ -102,9 +102,9 @@ def capture(args) -> dict:
 
     out = Path(args.workdir or tempfile.mkdtemp(prefix="bench-geometry-"))
     started = time.perf_counter()
-    report = geometry_poses.solve_poses(args.hdr, args.capture, out / "cameras.csv", out / "sfm", mode="verify",
-                                 options=sfm_stage.sfm.SfmOptions(threads=args.cores),
-                                 min_registered_fraction=0.0)
+    report = geometry_poses.solve_poses(args.hdr, args.capture, out / "cameras.csv", out / "sfm",
+                                        options=sfm_stage.sfm.SfmOptions(mode="verify", min_registered_fraction=0.0,
+                                                                         threads=args.cores))
     sfm_s = time.perf_counter() - started
     print(f"sfm (verify): {sfm_s:.1f} s, registered {report['registered']}/{report['views']}, "
           f"verify {json.dumps(report.get('verify'))}", flush=True)

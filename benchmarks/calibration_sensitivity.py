@@ -51,7 +51,7 @@ def main() -> int:
     capture = work / "capture"
     if not (capture / "capture.yaml").is_file():
         synthesize_capture(args.scene, capture, views=args.views, width=args.width, height=args.height, progress=False)
-    observe = ObserveSettings(threads=args.cores)
+    observe = ObserveSettings(edge_margin=0.0, threads=args.cores)  # every sample, as measured in docs
     cache = str(work / "jax_cache")
     results_path = work / "sensitivity.json"
     results = json.loads(results_path.read_text()) if results_path.is_file() else {}

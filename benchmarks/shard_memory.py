@@ -54,7 +54,7 @@ def peak_of_fit(store: Path, output: Path, chunk_size: int, cache: Path, iterati
     """(peak resident bytes, seconds) of ``sellip fit`` on the whole store, in a fresh process."""
     command = [sys.executable, "-m", "sellip.cli", "fit", "--observations", str(store), "--output", str(output),
                "--settings", json.dumps({"chunk_size": chunk_size, "max_iterations": iterations}),
-               "--compilation-cache", str(cache)]
+               "--job-settings", json.dumps({"compilation_cache": str(cache)})]
     # getrusage(RUSAGE_CHILDREN) is the maximum over every child waited for: one measuring process per fit.
     probe = ("import resource, subprocess, sys, time; t = time.perf_counter(); "
              "r = subprocess.run(sys.argv[1:], capture_output=True, text=True); "

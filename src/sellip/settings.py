@@ -99,9 +99,11 @@ def _value_schema(field: dataclasses.Field) -> dict:
 
 
 def describe(field: dataclasses.Field) -> str:
-    """One line for ``field``: its meaning and its unit (the schema's description)."""
+    """One line for ``field``: its meaning, its unit and its declared default (the schema's description; the schema
+    carries no JSON-schema ``default``, which Snakemake's validation would write into the config)."""
     meta = field.metadata["setting"]
-    return meta["doc"] + (f" [{meta['unit']}]" if meta["unit"] else "")
+    default = list(field.default) if isinstance(field.default, tuple) else field.default
+    return meta["doc"] + (f" [{meta['unit']}]" if meta["unit"] else "") + f" (default: {json.dumps(default)})"
 
 
 def record_schema(record: type, *, per_iteration: bool = True) -> dict:

@@ -91,7 +91,9 @@ def test_synth_records_the_noise_scale_and_the_workflow_passes_it(tmp_path):
     out = subprocess.run(stability.snakemake_command(REPO / "Snakefile", tmp_path / "work", override, "-n", "-p"),
                          capture_output=True, text=True, check=False)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
-    assert "--noise-scale 4.0" in out.stdout and "--bad-frames error" in out.stdout
+    # ingest: nothing set, so linearize takes the declared defaults (bad_frames "error")
+    linearize = [line for line in out.stdout.splitlines() if " linearize --capture " in line]
+    assert "--noise-scale 4.0" in out.stdout and linearize and "--settings '{}'" in linearize[0]
 
 
 # --------------------------------------------------------------------------- bad frames through ingest
@@ -114,6 +116,7 @@ def _copy(capture, to):
 @pytest.mark.slow
 def test_bad_frames_skip_merges_from_the_other_frames_and_drops_empty_views(small_capture, tmp_path, caplog):
     from sellip.capture.hdr import merge_capture, read_hdr
+    from sellip.capture.ingest import IngestSettings
     from sellip.capture.linearize import linearize_capture
     from sellip.geometry import poses as geometry_poses
 
@@ -134,7 +137,8 @@ def test_bad_frames_skip_merges_from_the_other_frames_and_drops_empty_views(smal
     assert not (tmp_path / "error").exists() or not any((tmp_path / "error").iterdir())
     # skip: the frames are left out with a warning naming the file and row; v002 has no frame left.
     with caplog.at_level("WARNING"):
-        linear = linearize_capture(capture, tmp_path / "skip" / "linear.zarr", threads=2, bad_frames="skip")
+        linear = linearize_capture(capture, tmp_path / "skip" / "linear.zarr", threads=2,
+                                   settings=IngestSettings(bad_frames="skip"))
     assert "v001_f1.dng: cannot be read" in caplog.text and "row 4 (line 6)" in caplog.text
     assert "v000_f0.dng: raw frame does not exist" in caplog.text
     import zarr
@@ -156,8 +160,7 @@ def test_bad_frames_skip_merges_from_the_other_frames_and_drops_empty_views(smal
     from sellip.stages import observe
 
     cameras = tmp_path / "skip" / "cameras.csv"
-    geometry_poses.solve_poses(tmp_path / "skip" / "hdr.zarr", capture, cameras, tmp_path / "skip" / "sfm",
-                               mode="known")
+    geometry_poses.solve_poses(tmp_path / "skip" / "hdr.zarr", capture, cameras, tmp_path / "skip" / "sfm")
     assert list(pd.read_csv(cameras)["view_id"]) == ["v000", "v001"]
     observe_mesh.observe_mesh(capture / files.GROUND_TRUTH_MESH, cameras, tmp_path / "skip" / "hdr.zarr", capture,
                       tmp_path / "skip" / "observations.zarr", exclude_views=("v002",))

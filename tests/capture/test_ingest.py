@@ -402,7 +402,8 @@ def test_black_levels_from_raw_file_metadata(tmp_path):
             write_dng_with_black_pattern(writer.path_in_capture(f"raw/f{i}.dng"), signal.astype(np.uint16),
                                          (0, 1, 1, 2), np.ravel(pattern), 4095)
         writer.finish()
-    merged, _ = run_ingest(tmp_path / "c", tmp_path / "file", black_level_from="file").view("v")
+    merged, _ = run_ingest(tmp_path / "c", tmp_path / "file",
+                           settings=ingest.IngestSettings(black_level_from="file")).view("v")
     camera_rgb = merged[..., 0, :] @ np.linalg.inv(np.asarray(sensor.color_matrix)).T
     np.testing.assert_allclose(camera_rgb, 2000 / ((4095 - np.mean(pattern)) * EXPOSURE_S), rtol=1e-3)
     spread = lambda a: np.ptp(a[..., 0]) / np.mean(a[..., 0])  # 4 analyzers of red, one pixel

@@ -36,6 +36,8 @@ MATERIALS = (  # eta, rho_d, rho_s, sigma_s, rho_ss, sigma_ss
 HELD = FitSettings(fit_normal=False)  # normals held at the (true) starting normals: the lobes are what differs
 AUGMENT = AugmentSettings(min_cluster_vertices=10, max_samples=1000)
 
+NO_CACHE = ["--job-settings", '{"compilation_cache": null}']  # the CLI's default is the workflow's cache
+
 
 def _render(params, normals, positions, centres, up, right, noise, rng):
     """Observations (n, V) of points at ``positions`` from cameras at ``centres`` (V, 3) (flash 5 cm above)."""
@@ -305,8 +307,9 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
     clusters = tmp_path / "clusters"
     common = ["--params", str(tmp_path / "fit.zarr"), "--observations", str(tmp_path / "observations.zarr")]
     # The scene's materials alternate vertex by vertex (not regions of a surface): the coherence test is off.
-    assert cli.main(["cluster-lobes", *common, "--output", str(clusters), "--seed", "0", "--max-samples", "1000",
-                     "--min-cluster-vertices", "10", "--min-coherence", "0"]) == 0
+    assert cli.main(["cluster-lobes", *NO_CACHE, *common, "--output", str(clusters), "--seed", "0",
+                     "--augment-settings", '{"max_samples": 1000, "min_cluster_vertices": 10, "min_coherence": 0}'
+                     ]) == 0
     assert sorted(p.name for p in clusters.iterdir()) == ["clusters.json", "labels.npy", "lobes.csv", "lobes.png",
                                                         "models.npy"]
     assert not list(tmp_path.glob("*.tmp"))
@@ -320,9 +323,10 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
 
     # The refit: float64 and held normals (the settings of the library fit above, so its kernels are reused).
     output = tmp_path / "refit.npz"
-    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"),
+    assert cli.main(["fit", *NO_CACHE, "--observations", str(tmp_path / "observations.zarr"),
                      "--prior", str(tmp_path / "fit.zarr"),
-                     "--lobes", str(clusters), "--output", str(output), "--dtype", "float64",
+                     "--lobes", str(clusters), "--output", str(output),
+                     "--job-settings", '{"dtype": "float64", "compilation_cache": null}',
                      "--settings", '{"fit_normal": false}']) == 0
     with np.load(output) as refit:
         unseen = ~scene["facing"]
@@ -334,7 +338,7 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
     table[1] = ",".join(["0", "40", "1.5", "-0.2"] + table[1].split(",")[4:])
     (clusters / "lobes.csv").write_text("\n".join(table) + "\n")
     caplog.clear()
-    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--lobes", str(clusters),
+    assert cli.main(["fit", *NO_CACHE, "--observations", str(tmp_path / "observations.zarr"), "--lobes", str(clusters),
                      "--output", str(tmp_path / "bad.npz")]) == 1
     assert "lobes.csv" in caplog.text and "sigma_s" in caplog.text and not (tmp_path / "bad.npz").exists()
     from sellip.model.params import read_params, write_params
@@ -343,7 +347,7 @@ def test_stage_round_trip_and_refit(tmp_path, scene, caplog):
     store.pop("attrs")
     write_params(tmp_path / "other.zarr", {k: v[:60] for k, v in store.items()})
     caplog.clear()
-    assert cli.main(["cluster-lobes", "--params", str(tmp_path / "other.zarr"), "--observations",
+    assert cli.main(["cluster-lobes", *NO_CACHE, "--params", str(tmp_path / "other.zarr"), "--observations",
                      str(tmp_path / "observations.zarr"), "--output", str(tmp_path / "c2")]) == 1
     assert "not the 60 vertices" in caplog.text and not (tmp_path / "c2").exists()
 
@@ -568,8 +572,9 @@ def test_stage_degrades_when_no_vertex_is_confident_or_has_a_usable_sample(tmp_p
     write_params(tmp_path / "bad.zarr", store, chunk=64)
     zarr.open_group(str(tmp_path / "observations.zarr"), mode="r+")["usable"][...] = False
     clusters = tmp_path / "clusters"
-    assert cli.main(["cluster-lobes", "--params", str(tmp_path / "bad.zarr"), "--observations",
-                     str(tmp_path / "observations.zarr"), "--output", str(clusters), "--max-samples", "1000"]) == 0
+    assert cli.main(["cluster-lobes", *NO_CACHE, "--params", str(tmp_path / "bad.zarr"), "--observations",
+                     str(tmp_path / "observations.zarr"), "--output", str(clusters),
+                     "--augment-settings", '{"max_samples": 1000}']) == 0
     labels, lobes = read_lobes(clusters)
     assert len(lobes) == 1 and lobes[0].samples == 0 and lobes[0].rho_s == 0 and np.all(labels == 0)
     assert np.all(read_models(clusters, 120) == 0)

@@ -34,6 +34,8 @@ HELD = FitSettings(fit_normal=False)  # the refit's settings (normals held at th
 LOBES = fit_clusters.AugmentSettings(min_cluster_vertices=10, max_samples=1000)
 SELECTION = fit_selection.SelectionSettings(max_samples=1000)  # the lobe fits' shape: one compilation per model
 
+NO_CACHE = ["--job-settings", '{"compilation_cache": null}']  # the CLI's default is the workflow's cache
+
 
 def _make_scene(seed=0, views=40, noise=0.005):
     names = list(MATERIALS)
@@ -320,10 +322,10 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     _write_stores(tmp_path, scene)
     stores = ["--params", str(tmp_path / "fit.zarr"), "--observations", str(tmp_path / "observations.zarr")]
     # Surface points placed without regard to their material (not regions): the coherence test is off.
-    small = ["--max-samples", "1000", "--min-cluster-vertices", "10", "--min-coherence", "0"]
+    small = ["--augment-settings", '{"max_samples": 1000, "min_cluster_vertices": 10, "min_coherence": 0}']
     selection = ["--model-selection", '{"max_samples": 1000}']
     # At most model 1 (lobes specular): the scattering cluster may not keep its lobe.
-    assert cli.main(["cluster-lobes", *stores, "--output", str(tmp_path / "clusters"), *small, *selection,
+    assert cli.main(["cluster-lobes", *NO_CACHE, *stores, "--output", str(tmp_path / "clusters"), *small, *selection,
                      "--settings", '{"lobes": "specular"}']) == 0
     labels, vertex_models = np.load(tmp_path / "clusters" / "labels.npy"), np.load(tmp_path / "clusters" / "models.npy")
     info = json.loads((tmp_path / "clusters" / "clusters.json").read_text())["model_selection"]
@@ -338,10 +340,11 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     assert table[0].endswith(",model") and sorted(int(line.split(",")[-1]) for line in table[1:]) == [0, 1, 1]
 
     # The refit: every vertex with its cluster's model (the grouped fit's compiled shapes above).
-    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"),
+    assert cli.main(["fit", *NO_CACHE, "--observations", str(tmp_path / "observations.zarr"),
                      "--prior", str(tmp_path / "fit.zarr"),
                      "--lobes", str(tmp_path / "clusters"), "--output", str(tmp_path / "refit.npz"),
-                     "--dtype", "float64", "--settings", '{"fit_normal": false}']) == 0
+                     "--job-settings", '{"dtype": "float64", "compilation_cache": null}',
+                     "--settings", '{"fit_normal": false}']) == 0
     with np.load(tmp_path / "refit.npz") as refit:
         np.testing.assert_array_equal(refit["model"], vertex_models)
         assert np.all(refit["rho_ss"] == 0) and np.all(refit["rho_s"][vertex_models == 0] == 0)
@@ -352,7 +355,7 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     np.testing.assert_array_equal(store["model"], vertex_models)
     # An iteration between selections inherits the models (no candidate fitted), as many as allowed.
     for lobes, top in (("specular", 1), ("diffuse", 0)):
-        assert cli.main(["cluster-lobes", "--params", str(tmp_path / "refit.zarr"), "--observations",
+        assert cli.main(["cluster-lobes", *NO_CACHE, "--params", str(tmp_path / "refit.zarr"), "--observations",
                          str(tmp_path / "observations.zarr"), "--output", str(tmp_path / "inherited"), *small,
                          *selection, "--settings", json.dumps({"lobes": lobes}), "--inherit-models"]) == 0
         inherited = json.loads((tmp_path / "inherited" / "clusters.json").read_text())["model_selection"]
@@ -393,7 +396,7 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
 
     monkeypatch.setattr(fit_selection, "fit_by_model", fake_fit)
     for extra, expected in (([], vertex_models), (["--settings", '{"lobes": "diffuse"}'], np.zeros(n))):
-        assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"), "--prior",
+        assert cli.main(["fit", *NO_CACHE, "--observations", str(tmp_path / "observations.zarr"), "--prior",
                          str(tmp_path / "refit.zarr"), "--output", str(tmp_path / "next.npz"), "--model2-sigma-ss",
                          "0.8", *extra]) == 0
         np.testing.assert_array_equal(given[-1][0], expected)
@@ -403,7 +406,7 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     monkeypatch.undo()
 
     # Without model selection: every cluster gets the fit settings' model.
-    assert cli.main(["cluster-lobes", *stores, "--output", str(tmp_path / "plain"), *small,
+    assert cli.main(["cluster-lobes", *NO_CACHE, *stores, "--output", str(tmp_path / "plain"), *small,
                      "--settings", '{"lobes": "specular"}', "--model-selection", '{"enabled": false}']) == 0
     assert np.all(np.load(tmp_path / "plain" / "models.npy") == 1)
     assert json.loads((tmp_path / "plain" / "clusters.json").read_text())["model_selection"]["clusters"] == []
@@ -411,6 +414,6 @@ def test_stages_write_the_models_and_fit_every_vertex_with_its_own(tmp_path, sce
     # A bad models.npy is refused, naming the file; nothing is written.
     np.save(tmp_path / "clusters" / "models.npy", np.full(n, 7, np.uint8))
     caplog.clear()
-    assert cli.main(["fit", "--observations", str(tmp_path / "observations.zarr"),
+    assert cli.main(["fit", *NO_CACHE, "--observations", str(tmp_path / "observations.zarr"),
                      "--lobes", str(tmp_path / "clusters"), "--output", str(tmp_path / "bad.npz")]) == 1
     assert "models.npy" in caplog.text and not (tmp_path / "bad.npz").exists()

@@ -90,7 +90,9 @@ def rendered():
 def observed(rendered):
     """ViewObservations of every view, from the in-memory mesh."""
     mesh = rendered["mesh"]
-    observer = Observer(ObserveMesh(mesh.vertices, mesh.normals, mesh.faces), ObserveSettings(threads=2))
+    # edge_margin 0: every sample (the edge margin's own test compares with these)
+    observer = Observer(ObserveMesh(mesh.vertices, mesh.normals, mesh.faces),
+                        ObserveSettings(threads=2, edge_margin=0.0))
     return [observer.observe(camera, light.position, rendered["analyzers"][k], rendered["valid"][k])
             for k, (camera, light) in enumerate(zip(rendered["cameras"], rendered["lights"]))]
 
@@ -241,7 +243,7 @@ def test_out_of_image_and_invalid_pixel_vertices_are_not_usable(rendered, observ
 
 def test_mono_images_give_the_same_observation_in_every_channel(rendered, observed):
     mesh = rendered["mesh"]
-    observer = Observer(ObserveMesh(mesh.vertices, mesh.normals, mesh.faces))
+    observer = Observer(ObserveMesh(mesh.vertices, mesh.normals, mesh.faces), ObserveSettings(edge_margin=0.0))
     mono = rendered["analyzers"][0][..., 1:2]  # the green channel as a mono camera
     view = observer.observe(rendered["cameras"][0], rendered["lights"][0].position, mono, rendered["valid"][0])
     np.testing.assert_array_equal(view.usable, observed[0].usable)
@@ -295,7 +297,7 @@ def _write_inputs(folder, rendered, camera_views=None, normals=True):
 
 def test_store_round_trip_equals_in_memory_observations(tmp_path, rendered):
     paths = _write_inputs(tmp_path, rendered)
-    settings = ObserveSettings(vertex_chunk=1000, view_chunk=2, threads=2)
+    settings = ObserveSettings(vertex_chunk=1000, view_chunk=2, edge_margin=0.0, threads=2)
     output = tmp_path / "iter" / "0" / "observations.zarr"
     summary = run_stage(paths["mesh"], paths["cameras"], paths["hdr"], paths["capture"], output, settings)
     assert summary["views"] == 3 and summary["vertices"] == rendered["mesh"].num_vertices
@@ -346,9 +348,11 @@ def test_cameras_missing_a_view_of_the_hdr_store(tmp_path, rendered):
     paths = _write_inputs(tmp_path, rendered, camera_views=[0, 2])
     output = tmp_path / "observations.zarr"
     with pytest.raises(ObserveError, match=r"cameras\.csv.*no pose for 1 view.*v001"):
-        run_stage(paths["mesh"], paths["cameras"], paths["hdr"], paths["capture"], output, missing_poses="error")
+        run_stage(paths["mesh"], paths["cameras"], paths["hdr"], paths["capture"], output,
+                  ObserveSettings(missing_poses="error"))
     assert not output.exists()
-    run_stage(paths["mesh"], paths["cameras"], paths["hdr"], paths["capture"], output, missing_poses="skip")
+    run_stage(paths["mesh"], paths["cameras"], paths["hdr"], paths["capture"], output,
+              ObserveSettings(missing_poses="skip"))
     import zarr
 
     assert zarr.open_group(str(output), mode="r").attrs["view_ids"] == ["v000", "v002"]
@@ -380,7 +384,7 @@ def test_bad_inputs_raise_errors_naming_the_file(tmp_path, rendered, caplog):
     assert "mesh.ply: the mesh has no vertex normals" in caplog.text and not output.exists()
     # A cameras.csv view that hdr.zarr does not have.
     with pytest.raises(ObserveError, match=r"cameras\.csv: view\(s\) \['v009'\] are not in .*hdr\.zarr"):
-        pair_views(["v000", "v001"], ["v000", "v009"], paths["hdr"], paths["cameras"])
+        pair_views(["v000", "v001"], ["v000", "v009"], paths["hdr"], paths["cameras"], "skip")
     with pytest.raises(ObserveError, match="not an observation store"):
         load_observations(tmp_path / "nowhere.zarr")
 
@@ -436,7 +440,8 @@ def test_max_slope_drops_the_samples_on_steep_intensity(rendered, observed):
     """With ``max_slope`` a sample is dropped where a corner of its footprint has a relative slope above it
     (the rim, shadow edges, the highlight's flanks); every other usable sample stays, with its values."""
     mesh = rendered["mesh"]
-    observer = Observer(ObserveMesh(mesh.vertices, mesh.normals, mesh.faces), ObserveSettings(threads=2, max_slope=0.4))
+    observer = Observer(ObserveMesh(mesh.vertices, mesh.normals, mesh.faces),
+                        ObserveSettings(threads=2, edge_margin=0.0, max_slope=0.4))
     dropped_total, kept_total = 0, 0
     for k, (camera, light) in enumerate(zip(rendered["cameras"], rendered["lights"])):
         view = observer.observe(camera, light.position, rendered["analyzers"][k], rendered["valid"][k])

@@ -89,7 +89,8 @@ def test_a_shard_over_its_memory_stops_before_reading_and_the_count_it_names_fit
     chunk = 8192
     # Between what half the vertices and all of them need: one shard is too big, two fit.
     mem_mb = (SHARD_MEMORY.bytes(256, 12, chunk) + SHARD_MEMORY.bytes(128, 12, chunk)) / 2 / 1e6
-    common = ["fit", "--observations", str(store), "--mem-mb", f"{mem_mb:.6f}", "--settings", '{"max_iterations": 2}']
+    common = ["fit", "--observations", str(store), "--mem-mb", f"{mem_mb:.6f}", "--settings", '{"max_iterations": 2}',
+              "--job-settings", '{"compilation_cache": null}']  # no persistent cache (the workflow's is the default)
     with caplog.at_level(logging.INFO):
         assert cli.main([*common, "--shard", "1-of-1", "--output", str(tmp_path / "all.npz")]) == 1
     errors = [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR]
@@ -102,7 +103,8 @@ def test_a_shard_over_its_memory_stops_before_reading_and_the_count_it_names_fit
 
 def test_no_shard_count_fits_below_the_fixed_part(tmp_path, caplog):
     store = _store(tmp_path, vertices=64)
-    assert cli.main(["fit", "--observations", str(store), "--mem-mb", "10", "--output", str(tmp_path / "x.npz")]) == 1
+    assert cli.main(["fit", "--observations", str(store), "--mem-mb", "10", "--output", str(tmp_path / "x.npz"),
+                     "--job-settings", '{"compilation_cache": null}']) == 1
     assert "no shard count fits" in caplog.text and "raise fit.mem_mb" in caplog.text
 
 

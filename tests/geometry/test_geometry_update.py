@@ -137,7 +137,9 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
     write_params(tmp_path / "params.zarr", arrays)
     write_ply(tmp_path / "sphere.ply", {"x": vertices[:, 0], "y": vertices[:, 1], "z": vertices[:, 2],
                                         "nx": normals[:, 0], "ny": normals[:, 1], "nz": normals[:, 2]}, faces)
-    summary = geometry_jobs.refine_geometry(tmp_path / "params.zarr", tmp_path / "sphere.ply", tmp_path / "mesh.ply")
+    normals_only = geometry_jobs.GeometryUpdateSettings(silhouette=0.0)  # no photographs here
+    summary = geometry_jobs.refine_geometry(tmp_path / "params.zarr", tmp_path / "sphere.ply", tmp_path / "mesh.ply",
+                                            normals_only)
     mesh = read_param_mesh(tmp_path / "mesh.ply")
     assert summary["vertices"] == mesh.num_vertices == n
     np.testing.assert_array_equal(read_ply(tmp_path / "mesh.ply")[1], faces)
@@ -158,7 +160,7 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
               faces[np.all(faces < n - 3, axis=1)])
     with pytest.raises(ParamsError, match="other.ply.*not the same mesh"):
         geometry_jobs.refine_geometry(tmp_path / "params.zarr", tmp_path / "sphere.ply", tmp_path / "x.ply",
-                                  reference_mesh=tmp_path / "other.ply")
+                                      normals_only, reference_mesh=tmp_path / "other.ply")
 
     # The final pass fits the final mesh: its store has the mesh's vertices.
     vertex, _ = read_ply(tmp_path / "mesh.ply")
@@ -198,7 +200,8 @@ def test_refine_and_finalize_stages_write_readable_models(tmp_path):
     own = np.arange(m) < 5
     write_params(tmp_path / "last.zarr", {**final, "sigma_s_std": np.where(own, 0.005, 0.2)})
     fit_finalize.finalize_model(tmp_path / "last.zarr", tmp_path / "mesh.ply", tmp_path / "final" / "model.ply",
-                       tmp_path / "final" / "params.zarr", tmp_path / "clusters", model=3, deviation_support=0)
+                       tmp_path / "final" / "params.zarr", tmp_path / "clusters", model=3,
+                       settings=fit_finalize.FinalSettings(deviation_support=0))
     store = read_params(tmp_path / "final" / "params.zarr")
     np.testing.assert_array_equal(store["lobe_source"], own)
     np.testing.assert_allclose(store["sigma_s"], np.where(own, mesh.params.sigma_s, 0.3), rtol=1e-6)
@@ -320,7 +323,7 @@ def tiny_capture(tmp_path_factory):
     root = tmp_path_factory.mktemp("silhouettes")
     folder = synthesize_capture("tiny", root / "capture", views=8, width=320, height=256, seed=3, progress=False)
     hdr = merge_capture(linearize_capture(folder, root / "linear.zarr"), root / "hdr.zarr")
-    geometry_poses.solve_poses(hdr, folder, root / "cameras.csv", root / "sfm", mode="known")
+    geometry_poses.solve_poses(hdr, folder, root / "cameras.csv", root / "sfm")  # sfm.mode known
     return {"folder": folder, "hdr": hdr, "cameras": root / "cameras.csv", "root": root,
             "truth": read_param_mesh(folder / GROUND_TRUTH_MESH)}
 
@@ -408,7 +411,8 @@ def test_the_stage_moves_a_displaced_model_onto_the_silhouettes(tiny_capture, tm
     low = []
     for weight in (0.0, 0.1):
         summary = geometry_jobs.refine_geometry(tmp_path / "params.zarr", tmp_path / "low.ply",
-                                                tmp_path / f"{weight}.ply", silhouette=weight, **common)
+                                                tmp_path / f"{weight}.ply",
+                                                geometry_jobs.GeometryUpdateSettings(silhouette=weight), **common)
         low.append(-1e3 * fitted_sphere(read_mesh(tmp_path / f"{weight}.ply").vertices)[0][2])
         assert json.loads((tmp_path / f"{weight}.ply.json").read_text())["silhouette_constraints"] == \
             summary["silhouette_constraints"]

@@ -40,7 +40,7 @@ def capture(tmp_path_factory):
     folder = synthesize_capture("tiny", root / "capture", views=8, width=320, height=256, seed=3, supersample=1,
                                 progress=False)
     hdr = merge_capture(linearize_capture(folder, root / "linear.zarr"), root / "hdr.zarr")
-    geometry_poses.solve_poses(hdr, folder, root / "cameras.csv", root / "sfm", mode="known")
+    geometry_poses.solve_poses(hdr, folder, root / "cameras.csv", root / "sfm")  # sfm.mode known
     vertex, faces = read_ply(folder / GROUND_TRUTH_MESH)
     truth = np.stack([vertex[k] for k in "xyz"], axis=1).astype(np.float64)
     return {"folder": folder, "root": root, "hdr": hdr, "truth": (truth, faces)}
@@ -56,8 +56,10 @@ def write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
 
 def run(capture, mesh_path, output: Path, max_vertices: int = 3000) -> dict:
     root = capture["root"]
-    return geometry_initial.make_initial_mesh(capture["hdr"], root / "cameras.csv", root / "sfm", output, mode="mesh",
-                               options=geometry_hull.InitMeshOptions(max_vertices=max_vertices), mesh_path=mesh_path)
+    return geometry_initial.make_initial_mesh(capture["hdr"], root / "cameras.csv", root / "sfm", output,
+                                              options=geometry_hull.InitMeshOptions(mode="mesh",
+                                                                                    max_vertices=max_vertices),
+                                              mesh_path=mesh_path)
 
 
 def read_mesh(path: Path):
@@ -139,8 +141,8 @@ def test_unreadable_missing_or_triangle_free_files_are_named(capture, tmp_path, 
     root = capture["root"]
     missing = tmp_path / "missing.obj"
     status = main(["init-mesh", "--hdr", str(capture["hdr"]), "--cameras", str(root / "cameras.csv"), "--sfm",
-                   str(root / "sfm"), "--output", str(tmp_path / "out" / "init.ply"), "--mode", "mesh",
-                   "--mesh-path", str(missing)])
+                   str(root / "sfm"), "--output", str(tmp_path / "out" / "init.ply"),
+                   "--settings", '{"mode": "mesh"}', "--mesh-path", str(missing)])
     assert status == 1 and f"{missing}: the mesh file of init.mode 'mesh' (init.mesh_path) does not exist" in (
         caplog.text)
     assert not (tmp_path / "out").exists()
@@ -203,7 +205,7 @@ def test_the_rule_passes_the_mesh_and_tracks_it_by_content(capture, tmp_path):
     assert relative.returncode == 0, relative.stderr[-3000:]
     job = _init_mesh_job(relative.stdout + relative.stderr)
     resolved = folder / GROUND_TRUTH_MESH  # relative to the capture folder
-    assert f"--mode mesh --mesh-path {resolved}" in job
+    assert """--settings '{"mode": "mesh"}' """ f"--mesh-path {resolved}" in job
 
     absolute = _dry_run(tmp_path, folder, {"mode": "mesh", "mesh_path": str(tmp_path / "elsewhere.ply")})
     said = absolute.stdout + absolute.stderr
@@ -211,7 +213,8 @@ def test_the_rule_passes_the_mesh_and_tracks_it_by_content(capture, tmp_path):
 
     hull = _dry_run(tmp_path, folder, {"mode": "hull"})
     job = _init_mesh_job(hull.stdout + hull.stderr)
-    assert "--mode hull" in job and "--mesh-path" not in job and ".ply," not in job.split("output:")[0]
+    assert """--settings '{"mode": "hull"}'""" in job and "--mesh-path" not in job
+    assert ".ply," not in job.split("output:")[0]
 
     unset = _dry_run(tmp_path, folder, {"mode": "mesh"})
     assert unset.returncode != 0 and "init.mode 'mesh' needs init.mesh_path" in unset.stdout + unset.stderr

@@ -188,7 +188,8 @@ def test_known_poses_and_initial_mesh_through_the_cli(tiny_capture, tmp_path):
     capture, hdr = tiny_capture
     run = [sys.executable, "-m", "sellip.cli"]
     subprocess.run(run + ["sfm", "--hdr", str(hdr), "--capture", str(capture), "--cameras",
-                          str(tmp_path / "cameras.csv"), "--output", str(tmp_path / "sfm"), "--mode", "known"],
+                          str(tmp_path / "cameras.csv"), "--output", str(tmp_path / "sfm"),
+                          "--settings", '{"mode": "known"}'],
                    check=True)
     view_ids, rotations, translations = read_cameras(tmp_path / "cameras.csv")
     known = read_capture(capture).poses
@@ -198,7 +199,7 @@ def test_known_poses_and_initial_mesh_through_the_cli(tiny_capture, tmp_path):
 
     subprocess.run(run + ["init-mesh", "--hdr", str(hdr), "--cameras", str(tmp_path / "cameras.csv"), "--sfm",
                           str(tmp_path / "sfm"), "--output", str(tmp_path / "mesh" / "init.ply"),
-                          "--hull-resolution", "64", "--max-vertices", "3000"], check=True)
+                          "--settings", '{"hull_resolution": 64, "max_vertices": 3000}'], check=True)
     vertex, faces = read_ply(tmp_path / "mesh" / "init.ply")
     assert set(vertex) == {"x", "y", "z", "nx", "ny", "nz"} and all(v.dtype == np.float32 for v in vertex.values())
     info = json.loads((tmp_path / "mesh" / "init.json").read_text())
@@ -216,7 +217,8 @@ def test_sfm_failure_is_a_clear_error(tiny_capture, tmp_path):
     capture, hdr = tiny_capture
     done = subprocess.run([sys.executable, "-m", "sellip.cli", "sfm", "--hdr", str(hdr), "--capture", str(capture),
                            "--cameras", str(tmp_path / "cameras.csv"), "--output", str(tmp_path / "sfm"),
-                           "--mode", "sfm", "--min-registered-fraction", "1.0"], capture_output=True, text=True)
+                           "--settings", '{"mode": "sfm", "min_registered_fraction": 1.0}'],
+                          capture_output=True, text=True)
     assert done.returncode == 1
     assert "not registered: v0" in done.stderr and "poses.csv" in done.stderr
     assert not (tmp_path / "cameras.csv").exists() and not (tmp_path / "sfm").exists()

@@ -227,7 +227,7 @@ def test_mislabelled_flash_levels_stop_the_merge_naming_view_and_frames(pristine
     assert "v000" not in errors[-1] and not (tmp_path / "hdr.zarr").exists()
     # the same labels within the tolerance: a factor 4 allowed
     assert main(["merge-hdr", "--linear", str(tmp_path / "linear.zarr"), "--output", str(tmp_path / "hdr.zarr"),
-                 "--flash-ratio-tolerance", "4.5"]) == 0
+                 "--settings", '{"flash_ratio_tolerance": 4.5}']) == 0
 
 
 def test_the_pristine_merge_passes_the_flash_check(pristine, tmp_path):
@@ -241,7 +241,7 @@ def test_bad_frames_skip_leaves_the_frame_out_with_a_warning(pristine, tmp_path,
     shutil.copytree(pristine, capture)
     CASES[case][0](capture)
     with caplog.at_level(logging.INFO):
-        status = linearize(capture, tmp_path / "linear.zarr", "--bad-frames", "skip")
+        status = linearize(capture, tmp_path / "linear.zarr", "--settings", '{"bad_frames": "skip"}')
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert status == 0 and (tmp_path / "linear.zarr").is_dir()
     assert any("left out 1 of 12 frames" in w for w in warnings), warnings

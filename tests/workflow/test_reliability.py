@@ -342,8 +342,8 @@ def test_nested_overrides_of_each_type_pass_the_workflow(tmp_path):
     assert result.returncode == 0, text[-3000:]
     jobs = planned_counts(result)
     assert jobs["fit_pbrdf"] == 3 * jobs["gather_fit"]  # three shards per pass
-    assert "--min-coherence 0 " in text and "--k-max 3 " in text and "--refine-intrinsics" in text
-    assert "--max-views" not in text
+    assert """--augment-settings '{"k_max": 3, "min_coherence": 0}'""" in text and '"refine_intrinsics": true' in text
+    assert '"max_views": null' in text  # null: every view (the record's declared default too)
 
 
 def test_a_failed_jobs_message_reaches_the_console(run):
@@ -452,7 +452,7 @@ def test_the_sfm_stage_stops_on_poses_in_millimetres(run, tmp_path, caplog):
     poses.to_csv(capture / "poses.csv", index=False)
     hdr = run["workdir"] / "results" / NAME / "hdr.zarr"
     status = main(["sfm", "--hdr", str(hdr), "--capture", str(capture), "--cameras", str(tmp_path / "cameras.csv"),
-                   "--output", str(tmp_path / "sfm"), "--mode", "known"])
+                   "--output", str(tmp_path / "sfm"), "--settings", '{"mode": "known"}'])
     assert status == 1 and not (tmp_path / "cameras.csv").exists() and not (tmp_path / "sfm").exists()
     assert "translations look like millimetres" in caplog.text and "poses.csv" in caplog.text
 

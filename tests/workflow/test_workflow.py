@@ -93,9 +93,10 @@ def test_the_demo_overrides_apply_where_the_user_set_nothing(tmp_path):
         return next(int(line.split()[1]) for line in out.splitlines() if line.startswith("cluster_lobes ")), out
 
     jobs, out = dry_run()  # iterations 0..6 (the last the final pass), the slope test
-    assert jobs == 6 + 1 and "--max-slope 0.4" in out and "--min-coherence 0.5" in out  # the latter the default
+    # augment sets nothing: min_coherence takes its declared default (0.5)
+    assert jobs == 6 + 1 and '"max_slope": 0.4' in out and "--augment-settings '{}'" in out
     jobs, out = dry_run("--config", "iterations=10")
-    assert jobs == 10 + 1 and "--max-slope 0.4" in out
+    assert jobs == 10 + 1 and '"max_slope": 0.4' in out
 
 
 def test_tiny_capture_reconstructs_close_to_the_ground_truth(tiny_run):

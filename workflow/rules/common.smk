@@ -195,6 +195,23 @@ def settings_json(settings):
     return shlex.quote(json.dumps(dict(settings), sort_keys=True))
 
 
+def section_settings(section, workflow_keys=(), it=None):
+    """`--settings` of a job: the keys of config `section` (a dotted path, e.g. "augment.settings") that the config
+    sets, less the `workflow_keys` the workflow reads itself (threads, enabled, ...), as one JSON argument; with `it`,
+    a list of values is iteration it's (at_iteration: for sections whose only lists are values per iteration). The job's settings record gives every key left out its
+    declared default (sellip.settings)."""
+    values = config
+    for key in section.split("."):
+        values = values.get(key) or {}
+    return settings_json(
+        {
+            key: value if it is None else at_iteration(value, it)
+            for key, value in values.items()
+            if key not in workflow_keys
+        }
+    )
+
+
 def at_iteration(value, it):
     """A config value for iteration `it`: a list gives one value per iteration (its last value repeats)."""
     if isinstance(value, list):
@@ -301,6 +318,12 @@ def cluster_settings(wildcards):
     selection, and the most complex model allowed: `lobes`, `sigma_ss_fixed`)."""
     it = int(wildcards.it)
     return settings_json({key: at_iteration(value, it) for key, value in config["fit"]["settings"].items()})
+
+
+def fit_job_settings():
+    """`--job-settings` of the fit, gather-fit and cluster-lobes jobs (sellip.fit.records.FitJobSettings): the keys
+    of config `fit` that are set, less Snakemake's own (shards, threads, mem_mb) and the FitSettings (`settings`)."""
+    return section_settings("fit", ("shards", "threads", "mem_mb", "settings"))
 
 
 MODEL_SELECTION_WORKFLOW_KEYS = ("every",)

@@ -20,16 +20,12 @@ rule finalize_model:
         "../../envs/fit.yaml"
     params:
         clusters=lambda wildcards, input: f"--clusters {shlex.join(input.clusters)}" if input.clusters else "",
-        eta_deviation_sigmas=config["final"]["eta_deviation_sigmas"],
-        lobe_deviation_sigmas=config["final"]["lobe_deviation_sigmas"],
-        deviation_support=config["final"]["deviation_support"],
+        # sellip.fit.finalize.FinalSettings: the keys of config final that are set (settings: the final pass's fit).
+        settings=section_settings("final", ("settings",)),
     shell:
         sellip_shell(
             "finalize --params {input.params:q} --mesh {input.mesh:q} --output-model {output.model:q}"
-            " --output-params {output.params:q} {params.clusters}"
-            " --eta-deviation-sigmas {params.eta_deviation_sigmas}"
-            " --lobe-deviation-sigmas {params.lobe_deviation_sigmas}"
-            " --deviation-support {params.deviation_support} > {log:q} 2>&1"
+            " --output-params {output.params:q} {params.clusters} --settings {params.settings} > {log:q} 2>&1"
         )
 
 

@@ -27,14 +27,12 @@ rule fit_pbrdf:
         lobes=lambda wildcards, input: f"--lobes {shlex.join(input.lobes)}" if input.lobes else "",
         settings=fit_settings,
         model2_sigma_ss=model2_sigma_ss(),
-        dtype=config["fit"]["dtype"],
-        cache=config["fit"]["compilation_cache"],
+        job_settings=fit_job_settings(),
     shell:
         sellip_shell(
             "fit --observations {input.observations:q} --shard {wildcards.scatteritem}"
-            " --output {output:q} {params.prior} {params.lobes} --dtype {params.dtype} --settings {params.settings}"
-            " {params.model2_sigma_ss} --compilation-cache {params.cache:q} --mem-mb {resources.mem_mb}"
-            " > {log:q} 2>&1"
+            " --output {output:q} {params.prior} {params.lobes} --job-settings {params.job_settings}"
+            " --settings {params.settings} {params.model2_sigma_ss} --mem-mb {resources.mem_mb} > {log:q} 2>&1"
         )
 
 
@@ -51,11 +49,11 @@ rule gather_fit:
     conda:
         "../../envs/fit.yaml"
     params:
-        min_fitted_share=config["fit"]["min_fitted_share"],
+        job_settings=fit_job_settings(),
     shell:
         sellip_shell(
             "gather-fit --observations {input.observations:q} --shards {input.shards:q}"
-            " --output {output:q} --min-fitted-share {params.min_fitted_share} > {log:q} 2>&1"
+            " --output {output:q} --job-settings {params.job_settings} > {log:q} 2>&1"
         )
 
 
@@ -80,22 +78,19 @@ rule cluster_lobes:
     threads: config["fit"]["threads"]
     params:
         seed=config["seed"],
-        k_max=config["augment"]["k_max"],
-        max_samples=config["augment"]["max_samples"],
-        min_cluster_vertices=config["augment"]["min_cluster_vertices"],
-        min_coherence=config["augment"]["min_coherence"],
-        pool_min_coherence=config["augment"]["pool_min_coherence"],
+        # sellip.fit.clusters.AugmentSettings: the keys of config augment that are set (enabled, settings and
+        # stability_resamples, the final pass's, are the workflow's).
+        augment_settings=section_settings("augment", ("enabled", "stability_resamples", "settings")),
         resamples=lambda wildcards: config["augment"]["stability_resamples"] if int(wildcards.it) == ITERATIONS else 0,
         settings=cluster_settings,
         selection=model_selection_settings(),
         inherit=inherit_models,
-        cache=config["fit"]["compilation_cache"],
+        job_settings=fit_job_settings(),
     shell:
         sellip_shell(
             "cluster-lobes --params {input.params:q} --observations {input.observations:q} --output {output:q}"
-            " --seed {params.seed} --k-max {params.k_max} --max-samples {params.max_samples}"
-            " --min-cluster-vertices {params.min_cluster_vertices} --min-coherence {params.min_coherence}"
-            " --pool-min-coherence {params.pool_min_coherence} --stability-resamples {params.resamples}"
+            " --seed {params.seed} --augment-settings {params.augment_settings}"
+            " --stability-resamples {params.resamples}"
             " --settings {params.settings} --model-selection {params.selection} {params.inherit}"
-            " --compilation-cache {params.cache:q} > {log:q} 2>&1"
+            " --job-settings {params.job_settings} > {log:q} 2>&1"
         )

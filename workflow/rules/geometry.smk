@@ -23,26 +23,15 @@ rule run_sfm:
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
         content=content_of(poses_file),
-        mode=config["sfm"]["mode"],
-        matching=config["sfm"]["matching"],
-        exhaustive_max_views=config["sfm"]["exhaustive_max_views"],
-        retrieval_neighbors=config["sfm"]["retrieval_neighbors"],
-        max_features=config["sfm"]["max_features"],
-        feature_object_px=config["sfm"]["feature_object_px"],
-        max_upscale=config["sfm"]["max_upscale"],
-        refine_intrinsics="--refine-intrinsics" if config["sfm"]["refine_intrinsics"] else "",
-        min_registered_fraction=config["sfm"]["min_registered_fraction"],
+        # sellip.geometry.sfm.SfmOptions: the keys of config sfm that are set (threads: the job's).
+        settings=section_settings("sfm", ("threads",)),
         silhouette_settings=settings_json(config["silhouette"]),
         seed=config["seed"],
     shell:
         sellip_shell(
             "sfm --hdr {input.hdr:q} --capture {params.capture:q} --cameras {output.cameras:q}"
-            " --output {output.sfm:q} --mode {params.mode} --matching {params.matching}"
-            " --exhaustive-max-views {params.exhaustive_max_views} --retrieval-neighbors {params.retrieval_neighbors}"
-            " --max-features {params.max_features} --feature-object-px {params.feature_object_px}"
-            " --max-upscale {params.max_upscale} {params.refine_intrinsics}"
-            " --min-registered-fraction {params.min_registered_fraction} --silhouette-settings {params.silhouette_settings}"
-            " --seed {params.seed} --threads {threads} > {log:q} 2>&1"
+            " --output {output.sfm:q} --settings {params.settings}"
+            " --silhouette-settings {params.silhouette_settings} --seed {params.seed} --threads {threads} > {log:q} 2>&1"
         )
 
 
@@ -62,24 +51,16 @@ rule init_mesh:
         "../../envs/geometry.yaml"
     threads: config["init"]["threads"]
     params:
-        mode=config["init"]["mode"],
+        # sellip.geometry.hull.InitMeshOptions: the keys of config init that are set (mesh_path: user_mesh()).
+        settings=section_settings("init", ("mesh_path", "threads")),
         mesh_path=" ".join(f"--mesh-path {shlex.quote(p)}" for p in user_mesh()),
         # init.mode mesh: the user's mesh by its content, so a changed scan re-runs what follows.
         content=content_of(user_mesh),
-        hull_resolution=config["init"]["hull_resolution"],
-        min_inside_fraction=config["init"]["min_inside_fraction"],
-        poisson_depth=config["init"]["poisson_depth"],
-        target_depth=config["init"]["target_depth"],
-        max_vertices=config["init"]["max_vertices"],
-        outlier_view_z=config["init"]["outlier_view_z"],
         silhouette_settings=settings_json(config["silhouette"]),
     shell:
         sellip_shell(
             "init-mesh --hdr {input.hdr:q} --cameras {input.cameras:q} --sfm {input.sfm:q}"
-            " --output {output.mesh:q} --mode {params.mode} {params.mesh_path} --hull-resolution {params.hull_resolution}"
-            " --min-inside-fraction {params.min_inside_fraction} --poisson-depth {params.poisson_depth}"
-            " --target-depth {params.target_depth} --max-vertices {params.max_vertices}"
-            " --outlier-view-z {params.outlier_view_z}"
+            " --output {output.mesh:q} --settings {params.settings} {params.mesh_path}"
             " --silhouette-settings {params.silhouette_settings} --threads {threads} > {log:q} 2>&1"
         )
 
@@ -102,24 +83,18 @@ rule refine_geometry:
     conda:
         "../../envs/geometry.yaml"
     params:
-        smoothness=lambda wildcards: at_iteration(config["refine_geometry"]["smoothness"], wildcards.it),
-        smoothness_unconfident=lambda wildcards: at_iteration(
-            config["refine_geometry"]["smoothness_unconfident"], wildcards.it
-        ),
-        anchor=lambda wildcards: at_iteration(config["refine_geometry"]["anchor"], wildcards.it),
-        rounds=config["refine_geometry"]["rounds"],
-        silhouette=lambda wildcards: at_iteration(config["refine_geometry"]["silhouette"], wildcards.it),
-        keep_surface="--keep-surface" if config["refine_geometry"]["keep_surface"] else "--no-keep-surface",
+        # sellip.fit.geometry_jobs.GeometryUpdateSettings: the keys of config refine_geometry that are set, this
+        # iteration's values.
+        settings=lambda wildcards: section_settings("refine_geometry", it=wildcards.it),
         capture=lambda wildcards, input: Path(input.capture).parent,
         held_out=config["evaluate"]["held_out_views"],
         silhouette_settings=settings_json(config["silhouette"]),
     shell:
         sellip_shell(
             "refine-geometry --params {input.params:q} --mesh {input.mesh:q} --output {output.mesh:q}"
-            " --reference-mesh {input.reference:q} --smoothness {params.smoothness}"
-            " --smoothness-unconfident {params.smoothness_unconfident} --anchor {params.anchor} --rounds {params.rounds}"
-            " --silhouette {params.silhouette} {params.keep_surface} --cameras {input.cameras:q} --hdr {input.hdr:q} --capture {params.capture:q}"
-            " --exclude-views {params.held_out:q} --silhouette-settings {params.silhouette_settings} > {log:q} 2>&1"
+            " --reference-mesh {input.reference:q} --settings {params.settings} --cameras {input.cameras:q}"
+            " --hdr {input.hdr:q} --capture {params.capture:q} --exclude-views {params.held_out:q}"
+            " --silhouette-settings {params.silhouette_settings} > {log:q} 2>&1"
         )
 
 

@@ -19,15 +19,13 @@ rule linearize_frames:
         capture=lambda wildcards, input: Path(input.capture).parent,
         # The content of every file ingest reads: a replaced, added or removed frame re-runs ingest and what follows.
         content=content_of(lambda: [capture_file("capture.yaml"), capture_file("frames.csv")], raw_frames),
-        saturation=config["ingest"]["saturation"],
-        # A function: its value `capture` would read to `snakemake --lint` as a hard-coded prefix of captures/.
-        black_level_from=lambda wildcards: config["ingest"]["black_level_from"],
-        bad_frames=config["ingest"].get("bad_frames", "error"),
+        # sellip.capture.ingest.IngestSettings: the keys of config ingest that are set. A function: a value
+        # `capture` would read to `snakemake --lint` as a hard-coded prefix of captures/.
+        settings=lambda wildcards: section_settings("ingest", ("threads",)),
     shell:
         sellip_shell(
             "linearize --capture {params.capture:q} --output {output:q} --threads {threads}"
-            " --saturation {params.saturation} --black-level-from {params.black_level_from}"
-            " --bad-frames {params.bad_frames} > {log:q} 2>&1"
+            " --settings {params.settings} > {log:q} 2>&1"
         )
 
 
@@ -44,11 +42,12 @@ rule merge_hdr:
         "../../envs/ingest.yaml"
     threads: config["ingest"]["threads"]
     params:
-        flash_ratio_tolerance=config["ingest"]["flash_ratio_tolerance"],
+        # sellip.capture.ingest.IngestSettings (merge-hdr reads flash_ratio_tolerance).
+        settings=section_settings("ingest", ("threads",)),
     shell:
         sellip_shell(
             "merge-hdr --linear {input:q} --output {output:q} --threads {threads}"
-            " --flash-ratio-tolerance {params.flash_ratio_tolerance} > {log:q} 2>&1"
+            " --settings {params.settings} > {log:q} 2>&1"
         )
 
 

@@ -23,27 +23,14 @@ rule gather_observations:
     threads: config["observe"]["threads"]
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
-        vertex_chunk=config["observe"]["vertex_chunk"],
-        view_chunk=config["observe"]["view_chunk"],
-        occlusion_tolerance=config["observe"]["occlusion_tolerance"],
-        shadow_offset=config["observe"]["shadow_offset"],
-        min_cos=config["observe"]["min_cos"],
-        edge_margin=config["observe"]["edge_margin"],
+        # sellip.fit.observe.ObserveSettings: the keys of config observe that are set (threads: the job's).
+        settings=section_settings("observe", ("threads",)),
         silhouette_settings=settings_json(config["silhouette"]),
-        max_slope=config["observe"]["max_slope"],
-        missing_poses=config["observe"]["missing_poses"],
         held_out=config["evaluate"]["held_out_views"],
-        max_views=(
-            f"--max-views {config['observe']['max_views']}" if config["observe"].get("max_views") is not None else ""
-        ),
     shell:
         sellip_shell(
             "observe --mesh {input.mesh:q} --cameras {input.cameras:q} --hdr {input.hdr:q}"
-            " --capture {params.capture:q} --output {output:q} --vertex-chunk {params.vertex_chunk}"
-            " --view-chunk {params.view_chunk} --occlusion-tolerance {params.occlusion_tolerance}"
-            " --shadow-offset {params.shadow_offset} --min-cos {params.min_cos}"
-            " --edge-margin {params.edge_margin} --silhouette-settings {params.silhouette_settings}"
-            " --max-slope {params.max_slope}"
-            " --missing-poses {params.missing_poses} --exclude-views {params.held_out:q} {params.max_views}"
+            " --capture {params.capture:q} --output {output:q} --settings {params.settings}"
+            " --silhouette-settings {params.silhouette_settings} --exclude-views {params.held_out:q}"
             " --threads {threads} > {log:q} 2>&1"
         )

@@ -26,13 +26,14 @@ Modules and what they export (each name is importable from here too)::
         HDR_CODEC, read_hdr, merge_capture
     ingest: Ingest kernels: raw mosaic frames -> linear analyzer images -> one HDR image per view (docs/design.md §2,
       §3)
-        CELL, DEFAULT_SATURATION, HDR_WEIGHT_FLOOR, IngestError, black_level_map, rawpy_black_level, linearize,
-        make_demosaic_plan, demosaic, apply_color_matrix, output_intrinsics, source_positions, remap, make_ingest_plan,
-        process_frame, analyzer_plan, develop, hdr_weight, merge_hdr, FLASH_RATIO_TOLERANCE
+        BLACK_LEVEL_SOURCES, BAD_FRAME_POLICIES, IngestSettings, CELL, DEFAULT_SATURATION, HDR_WEIGHT_FLOOR,
+        IngestError, black_level_map, rawpy_black_level, linearize, make_demosaic_plan, demosaic, apply_color_matrix,
+        output_intrinsics, source_positions, remap, make_ingest_plan, process_frame, analyzer_plan, develop,
+        hdr_weight, merge_hdr, FLASH_RATIO_TOLERANCE
     linearize: Linearize a capture's raw frames (docs/design.md §2 linearize; docs/ingest.md): black and white level,
       saturation mask, demosaic into the four analyzer images, colour matrix, undistortion, one store for all frames
       (:func:`linearize_capture`); a bad frame stops with its file and row, or is left out with ``bad_frames: skip``
-        BLACK_LEVEL_SOURCES, BAD_FRAME_POLICIES, linearize_capture
+        linearize_capture
     mitsuba_capture: An independent renderer for synthetic captures: Mitsuba 3's ``pplastic`` under the rig's polarized
       flash
         PPlasticError, mitsuba_available, pplastic_materials, render_in_subprocess
@@ -73,11 +74,12 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "ConfigError", "UnknownLayoutError", "FramesError", "DuplicateFrameError", "FlashLevelError",
            "PosesError", "ViewWithoutFramesError", "RawFrameError", "GROUND_TRUTH_MESH", "MAX_LISTED_PROBLEMS"),
     "hdr": ("HDR_CODEC", "read_hdr", "merge_capture"),
-    "ingest": ("CELL", "DEFAULT_SATURATION", "HDR_WEIGHT_FLOOR", "IngestError", "black_level_map",
-           "rawpy_black_level", "linearize", "make_demosaic_plan", "demosaic", "apply_color_matrix",
-           "output_intrinsics", "source_positions", "remap", "make_ingest_plan", "process_frame", "analyzer_plan",
-           "develop", "hdr_weight", "merge_hdr", "FLASH_RATIO_TOLERANCE"),
-    "linearize": ("BLACK_LEVEL_SOURCES", "BAD_FRAME_POLICIES", "linearize_capture"),
+    "ingest": ("BLACK_LEVEL_SOURCES", "BAD_FRAME_POLICIES", "IngestSettings", "CELL", "DEFAULT_SATURATION",
+           "HDR_WEIGHT_FLOOR", "IngestError", "black_level_map", "rawpy_black_level", "linearize",
+           "make_demosaic_plan", "demosaic", "apply_color_matrix", "output_intrinsics", "source_positions", "remap",
+           "make_ingest_plan", "process_frame", "analyzer_plan", "develop", "hdr_weight", "merge_hdr",
+           "FLASH_RATIO_TOLERANCE"),
+    "linearize": ("linearize_capture",),
     "mitsuba_capture": ("PPlasticError", "mitsuba_available", "pplastic_materials", "render_in_subprocess"),
     "mosaic": ("mosaic_layout",),
     "reader": ("read_capture", "read_raw_file", "read_raw_frame", "exposure_time"),

@@ -96,11 +96,11 @@ def check_flash_labels(view_id: str, frames: list, indices: list[int], attrs: di
 
 
 def merge_capture(linear_path: str | Path, output: str | Path, threads: int = 1,
-                  flash_ratio_tolerance: float = ingest.FLASH_RATIO_TOLERANCE) -> Path:
+                  settings: ingest.IngestSettings = ingest.IngestSettings()) -> Path:
     """Merge the frames of every view of a ``sellip linearize`` store into ``output`` (layout above).
 
     Before merging a view, its frames' brightness ratios are checked against their labels (flash_level *
-    exposure_s; :func:`check_flash_labels`, ``flash_ratio_tolerance`` a factor > 1): a mislabelled frame stops
+    exposure_s; :func:`check_flash_labels`, ``settings.flash_ratio_tolerance`` a factor > 1): a mislabelled frame stops
     the stage (FlashLabelError) and nothing is written."""
     import zarr
 
@@ -135,7 +135,7 @@ def merge_capture(linear_path: str | Path, output: str | Path, threads: int = 1,
         def run(v: int) -> float:
             indices = frames_of[view_ids[v]]
             frames = [np.asarray(linear[i]) for i in indices]
-            check_flash_labels(view_ids[v], frames, indices, attrs, flash_ratio_tolerance)
+            check_flash_labels(view_ids[v], frames, indices, attrs, settings.flash_ratio_tolerance)
             merged, ok = ingest.merge_hdr(frames, gains[indices])
             analyzers[v] = merged
             valid[v] = ok

@@ -60,12 +60,49 @@ from scipy import ndimage
 from sellip.capture.mosaic import MosaicError, MosaicLayout
 from sellip.model.conventions import ANALYZER_ANGLES_DEG
 from sellip.model.render import distort_normalized
+from sellip.settings import setting
 
 CELL = 2
 """Raw pixels per side of a polarizer cell; the output grid has one pixel per cell."""
 
-DEFAULT_SATURATION = 0.98
-"""Fraction of a pixel's range (white - black) at or above which it counts as saturated."""
+BLACK_LEVEL_SOURCES = ("capture", "file")
+"""Where black levels come from: capture.yaml (all formats), or a RAW file's own (rawpy) levels."""
+
+BAD_FRAME_POLICIES = ("error", "skip")
+"""What a missing or unreadable raw frame does: stop the stage, or leave the frame out with a warning."""
+
+
+@dataclass(frozen=True)
+class IngestSettings:
+    """Settings of ingest (config section ``ingest``; each declared once here, :mod:`sellip.settings`):
+    :func:`sellip.capture.linearize.linearize_capture` and :func:`sellip.capture.hdr.merge_capture`."""
+
+    saturation: float = setting(0.98, "a pixel at or above this fraction of its range (white - black) counts as "
+                                "saturated", unit="fraction of the range", exclusive_minimum=0, maximum=1)
+    black_level_from: str = setting("capture", "black levels from capture.yaml (capture), or from each RAW file's "
+                                    "own metadata (file; DNG etc.)", choices=BLACK_LEVEL_SOURCES)
+    bad_frames: str = setting("error", "a raw frame that is missing or unreadable: stop with its file and frames.csv "
+                              "row (error), or leave it out with a warning (skip; its view is merged from its other "
+                              "frames, and dropped when none is left)", choices=BAD_FRAME_POLICIES)
+    flash_ratio_tolerance: float = setting(1.5, "a frame whose brightness relative to its view's other frames "
+                                           "differs from its label (flash_level * exposure_s) by more than this "
+                                           "factor either way stops merge_hdr, naming the view and frame (a "
+                                           "mislabelled flash level)", unit="factor", exclusive_minimum=1)
+
+    def __post_init__(self):
+        if not 0 < self.saturation <= 1:
+            raise ValueError(f"saturation must be in (0, 1], got {self.saturation}")
+        if self.black_level_from not in BLACK_LEVEL_SOURCES:
+            raise ValueError(f"black_level_from must be one of {BLACK_LEVEL_SOURCES}, got {self.black_level_from!r}")
+        if self.bad_frames not in BAD_FRAME_POLICIES:
+            raise ValueError(f"bad_frames must be one of {BAD_FRAME_POLICIES}, got {self.bad_frames!r}")
+        if not self.flash_ratio_tolerance > 1:
+            raise ValueError(f"flash_ratio_tolerance must be a factor > 1, got {self.flash_ratio_tolerance}")
+
+
+DEFAULT_SATURATION = IngestSettings.saturation
+"""Fraction of a pixel's range (white - black) at or above which it counts as saturated (the declared default of
+``IngestSettings.saturation``)."""
 
 HDR_WEIGHT_FLOOR = 1e-3
 """Smallest weight of a valid sample in the HDR merge (dark samples keep a little weight)."""
@@ -554,10 +591,11 @@ def merge_hdr(frames: Iterable[np.ndarray], gains: Iterable[float]) -> tuple[np.
 
 # --------------------------------------------------------------------------- flash levels against the data
 
-FLASH_RATIO_TOLERANCE = 1.5
-"""Default of config ``ingest.flash_ratio_tolerance``: a frame whose measured brightness relative to its view's
-other frames differs from its label's (flash_level * exposure_s) by more than this factor either way is mislabelled.
-A flash's output varies by a few percent from shot to shot; a wrong flash level is a factor of 2 or more."""
+FLASH_RATIO_TOLERANCE = IngestSettings.flash_ratio_tolerance
+"""The declared default of config ``ingest.flash_ratio_tolerance`` (:class:`IngestSettings`): a frame whose measured
+brightness relative to its view's other frames differs from its label's (flash_level * exposure_s) by more than this
+factor either way is mislabelled. A flash's output varies by a few percent from shot to shot; a wrong flash level is
+a factor of 2 or more."""
 
 RATIO_FLOOR = 0.02
 """Samples (linear, 1 = full scale) at or below this in either frame are left out of a brightness ratio: there

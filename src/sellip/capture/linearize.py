@@ -23,13 +23,9 @@ from sellip.model.conventions import ANALYZER_ANGLES_DEG
 log = logging.getLogger(__name__)
 
 
-BLACK_LEVEL_SOURCES = ("capture", "file")
-"""Where black levels come from: capture.yaml (all formats), or a RAW file's own (rawpy) levels."""
 
 
 
-BAD_FRAME_POLICIES = ("error", "skip")
-"""What a missing or unreadable raw frame does: stop the stage, or leave the frame out with a warning."""
 
 
 
@@ -50,7 +46,7 @@ def _check_file_black_level(path: Path, plan: ingest.IngestPlan) -> None:
     declared = ingest.rawpy_black_level(path)
     if declared.shape == plan.raw_shape and not np.allclose(declared, plan.black, atol=0.5):
         log.warning("%s declares black levels %s (rawpy, per position) but capture.yaml gives %s; using "
-                    "capture.yaml's (run with --black-level-from file to use the file's)", path,
+                    "capture.yaml's (set ingest.black_level_from: file to use the file's)", path,
                     np.unique(declared).tolist(), np.unique(plan.black).tolist())
 
 
@@ -141,19 +137,16 @@ def check_frame_contents(capture, content: list[FrameContent | None], saturation
 
 
 def linearize_capture(capture_dir: str | Path, output: str | Path, threads: int = 1,
-                      saturation: float = ingest.DEFAULT_SATURATION, black_level_from: str = "capture",
-                      bad_frames: str = "error") -> Path:
+                      settings: ingest.IngestSettings = ingest.IngestSettings()) -> Path:
     """Linearize every frame of a capture into a zarr store at ``output`` (layout in the module docstring).
 
-    bad_frames: "error" raises :class:`sellip.capture.files.CaptureError` naming the file and its frames.csv row for a
+    settings: config ``ingest`` (saturation, black_level_from, bad_frames). bad_frames "error" raises
+    :class:`sellip.capture.files.CaptureError` naming the file and its frames.csv row for a
     bad capture or frame, and nothing is written; "skip" leaves bad frames out (module docstring). Raises
     CaptureError when every frame is bad.
     Long: the per-frame loop and its bad-frame policy share the store being written; split, they would pass it around.
     """
-    if black_level_from not in BLACK_LEVEL_SOURCES:
-        raise ValueError(f"black_level_from must be one of {BLACK_LEVEL_SOURCES}, got {black_level_from!r}")
-    if bad_frames not in BAD_FRAME_POLICIES:
-        raise ValueError(f"bad_frames must be one of {BAD_FRAME_POLICIES}, got {bad_frames!r}")
+    saturation, black_level_from, bad_frames = settings.saturation, settings.black_level_from, settings.bad_frames
     import zarr
 
     started = time.perf_counter()

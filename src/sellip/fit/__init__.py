@@ -23,9 +23,9 @@ Modules and what they export (each name is importable from here too)::
     finalize: The final model (rule ``finalize_model``; docs/design.md §4): per-material η and lobes with per-vertex
       deviations where a vertex's data demand them, unfitted vertices interpolated from their neighbours, confidence,
       ``model``: ``final/model.ply`` and ``final/params.zarr`` (:func:`finalize_model`)
-        finalize_model, vertex_cluster_support
+        FinalSettings, finalize_model, vertex_cluster_support
     geometry_jobs: The updates between iterations
-        raw_camera, predicted_diffuse, measure_silhouettes, refine_geometry, refine_poses
+        GeometryUpdateSettings, raw_camera, predicted_diffuse, measure_silhouettes, refine_geometry, refine_poses
     kernels: Compiled kernels that later processes load instead of tracing again (docs/speed.md)
         code_version, enable, kernel
     lobe_store: The cluster-lobes output directory (``labels.npy``, ``models.npy``, ``lobes.csv``, ``lobes.png``,
@@ -38,18 +38,18 @@ Modules and what they export (each name is importable from here too)::
       data demand them
         ClusterLobe, fit_cluster_lobe, virtual_samples, cluster_medians, material_or_own
     observe: Per-vertex, per-view observations for the pBRDF fit (docs/design.md §2 observe, §5)
-        ObserveError, ObserveSettings, ObserveMesh, read_mesh, bilinear_sample, silhouette_distance, relative_slope,
-        Observer, ObservationWriter, open_observations, load_observations
+        MISSING_POSES, ObserveError, ObserveSettings, ObserveMesh, read_mesh, bilinear_sample, silhouette_distance,
+        relative_slope, Observer, ObservationWriter, open_observations, load_observations
     observe_mesh: Observe a mesh in every view (docs/design.md §2 observe; rule ``gather_observations``): pair the HDR
       views with the cameras, check the scale, and write the observation store (:func:`observe_mesh`)
-        MISSING_POSES, pair_views, spread_subset, observe_mesh
+        pair_views, spread_subset, observe_mesh
     parameterization: The fit's bounded parameterization (scaled sigmoids: eta in ETA_BOUNDS, sigma_s <= sigma_ss -
       LOBE_GAP) and the geometry and reflectance of the virtual specular samples (paper Eq. 24)
         eta_at_bound, decode_parameters, encode_parameters, virtual_reflectance
     records: The per-vertex fit's settings and records: :class:`FitSettings`, the status codes, the model codes (which
       lobes), :class:`Observations` (the fit's input), :class:`VirtualSamples`, :class:`FitResult`
         STATUS_FITTED, STATUS_TOO_FEW_VIEWS, ETA_BOUNDS, MODELS, FitSettings, model_of, Observations, VirtualSamples,
-        FitResult, STATUS_FAILED
+        FitResult, STATUS_FAILED, DTYPES, FitJobSettings
     residuals: The residuals of one vertex (docs/design.md §5): the linear parameters (rho_d RGB, rho_s, rho_ss RGB)
       solved in closed form with non-negativity inside the residual (variable projection), then
         solve_spd, nnls_specular, model_terms, linear_solution, measured_dop, vertex_residuals
@@ -86,19 +86,20 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "one_mode", "same_eta_by_albedo", "find_eta_cut", "cluster_materials", "squared_distances",
            "cluster_support", "clustering_support"),
     "evidence": ("MIN_FITTED_SHARE", "EvidenceError", "fitted_share", "check_evidence"),
-    "finalize": ("finalize_model", "vertex_cluster_support"),
-    "geometry_jobs": ("raw_camera", "predicted_diffuse", "measure_silhouettes", "refine_geometry", "refine_poses"),
+    "finalize": ("FinalSettings", "finalize_model", "vertex_cluster_support"),
+    "geometry_jobs": ("GeometryUpdateSettings", "raw_camera", "predicted_diffuse", "measure_silhouettes",
+           "refine_geometry", "refine_poses"),
     "kernels": ("code_version", "enable", "kernel"),
     "lobe_store": ("LOBE_COLUMNS", "read_lobes", "read_models", "recorded_fit_settings", "clustering_settings",
            "load_rows"),
     "lobes": ("ClusterLobe", "fit_cluster_lobe", "virtual_samples", "cluster_medians", "material_or_own"),
-    "observe": ("ObserveError", "ObserveSettings", "ObserveMesh", "read_mesh", "bilinear_sample",
+    "observe": ("MISSING_POSES", "ObserveError", "ObserveSettings", "ObserveMesh", "read_mesh", "bilinear_sample",
            "silhouette_distance", "relative_slope", "Observer", "ObservationWriter", "open_observations",
            "load_observations"),
-    "observe_mesh": ("MISSING_POSES", "pair_views", "spread_subset", "observe_mesh"),
+    "observe_mesh": ("pair_views", "spread_subset", "observe_mesh"),
     "parameterization": ("eta_at_bound", "decode_parameters", "encode_parameters", "virtual_reflectance"),
     "records": ("STATUS_FITTED", "STATUS_TOO_FEW_VIEWS", "ETA_BOUNDS", "MODELS", "FitSettings", "model_of",
-           "Observations", "VirtualSamples", "FitResult", "STATUS_FAILED"),
+           "Observations", "VirtualSamples", "FitResult", "STATUS_FAILED", "DTYPES", "FitJobSettings"),
     "residuals": ("solve_spd", "nnls_specular", "model_terms", "linear_solution", "measured_dop",
            "vertex_residuals"),
     "selection": ("SelectionSettings", "settings_for_model", "allowed_models", "cap_models", "split_vertices",

@@ -18,6 +18,7 @@ from typing import NamedTuple
 import numpy as np
 
 from sellip.fit import parameterization, records
+from sellip.settings import setting
 
 log = logging.getLogger(__name__)
 
@@ -45,21 +46,28 @@ RECOVERED_JACCARD = 0.5  # a cluster is found again by a repeat's cluster that s
 
 @dataclass(frozen=True)
 class AugmentSettings:
-    """Settings of the clustering and of the per-cluster lobe fit."""
+    """Settings of the clustering and of the per-cluster lobe fit (config section ``augment``: its fields declared
+    with :func:`sellip.settings.setting`, each once here; the others are the library's own)."""
 
-    k_max: int = 8  # K is chosen in 1..k_max
-    min_cluster_vertices: int = 50  # smaller clusters are merged into their nearest neighbour
+    k_max: int = setting(8, "material clusters K are chosen from the data in 1..k_max (docs/augment.md)", minimum=1)
+    min_cluster_vertices: int = setting(50, "clusters with fewer fitted vertices are merged into the nearest one",
+                                        minimum=1)
     # A material occupies a region: a cluster whose vertices' nearest neighbours on the surface lie in it less
     # often than this (on average) is a split of a material's noise, not a material, and is merged; a region of
     # another albedo inside a cluster at least this coherent becomes a cluster (:func:`_region_centres`); and two
     # clusters that are one material cut along its eta are merged (:func:`find_eta_cut`) (0: none of the three;
     # docs/augment.md).
-    min_coherence: float = 0.5
+    min_coherence: float = setting(0.5, "merge a cluster whose vertices' nearest neighbours lie in it less often than "
+                                   "this (k-means cutting one material along its eta noise), split off a region of "
+                                   "another albedo at least this coherent, and merge two clusters that are one "
+                                   "material cut along its eta; 0 turns all three off (docs/augment.md)",
+                                   unit="share of neighbours", minimum=0, maximum=1)
     coherence_neighbours: int = 6  # the nearest vertices (3-D) that stand for a vertex's 1-ring
     min_confidence: float = 0.1  # vertices clustered and pooled: status fitted and confidence >= this
     cluster_points: int = 20000  # at most this many vertices (seeded subsample) choose K and the centres
     restarts: int = 4  # K-means++ restarts per K (the lowest inertia wins)
-    max_samples: int = 16384  # (vertex, view) samples per cluster lobe fit (seeded subsample)
+    max_samples: int = setting(16384, "real observations per cluster used to fit its lobe (a seeded subsample; a power "
+                               "of two: every cluster's fit then has this one shape and compiles once)", minimum=100)
     lambda_theta: float = 1.0  # weight of L_theta = Delta theta_h^2 (radians): 1 deg costs a 1.7 % I_s error
     max_theta_error_deg: float = 5.0  # |Delta theta_h| bound
     alternations: int = 4  # (lobe parameters, Delta theta_h) alternations
@@ -79,7 +87,10 @@ class AugmentSettings:
     # vertices whose coherence_neighbours nearest vertices lie in the cluster at least this often, unless fewer than
     # half of its vertices would be left (0: every vertex, the default until it has run on the whole suite). A vertex
     # on the border of two materials sees both; clustered by its blended albedo, it joins a cluster of neither.
-    pool_min_coherence: float = 0.0
+    pool_min_coherence: float = setting(0.0, "coherent pools: a cluster's lobe fit and model selection read only its "
+                                        "vertices whose nearest neighbours lie in it at least this often (where half "
+                                        "of its vertices do); 0: every vertex (docs/augment.md, \"Coherent pools\")",
+                                        unit="share of neighbours", minimum=0, maximum=1)
     # Support (docs/reproducibility.md): the clustering is repeated this many times, each on a seeded
     # SUPPORT_KEEP share of the clustered vertices with another seed, and each cluster's support is the share of
     # those repeats that find it again (:func:`clustering_support`; clusters.json ``support``, materials.csv

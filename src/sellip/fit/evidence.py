@@ -1,7 +1,7 @@
 """No result without evidence (docs/design.md §9): a fit that covers too little of the surface the photographs see stops
 the run with what is missing, instead of handing on parameters that are the prior or neighbour fills of it.
 
-- :data:`MIN_FITTED_SHARE` -- default of config ``fit.min_fitted_share``.
+- :data:`MIN_FITTED_SHARE` -- the declared default of config ``fit.min_fitted_share`` (``FitJobSettings``).
 - :func:`fitted_share` -- (fitted, visible) vertex counts of one pass.
 - :func:`check_evidence` -- :class:`EvidenceError` below the share, saying what is missing (views, coverage,
   exposure).
@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from sellip.fit.records import STATUS_FAILED, STATUS_FITTED, STATUS_TOO_FEW_VIEWS
+from sellip.fit.records import STATUS_FAILED, STATUS_FITTED, STATUS_TOO_FEW_VIEWS, FitJobSettings
 
-MIN_FITTED_SHARE = 0.25
+MIN_FITTED_SHARE = FitJobSettings.min_fitted_share
 """Default of config ``fit.min_fitted_share``: the fitted vertices' share of the visible surface (vertices with at
 least one usable view) below which the run stops. Measured shares: docs/reliability.md ("No result without
 evidence"); below it, the materials are the fit's prior (eta 1.5, rho_d 0.5) over most of the surface."""

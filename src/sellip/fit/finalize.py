@@ -6,20 +6,39 @@ where a vertex's data demand them, unfitted vertices interpolated from their nei
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from sellip.jobs import atomic_file
+from sellip.settings import setting
 
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class FinalSettings:
+    """How the final model takes its materials' values (config section ``final``, beside its ``settings``, the final
+    pass's FitSettings; each declared once here, :mod:`sellip.settings`): :func:`finalize_model`."""
+
+    eta_deviation_sigmas: float = setting(3.0, "eta is a material property: each vertex takes its material cluster's "
+                                          "eta unless its own differs by more than this many of its std (written per "
+                                          "vertex as eta_source; <= 0 keeps every vertex's own)", unit="std")
+    lobe_deviation_sigmas: float = setting(3.0, "so is the specular lobe: each vertex takes its cluster's sigma_s and "
+                                           "rho_s unless its own sigma_s differs by more than this many of its std "
+                                           "(written per vertex as lobe_source; <= 0 keeps every vertex's own)",
+                                           unit="std")
+    deviation_support: int = setting(3, "either only where at least this many of the vertex's 6 nearest vertices "
+                                     "deviate the same way: a deviation the data demand is a spot, not one vertex "
+                                     "(docs/augment.md; 0: any vertex)", minimum=0, maximum=6)
+
+
 def finalize_model(params_path: Path, mesh_path: Path, output_model: Path, output_params: Path,
-              clusters: Path | None = None, model: int = 3, eta_deviation_sigmas: float = 3.0,
-              lobe_deviation_sigmas: float = 3.0, deviation_support: int = 3) -> dict:
+                   clusters: Path | None = None, model: int = 3, settings: FinalSettings = FinalSettings()) -> dict:
     """Write the final model PLY and parameter store; returns a summary dict. The per-vertex model is
-    the store's ``model``; ``model`` is the code of every vertex of a store that has none. With
+    the store's ``model``; ``model`` is the code of every vertex of a store that has none. ``settings``: the deviation
+    rules below (:class:`FinalSettings`). With
     ``clusters``, eta is its material cluster's (the median of the cluster's confident vertices' own eta,
     :func:`sellip.fit.lobes.cluster_medians`; the cluster lobe fit's where it has none) unless a vertex's own differs
     by more than ``eta_deviation_sigmas`` of its std, and so is the specular lobe (the cluster lobe fit's sigma_s
@@ -34,6 +53,8 @@ def finalize_model(params_path: Path, mesh_path: Path, output_model: Path, outpu
     clustering on resampled vertices found it again, and what it became otherwise; NaN, -1 where not measured).
 
     Long: one job's steps in order (read, per-material values, fill, confidence, write), each a call."""
+    eta_deviation_sigmas, lobe_deviation_sigmas = settings.eta_deviation_sigmas, settings.lobe_deviation_sigmas
+    deviation_support = settings.deviation_support
     from sellip.fit.clusters import AugmentSettings, nearest_vertices
     from sellip.fit.lobe_store import read_lobes
     from sellip.fit.lobes import cluster_medians, material_or_own

@@ -10,13 +10,39 @@ from __future__ import annotations
 import json
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from sellip.jobs import atomic_file, write_text
+from sellip.settings import setting
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class GeometryUpdateSettings:
+    """Settings of the geometry update (config section ``refine_geometry``, docs/geometry_update.md; each declared
+    once here, :mod:`sellip.settings`): :func:`refine_geometry`. The mesh's vertices move along its normals until
+    the surface agrees with the fitted normals, as far as their confidence allows; the faces stay."""
+
+    smoothness: float = setting(0.01, "weight of smooth offsets: where the fit is unsure the surface bends smoothly",
+                                unit="no units", minimum=0, per_iteration=True)
+    smoothness_unconfident: float = setting(1.0, "added where the fitted normals are unsure, times 1 - their "
+                                            "confidence: there the surface moves with its neighbours, so the "
+                                            "silhouettes cannot pull single vertices out of an unseen part",
+                                            unit="no units", minimum=0, per_iteration=True)
+    anchor: float = setting(1e-3, "weight that holds each vertex where it is: the mean offset and the shape far from "
+                            "any confident normal, which normals cannot tell (larger keeps more of the previous "
+                            "surface)", unit="no units", exclusive_minimum=0, per_iteration=True)
+    rounds: int = setting(3, "linearisations around the moved surface per update", minimum=1)
+    silhouette: float = setting(0.01, "weight of the photographs' silhouettes: each contour vertex moves the model's "
+                                "silhouette (a render of the current model, developed like a photograph) onto the "
+                                "photograph's; fixes the mean offset and size that normals cannot tell; held-out views "
+                                "are not used; 0: none", unit="no units", minimum=0, per_iteration=True)
+    keep_surface: bool = setting(True, "shorten each vertex's step where the full step would make triangles cross, "
+                                 "flip or degenerate (docs/geometry_update.md, \"Folds\"); false: every step in full")
 
 
 def raw_camera(capture, camera):
@@ -141,17 +167,17 @@ def iteration_model(params_path: Path, mesh_path: Path):
     return store, mesh, params, confidence, normal_confidence
 
 
-def refine_geometry(params_path: Path, mesh_path: Path, output: Path, smoothness: float = 0.01, anchor: float = 1e-3,
-              rounds: int = 3, min_confidence: float = 0.5, reference_mesh: Path | None = None,
-              smoothness_unconfident: float = 1.0,
-              silhouette: float = 0.0, keep_surface: bool = True, cameras_path: Path | None = None,
-              hdr_path: Path | None = None,
-              capture_path: Path | None = None, exclude_views=(), mask_options: dict | None = None) -> dict:
+def refine_geometry(params_path: Path, mesh_path: Path, output: Path,
+                    settings: GeometryUpdateSettings = GeometryUpdateSettings(), min_confidence: float = 0.5,
+                    reference_mesh: Path | None = None, cameras_path: Path | None = None, hdr_path: Path | None = None,
+                    capture_path: Path | None = None, exclude_views=(), mask_options: dict | None = None) -> dict:
     """Write the next iteration's mesh ``output`` and ``<output>.json``; returns the summary written there.
-    ``min_confidence``: the vertices whose normal agreement is reported. ``silhouette`` > 0: the weight of the
+    ``settings``: config ``refine_geometry`` of this iteration (:class:`GeometryUpdateSettings`).
+    ``min_confidence``: the vertices whose normal agreement is reported. ``settings.silhouette`` > 0: the weight of the
     silhouette constraints of the photographs (``cameras_path``, ``hdr_path``, ``capture_path`` needed; the
     ``exclude_views`` not used; ``mask_options`` of :func:`sellip.geometry.silhouettes.silhouette_masks`);
-    ``keep_surface``: steps that would fold the mesh are shortened (:func:`sellip.geometry.update.step_without_folds`).
+    ``settings.keep_surface``: steps that would fold the mesh are shortened
+    (:func:`sellip.geometry.update.step_without_folds`).
 
     Long: one job's steps in order (read, blend, silhouettes, integrate, carry parameters, write), each a call."""
     from sellip.fit.observe import read_mesh
@@ -162,6 +188,8 @@ def refine_geometry(params_path: Path, mesh_path: Path, output: Path, smoothness
     from sellip.model.render import ParamMesh
 
     started = time.perf_counter()
+    smoothness, smoothness_unconfident, anchor = settings.smoothness, settings.smoothness_unconfident, settings.anchor
+    rounds, silhouette, keep_surface = settings.rounds, settings.silhouette, settings.keep_surface
     store, mesh, params, confidence, normal_confidence = iteration_model(params_path, mesh_path)
     vertices, fitted = store["vertices"], store["normals"]
     reference = None

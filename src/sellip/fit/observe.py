@@ -2,7 +2,7 @@
 
 Public API::
 
-    ObserveSettings(vertex_chunk, view_chunk, occlusion_tolerance, shadow_offset, min_cos, threads)
+    ObserveSettings(vertex_chunk, view_chunk, ..., missing_poses, max_views)  # config observe (declared there)
     ObserveMesh(vertices, normals, faces);  read_mesh(path) -> ObserveMesh
     project_points(camera, points) -> (pixels (N, 2), depth (N,))
     inside_image(pixels, width, height) -> (N,) bool
@@ -59,6 +59,7 @@ import numpy as np
 
 from sellip.geometry.silhouettes import DEFAULT_SILHOUETTE
 from sellip.model.conventions import camera_forward, observations_from_analyzers
+from sellip.settings import setting
 
 PER_VIEW_ARRAYS: dict[str, tuple[tuple[int, ...], str]] = {
     "diffuse": ((3,), "float32"),
@@ -87,28 +88,41 @@ class ObserveError(ValueError):
         super().__init__(f"{self.file}: {problem}")
 
 
+MISSING_POSES = ("skip", "error")
+"""What observe does with HDR views that cameras.csv has no pose for (``ObserveSettings.missing_poses``)."""
+
+
 @dataclass(frozen=True)
 class ObserveSettings:
-    """Settings of the observe stage (config section ``observe``).
+    """Settings of the observe stage (config section ``observe``; each declared once here, :mod:`sellip.settings`).
 
-    vertex_chunk, view_chunk: chunk shape of the store; views are processed ``view_chunk`` at a time.
-    occlusion_tolerance: relative (fraction of the camera-vertex distance).
-    shadow_offset: shadow rays start this many median edge lengths above the vertex along its normal.
-    min_cos: front-facing / lit when the cosine to the camera / flash exceeds this.
-    edge_margin: a sample lies at least this many HDR pixels inside the silhouette (0: no test).
-    max_slope: no corner of a sample's bilinear footprint has an intensity slope above this
-    (:func:`relative_slope`, per HDR pixel; 0: no test).
-    threads: ray-casting threads (0: all cores).
+    ``mask_threshold`` (the silhouette's, config ``silhouette.threshold``) and ``threads`` (the job's, Snakemake's
+    ``observe.threads``) are not settings of the section: the stage passes them.
     """
 
-    vertex_chunk: int = 4096
-    view_chunk: int = 8
-    occlusion_tolerance: float = 1e-3
-    shadow_offset: float = 0.5
-    min_cos: float = 0.0
-    edge_margin: float = 0.0
+    vertex_chunk: int = setting(4096, "vertices per chunk of observations.zarr: a fit shard reads the chunks of its "
+                                "rows", minimum=1)
+    view_chunk: int = setting(8, "views per chunk of the store, processed together (memory holds vertices x this "
+                              "observations, 65 B each)", minimum=1)
+    occlusion_tolerance: float = setting(1e-3, "a vertex is hidden when the mesh is hit before (1 - this) of its "
+                                         "distance from the camera", unit="fraction of the distance", minimum=0,
+                                         exclusive_maximum=1)
+    shadow_offset: float = setting(0.5, "shadow rays towards the flash start this far above the vertex (along its "
+                                   "normal)", unit="median edge lengths", minimum=0)
+    min_cos: float = setting(0.0, "front-facing / lit: the cosine between the normal and the direction to the camera "
+                             "/ flash exceeds this", minimum=-1, exclusive_maximum=1)
+    edge_margin: float = setting(2.0, "a sample lies at least this far inside the object's silhouette (nearer, the "
+                                 "kernels mix object and background: false polarization, docs/accuracy.md); 0: no "
+                                 "test", unit="HDR pixels", minimum=0)
     mask_threshold: float = DEFAULT_SILHOUETTE.threshold
-    max_slope: float = 0.0
+    max_slope: float = setting(0.0, "leave out a sample where a corner of its bilinear footprint has a larger "
+                               "intensity slope (|grad S0| / S0, relative_slope; docs/observe.md); 0: no test",
+                               unit="per HDR pixel", minimum=0)
+    missing_poses: str = setting("skip", "HDR views without a pose in cameras.csv (SfM did not register them): leave "
+                                 "them out (skip), or stop (error)", choices=MISSING_POSES)
+    max_views: int | None = setting(None, "observe only this many views, spread evenly over the capture order after "
+                                    "the held-out views (null: all; the initial mesh still uses every view)",
+                                    minimum=1)
     threads: int = 0
 
     def __post_init__(self):
@@ -121,6 +135,10 @@ class ObserveSettings:
                              f"{self.mask_threshold}")
         if self.max_slope < 0:
             raise ValueError(f"max_slope must be >= 0 (0: off), got {self.max_slope}")
+        if self.missing_poses not in MISSING_POSES:
+            raise ValueError(f"missing_poses must be one of {MISSING_POSES}, got {self.missing_poses!r}")
+        if self.max_views is not None and self.max_views < 1:
+            raise ValueError(f"max_views must be at least 1 (None: all), got {self.max_views}")
         if self.shadow_offset < 0 or not -1 <= self.min_cos < 1:
             raise ValueError(f"need shadow_offset >= 0 and min_cos in [-1, 1), got {self.shadow_offset}, "
                              f"{self.min_cos}")

@@ -12,14 +12,21 @@ from pathlib import Path
 import numpy as np
 
 from sellip.capture.reader import read_capture
-from sellip.fit.observe import ObservationWriter, ObserveError, Observer, ObserveSettings, Visibility, read_mesh
+from sellip.fit.observe import (
+    MISSING_POSES,
+    ObservationWriter,
+    ObserveError,
+    Observer,
+    ObserveSettings,
+    Visibility,
+    read_mesh,
+)
 from sellip.geometry.cameras import hdr_camera
 from sellip.model.render import flash_light
 
 log = logging.getLogger(__name__)
 
 
-MISSING_POSES = ("skip", "error")
 
 
 
@@ -29,7 +36,7 @@ UNITS = {"diffuse, diffuse_pol, specular": "those of hdr.zarr (relative radiance
 
 
 def pair_views(hdr_view_ids: list[str], camera_view_ids: list[str], hdr_path, cameras_path,
-               missing_poses: str = "skip") -> list[tuple[int, int]]:
+               missing_poses: str) -> list[tuple[int, int]]:
     """(index in hdr.zarr, index in cameras.csv) of every view to observe, in hdr.zarr's order.
 
     Raises ObserveError naming cameras.csv for a view hdr.zarr lacks, for HDR views without a pose
@@ -81,12 +88,13 @@ def _check_scale(mesh_vertices: np.ndarray, centers: np.ndarray, distance_m: flo
 
 
 def observe_mesh(mesh_path: str | Path, cameras_path: str | Path, hdr_path: str | Path, capture_path: str | Path,
-              output: str | Path, settings: ObserveSettings = ObserveSettings(), missing_poses: str = "skip",
-              exclude_views: tuple[str, ...] = (), max_views: int | None = None) -> dict:
+              output: str | Path, settings: ObserveSettings = ObserveSettings(),
+              exclude_views: tuple[str, ...] = ()) -> dict:
     """Write the observation store ``output`` (see the module docstring); returns a summary.
 
     ``exclude_views``: views left out of the store (held out for evaluation, never used in the fit).
-    ``max_views``: keep only this many of the other views, spread evenly (:func:`spread_subset`); None: all.
+    ``settings.max_views``: keep only this many of the other views, spread evenly (:func:`spread_subset`); None: all.
+    ``settings.missing_poses``: HDR views without a pose are left out ("skip") or an error ("error").
     Long: one job's steps in order (pair, check, cameras, observe, write), each a call.
     """
     from sellip.capture.hdr import read_hdr
@@ -109,7 +117,7 @@ def observe_mesh(mesh_path: str | Path, cameras_path: str | Path, hdr_path: str 
     if (int(hdr.intrinsics.get("width", -1)), int(hdr.intrinsics.get("height", -1))) != (width, height):
         raise ObserveError(hdr_path, f"attrs intrinsics size {hdr.intrinsics.get('width')}x"
                                      f"{hdr.intrinsics.get('height')} differs from the images, {width}x{height}")
-    pairs = pair_views(hdr.view_ids, camera_view_ids, hdr_path, cameras_path, missing_poses)
+    pairs = pair_views(hdr.view_ids, camera_view_ids, hdr_path, cameras_path, settings.missing_poses)
     dropped = sorted(set(exclude_views) & set(hdr.attrs.get("dropped_views") or []))
     if dropped:  # ingest.bad_frames: skip dropped them; nothing left to hold out
         log.warning("held-out view(s) %s were dropped at ingest (no readable frame)", ", ".join(dropped))
@@ -123,9 +131,10 @@ def observe_mesh(mesh_path: str | Path, cameras_path: str | Path, hdr_path: str 
         raise ObserveError(cameras_path, "every view is held out: nothing left to observe")
     if exclude_views:
         log.info("held out (never observed, never fitted): %s", ", ".join(sorted(exclude_views)))
-    if max_views is not None and max_views < len(pairs):
-        pairs = [pairs[k] for k in spread_subset(len(pairs), max_views)]
-        log.info("max_views %d: observing %s", max_views, ", ".join(hdr.view_ids[index] for index, _ in pairs))
+    if settings.max_views is not None and settings.max_views < len(pairs):
+        pairs = [pairs[k] for k in spread_subset(len(pairs), settings.max_views)]
+        log.info("max_views %d: observing %s", settings.max_views,
+                 ", ".join(hdr.view_ids[index] for index, _ in pairs))
     cameras = [hdr_camera(hdr.intrinsics, rotations[row], translations[row], hdr_path) for _, row in pairs]
     flashes = [flash_light(c, light["position_m"], light["polarizer_deg"]) for c in cameras]
     _check_scale(mesh.vertices, np.stack([c.center for c in cameras]), float(capture.config["scene"]["distance_m"]),

@@ -36,6 +36,26 @@ DEFAULT_FIXED_SIGMA_SS = 0.9
 ``model_selection.model2_sigma_ss`` (:class:`sellip.fit.selection.SelectionSettings`)."""
 
 
+DTYPES = ("float32", "float64")
+"""The fit's floating-point types (``FitJobSettings.dtype``)."""
+
+
+@dataclass(frozen=True)
+class FitJobSettings:
+    """The fit jobs' own settings (config section ``fit``, beside its ``settings``, the :class:`FitSettings`; each
+    declared once here, :mod:`sellip.settings`): ``sellip fit``, ``sellip gather-fit``, ``sellip cluster-lobes``.
+    The section's ``shards``, ``threads`` and ``mem_mb`` are Snakemake's (the scatter count and the jobs'
+    resources), declared in config/config.yaml."""
+
+    min_fitted_share: float = setting(0.25, "no result without evidence: a pass whose fitted vertices are less than "
+                                      "this share of the vertices some view sees (lit, unoccluded) stops the run, "
+                                      "saying what is missing, instead of writing a model of the fit's prior; 0: no "
+                                      "check", unit="fraction", minimum=0, maximum=1)
+    dtype: str = setting("float32", "the fit's floating-point type (float32: fast)", choices=DTYPES)
+    compilation_cache: str | None = setting("results/.jax_cache", "XLA's persistent compilation cache, shared by "
+                                            "every fit and cluster-lobes job (null: none)", unit="directory")
+
+
 @dataclass(frozen=True)
 class FitSettings:
     """Settings of the per-vertex fit (config sections ``fit.settings``, ``augment.settings``, ``final.settings``;
@@ -53,8 +73,9 @@ class FitSettings:
                                exclusive_minimum=0)
     gradient_tolerance: float = setting(1e-3, "... or when the residual is this close to orthogonal to the Jacobian",
                                         exclusive_minimum=0)
-    min_views: int = setting(8, "a vertex seen in fewer usable views keeps its prior (status 'too few views')",
-                             minimum=3)
+    min_views: int = setting(4, "a vertex seen in fewer usable views keeps its prior (status 'too few views', "
+                             "confidence 0); with more, the fit's own uncertainty (the confidence) says what its "
+                             "views tell (why 4: docs/geometry_update.md)", minimum=3)
     dark_threshold: float = setting(0.02, "a view is too dark below this fraction of the vertex's median diffuse "
                                     "level", minimum=0)
     chroma_threshold: float = setting(0.2, "colour outlier: distance of the unit-norm colour to the robust mean "

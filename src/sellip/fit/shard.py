@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sellip.fit.records import FitJobSettings
 from sellip.jobs import atomic_file
 
 log = logging.getLogger(__name__)
@@ -191,7 +192,7 @@ def shard_memory_message(shard: tuple[int, int], vertices: int, total: int, view
 
 
 def fit_shard(observations: Path, shard: tuple[int, int], output: Path, prior: Path | None = None,
-              dtype: str = "float32", settings=None, compilation_cache: str | None = None,
+              dtype: str = FitJobSettings.dtype, settings=None, compilation_cache: str | None = None,
               lobes: Path | None = None, fixed_sigma_ss: float | None = None, mem_mb: float | None = None) -> dict:
     """Fit one shard and write ``output`` (.npz, atomically); with ``lobes`` the augmented refit.
     Every vertex is fitted with its model (module docstring); ``fixed_sigma_ss`` is model 2's

@@ -21,6 +21,7 @@ from sellip.geometry.meshes import (
     vertex_normals,
 )
 from sellip.model.conventions import camera_center, camera_forward
+from sellip.settings import setting
 
 # --------------------------------------------------------------------------- visual hull
 
@@ -305,26 +306,38 @@ def occluding_points(points: np.ndarray, sparse_points: np.ndarray, sparse_views
 # --------------------------------------------------------------------------- the initial mesh
 
 
+INIT_MODES = ("hull", "mvs", "mesh")
+"""How the initial mesh is made (config ``init.mode``; :func:`sellip.geometry.initial.make_initial_mesh`)."""
+
+
 @dataclass(frozen=True)
 class InitMeshOptions:
-    """Settings of :func:`hull_mesh` (config section ``init``).
+    """Settings of the initial mesh (config section ``init``; each setting declared once here,
+    :mod:`sellip.settings`): :func:`sellip.geometry.initial.make_initial_mesh` and :func:`hull_mesh`.
 
-    hull_resolution: voxels along the longest side of the hull's box; min_inside_fraction: share of
-    the in-frame views whose silhouette must contain a voxel; poisson_depth: octree depth of the
-    screened Poisson solve; target_depth: the mesh is remeshed to the vertex density a solve at this
-    depth would give (4x the vertices per level), capped at ``max_vertices``; trim_density: Poisson
-    density trim (see :func:`poisson_surface`); sparse_max_error_px / sparse_min_track: which SfM
-    points are fused; sparse_margin_voxels: SfM points farther outside the hull are background;
-    check_min_inside_fraction / check_scale_range: when a mesh the user supplies fits the silhouettes
-    (:func:`check_against_silhouettes`).
+    The other fields are the library's own: trim_density: Poisson density trim (see :func:`poisson_surface`);
+    sparse_max_error_px / sparse_min_track: which SfM points are fused; sparse_margin_voxels: SfM points farther
+    outside the hull are background; check_min_inside_fraction / check_scale_range: when a mesh the user supplies
+    fits the silhouettes (:func:`check_against_silhouettes`); threads: the job's (-1: all cores).
     """
 
-    hull_resolution: int = 128
-    min_inside_fraction: float = 0.9
+    mode: str = setting("hull", "visual hull of the silhouettes fused with the SfM points (hull, CPU), COLMAP "
+                        "PatchMatch stereo (mvs: pycolmap with CUDA and an SfM model, sfm.mode sfm or verify), or the "
+                        "mesh in init.mesh_path resampled to max_vertices and checked against the silhouettes (mesh)",
+                        choices=INIT_MODES)
+    hull_resolution: int = setting(128, "voxels along the longest side of the hull's box", minimum=16)
+    min_inside_fraction: float = setting(0.9, "a voxel stays when this fraction of the views that see it have it "
+                                         "inside their silhouette", exclusive_minimum=0, maximum=1)
     min_views: int = 3
-    poisson_depth: int = 7
-    target_depth: int = 9
-    max_vertices: int = 30000
+    poisson_depth: int = setting(7, "screened Poisson octree depth", minimum=4, maximum=12)
+    target_depth: int = setting(9, "the mesh is remeshed to the vertex density of a solve at this depth (4x the "
+                                "vertices per level), at most max_vertices", minimum=4, maximum=12)
+    max_vertices: int = setting(30000, "vertex budget of the initial mesh (every vertex is fitted later: keep it "
+                                "laptop-sized)", minimum=100)
+    outlier_view_z: float = setting(6.0, "a view whose silhouette disagrees with the other views' hull this many "
+                                    "robust standard deviations above the views' median (and by more than 5 %) is "
+                                    "named in a warning as a likely swapped or misplaced view (docs/reliability.md)",
+                                    unit="robust standard deviations", minimum=2)
     trim_density: float = 2.0
     sparse_max_error_px: float = 2.0
     sparse_min_track: int = 3

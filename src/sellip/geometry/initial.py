@@ -23,7 +23,6 @@ from sellip.model.ply import read_ply, write_ply
 log = logging.getLogger(__name__)
 
 
-INIT_MODES = ("hull", "mvs", "mesh")
 
 
 
@@ -149,8 +148,9 @@ scan) projects outside the silhouette: the cameras cannot be this capture's (a w
 cow, whose black patches fall below the silhouette level (its worst view 0.24; docs/reliability.md)."""
 
 
-OUTLIER_VIEW_Z = 6.0
-"""Default of config ``init.outlier_view_z``: a view whose silhouette disagreement with the other views' hull
+OUTLIER_VIEW_Z = geometry_hull.InitMeshOptions.outlier_view_z
+"""The declared default of config ``init.outlier_view_z`` (:class:`sellip.geometry.hull.InitMeshOptions`): a view
+whose silhouette disagreement with the other views' hull
 (:attr:`sellip.geometry.hull.Carving.others_disagreement`; with init.mode mesh, with the scan) lies more than this
 many robust standard deviations (1.4826 x the median absolute deviation, at least OUTLIER_SPREAD_FLOOR) above the
 views' median, and above ``disagreement_warn``, is named as a likely swapped or misplaced view."""
@@ -188,19 +188,20 @@ def warn_outlier_views(view_ids: list[str], disagreement: np.ndarray, against: s
 
 
 def make_initial_mesh(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: str | Path, output: str | Path,
-              mode: str = "hull", options: geometry_hull.InitMeshOptions = geometry_hull.InitMeshOptions(),
+              options: geometry_hull.InitMeshOptions = geometry_hull.InitMeshOptions(),
               mask_options: dict | None = None, disagreement_warn: float = 0.05,
-              mesh_path: str | Path | None = None, outlier_view_z: float = OUTLIER_VIEW_Z) -> dict:
+              mesh_path: str | Path | None = None) -> dict:
     """Run the stage (see the module docstring); returns the report written beside the mesh.
 
     mesh_path: the mesh of mode ``mesh`` (required there, ignored otherwise), as given (the workflow resolves
-    ``init.mesh_path`` against the capture folder). outlier_view_z: config ``init.outlier_view_z``
-    (:func:`warn_outlier_views`).
+    ``init.mesh_path`` against the capture folder). options: config ``init`` (``options.mode``: how the mesh is made;
+    ``options.outlier_view_z``: :func:`warn_outlier_views`).
     Long: the checks of the silhouettes (coverage, disagreement, outlier views) share the mesh and the report.
     """
     from sellip.capture.hdr import read_hdr
 
     started = time.perf_counter()
+    mode = options.mode
     if mode == "mesh":
         if not mesh_path:
             raise InitMeshError("init.mode 'mesh' needs the mesh file: set init.mesh_path (--mesh-path)")
@@ -257,7 +258,7 @@ def make_initial_mesh(hdr_path: str | Path, cameras_path: str | Path, sfm_dir: s
                     "the poses of these views or the silhouette threshold (silhouette.threshold)%s.", len(disagreeing),
                     len(view_ids), against, 100 * disagreement_warn, ", ".join(disagreeing[:30]), advice)
     others = (mesh.carving.others_disagreement, "the other views' hull") if mode != "mesh" else (disagreement, against)
-    outliers = warn_outlier_views(view_ids, *others, outlier_view_z, disagreement_warn)
+    outliers = warn_outlier_views(view_ids, *others, options.outlier_view_z, disagreement_warn)
     report = dict(mesh.stats, mode=mode, views=len(view_ids), **extra_report, outlier_views=outliers,
                   others_disagreement={v: float(d) for v, d in zip(view_ids, others[0])},
                   silhouette_disagreement={v: float(d) for v, d in zip(view_ids, disagreement)},

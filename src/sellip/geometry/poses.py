@@ -24,7 +24,6 @@ from sellip.model.ply import write_ply
 log = logging.getLogger(__name__)
 
 
-POSE_MODES = ("known", "verify", "sfm")
 
 
 
@@ -59,15 +58,16 @@ def compare_to_known(result: sfm.SfmResult, known_rotations: np.ndarray, known_t
 
 
 def solve_poses(hdr_path: str | Path, capture_path: str | Path, cameras_path: str | Path, output: str | Path,
-              mode: str = "known", options: sfm.SfmOptions = sfm.SfmOptions(), min_registered_fraction: float = 0.9,
-              feature_object_px: float = 400.0, max_upscale: int = 3, mask_options: dict | None = None) -> dict:
-    """Run the stage (see the module docstring); returns the report.
+              options: sfm.SfmOptions = sfm.SfmOptions(), mask_options: dict | None = None) -> dict:
+    """Run the stage (see the module docstring); returns the report. options: config ``sfm`` (``options.mode``: where
+    the poses come from).
 
     Long: the three modes share their reading, scaling and writing; one function keeps their order visible."""
     from sellip.capture.hdr import read_hdr
     from sellip.jobs import atomic_directory
 
     started = time.perf_counter()
+    mode = options.mode
     capture = read_capture(capture_path, check_files=False)  # raw frames are ingest's business
     hdr = read_hdr(hdr_path)
     view_ids = hdr.view_ids
@@ -106,7 +106,7 @@ def solve_poses(hdr_path: str | Path, capture_path: str | Path, cameras_path: st
 
     mask_options = mask_options or {}
     masks = view_masks(hdr, mask_options)
-    upscale = sfm.feature_upscale(masks, feature_object_px, max_upscale)
+    upscale = sfm.feature_upscale(masks, options.feature_object_px, options.max_upscale)
     images, feature_masks = [], []
     for index in range(len(view_ids)):
         diffuse, _ = diffuse_view(hdr, index)
@@ -121,7 +121,7 @@ def solve_poses(hdr_path: str | Path, capture_path: str | Path, cameras_path: st
     report.update(result.stats, upscale=upscale, registered=int(result.registered.sum()),
                   unregistered=result.unregistered_ids,
                   image_names={f"{i:05d}.png": v for i, v in enumerate(view_ids)})
-    sfm.check_registration(result, min_registered_fraction)
+    sfm.check_registration(result, options.min_registered_fraction)
     normalization = sfm.metric_normalization(result, distance_m)
     result = sfm.transform_result(result, normalization)
     report["metric_scale"] = normalization.scale

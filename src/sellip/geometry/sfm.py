@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from sellip.geometry.alignment import Similarity
+from sellip.settings import setting
 
 log = logging.getLogger(__name__)
 
@@ -56,28 +57,46 @@ class RegistrationError(RuntimeError):
         self.unregistered = unregistered
 
 
+POSE_MODES = ("known", "verify", "sfm")
+"""Where the poses come from (config ``sfm.mode``; :func:`sellip.geometry.poses.solve_poses`)."""
+
+MATCHING = ("auto", "exhaustive", "retrieval")
+"""How SfM pairs the views (``SfmOptions.matching``)."""
+
+
 @dataclass(frozen=True)
 class SfmOptions:
-    """Settings of :func:`run_sfm` (config section ``sfm``).
+    """Settings of the poses stage (config section ``sfm``; each setting declared once here, :mod:`sellip.settings`):
+    :func:`sellip.geometry.poses.solve_poses` and :func:`run_sfm`.
 
-    matching: "auto" (exhaustive up to ``exhaustive_max_views`` views, else retrieval), "exhaustive"
-    or "retrieval" (each view matched with its ``retrieval_neighbors`` most similar views by a
-    bag of SIFT words, and with the ``sequential_overlap`` views before and after it in capture order).
-    max_features: SIFT features per image; octave_resolution: SIFT scales per octave (more finds more
-    features). refine_intrinsics: let bundle adjustment refine focal length and
-    principal point. mask_dilation_px: the silhouette is grown by this many pixels before it restricts
-    features. min_matches: matches needed for a verified pair; init_min_inliers: inliers of the
-    initial pair (COLMAP's 100 suits megapixel images, not an object of 100 px); abs_pose_min_inliers:
-    2D-3D inliers to register a view. threads: -1 for all cores.
+    The other fields are the library's own: sequential_overlap: retrieval also matches the views this many before
+    and after in capture order; octave_resolution: SIFT scales per octave (more finds more features);
+    mask_dilation_px: the silhouette is grown by this many pixels before it restricts features; min_matches:
+    matches needed for a verified pair; init_min_inliers: inliers of the initial pair (COLMAP's 100 suits megapixel
+    images, not an object of 100 px); abs_pose_min_inliers: 2D-3D inliers to register a view; threads (-1: all
+    cores) and seed: the job's (config ``seed``).
     """
 
-    matching: str = "auto"
-    exhaustive_max_views: int = 150
-    retrieval_neighbors: int = 20
+    mode: str = setting("known", "use the capture's poses.csv (known; SfM runs only when there is none), run SfM "
+                        "anyway and report its errors against poses.csv, which cameras.csv keeps (verify), or ignore "
+                        "poses.csv (sfm). SfM poses are scaled so the median camera distance is scene.distance_m",
+                        choices=POSE_MODES)
+    matching: str = setting("auto", "view pairs matched: exhaustive, retrieval (bag-of-words neighbours + capture "
+                            "order), or auto (exhaustive up to exhaustive_max_views views)", choices=MATCHING)
+    exhaustive_max_views: int = setting(150, "auto matching is exhaustive up to this many views, retrieval above",
+                                        minimum=2)
+    retrieval_neighbors: int = setting(20, "retrieval: views matched with each view's most similar views", minimum=1)
     sequential_overlap: int = 3
-    max_features: int = 8192
+    max_features: int = setting(8192, "SIFT features per image", minimum=100)
+    feature_object_px: float = setting(400.0, "images are magnified (at most max_upscale times) until the object "
+                                       "spans about this many pixels: SIFT finds few, coarse features on a small "
+                                       "object", unit="pixels", exclusive_minimum=0)
+    max_upscale: int = setting(3, "largest magnification of the images for features (1: never)", minimum=1)
     octave_resolution: int = 3
-    refine_intrinsics: bool = False
+    refine_intrinsics: bool = setting(False, "let bundle adjustment refine the calibrated intrinsics (poorly "
+                                      "constrained with a narrow field of view)")
+    min_registered_fraction: float = setting(0.9, "stop with an error (naming the views) when fewer views register",
+                                             unit="fraction of the views", minimum=0, maximum=1)
     mask_dilation_px: int = 4
     min_matches: int = 15
     init_min_inliers: int = 50

@@ -3,9 +3,9 @@
     sellip cluster-lobes --params results/NAME/iter/0/fit.zarr
                          --observations results/NAME/iter/0/observations.zarr
                          --output results/NAME/iter/0/clusters --seed 0
-                         [--k-max 8] [--max-samples 20000] [--min-cluster-vertices 50] [--min-coherence 0.5]
+                         [--augment-settings '{"k_max": 8, "min_coherence": 0.5}'] [--stability-resamples 10]
                          [--settings '{"lambda_psi": 100}'] [--model-selection '{"folds": 4}']
-                         [--inherit-models]
+                         [--job-settings '{"compilation_cache": DIR}'] [--inherit-models]
 
 Writes the directory ``--output`` (built under a temporary name, then renamed) with
 
@@ -41,6 +41,7 @@ sigma_ss_fixed; config ``fit.settings``).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -51,29 +52,21 @@ log = logging.getLogger(__name__)
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     from sellip.fit.clusters import AugmentSettings
-    from sellip.fit.records import FitSettings
+    from sellip.fit.records import FitJobSettings, FitSettings
     from sellip.fit.selection import SelectionSettings
     from sellip.settings import add_renamed_argument, add_settings_argument
 
-    defaults = AugmentSettings()
     parser.add_argument("--params", type=Path, required=True, help="this iteration's first-pass params store")
     parser.add_argument("--observations", type=Path, required=True, help="this iteration's observations.zarr")
     parser.add_argument("--output", type=Path, required=True, help="output directory (clusters)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--k-max", type=int, default=defaults.k_max)
-    parser.add_argument("--max-samples", type=int, default=defaults.max_samples)
-    parser.add_argument("--min-cluster-vertices", type=int, default=defaults.min_cluster_vertices)
-    parser.add_argument("--min-coherence", type=float, default=defaults.min_coherence,
-                        help="merge a cluster whose vertices' nearest neighbours lie in it less often than this "
-                             "(a cut through one material's noise, not a material; 0: no test)")
-    parser.add_argument("--pool-min-coherence", type=float, default=defaults.pool_min_coherence,
-                        help="pool only a cluster's vertices whose nearest neighbours lie in it at least this often "
-                             "in its lobe fit and model selection, where half of them do (0: every vertex)")
-    parser.add_argument("--stability-resamples", type=int, default=defaults.stability_resamples,
+    add_settings_argument(parser, AugmentSettings, "--augment-settings", "augment")
+    parser.add_argument("--stability-resamples", type=int, default=AugmentSettings.stability_resamples,
                         help="repeat the clustering on this many seeded 90 %% subsamples and record each cluster's "
-                             "support (clusters.json 'support'; 0: not measured)")
+                             "support (clusters.json 'support'; 0: not measured; the workflow: config "
+                             "augment.stability_resamples at the final pass)")
     add_settings_argument(parser, FitSettings, "--settings", "fit.settings")
-    parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
+    add_settings_argument(parser, FitJobSettings, "--job-settings", "fit")
     add_settings_argument(parser, SelectionSettings, "--model-selection", "model_selection")
     add_renamed_argument(parser, "--set", "--settings (FitSettings as one JSON object)")
     add_renamed_argument(parser, "--fixed-sigma-ss", "--model-selection '{\"model2_sigma_ss\": ...}'")
@@ -82,19 +75,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from sellip.fit.clusters import AugmentSettings
     from sellip.fit.observe import ObserveError
     from sellip.model.params import ParamsError
 
     try:
-        if args.k_max < 1 or args.max_samples < 1 or args.min_cluster_vertices < 1:
-            raise ValueError("--k-max, --max-samples and --min-cluster-vertices must be >= 1")
-        settings = AugmentSettings(k_max=args.k_max, max_samples=args.max_samples,
-                                   min_cluster_vertices=args.min_cluster_vertices, min_coherence=args.min_coherence,
-                                   pool_min_coherence=args.pool_min_coherence,
-                                   stability_resamples=args.stability_resamples)
+        settings = dataclasses.replace(args.augment_settings, stability_resamples=args.stability_resamples)
         cluster_and_fit_lobes(args.params, args.observations, args.output, args.seed, settings, args.settings,
-                              args.compilation_cache, args.model_selection, args.inherit_models)
+                              args.job_settings.compilation_cache, args.model_selection, args.inherit_models)
     except (ObserveError, ParamsError, ValueError) as error:
         log.error("%s", error)
         return 1

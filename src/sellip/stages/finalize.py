@@ -3,6 +3,10 @@
     sellip finalize --params results/NAME/iter/10/params.zarr --mesh results/NAME/iter/9/mesh.ply
                     --output-model results/NAME/final/model.ply --output-params results/NAME/final/params.zarr
                     [--clusters results/NAME/iter/10/clusters] [--model 3]
+                    [--settings '{"eta_deviation_sigmas": 3.0, "deviation_support": 3}']
+
+``--settings``: :class:`sellip.fit.finalize.FinalSettings` (config ``final``, its deviation keys) as one JSON
+object; a key left out takes its declared default.
 
 ``--params`` is the last pass of the loop: the pBRDF refitted with the normals of the final
 geometry (paper §4.4); its rows are the vertices of ``--mesh``, whose triangles the model keeps.
@@ -19,7 +23,8 @@ import argparse
 import logging
 from pathlib import Path
 
-from sellip.fit.finalize import finalize_model
+from sellip.fit.finalize import FinalSettings, finalize_model
+from sellip.settings import add_settings_argument
 
 log = logging.getLogger(__name__)
 
@@ -30,15 +35,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--output-model", type=Path, required=True, help="final model PLY")
     parser.add_argument("--output-params", type=Path, required=True, help="final params.zarr")
     parser.add_argument("--clusters", type=Path, default=None, help="cluster_lobes output of the last pass")
-    parser.add_argument("--eta-deviation-sigmas", type=float, default=3.0,
-                        help="a vertex keeps its own eta (not its material cluster's) when it differs by more than "
-                             "this many of its std (<= 0: every vertex its own)")
-    parser.add_argument("--lobe-deviation-sigmas", type=float, default=3.0,
-                        help="a vertex keeps its own specular lobe (sigma_s and rho_s, not its material cluster's) "
-                             "when its sigma_s differs by more than this many of its std (<= 0: every vertex its own)")
-    parser.add_argument("--deviation-support", type=int, default=3,
-                        help="... and only when at least this many of its 6 nearest vertices deviate the same way "
-                             "(a spot, not one vertex; 0: any vertex)")
+    add_settings_argument(parser, FinalSettings, section="final")
     parser.add_argument("--model", type=int, default=3,
                         help="model code of every vertex when the store has no model array "
                              "(sellip.model.params.MODEL_NAMES)")
@@ -50,7 +47,7 @@ def main(args: argparse.Namespace) -> int:
 
     try:
         finalize_model(args.params, args.mesh, args.output_model, args.output_params, args.clusters, args.model,
-                  args.eta_deviation_sigmas, args.lobe_deviation_sigmas, args.deviation_support)
+                       args.settings)
     except (ParamsError, ObserveError, ValueError) as error:
         log.error("%s", error)
         return 1

@@ -2,9 +2,9 @@
 
     sellip fit --observations results/NAME/iter/0/observations.zarr --shard 2-of-4
                --output results/NAME/iter/0/fit/2-of-4.npz
-               [--prior results/NAME/iter/1/refit.zarr] [--dtype float32]
+               [--prior results/NAME/iter/1/refit.zarr] [--job-settings '{"dtype": "float64"}']
                [--settings '{"lambda_d": 100, "min_views": 4}'] [--model2-sigma-ss 1.0]
-               [--compilation-cache DIR] [--lobes results/NAME/iter/0/clusters] [--mem-mb 4000]
+               [--lobes results/NAME/iter/0/clusters] [--mem-mb 4000]
 
 The shard's vertex range is derived at run time from the store's vertex count and chunking
 (shard i of n takes an equal share of whole vertex chunks, so it reads only its own chunks).
@@ -12,7 +12,8 @@ With ``--prior`` (a parameter store: the previous iteration's) every parameter i
 the nearest previous vertex (docs/design.md §7); without it the fit starts from eta = 1.5 and the
 defaults of :func:`sellip.fit.vertex_fit.default_prior`. The starting normals are the mesh normals.
 ``--settings`` is :class:`sellip.fit.records.FitSettings` as one JSON object (the workflow's config
-``fit.settings`` of this iteration and pass; keys left out take the record's defaults).
+``fit.settings`` of this iteration and pass; keys left out take the record's defaults); ``--job-settings`` is
+:class:`sellip.fit.records.FitJobSettings` (config ``fit``: ``dtype``, ``compilation_cache``).
 
 With ``--lobes`` (the output of ``sellip cluster-lobes``: labels.npy, models.npy, lobes.csv) this
 is the augmented refit (docs/augment.md): every vertex gets the virtual specular samples of its
@@ -49,14 +50,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prior", type=Path, default=None,
                         help="a parameter store to warm-start from "
                              "(the previous iteration's, or this one's first pass)")
-    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    from sellip.fit.records import FitSettings
+    from sellip.fit.records import FitJobSettings, FitSettings
     from sellip.settings import add_renamed_argument, add_settings_argument
 
     add_settings_argument(parser, FitSettings, "--settings", "fit.settings")
+    add_settings_argument(parser, FitJobSettings, "--job-settings", "fit")
     add_renamed_argument(parser, "--set", "--settings (FitSettings as one JSON object)")
     add_renamed_argument(parser, "--fixed-sigma-ss", "--model2-sigma-ss")
-    parser.add_argument("--compilation-cache", default=None, help="directory for XLA's persistent compilation cache")
     parser.add_argument("--lobes", type=Path, default=None,
                         help="cluster-lobes output directory: the augmented refit (virtual specular samples)")
     parser.add_argument("--mem-mb", type=float, default=None,
@@ -74,8 +74,8 @@ def main(args: argparse.Namespace) -> int:
     try:
         if args.model2_sigma_ss is not None and not 0.02 <= args.model2_sigma_ss <= 1:
             raise ValueError(f"--model2-sigma-ss must be in [0.02, 1], got {args.model2_sigma_ss}")
-        fit_shard(args.observations, args.shard, args.output, args.prior, args.dtype, args.settings,
-                  args.compilation_cache, args.lobes, args.model2_sigma_ss, args.mem_mb)
+        fit_shard(args.observations, args.shard, args.output, args.prior, args.job_settings.dtype, args.settings,
+                  args.job_settings.compilation_cache, args.lobes, args.model2_sigma_ss, args.mem_mb)
     except (ObserveError, ValueError, ShardMemoryError) as error:
         log.error("%s", error)
         return 1

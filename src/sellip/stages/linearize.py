@@ -1,7 +1,10 @@
 """``sellip linearize``: every raw frame of a capture -> linear analyzer images (rule ``linearize_frames``).
 
     sellip linearize --capture CAPTURE --output results/NAME/ingest/linear.zarr [--threads 2]
-                     [--bad-frames error|skip]
+                     [--settings '{"bad_frames": "skip", "saturation": 0.98}']
+
+``--settings``: :class:`sellip.capture.ingest.IngestSettings` (config ``ingest``) as one JSON object; a key left out
+takes its declared default.
 
 Per frame (:func:`sellip.capture.ingest.process_frame`): black level, white level,
 saturated/dead pixels, demosaic, colour matrix, undistortion, on the output
@@ -16,7 +19,7 @@ attrs
     ``analyzer_angles_deg``, ``channels``, ``raw_shape``, ``capture``, ``saturation``,
     ``black_level_from``, ``bad_frames`` and ``skipped`` (per frame: null, or why it was left out).
 
-Bad frames (missing, unreadable, wrong size, type or bit depth): ``--bad-frames error`` (default)
+Bad frames (missing, unreadable, wrong size, type or bit depth): ``bad_frames: error`` (default)
 stops with the file and its frames.csv row; ``skip`` leaves the frame out (all NaN in the store,
 ``skipped`` says why) with a warning naming both, and ``sellip merge-hdr`` merges the view from its
 other frames (a view with none left is dropped).
@@ -35,7 +38,8 @@ from pathlib import Path
 
 from sellip.capture import ingest
 from sellip.capture.files import CaptureError
-from sellip.capture.linearize import BAD_FRAME_POLICIES, BLACK_LEVEL_SOURCES, linearize_capture
+from sellip.capture.linearize import linearize_capture
+from sellip.settings import add_settings_argument
 
 log = logging.getLogger(__name__)
 
@@ -44,20 +48,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--capture", required=True, type=Path, help="capture folder (docs/design.md §3)")
     parser.add_argument("--output", required=True, type=Path, help="zarr store to write (a directory)")
     parser.add_argument("--threads", type=int, default=1, help="frames processed in parallel (default: 1)")
-    parser.add_argument("--saturation", type=float, default=ingest.DEFAULT_SATURATION,
-                        help="fraction of a pixel's range (white - black) from which it counts as saturated "
-                             f"(default: {ingest.DEFAULT_SATURATION})")
-    parser.add_argument("--black-level-from", choices=BLACK_LEVEL_SOURCES, default="capture",
-                        help="black levels from capture.yaml (default) or, for RAW files, the file's own")
-    parser.add_argument("--bad-frames", choices=BAD_FRAME_POLICIES, default="error",
-                        help="a missing or unreadable frame stops the stage (error, default) or is left out "
-                             "with a warning (skip)")
+    add_settings_argument(parser, ingest.IngestSettings, section="ingest")
 
 
 def main(args: argparse.Namespace) -> int:
     try:
-        linearize_capture(args.capture, args.output, threads=args.threads, saturation=args.saturation,
-                          black_level_from=args.black_level_from, bad_frames=args.bad_frames)
+        linearize_capture(args.capture, args.output, threads=args.threads, settings=args.settings)
     except (CaptureError, ingest.IngestError) as exc:
         log.error("%s", exc)
         return 1

@@ -1,6 +1,10 @@
 """``sellip merge-hdr``: the linear frames of each view -> one HDR analyzer image per view (rule ``merge_hdr``).
 
     sellip merge-hdr --linear results/NAME/ingest/linear.zarr --output results/NAME/hdr.zarr [--threads 2]
+                     [--settings '{"flash_ratio_tolerance": 1.5}']
+
+``--settings``: :class:`sellip.capture.ingest.IngestSettings` (config ``ingest``; merge-hdr reads its
+``flash_ratio_tolerance``) as one JSON object; a key left out takes its declared default.
 
 Written store (read lazily by later stages with :func:`read_hdr`):
 
@@ -17,7 +21,7 @@ attrs
     undistorted, one pixel per polarizer cell), ``analyzer_angles_deg``,
     ``channels``, ``units``, ``capture``, ``dropped_views`` (views whose every frame was left out).
 
-Frames that ``sellip linearize --bad-frames skip`` left out (its ``skipped`` attr) are not merged: the
+Frames that ``sellip linearize`` left out with ``bad_frames: skip`` (its ``skipped`` attr) are not merged: the
 view is merged from its other frames, and a view with none left is dropped with a warning.
 """
 
@@ -29,6 +33,7 @@ from pathlib import Path
 
 from sellip.capture import ingest
 from sellip.capture.hdr import merge_capture
+from sellip.settings import add_settings_argument
 
 log = logging.getLogger(__name__)
 
@@ -37,16 +42,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--linear", required=True, type=Path, help="store written by `sellip linearize`")
     parser.add_argument("--output", required=True, type=Path, help="hdr.zarr store to write (a directory)")
     parser.add_argument("--threads", type=int, default=1, help="views merged in parallel (default: 1)")
-    parser.add_argument("--flash-ratio-tolerance", type=float, default=ingest.FLASH_RATIO_TOLERANCE,
-                        help="a frame whose brightness relative to its view's other frames differs from its "
-                             "flash_level * exposure_s label by more than this factor stops the stage (default: "
-                             f"{ingest.FLASH_RATIO_TOLERANCE})")
+    add_settings_argument(parser, ingest.IngestSettings, section="ingest")
 
 
 def main(args: argparse.Namespace) -> int:
     try:
-        merge_capture(args.linear, args.output, threads=args.threads,
-                      flash_ratio_tolerance=args.flash_ratio_tolerance)
+        merge_capture(args.linear, args.output, threads=args.threads, settings=args.settings)
     except ingest.IngestError as exc:
         log.error("%s", exc)
         return 1

@@ -2,17 +2,19 @@
 
     sellip refine-geometry --params results/NAME/iter/3/refit.zarr --mesh results/NAME/iter/2/mesh.ply
                            --output results/NAME/iter/3/mesh.ply [--reference-mesh results/NAME/mesh/init.ply]
-                           [--smoothness 0.01] [--smoothness-unconfident 1] [--anchor 0.001] [--rounds 3]
-                           [--no-keep-surface]
-                           [--silhouette 0.01 --cameras results/NAME/cameras.csv --hdr results/NAME/hdr.zarr
+                           [--settings '{"smoothness": 0.01, "silhouette": 0.01, "keep_surface": true}']
+                           [--cameras results/NAME/cameras.csv --hdr results/NAME/hdr.zarr
                             --capture CAPTURE --exclude-views v004 ...
                             --silhouette-settings '{"threshold": 0.02}']
+
+``--settings``: :class:`sellip.fit.geometry_jobs.GeometryUpdateSettings` (config ``refine_geometry``, this
+iteration's values) as one JSON object; a key left out takes its declared default.
 
 The mesh's vertices move along its normals until its surface agrees with the iteration's fitted normals, as far
 as the fit's normal confidence allows (:func:`sellip.geometry.update.refine_from_normals`, docs/geometry_update.md);
 what normals cannot tell (the mean offset, the shape far from any confident normal) is held at ``--reference-
 mesh`` (the loop's initial mesh, so that small biases of the normals do not add up over the iterations; default:
-``--mesh``). With ``--silhouette`` > 0 the photographs' silhouettes hold the mean offset and size instead: the
+``--mesh``). With ``silhouette`` > 0 the photographs' silhouettes hold the mean offset and size instead: the
 current model is rendered in every view but the held-out ones as the camera would photograph it (raw pixels,
 mosaic, the ingest's demosaicing: :func:`predicted_diffuse`), the same silhouette operator is applied to the
 render and to the photograph, both boundaries are placed to a fraction of a pixel, and each contour vertex moves
@@ -30,7 +32,8 @@ import argparse
 import logging
 from pathlib import Path
 
-from sellip.fit.geometry_jobs import refine_geometry
+from sellip.fit.geometry_jobs import GeometryUpdateSettings, refine_geometry
+from sellip.settings import add_settings_argument
 from sellip.stages._arguments import add_silhouette_argument
 
 log = logging.getLogger(__name__)
@@ -40,20 +43,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--params", type=Path, required=True, help="this iteration's params.zarr (fitted normals)")
     parser.add_argument("--mesh", type=Path, required=True, help="this iteration's mesh (its vertices and normals)")
     parser.add_argument("--output", type=Path, required=True, help="the next iteration's mesh (.ply)")
-    parser.add_argument("--smoothness", type=float, default=0.01,
-                        help="weight of smooth offsets against agreeing with the normals (no units)")
-    parser.add_argument("--smoothness-unconfident", type=float, default=1.0,
-                        help="weight of smooth offsets added where the normals are unsure, times 1 - confidence")
-    parser.add_argument("--anchor", type=float, default=1e-3,
-                        help="weight that holds the vertices where they are (no units; what normals cannot tell)")
-    parser.add_argument("--rounds", type=int, default=3, help="linearisations around the moved surface")
+    add_settings_argument(parser, GeometryUpdateSettings, section="refine_geometry")
     parser.add_argument("--reference-mesh", type=Path, default=None,
                         help="the mesh (same faces) whose surface the anchor holds (default: --mesh)")
-    parser.add_argument("--silhouette", type=float, default=0.0,
-                        help="weight of the photographs' silhouettes (no units; 0: none; needs --cameras, --hdr, "
-                             "--capture)")
-    parser.add_argument("--keep-surface", action=argparse.BooleanOptionalAction, default=True,
-                        help="shorten the steps that would make triangles cross, flip or degenerate")
     parser.add_argument("--cameras", type=Path, default=None, help="cameras.csv (for the silhouettes)")
     parser.add_argument("--hdr", type=Path, default=None, help="hdr.zarr (for the silhouettes)")
     parser.add_argument("--capture", type=Path, default=None, help="capture folder (capture.yaml light)")
@@ -67,11 +59,10 @@ def main(args: argparse.Namespace) -> int:
     from sellip.model.params import ParamsError
 
     try:
-        refine_geometry(args.params, args.mesh, args.output, args.smoothness, args.anchor, args.rounds,
-                  reference_mesh=args.reference_mesh, smoothness_unconfident=args.smoothness_unconfident,
-                  silhouette=args.silhouette, keep_surface=args.keep_surface, cameras_path=args.cameras,
-                  hdr_path=args.hdr, capture_path=args.capture, exclude_views=args.exclude_views,
-                  mask_options={"threshold": args.silhouette_settings.threshold})
+        refine_geometry(args.params, args.mesh, args.output, args.settings, reference_mesh=args.reference_mesh,
+                        cameras_path=args.cameras, hdr_path=args.hdr, capture_path=args.capture,
+                        exclude_views=args.exclude_views,
+                        mask_options={"threshold": args.silhouette_settings.threshold})
     except (ParamsError, ObserveError, ValueError) as error:
         log.error("%s", error)
         return 1

@@ -1,7 +1,10 @@
 """``sellip sfm``: camera poses for every view (rule ``run_sfm``, docs/design.md §2 sfm).
 
     sellip sfm --hdr results/NAME/hdr.zarr --capture CAPTURE --cameras results/NAME/cameras.csv
-               --output results/NAME/sfm [--mode known|verify|sfm] [--threads 2] [options]
+               --output results/NAME/sfm [--settings '{"mode": "verify", "max_features": 8192}'] [--threads 2]
+
+``--settings``: :class:`sellip.geometry.sfm.SfmOptions` (config ``sfm``) as one JSON object; a key left out takes
+its declared default.
 
 Modes (config ``sfm.mode``):
 
@@ -31,12 +34,14 @@ track_length) and, in verify mode, ``pose_errors.csv``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 from pathlib import Path
 
 from sellip.capture.files import CaptureError
 from sellip.geometry import sfm
-from sellip.geometry.poses import POSE_MODES, solve_poses
+from sellip.geometry.poses import solve_poses
+from sellip.settings import add_settings_argument
 from sellip.stages._arguments import add_image_arguments
 
 log = logging.getLogger(__name__)
@@ -52,34 +57,19 @@ log = logging.getLogger(__name__)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    defaults = sfm.SfmOptions()
     add_image_arguments(parser)
     parser.add_argument("--capture", required=True, type=Path, help="capture folder (capture.yaml, poses.csv)")
     parser.add_argument("--cameras", required=True, type=Path, help="cameras.csv to write")
     parser.add_argument("--output", required=True, type=Path, help="folder for the sparse model and report")
-    parser.add_argument("--mode", choices=POSE_MODES, default="known", help="known poses, verify them, or SfM only")
-    parser.add_argument("--matching", choices=("auto", "exhaustive", "retrieval"), default=defaults.matching)
-    parser.add_argument("--exhaustive-max-views", type=int, default=defaults.exhaustive_max_views,
-                        help="auto matching: exhaustive up to this many views, retrieval above")
-    parser.add_argument("--retrieval-neighbors", type=int, default=defaults.retrieval_neighbors)
-    parser.add_argument("--max-features", type=int, default=defaults.max_features)
-    parser.add_argument("--feature-object-px", type=float, default=400.0,
-                        help="magnify images so that the object spans about this many pixels")
-    parser.add_argument("--max-upscale", type=int, default=3, help="largest magnification (1: never)")
-    parser.add_argument("--refine-intrinsics", action="store_true", help="let bundle adjustment refine K")
-    parser.add_argument("--min-registered-fraction", type=float, default=0.9,
-                        help="fail when fewer views register")
-    parser.add_argument("--seed", type=int, default=0)
+    add_settings_argument(parser, sfm.SfmOptions, section="sfm")
+    parser.add_argument("--seed", type=int, default=0, help="SfM's random seed (config seed)")
 
 
 def main(args: argparse.Namespace) -> int:
-    options = sfm.SfmOptions(matching=args.matching, exhaustive_max_views=args.exhaustive_max_views,
-                             retrieval_neighbors=args.retrieval_neighbors, max_features=args.max_features,
-                             refine_intrinsics=args.refine_intrinsics, threads=args.threads, seed=args.seed)
+    options = dataclasses.replace(args.settings, threads=args.threads, seed=args.seed)
     try:
-        solve_poses(args.hdr, args.capture, args.cameras, args.output, mode=args.mode, options=options,
-                  min_registered_fraction=args.min_registered_fraction, feature_object_px=args.feature_object_px,
-                  max_upscale=args.max_upscale, mask_options={"threshold": args.silhouette_settings.threshold})
+        solve_poses(args.hdr, args.capture, args.cameras, args.output, options=options,
+                    mask_options={"threshold": args.silhouette_settings.threshold})
     except (sfm.RegistrationError, CaptureError) as exc:
         log.error("%s", exc)
         return 1
