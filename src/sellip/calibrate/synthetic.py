@@ -389,6 +389,23 @@ def render_spheres(device: dict, spheres: list[tuple[np.ndarray, float]], supers
     return out
 
 
+def _placeable(device: dict, centres: list[np.ndarray], radius: float, margin_px: float) -> bool:
+    """Whether spheres of ``radius`` at ``centres`` (camera coordinates) are each wholly in view, ``margin_px``
+    inside the frame, and apart from one another in the image."""
+    sensor, cam = device["sensor"], device["camera"]
+    ok = True
+    for c in centres:
+        r_px = cam["fx"] * radius / c[2] * 1.15
+        u, v = project(device, c)
+        ok &= margin_px + r_px < u < sensor["width"] - margin_px - r_px
+        ok &= margin_px + r_px < v < sensor["height"] - margin_px - r_px
+    for a in range(len(centres)):
+        for b in range(a):
+            gap = np.linalg.norm(project(device, centres[a]) - project(device, centres[b]))
+            ok &= gap > cam["fx"] * radius * (1 / centres[a][2] + 1 / centres[b][2]) * 1.3
+    return bool(ok)
+
+
 def sphere_layouts(device: dict, frames: int, rng: np.random.Generator, radius: float = SPHERE_RADIUS_M,
                    per_frame: int = 3, distance_m: tuple[float, float] = (0.4, 0.55), margin_px: float | None = None,
                    max_tries: int = 100000) -> list[list[np.ndarray]]:
@@ -409,17 +426,7 @@ def sphere_layouts(device: dict, frames: int, rng: np.random.Generator, radius: 
             u = (j + rng.uniform(0.25, 0.75)) * sensor["width"] / 3
             v = (i + rng.uniform(0.25, 0.75)) * sensor["height"] / 3
             centres.append(np.array([(u - cam["cx"]) / cam["fx"] * z, (v - cam["cy"]) / cam["fy"] * z, z]))
-        ok = True
-        for c in centres:
-            r_px = cam["fx"] * radius / c[2] * 1.15
-            u, v = project(device, c)
-            ok &= margin_px + r_px < u < sensor["width"] - margin_px - r_px
-            ok &= margin_px + r_px < v < sensor["height"] - margin_px - r_px
-        for a in range(len(centres)):
-            for b in range(a):
-                pa, pb = project(device, centres[a]), project(device, centres[b])
-                ok &= np.linalg.norm(pa - pb) > cam["fx"] * radius * (1 / centres[a][2] + 1 / centres[b][2]) * 1.3
-        if ok:
+        if _placeable(device, centres, radius, margin_px):
             layouts.append(centres)
     else:
         raise ValueError(f"cannot place {per_frame} spheres of radius {radius} m wholly in a {sensor['width']}x"
@@ -434,7 +441,7 @@ def board_sphere_layouts(spec: BoardSpec, device: dict, frames: int, rng: np.ran
     (:func:`sellip.calibrate.board_spheres.square_centres`),
     each (R, t, marks (per_frame, 2)): the board at a pose of :func:`board_poses`, every sphere wholly in view
     and apart from the others in the image."""
-    sensor, cam = device["sensor"], device["camera"]
+    sensor = device["sensor"]
     margin = 20.0 * sensor["width"] / 2448
     marks = square_centres(spec.cols, spec.rows, spec.square_m)
     layouts = []
@@ -444,17 +451,7 @@ def board_sphere_layouts(spec: BoardSpec, device: dict, frames: int, rng: np.ran
         rotation, translation = board_poses(spec, device, 1, rng)[0]
         chosen = marks[rng.choice(len(marks), size=per_frame, replace=False)]
         centres = [sphere_centre(rotation, translation, m, radius) for m in chosen]
-        ok = True
-        for c in centres:
-            r_px = cam["fx"] * radius / c[2] * 1.15
-            u, v = project(device, c)
-            ok &= margin + r_px < u < sensor["width"] - margin - r_px
-            ok &= margin + r_px < v < sensor["height"] - margin - r_px
-        for a in range(per_frame):
-            for b in range(a):
-                gap = np.linalg.norm(project(device, centres[a]) - project(device, centres[b]))
-                ok &= gap > cam["fx"] * radius * (1 / centres[a][2] + 1 / centres[b][2]) * 1.3
-        if ok:
+        if _placeable(device, centres, radius, margin):
             layouts.append((rotation, translation, chosen))
     raise ValueError(f"cannot set {per_frame} spheres of radius {radius} m on the board wholly in a "
                      f"{sensor['width']}x{sensor['height']} frame; fewer or smaller spheres")
@@ -467,7 +464,6 @@ def chart_reference_srgb() -> np.ndarray:
     """(24, 3) linear sRGB (D65) of the ColorChecker 24 patches (colour-science's 'ColorChecker24 - After
     November 2014', Bradford-adapted from D50), row by row from dark skin to black."""
     import colour
-
     checker = colour.CCS_COLOURCHECKERS["ColorChecker24 - After November 2014"]
     xyy = np.array(list(checker.data.values()))
     xyz = colour.xyY_to_XYZ(xyy)
@@ -578,16 +574,13 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
     temporary sibling and renamed. The same seed gives the same files. An existing ``out`` without truth.yaml (not
     one this function wrote) stops it with :class:`sellip.jobs.WouldReplaceError`, unless ``force``.
 
-    ``burst``: frames per pose (board and sphere layouts alike), each with its own sensor noise, as a camera's
-    burst of a still scene: ``board_07_b2.dng`` is pose 7's third frame (``board_07.dng`` when ``burst`` is 1).
-    The first frame of every pose is the same as with ``burst`` = 1. docs/calibration.md recommends
-    ``board_frames=96`` (benchmarks/calibration_accuracy.py) and measures ``board_frames=48, burst=4`` too; the
-    tests use the defaults or fewer frames. ``reflect_panel``: the spheres mirror the light panel (as real glossy
-    spheres do; False: the panel is seen but not mirrored, as before 2026-11-27). ``board_sphere_frames``: layouts
-    of 3 spheres resting on the board (:func:`board_sphere_layouts`), each a pair of frames from one tripod
-    position: ``board_spheres/spheres_NN_board`` (the board alone) and ``board_spheres/spheres_NN`` (the spheres
-    set down on it), exposed alike (the flash step's board protocol, docs/calibration.md). Long: one loop per kind
-    of frame, kept together so that each kind's seeds stay visible side by side."""
+    ``burst``: frames per pose (board and sphere layouts alike), each with its own sensor noise (a camera's burst):
+    ``board_07_b2.dng`` is pose 7's third frame (``board_07.dng`` at ``burst`` 1, as a burst's first).
+    ``reflect_panel``: the spheres mirror the light panel (as real glossy spheres do). ``board_sphere_frames``:
+    layouts of 3 spheres resting on the board (:func:`board_sphere_layouts`), each a pair of frames from one tripod
+    position, ``board_spheres/spheres_NN_board`` (the board alone) and ``board_spheres/spheres_NN`` (the spheres on
+    it), exposed alike (docs/calibration.md, the board protocol). Long: one loop per kind of frame, kept together
+    so that each kind's seeds stay visible side by side."""
     out = Path(out)
     refuse_to_replace_folder(out, "sellip synth-calibration", lambda path: (path / "truth.yaml").is_file(), force)
     device = true_device(width, height, polarizer_deg)
