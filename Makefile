@@ -42,9 +42,11 @@ RUN ?= demo
 view: $(STAMP)
 	$(BIN)/sellip view results/$(RUN) $(if $(SERVE),--serve)
 
-# The whole suite (~30 min on 2 cores; CI runs it), ending with its 25 slowest tests.
+# The whole suite (~30 min on 2 cores; CI runs it), ending with its 25 slowest tests. Two pytest-xdist workers (one
+# per core) take whole test files (--dist loadfile: a module's fixtures run once), the files with the most slow tests
+# first (tests/conftest.py): one worker fills the other's idle time (Snakemake's serial jobs, single-threaded compiles).
 test: $(STAMP)
-	$(BIN)/python -m pytest --durations=25
+	$(BIN)/python -m pytest -n $(CORES) --dist loadfile --no-loadscope-reorder --durations=25
 
 # The inner loop (< 3 min on 2 cores): every package's fast tests, without those marked slow.
 test-fast: $(STAMP)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import jax.numpy as jnp
 import numpy as np
 
@@ -51,3 +54,13 @@ def camera_geometry(theta_deg, azimuth_deg, flash_offset_deg=0.0, distance=0.9, 
         camera_up=as_j(np.array([0.0, -1.0, 0.0])),
     )
 
+
+
+def session_jax_cache(folder: Path) -> Path:
+    """The XLA cache (and exported kernels) that every workflow run of the pytest session shares, for a test folder
+    directly under pytest's base temporary folder (``tmp_path``, ``tmp_path_factory.mktemp(...)``): a later run loads
+    the kernels an earlier one compiled, as a user's second run would. Under pytest-xdist (``make test``) each worker
+    has its own base folder (``BASE/popen-gwN``): the cache sits in ``BASE``, one for all workers (concurrent jobs
+    share it safely, as a run's fit shards do)."""
+    base = Path(folder).parent
+    return (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "jax_cache"

@@ -18,6 +18,8 @@ import pandas as pd
 import pytest
 import yaml
 
+from helpers import session_jax_cache
+
 REPO = Path(__file__).resolve().parents[2]
 VIEWS = 16
 FLASH_SETTINGS = {"f0": 4, "f1": 8, "f2": 16}
@@ -54,7 +56,7 @@ def _snakemake(workdir: Path, config: dict) -> None:
 
 
 @pytest.mark.slow
-def test_calibrate_capture_new_snakemake_metrics(tmp_path, tmp_path_factory):
+def test_calibrate_capture_new_snakemake_metrics(tmp_path):
     # 1. the calibration set and device.yaml, by the commands of docs/calibration.md
     calib = tmp_path / "calib"
     _sellip("synth-calibration", "--out", str(calib), "--width", "612", "--height", "512", "--board-frames", "16")
@@ -101,7 +103,7 @@ def test_calibrate_capture_new_snakemake_metrics(tmp_path, tmp_path_factory):
     # 3. the workflow on it, to the end; its figures against the capture's ground truth
     work = tmp_path / "work"
     work.mkdir()
-    _snakemake(work, _config(capture, "owl", tmp_path_factory.getbasetemp() / "jax_cache"))  # the session's cache
+    _snakemake(work, _config(capture, "owl", session_jax_cache(tmp_path)))
     metrics = json.loads((work / "results" / "owl" / "metrics.json").read_text())
     assert metrics["capture"] == str(capture) or metrics["capture"].endswith("owl")
     figures = {"normal_median_deg": metrics["normal_error_deg"]["all"]["median"],

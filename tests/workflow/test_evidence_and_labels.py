@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import yaml
 
+from helpers import session_jax_cache
 from sellip import workflow_support
 from sellip.yaml_files import DuplicateKeyError, load_yaml_text
 
@@ -143,7 +144,7 @@ def test_a_two_view_capture_stops_before_a_model_saying_views_are_missing(tmp_pa
         "capture": str(capture), "name": "two",
         "init": {"hull_resolution": 64, "max_vertices": 1500},
         "observe": {"vertex_chunk": 512, "edge_margin": 0.0, "max_slope": 0.0},
-        "fit": {"shards": 1, "compilation_cache": str(tmp_path.parent / "jax_cache")}}))
+        "fit": {"shards": 1, "compilation_cache": str(session_jax_cache(tmp_path))}}))
     result = snakemake(tmp_path, "results/two/iter/0/fit.zarr", configfiles=(override,))
     text = result.stdout + result.stderr
     assert result.returncode != 0, text[-3000:]

@@ -13,6 +13,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+from helpers import session_jax_cache
+
 pytest.importorskip("mitsuba")
 
 REPO = Path(__file__).resolve().parents[2]
@@ -26,7 +28,7 @@ def test_a_mitsuba_capture_runs_to_the_end(tmp_path):
         "demo": {"scene": "tiny_plain", "renderer": "mitsuba", "views": 24, "width": 320, "height": 256, "seed": 3},
         "init": {"hull_resolution": 64, "max_vertices": 2500},
         "observe": {"vertex_chunk": 256, "edge_margin": 0.0, "max_slope": 0.0},
-        "fit": {"shards": 2, "compilation_cache": str(tmp_path.parent / "jax_cache"), "settings": {"min_views": 6}},
+        "fit": {"shards": 2, "compilation_cache": str(session_jax_cache(tmp_path)), "settings": {"min_views": 6}},
         "augment": {"max_samples": 4096},
         "evaluate": {"held_out_views": ["v005", "v017"], "render_views": ["v000"], "supersample": 1},
     }

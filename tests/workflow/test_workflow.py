@@ -19,6 +19,8 @@ import numpy as np
 import pytest
 import yaml
 
+from helpers import session_jax_cache
+
 pytestmark = pytest.mark.slow  # the whole module: `make test-fast` leaves it out
 
 REPO = Path(__file__).resolve().parents[2]
@@ -39,9 +41,7 @@ def tiny_config(workdir: Path) -> dict:
         # The demo's slope test (demo.overrides) is for its 612x512 capture; at this size it leaves too few samples
         # (docs/observe.md). Set here, it stays off: a user's setting wins over the demo's even at the default.
         "observe": {"vertex_chunk": 256, "edge_margin": 0.0, "max_slope": 0.0},
-        # One XLA cache for every run of the session (the base temporary folder): the second run loads the
-        # kernels the first compiled, as a user's second run would.
-        "fit": {"shards": SHARDS, "compilation_cache": str(workdir.parent / "jax_cache"), "settings": {"min_views": 6}},
+        "fit": {"shards": SHARDS, "compilation_cache": str(session_jax_cache(workdir)), "settings": {"min_views": 6}},
         "augment": {"max_samples": 4096},
         "evaluate": {"held_out_views": ["v005", "v017"], "render_views": ["v000"], "supersample": 1},
     }
