@@ -31,8 +31,9 @@ def setting(default: Any, doc: str, *, unit: str | None = None, minimum: float |
             exclusive_maximum: float | None = None, choices: Iterable | None = None, per_iteration: bool = False,
             min_items: int | None = None, multiple_of: int | None = None) -> Any:
     """A dataclass field declaring one setting: its ``default``, one line of meaning (``doc``), its ``unit``, its
-    range (``minimum``/``maximum`` inclusive, ``exclusive_*`` exclusive; for a tuple, of each item), a whole number's
-    ``multiple_of`` or its ``choices``, and whether the workflow takes a list of values, one per iteration (``per_iteration``).
+    range (``minimum``/``maximum`` inclusive, ``exclusive_*`` exclusive; for a tuple, of each item), a whole
+    number's ``multiple_of`` or its ``choices``, and whether the workflow takes a list of values, one per iteration
+    (``per_iteration``).
     Records built directly in Python are not range-checked here (their ``__post_init__`` checks what the numerics
     need); :func:`record_from_mapping` and the config schema check the declared ranges."""
     meta = {"doc": doc, "unit": unit, "minimum": minimum, "maximum": maximum, "exclusiveMinimum": exclusive_minimum,

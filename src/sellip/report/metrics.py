@@ -342,7 +342,7 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
         log.info("held-out %s: PSNR %s dB", view_id, held_out_psnr[view_id]["psnr_db"])
     metrics["psnr_held_out"] = {"views": held_out_psnr, "mean_db": _mean_db(held_out_psnr)} if held_out else None
     if not held_out:
-        reasons["psnr_held_out"] = "no --held-out views given"
+        reasons["psnr_held_out"] = "no held-out views given (config evaluate.held_out_views)"
 
     # Ground truth.
     truth_path = capture_path / GROUND_TRUTH_MESH
@@ -374,8 +374,7 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
     # The run's warnings (a frame left out, views without a pose: docs/reliability.md), from the jobs' logs.
     metrics["warnings"] = [{"log": name, "message": message} for name, message in
                            (workflow_support.collect_warnings(logs) if logs is not None else [])]
-    metrics["reasons"] = reasons
-    metrics["evaluate_s"] = time.perf_counter() - started
+    metrics.update(reasons=reasons, evaluate_s=time.perf_counter() - started)
     write_text(json.dumps(metrics, indent=2, allow_nan=False), output)
     log.info("wrote %s in %.1f s", output, metrics["evaluate_s"])
     return metrics
