@@ -29,15 +29,16 @@ from typing import Any
 def setting(default: Any, doc: str, *, unit: str | None = None, minimum: float | None = None,
             maximum: float | None = None, exclusive_minimum: float | None = None,
             exclusive_maximum: float | None = None, choices: Iterable | None = None, per_iteration: bool = False,
-            min_items: int | None = None) -> Any:
+            min_items: int | None = None, multiple_of: int | None = None) -> Any:
     """A dataclass field declaring one setting: its ``default``, one line of meaning (``doc``), its ``unit``, its
-    range (``minimum``/``maximum`` inclusive, ``exclusive_*`` exclusive; for a tuple, of each item) or its
-    ``choices``, and whether the workflow takes a list of values, one per iteration (``per_iteration``).
+    range (``minimum``/``maximum`` inclusive, ``exclusive_*`` exclusive; for a tuple, of each item), a whole
+    number's ``multiple_of`` or its ``choices``, and whether the workflow takes a list of values, one per iteration
+    (``per_iteration``).
     Records built directly in Python are not range-checked here (their ``__post_init__`` checks what the numerics
     need); :func:`record_from_mapping` and the config schema check the declared ranges."""
     meta = {"doc": doc, "unit": unit, "minimum": minimum, "maximum": maximum, "exclusiveMinimum": exclusive_minimum,
             "exclusiveMaximum": exclusive_maximum, "enum": list(choices) if choices is not None else None,
-            "per_iteration": per_iteration, "minItems": min_items}
+            "per_iteration": per_iteration, "minItems": min_items, "multipleOf": multiple_of}
     return dataclasses.field(default=default, metadata={"setting": meta})
 
 
@@ -81,7 +82,8 @@ def _value_schema(field: dataclasses.Field) -> dict:
     text = _annotation(field)
     nullable = text.endswith("|None")
     text = text.removesuffix("|None")
-    bounds = {k: meta[k] for k in ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum") if meta[k] is not None}
+    bounds = {k: meta[k] for k in ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum", "multipleOf")
+              if meta[k] is not None}
     if meta["enum"] is not None:
         bounds["enum"] = meta["enum"]
     tuple_of = re.fullmatch(r"tuple\[(\w+),\.\.\.\]", text)
@@ -147,7 +149,8 @@ def _check_value(field: dataclasses.Field, value: Any, where: str) -> Any:
             return False
         return not (("minimum" in spec and item < spec["minimum"]) or ("maximum" in spec and item > spec["maximum"])
                     or ("exclusiveMinimum" in spec and item <= spec["exclusiveMinimum"])
-                    or ("exclusiveMaximum" in spec and item >= spec["exclusiveMaximum"]))
+                    or ("exclusiveMaximum" in spec and item >= spec["exclusiveMaximum"])
+                    or ("multipleOf" in spec and item % spec["multipleOf"] != 0))
 
     if not fits(value, schema):
         raise SettingsError(f"setting '{where}': {value!r} is not {json.dumps(schema)} ({describe(field)})")

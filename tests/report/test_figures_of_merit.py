@@ -223,8 +223,9 @@ def test_evaluate_cli_on_a_perfect_model(tiny_run, tmp_path):
     plot = tmp_path / "timings.png"
     subprocess.run([sys.executable, "-m", "sellip.cli", "evaluate", "--model", str(tiny_run["model"]),
                     "--cameras", str(tiny_run["cameras"]), "--hdr", str(tiny_run["hdr"]),
-                    "--capture", str(tiny_run["capture"]), "--benchmarks", str(bench), "--held-out", *held_out,
-                    "--output", str(out), "--geometry-samples", "5000", "--timings-plot", str(plot)], check=True)
+                    "--capture", str(tiny_run["capture"]), "--benchmarks", str(bench),
+                    "--settings", json.dumps({"held_out_views": held_out, "geometry_samples": 5000}),
+                    "--output", str(out), "--timings-plot", str(plot)], check=True)
     metrics = json.loads(out.read_text())
     assert metrics["alignment"]["method"] == "none"
     assert metrics["normal_error_deg"]["all"]["mean"] == pytest.approx(0, abs=1e-4)

@@ -191,8 +191,8 @@ def test_render_outputs_cli_writes_the_documented_files(tiny_run, tmp_path):
     views = tiny_run["view_ids"][1:3]
     subprocess.run([sys.executable, "-m", "sellip.cli", "render-outputs", "--model", str(tiny_run["model"]),
                     "--cameras", str(tiny_run["cameras"]), "--hdr", str(tiny_run["hdr"]),
-                    "--capture", str(tiny_run["capture"]), "--output", str(out), "--views", *views,
-                    "--supersample", "1"], check=True)
+                    "--capture", str(tiny_run["capture"]), "--output", str(out),
+                    "--settings", json.dumps({"render_views": views, "supersample": 1})], check=True)
     index = json.loads((out / "index.json").read_text())
     expected = {f"view_{v}.png" for v in views} | {f"view_{v}_measured.png" for v in views} | {
         "novel_view.png", "new_light.png", "mueller.png", "mueller.npz", "aolp.png", "dop.png", "maps.png"} | {

@@ -14,6 +14,7 @@ import pytest
 
 from sellip import cli, workflow_support
 from sellip.capture.ingest import IngestSettings
+from sellip.capture.synthetic import DemoSettings
 from sellip.fit.clusters import AugmentSettings
 from sellip.fit.finalize import FinalSettings
 from sellip.fit.geometry_jobs import GeometryUpdateSettings
@@ -24,11 +25,13 @@ from sellip.geometry.hull import InitMeshOptions
 from sellip.geometry.pose_refinement import PoseRefinementSettings
 from sellip.geometry.sfm import SfmOptions
 from sellip.geometry.silhouettes import SilhouetteOptions
+from sellip.report.outputs import EvaluateSettings
 from sellip.settings import SettingsError, nearest, record_from_mapping, record_schema
 
 REPO = Path(__file__).resolve().parents[2]
 RECORDS = (FitSettings, FitJobSettings, AugmentSettings, SelectionSettings, PoseRefinementSettings, SilhouetteOptions,
-           IngestSettings, ObserveSettings, SfmOptions, InitMeshOptions, GeometryUpdateSettings, FinalSettings)
+           IngestSettings, ObserveSettings, SfmOptions, InitMeshOptions, GeometryUpdateSettings, FinalSettings,
+           EvaluateSettings, DemoSettings)
 
 # Each config section that is a settings record: (section, record, the `sellip` command whose --settings carries it,
 # a misspelt key and the key it means, a value out of its declared range).
@@ -42,6 +45,9 @@ SECTIONS = [
     ("fit", FitJobSettings, "gather-fit", "min_fitted_shares", "min_fitted_share", {"min_fitted_share": 1.5}),
     ("augment", AugmentSettings, "cluster-lobes", "min_coherance", "min_coherence", {"min_coherence": 1.5}),
     ("final", FinalSettings, "finalize", "deviation_suport", "deviation_support", {"deviation_support": 7}),
+    ("evaluate", EvaluateSettings, "evaluate", "metric_supersample", "metrics_supersample",
+     {"metrics_supersample": 8}),
+    ("evaluate", EvaluateSettings, "render-outputs", "render_view", "render_views", {"supersample": 0}),
 ]
 # The argument that carries the section, where it is not --settings.
 FLAG = {"gather-fit": "job_settings", "cluster-lobes": "augment_settings"}
@@ -54,7 +60,9 @@ REQUIRED = {"linearize": ["--capture", "c", "--output", "o"],
                              "--output", "o"],
             "gather-fit": ["--observations", "o", "--shards", "s", "--output", "o"],
             "cluster-lobes": ["--params", "p", "--observations", "o", "--output", "o"],
-            "finalize": ["--params", "p", "--mesh", "m", "--output-model", "o", "--output-params", "o"]}
+            "finalize": ["--params", "p", "--mesh", "m", "--output-model", "o", "--output-params", "o"],
+            "evaluate": ["--model", "m", "--cameras", "c", "--hdr", "h", "--capture", "c", "--output", "o"],
+            "render-outputs": ["--model", "m", "--cameras", "c", "--hdr", "h", "--capture", "c", "--output", "o"]}
 
 
 def test_the_committed_schema_is_the_one_written_from_the_records():
@@ -127,13 +135,17 @@ def test_a_declared_default_is_not_written_again_in_the_workflow():
                 "final.settings": (config["final"]["settings"], FitSettings),
                 "model_selection": (config["model_selection"], SelectionSettings),
                 "refine_poses": (config["refine_poses"], PoseRefinementSettings),
-                "silhouette": (config["silhouette"], SilhouetteOptions)}
+                "silhouette": (config["silhouette"], SilhouetteOptions),
+                "evaluate": (config["evaluate"], EvaluateSettings), "demo": (config["demo"], DemoSettings)}
     for section, (values, record) in sections.items():
         for key, value in values.items():
             field = {f.name: f for f in dataclasses.fields(record) if "setting" in f.metadata}.get(key)
-            # A key a user is expected to edit (sfm.mode, init.mode: the workflow reads them too) may stay, at the
-            # declared default; any other record key in config.yaml would be a second default.
-            if (section, key) in (("sfm", "mode"), ("init", "mode")):
+            # A key a user is expected to edit (sfm.mode, init.mode, evaluate.held_out_views, demo.scene: the workflow
+            # reads them too) may stay, at the declared default; any other record key in config.yaml would be a
+            # second default.
+            if (section, key) in (("sfm", "mode"), ("init", "mode"), ("evaluate", "held_out_views"),
+                                  ("demo", "scene")):
+                value = tuple(value) if isinstance(value, list) else value
                 assert value == field.default, f"{section}.{key}: {value!r}, the declaration says {field.default!r}"
             else:
                 assert field is None or value != field.default, f"{section}.{key}: the declared default, written again"
@@ -147,6 +159,10 @@ def test_a_declared_default_is_not_written_again_in_the_workflow():
     (["cluster-lobes", "--params", "p", "--observations", "o", "--output", "x", "--set", "lobes=full"],
      "--set was replaced by --settings"),
     (["observe", "--mask-threshold", "0.05"], "--mask-threshold was replaced by --silhouette-settings"),
+    (["evaluate", "--held-out", "v001"], "--held-out was replaced by --settings '{\"held_out_views\""),
+    (["evaluate", "--supersample", "2"], "--supersample was replaced by --settings '{\"metrics_supersample\""),
+    (["render-outputs", "--supersample", "1"], "--supersample was replaced by --settings '{\"supersample\""),
+    (["render-outputs", "--views", "v000"], "--views was replaced by --settings '{\"render_views\""),
 ])
 def test_a_replaced_command_line_option_names_its_replacement(argv, message, capsys):
     with pytest.raises(SystemExit) as stop:
@@ -228,6 +244,57 @@ def test_the_demo_jobs_get_only_the_keys_the_config_sets():
         assert settings_of(command, "--job-settings") and all(s == {} for s in settings_of(command, "--job-settings"))
     assert settings_of("cluster-lobes", "--augment-settings") == [{}] * 7
     assert settings_of("finalize") == [{}]
+    # evaluate: the demo's held-out and render views (its overrides); both supersamplings the declared ones
+    assert settings_of("evaluate") == [{"held_out_views": ["v004", "v013", "v022", "v031"]}]
+    assert settings_of("render-outputs") == [{"render_views": ["v000", "v009", "v018", "v027"]}]
+    # demo: config.yaml sets no DemoSettings field but the scene (the wildcard): synth takes its declared defaults
+    synth = [line for line in commands if " synth --" in line]
+    assert len(synth) == 1 and "--scene demo --out captures/demo  --no-progress" in synth[0]
     # fit.settings sets nothing (min_views 4 is the declared default): the first passes get {}, the others only what
     # augment.settings and final.settings set
     assert {} in settings_of("fit") and not any("min_views" in s for s in settings_of("fit"))
+
+
+def test_the_demo_section_rejects_a_misspelt_key_and_a_value_out_of_range():
+    """config demo (DemoSettings): a misspelt key names the one it means; a width that is no multiple of 4, or below
+    24, fails the schema and the record; overrides (a mapping of sections, written by hand) is kept."""
+    import jsonschema
+
+    schema = workflow_support.load_yaml(REPO / "config" / "config.schema.yaml")
+    with pytest.raises(workflow_support.ConfigKeyError, match=r"unknown setting 'demo.noise_scal'; did you mean "
+                                                              r"'demo.noise_scale'\?"):
+        workflow_support.check_config_keys(_config_with("demo", {"noise_scal": 1}), schema)
+    jsonschema.validate(_config_with("demo", {"width": 64, "renderer": "mitsuba"}), schema)
+    for bad in ({"width": 610}, {"height": 20}, {"views": 2}, {"noise_scale": 0}, {"scene": "teapot"}):
+        with pytest.raises(jsonschema.ValidationError):
+            jsonschema.validate(_config_with("demo", bad), schema)
+        with pytest.raises(SettingsError, match=rf"setting 'demo.{next(iter(bad))}'"):
+            record_from_mapping(DemoSettings, bad, "demo")
+    assert record_from_mapping(DemoSettings, {"width": 64}, "demo") == DemoSettings(width=64)
+
+
+def test_the_jobs_defaults_are_the_declarations():
+    """`sellip synth`'s options, and the library functions behind render-outputs and evaluate, default to the
+    declarations: the evaluate job's renders (held-out PSNR) are supersampled 2x2 (metrics_supersample), the output
+    renders 1x1 (supersample), as before they were declared."""
+    import inspect
+
+    from sellip.capture.synthetic import synthesize_capture
+    from sellip.cli import build_parser
+    from sellip.report.metrics import evaluate_model, view_psnr
+    from sellip.report.outputs import render_outputs
+
+    args = build_parser("synth").parse_args(["synth", "--out", "o"])
+    declared = DemoSettings()
+    assert (args.scene, args.renderer, args.views, args.width, args.height, args.seed, args.noise_scale) == (
+        declared.scene, declared.renderer, declared.views, declared.width, declared.height, declared.seed,
+        declared.noise_scale)
+    synth = inspect.signature(synthesize_capture).parameters
+    assert all(synth[name].default == getattr(declared, name)
+               for name in ("views", "width", "height", "seed", "noise_scale", "renderer"))
+    evaluate = EvaluateSettings()
+    assert (evaluate.supersample, evaluate.metrics_supersample, evaluate.geometry_samples) == (1, 2, 50000)
+    assert inspect.signature(evaluate_model).parameters["supersample"].default == evaluate.metrics_supersample
+    assert inspect.signature(view_psnr).parameters["supersample"].default == evaluate.metrics_supersample
+    assert inspect.signature(evaluate_model).parameters["geometry_samples"].default == evaluate.geometry_samples
+    assert inspect.signature(render_outputs).parameters["supersample"].default == evaluate.supersample

@@ -195,9 +195,10 @@ def settings_json(settings):
     return shlex.quote(json.dumps(dict(settings), sort_keys=True))
 
 
-def section_settings(section, workflow_keys=(), it=None):
+def section_settings(section, workflow_keys=(), it=None, keys=None):
     """`--settings` of a job: the keys of config `section` (a dotted path, e.g. "augment.settings") that the config
-    sets, less the `workflow_keys` the workflow reads itself (threads, enabled, ...), as one JSON argument; with `it`,
+    sets, less the `workflow_keys` the workflow reads itself (threads, enabled, ...), with `keys` only those the job
+    takes (so that another job's key re-runs nothing here), as one JSON argument; with `it`,
     a list of values is iteration it's (at_iteration: for sections whose only lists are values per iteration). The job's settings record gives every key left out its
     declared default (sellip.settings)."""
     values = config
@@ -207,8 +208,19 @@ def section_settings(section, workflow_keys=(), it=None):
         {
             key: value if it is None else at_iteration(value, it)
             for key, value in values.items()
-            if key not in workflow_keys
+            if key not in workflow_keys and (keys is None or key in keys)
         }
+    )
+
+
+def synth_options():
+    """The `sellip synth` options of the keys of config demo that are set (`--noise-scale 0.5`); a key left out takes
+    the declared default (sellip.capture.synthetic.DemoSettings)."""
+    demo = config.get("demo") or {}
+    return " ".join(
+        f"--{key.replace('_', '-')} {shlex.quote(str(value))}"
+        for key, value in demo.items()
+        if key not in ("scene", "overrides")
     )
 
 

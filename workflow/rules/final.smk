@@ -51,13 +51,12 @@ rule render_outputs:
         "../../envs/report.yaml"
     params:
         capture=lambda wildcards, input: Path(input.capture).parent,
-        views=config["evaluate"]["render_views"],
-        supersample=config["evaluate"]["supersample"],
+        # sellip.report.outputs.EvaluateSettings: the keys of config evaluate this job takes that are set.
+        settings=section_settings("evaluate", keys=("render_views", "supersample")),
     shell:
         sellip_shell(
             "render-outputs --model {input.model:q} --cameras {input.cameras:q} --hdr {input.hdr:q}"
-            " --capture {params.capture:q} --output {output:q} --views {params.views:q}"
-            " --supersample {params.supersample} > {log:q} 2>&1"
+            " --capture {params.capture:q} --output {output:q} --settings {params.settings} > {log:q} 2>&1"
         )
 
 
@@ -90,13 +89,14 @@ rule evaluate_model:
         capture=lambda wildcards, input: Path(input.capture).parent,
         benchmarks=f"{RESULTS}/benchmarks",
         logs=f"{RESULTS}/logs",
-        held_out=config["evaluate"]["held_out_views"],
+        # sellip.report.outputs.EvaluateSettings: the keys of config evaluate this job takes that are set.
+        settings=section_settings("evaluate", keys=("held_out_views", "metrics_supersample", "geometry_samples")),
         content=content_of(ground_truth_file, poses_file),  # the ground truth, by its content
     shell:
         sellip_shell(
             "evaluate --model {input.model:q} --params {input.params:q} --cameras {input.cameras:q}"
             " --hdr {input.hdr:q} --capture {params.capture:q} --benchmarks {params.benchmarks:q}"
-            " --held-out {params.held_out:q} --output {output.metrics:q} --timings-plot {output.timings:q}"
+            " --settings {params.settings} --output {output.metrics:q} --timings-plot {output.timings:q}"
             " --iteration-meshes {input.meshes:q} --iteration-fits {input.fits:q} --convergence-plot {output.convergence:q}"
             " --logs {params.logs:q} --sfm-report {input.sfm:q}/report.json --initial-cameras {input.initial_cameras:q}"
             " > {log:q} 2>&1"

@@ -15,16 +15,11 @@ rule synth_capture:
     conda:
         "../../envs/ingest.yaml"
     params:
-        views=config["demo"]["views"],
-        width=config["demo"]["width"],
-        height=config["demo"]["height"],
-        seed=config["demo"]["seed"],
-        noise_scale=config["demo"].get("noise_scale", 1.0),
-        renderer=config["demo"].get("renderer", "sellip"),
+        # sellip.capture.synthetic.DemoSettings: the keys of config demo that are set, as `sellip synth` options
+        # (scene: the wildcard's; overrides: the workflow's).
+        options=synth_options(),
     shell:
         sellip_shell(
-            "synth --scene {wildcards.scene} --out captures/{wildcards.scene}"
-            " --views {params.views:q} --width {params.width} --height {params.height}"
-            " --seed {params.seed} --noise-scale {params.noise_scale} --renderer {params.renderer:q}"
+            "synth --scene {wildcards.scene} --out captures/{wildcards.scene} {params.options}"
             " --no-progress > {log:q} 2>&1"
         )

@@ -53,7 +53,7 @@ Modules and what they export (each name is importable from here too)::
       with the full pBRDF under the polarized flash on a handheld orbit, through the sensor simulator (mosaic, noise,
       quantization) into raw files, frames.csv, capture.yaml, poses.csv and the ground-truth model
       (:func:`synthesize_capture`)
-        RENDERERS, synthesize_capture, is_synthetic_folder
+        RENDERERS, DemoSettings, synthesize_capture, is_synthetic_folder
     tables: frames.csv and poses.csv (docs/design.md §3): pandera schemas and validation that names the file, row and
       column of every problem
         validate_poses
@@ -87,7 +87,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "TINY_MATERIALS", "build_scene", "device_intrinsics", "look_at_rotation", "handheld_orbit"),
     "sensor": ("DEFAULT_COLOR_MATRIX", "SensorModel", "sensor_from_device", "camera_rgb_from_srgb", "mosaic_sample",
            "sensor_mosaic", "sensor_colors", "simulate_raw"),
-    "synthetic": ("RENDERERS", "synthesize_capture", "is_synthetic_folder"),
+    "synthetic": ("RENDERERS", "DemoSettings", "synthesize_capture", "is_synthetic_folder"),
     "tables": ("validate_poses",),
     "writer": ("write_raw_file", "RAW_FORMATS", "CaptureWriter", "yaml_safe", "write_capture"),
 })

@@ -14,12 +14,13 @@ from pathlib import Path
 import numpy as np
 
 from sellip.capture.files import CAPTURE_YAML, FRAMES_CSV, GROUND_TRUTH_MESH, POSES_CSV, RAW_DIR
-from sellip.capture.scenes import build_scene, handheld_orbit
+from sellip.capture.scenes import SCENES, build_scene, handheld_orbit
 from sellip.capture.sensor import SensorModel, sensor_from_device, simulate_raw
 from sellip.capture.writer import CaptureWriter
 from sellip.jobs import refuse_to_replace_folder
 from sellip.model.ply import write_param_mesh
 from sellip.model.render import Renderer, flash_light
+from sellip.settings import setting
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +38,25 @@ FLASH_POSITION_CAM = (0.0, 0.05, 0.0)
 RENDERERS = ("sellip", "mitsuba")
 """Who renders a synthetic capture: sellip's pBRDF renderer, or Mitsuba 3's pplastic (docs/synthetic.md)."""
 
+
+
+@dataclasses.dataclass(frozen=True)
+class DemoSettings:
+    """Settings of a synthetic capture of the workflow (config section ``demo``, rule ``synth_capture``; each declared
+    once here, :mod:`sellip.settings`): ``sellip synth``'s options default to them. ``scene`` is also read by the
+    workflow (the built-in demo is ``captures/<scene>``); the section's ``overrides`` is the workflow's own key."""
+
+    scene: str = setting("demo", "the built-in demo capture's procedural scene (sellip.capture.scenes), made when "
+                         "`capture` is empty", choices=SCENES)
+    renderer: str = setting("sellip", "who renders the synthetic capture: sellip's pBRDF, or Mitsuba 3's pplastic (the "
+                            "test extra; docs/synthetic.md)", choices=RENDERERS)
+    views: int = setting(36, "views of the handheld orbit", minimum=3)
+    width: int = setting(612, "raw mosaic width", unit="pixels", minimum=24, multiple_of=4)
+    height: int = setting(512, "raw mosaic height", unit="pixels", minimum=24, multiple_of=4)
+    seed: int = setting(0, "seed of the orbit's cameras and the sensor noise", minimum=0)
+    noise_scale: float = setting(1.0, "sensor noise standard deviations x this at the same signal, as with 1/k^2 of "
+                                 "the photons at k^2 the gain (1: the real device; docs/synthetic.md)",
+                                 exclusive_minimum=0)
 
 
 EXPOSURE_S = 0.005
@@ -64,10 +84,11 @@ def is_synthetic_folder(path: Path) -> bool:
     return isinstance(document, dict) and isinstance(document.get("synthetic"), dict)
 
 
-def synthesize_capture(scene_name: str, out: str | Path, views: int = 36, width: int = 612, height: int = 512,
-                       seed: int = 0, supersample: int = 2, raw_format: str = "dng", distortion=None,
-                       flash_levels=FLASH_LEVELS, progress: bool = True, noise_scale: float = 1.0,
-                       renderer: str = "sellip", mitsuba_variant: str | None = None, device=None,
+def synthesize_capture(scene_name: str, out: str | Path, views: int = DemoSettings.views,
+                       width: int = DemoSettings.width, height: int = DemoSettings.height,
+                       seed: int = DemoSettings.seed, supersample: int = 2, raw_format: str = "dng", distortion=None,
+                       flash_levels=FLASH_LEVELS, progress: bool = True, noise_scale: float = DemoSettings.noise_scale,
+                       renderer: str = DemoSettings.renderer, mitsuba_variant: str | None = None, device=None,
                        noise_seed: int | None = None, force: bool = False) -> Path:
     """Render and write a synthetic capture of ``scene_name`` to ``out``; returns the folder. ``out`` is replaced as
     a whole: a folder there that is not a synthetic capture (:func:`is_synthetic_folder`) stops it with

@@ -20,7 +20,7 @@ Modules and what they export (each name is importable from here too)::
     outputs: Renders, Mueller-matrix images, AoLP/DoP images and parameter maps of a model (docs/design.md §1 outputs,
       paper Fig. 10)
         MAP_SPECS, novel_camera, mueller_image, polarization_images, parameter_maps, fit_scale, save_figure,
-        DEFAULT_VIEWS, OutputsError, default_views, render_outputs
+        DEFAULT_VIEWS, EvaluateSettings, OutputsError, default_views, render_outputs
     previews: Preview images of HDR analyzer images for people (``snakemake --report``): pure numpy in, uint8 RGB out
         PREVIEW_KINDS, dolp_aolp, preview_images, write_previews
     viewer: The interactive viewer of a final model: ``results/NAME/viewer/``, a static page that works offline (issue
@@ -41,7 +41,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "materials": ("MaterialsError", "validate_materials", "median_interval", "material_table", "read_materials"),
     "metrics": ("confident_vertices", "view_psnr", "evaluate_model", "headline_figures", "material_support"),
     "outputs": ("MAP_SPECS", "novel_camera", "mueller_image", "polarization_images", "parameter_maps", "fit_scale",
-           "save_figure", "DEFAULT_VIEWS", "OutputsError", "default_views", "render_outputs"),
+           "save_figure", "DEFAULT_VIEWS", "EvaluateSettings", "OutputsError", "default_views",
+           "render_outputs"),
     "previews": ("PREVIEW_KINDS", "dolp_aolp", "preview_images", "write_previews"),
     "viewer": ("ViewerError", "read_pose_table", "load_inputs", "payload", "write_viewer", "serve", "find_capture",
            "export_results", "DEFAULT_FLASH"),

@@ -24,6 +24,7 @@ from sellip.model.render import Camera, Renderer, flash_light
 from sellip.report import figures_of_merit
 from sellip.report.outputs import (
     NEW_LIGHT_OFFSET_M,
+    EvaluateSettings,
     OutputsError,
     convergence_figure,
     model_confidence,
@@ -107,7 +108,8 @@ def _mean_db(per_view: dict) -> float | None:
 
 
 
-def view_psnr(renderer, camera: Camera, light, hdr, view_id: str, supersample: int = 2) -> dict:
+def view_psnr(renderer, camera: Camera, light, hdr, view_id: str,
+              supersample: int = EvaluateSettings.metrics_supersample) -> dict:
     """:func:`sellip.report.figures_of_merit.psnr` of ``renderer``'s image at ``camera`` under ``light`` against the HDR
     store's view ``view_id``, inside :func:`sellip.report.figures_of_merit.render_mask`: how a model (or the ground
     truth) scores at a captured view."""
@@ -299,7 +301,8 @@ def material_support(params_path, reasons: dict | None = None) -> dict | None:
 def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: str | Path, capture_path: str | Path,
               output: str | Path, params_path: str | Path | None = None, benchmarks: str | Path | None = None,
               held_out: list[str] | None = None, sim3_from_sfm: bool = False, sfm_report: str | Path | None = None,
-              supersample: int = 2, geometry_samples: int = 50000, timings_plot: str | Path | None = None,
+              supersample: int = EvaluateSettings.metrics_supersample,
+              geometry_samples: int = EvaluateSettings.geometry_samples, timings_plot: str | Path | None = None,
               new_light_offset_cam=NEW_LIGHT_OFFSET_M, iteration_meshes: list | None = None,
               iteration_fits: list | None = None, convergence_plot: str | Path | None = None,
               logs: str | Path | None = None, initial_cameras: str | Path | None = None) -> dict:
@@ -339,7 +342,7 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
         log.info("held-out %s: PSNR %s dB", view_id, held_out_psnr[view_id]["psnr_db"])
     metrics["psnr_held_out"] = {"views": held_out_psnr, "mean_db": _mean_db(held_out_psnr)} if held_out else None
     if not held_out:
-        reasons["psnr_held_out"] = "no --held-out views given"
+        reasons["psnr_held_out"] = "no held-out views given (config evaluate.held_out_views)"
 
     # Ground truth.
     truth_path = capture_path / GROUND_TRUTH_MESH
@@ -371,8 +374,7 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
     # The run's warnings (a frame left out, views without a pose: docs/reliability.md), from the jobs' logs.
     metrics["warnings"] = [{"log": name, "message": message} for name, message in
                            (workflow_support.collect_warnings(logs) if logs is not None else [])]
-    metrics["reasons"] = reasons
-    metrics["evaluate_s"] = time.perf_counter() - started
+    metrics.update(reasons=reasons, evaluate_s=time.perf_counter() - started)
     write_text(json.dumps(metrics, indent=2, allow_nan=False), output)
     log.info("wrote %s in %.1f s", output, metrics["evaluate_s"])
     return metrics

@@ -32,7 +32,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +44,7 @@ from sellip.jobs import atomic_file
 from sellip.model.ply import read_param_mesh, read_ply
 from sellip.model.render import Camera, Light, ParamMesh, Renderer, flash_light
 from sellip.report.previews import WHITE_PERCENTILE, dolp_aolp, srgb_encode, to_uint8
+from sellip.settings import setting
 
 log = logging.getLogger(__name__)
 
@@ -469,7 +470,27 @@ def write_renders(mesh: ParamMesh, cameras: dict[str, Camera], flash_position_ca
 
 
 DEFAULT_VIEWS = 3
-"""Views re-rendered when --views is not given (evenly spread over cameras.csv)."""
+"""Views re-rendered when none are named (evenly spread over cameras.csv)."""
+
+
+@dataclass(frozen=True)
+class EvaluateSettings:
+    """Settings of the final renders and the figures of merit (config section ``evaluate``; each declared once here,
+    :mod:`sellip.settings`): ``sellip render-outputs`` takes ``render_views`` and ``supersample``, ``sellip evaluate``
+    ``held_out_views``, ``metrics_supersample`` and ``geometry_samples``. ``held_out_views`` is also read by the
+    workflow: the observe and geometry jobs leave those views out (``--exclude-views``)."""
+
+    held_out_views: tuple[str, ...] = setting((), "captured views never used in the fit (left out of every "
+                                              "observation store); the evaluate job re-renders them for PSNR")
+    render_views: tuple[str, ...] = setting((), "captured views re-rendered in final/renders; the first also gives "
+                                            "the Mueller, AoLP/DoP and maps ([]: DEFAULT_VIEWS spread evenly)")
+    supersample: int = setting(1, "supersampling of the renders of final/renders (render-outputs)",
+                               unit="samples per pixel per axis", minimum=1, maximum=4)
+    metrics_supersample: int = setting(2, "supersampling of the evaluate job's renders (held-out PSNR, the "
+                                       "ground-truth comparisons)", unit="samples per pixel per axis", minimum=1,
+                                       maximum=4)
+    geometry_samples: int = setting(50000, "surface samples per mesh for the Chamfer and Hausdorff distances",
+                                    minimum=1)
 
 
 
@@ -493,7 +514,8 @@ def model_confidence(model_path: str | Path) -> np.ndarray | None:
 
 
 def render_outputs(model_path: str | Path, cameras_path: str | Path, hdr_path: str | Path, capture_path: str | Path,
-              output: str | Path, views: list[str] | None = None, supersample: int = 2) -> dict:
+              output: str | Path, views: list[str] | None = None,
+              supersample: int = EvaluateSettings.supersample) -> dict:
     """Write the renders folder (module docstring); returns its index."""
     from sellip.jobs import atomic_directory
 

@@ -2,10 +2,13 @@
 
     sellip render-outputs --model results/NAME/final/model.ply --cameras results/NAME/cameras.csv
                           --hdr results/NAME/hdr.zarr --capture CAPTURE --output results/NAME/final/renders
-                          [--views v000 v009 ...] [--supersample 2]
+                          [--settings '{"render_views": ["v000", "v009"], "supersample": 2}']
+
+``--settings``: :class:`sellip.report.outputs.EvaluateSettings` (config ``evaluate``) as one JSON object; this job
+reads ``render_views`` and ``supersample``; a key left out takes its declared default.
 
 Cameras: the poses of cameras.csv with the intrinsics of hdr.zarr (the HDR grid); the flash position and
-polarizer from capture.yaml ``light``. ``--views`` (default, or none given: DEFAULT_VIEWS views evenly
+polarizer from capture.yaml ``light``. ``render_views`` (none given: DEFAULT_VIEWS views evenly
 spread over cameras.csv; views without a pose, e.g. not registered by SfM, are skipped with a warning)
 are re-rendered; the first is the reference view of everything else.
 
@@ -32,7 +35,8 @@ from sellip.capture.files import CaptureError
 from sellip.fit.observe import ObserveError
 from sellip.geometry.cameras import CamerasError
 from sellip.model.ply import PlyError
-from sellip.report.outputs import DEFAULT_VIEWS, OutputsError, render_outputs
+from sellip.report.outputs import EvaluateSettings, OutputsError, render_outputs
+from sellip.settings import add_renamed_argument, add_settings_argument
 
 log = logging.getLogger(__name__)
 
@@ -43,19 +47,16 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--hdr", required=True, type=Path, help="hdr.zarr (intrinsics; measured views)")
     parser.add_argument("--capture", required=True, type=Path, help="capture folder (capture.yaml light)")
     parser.add_argument("--output", required=True, type=Path, help="folder of PNGs to write")
-    parser.add_argument("--views", nargs="*", default=None,
-                        help=f"views to re-render; the first is the reference (default or none given: "
-                             f"{DEFAULT_VIEWS} spread evenly; views without a pose are skipped with a warning)")
-    parser.add_argument("--supersample", type=int, default=2, help="s x s samples per pixel (default: 2)")
+    add_settings_argument(parser, EvaluateSettings, section="evaluate")
+    add_renamed_argument(parser, "--views", '--settings \'{"render_views": [...]}\'')
+    add_renamed_argument(parser, "--supersample", '--settings \'{"supersample": S}\'')
 
 
 def main(args: argparse.Namespace) -> int:
     logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)  # "no TPU" notices
-    if args.supersample < 1:
-        raise SystemExit("--supersample must be at least 1")
     try:
-        render_outputs(args.model, args.cameras, args.hdr, args.capture, args.output, views=args.views,
-                  supersample=args.supersample)
+        render_outputs(args.model, args.cameras, args.hdr, args.capture, args.output,
+                       views=list(args.settings.render_views) or None, supersample=args.settings.supersample)
     except (OutputsError, CamerasError, CaptureError, PlyError, ObserveError) as exc:
         log.error("%s", exc)
         return 1

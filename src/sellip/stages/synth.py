@@ -14,6 +14,9 @@ views with Mitsuba 3's pplastic instead (:mod:`sellip.capture.mitsuba_capture`; 
 unchanged: an independent renderer for the validation set (docs/synthetic.md). ``--device`` shoots the frames
 with a described device (device.yaml, or ``sellip synth-calibration``'s truth.yaml): its sensor, lens, colour
 matrix and flash, as the calibration set of that device was (docs/calibration.md, "The synthetic example").
+The defaults of ``--scene``, ``--renderer``, ``--views``, ``--width``, ``--height``, ``--seed`` and ``--noise-scale``
+are the declarations of :class:`sellip.capture.synthetic.DemoSettings` (config ``demo``; rule ``synth_capture``
+passes the keys the config sets).
 """
 
 from __future__ import annotations
@@ -23,29 +26,33 @@ import logging
 from pathlib import Path
 
 from sellip.capture.scenes import SCENES
-from sellip.capture.synthetic import RENDERERS, synthesize_capture
+from sellip.capture.synthetic import RENDERERS, DemoSettings, synthesize_capture
 from sellip.capture.writer import RAW_FORMATS
 
 log = logging.getLogger(__name__)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scene", choices=SCENES, default="demo", help="procedural scene (default: demo)")
+    parser.add_argument("--scene", choices=SCENES, default=DemoSettings.scene,
+                        help="procedural scene (default: %(default)s)")
     parser.add_argument("--out", required=True, type=Path, help="capture folder to write")
-    parser.add_argument("--views", type=int, default=36, help="number of views (default: 36)")
-    parser.add_argument("--width", type=int, default=612, help="raw mosaic width, a multiple of 4 (default: 612)")
-    parser.add_argument("--height", type=int, default=512, help="raw mosaic height, a multiple of 4 (default: 512)")
-    parser.add_argument("--seed", type=int, default=0, help="seed for cameras and noise (default: 0)")
+    parser.add_argument("--views", type=int, default=DemoSettings.views, help="number of views (default: %(default)s)")
+    parser.add_argument("--width", type=int, default=DemoSettings.width,
+                        help="raw mosaic width, a multiple of 4 (default: %(default)s)")
+    parser.add_argument("--height", type=int, default=DemoSettings.height,
+                        help="raw mosaic height, a multiple of 4 (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=DemoSettings.seed,
+                        help="seed for cameras and noise (default: %(default)s)")
     parser.add_argument("--supersample", type=int, default=2, help="s: s x s samples per pixel (default: 2)")
     parser.add_argument("--raw-format", choices=sorted(RAW_FORMATS), default="dng",
                         help="raw frame files (default: dng)")
     parser.add_argument("--distortion", type=float, nargs=5, metavar=("K1", "K2", "P1", "P2", "K3"),
                         help="OpenCV lens distortion to simulate (default: none)")
-    parser.add_argument("--noise-scale", type=float, default=1.0,
+    parser.add_argument("--noise-scale", type=float, default=DemoSettings.noise_scale,
                         help="sensor noise standard deviations x this at the same signal, as with 1/k^2 of the "
-                             "photons at k^2 the gain (default: 1, the real device)")
-    parser.add_argument("--renderer", choices=RENDERERS, default="sellip",
-                        help="who renders the views: sellip's pBRDF or Mitsuba 3's pplastic (default: sellip)")
+                             "photons at k^2 the gain (default: %(default)s, the real device)")
+    parser.add_argument("--renderer", choices=RENDERERS, default=DemoSettings.renderer,
+                        help="who renders the views: sellip's pBRDF or Mitsuba 3's pplastic (default: %(default)s)")
     parser.add_argument("--mitsuba-variant", default=None,
                         help="Mitsuba variant (default: llvm_ad_mono_polarized when a new enough libLLVM is found, "
                              "else scalar_spectral_polarized)")
