@@ -54,6 +54,7 @@ Modules and what they export (each name is importable from here too)::
       set, merge, the defaults of config/config.yaml) and the plan of runs (:class:`Variant`, one per factor value and
       scene), with the checkout (``REPO``) whose Snakefile runs them and the sweep's error
         SweepError, Factor, FACTORS, PRESETS, get_key, set_key, merge, Variant, plan_variants, variant_overrides
+        declared_default
     sweep_report: The sweep's report (``sellip bench-sweep``): η per material of a run's results against the truth, the
       vertices per model, and the markdown tables and files the sweep writes (:func:`write_outputs`)
         tables_markdown, write_outputs, write_csv
@@ -87,7 +88,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "sweep": ("UPSTREAM_RULES", "UPSTREAM_OUTPUTS", "link_upstream", "SnakemakeRunner", "xla_compile_seconds",
            "RECORD", "run_sweep"),
     "sweep_plan": ("SweepError", "Factor", "FACTORS", "PRESETS", "get_key", "set_key", "merge", "Variant",
-           "plan_variants", "variant_overrides"),
+           "plan_variants", "variant_overrides", "declared_default"),
     "sweep_report": ("tables_markdown", "write_outputs", "write_csv"),
     "sweep_tables": ("pareto_front", "SWEEP_COLUMNS", "job_cpu_seconds", "sweep_row", "sweep_table", "sweep_figure",
            "front_marks", "PAPER_TABLE1", "ior_table", "augmentation_table", "sigma_ss_table",
