@@ -42,7 +42,7 @@ RUN ?= demo
 view: $(STAMP)
 	$(BIN)/sellip view results/$(RUN) $(if $(SERVE),--serve)
 
-# The whole suite (~30 min on 2 cores; CI runs it), ending with its 25 slowest tests. Two pytest-xdist workers (one
+# The whole suite (~27 min on 2 cores; CI runs it), ending with its 25 slowest tests. Two pytest-xdist workers (one
 # per core) take whole test files (--dist loadfile: a module's fixtures run once), the files with the most slow tests
 # first (tests/conftest.py): one worker fills the other's idle time (Snakemake's serial jobs, single-threaded compiles).
 test: $(STAMP)
