@@ -43,6 +43,13 @@ fi
 mkdir -p "$WORK"
 WORK=$(cd "$WORK" && pwd)
 CLUSTER=$WORK/cluster                 # state, spool, logs, pid files
+# slurmd's step sockets live in the spool folder (spool/NODE_JOB.STEP, ~20 characters): a Unix socket path is at
+# most 108 bytes, and past it every job launch fails and waits "launch failed requeued held" for ever.
+if [ $(( ${#CLUSTER} + 30 )) -gt 108 ]; then
+  echo "slurm_localhost: --workdir $WORK is too long for slurmd's sockets (its spool path must stay under 108" \
+       "bytes): give a shorter one, e.g. /tmp/sellip-slurm-test" >&2
+  exit 2
+fi
 # The config must be at the default path: the plugin's job step drops SLURM_* variables
 # (SLURM_CONF included) before its nested srun. A slurm.conf this script did not write is left alone.
 CONF=/etc/slurm/slurm.conf

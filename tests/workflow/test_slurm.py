@@ -12,8 +12,10 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -32,12 +34,19 @@ def test_family_environments():
 
 @pytest.mark.skipif(os.environ.get("SELLIP_SLURM_TEST") != "1",
                     reason="needs root and apt: set SELLIP_SLURM_TEST=1 to run the localhost SLURM test")
-def test_tiny_scene_on_a_localhost_slurm_cluster(tmp_path):
+def test_tiny_scene_on_a_localhost_slurm_cluster():
     if os.geteuid() != 0:
         pytest.fail("SELLIP_SLURM_TEST=1 needs root (apt-get install slurm-wlm munge, slurmctld/slurmd)")
-    result = subprocess.run(["bash", str(REPO / "scripts" / "slurm_localhost.sh"), "--repo", str(REPO),
-                             "--workdir", str(tmp_path / "slurm-test"), "--python", sys.executable],
-                            capture_output=True, text=True, timeout=1800, check=False)
+    # a short folder: slurmd's step sockets sit in it, and a Unix socket path has at most 108 bytes (pytest's
+    # tmp_path under pytest-xdist, /tmp/pytest-of-root/pytest-N/popen-gwK/test_.../slurm-test/cluster/spool/..., has
+    # more: every job launch then fails and waits, requeued and held)
+    workdir = Path(tempfile.mkdtemp(prefix="sellip-slurm-", dir="/tmp"))
+    try:
+        result = subprocess.run(["bash", str(REPO / "scripts" / "slurm_localhost.sh"), "--repo", str(REPO),
+                                 "--workdir", str(workdir), "--python", sys.executable],
+                                capture_output=True, text=True, timeout=1800, check=False)
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)
     print(result.stdout[-6000:])
     assert result.returncode == 0, f"slurm_localhost.sh failed:\n{result.stdout[-6000:]}\n{result.stderr[-6000:]}"
     assert "PASSED" in result.stdout
