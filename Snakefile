@@ -11,13 +11,15 @@ configfile: "config/config.yaml"
 report: "workflow/report/workflow.rst"
 
 
-# Vertex shards of the per-vertex fit: a fixed count (override with --set-scatter fit=N);
-# each shard job derives its vertex range at run time.
-scattergather:
-    fit=int(config["fit"]["shards"]),  # int: a nested --config override is still a string here (docs/reliability.md)
-
-
 include: "workflow/rules/common.smk"
+
+
+# Vertex shards of the per-vertex fit: config fit.shards, raised to what fit.mem_mb holds (FIT_SHARDS, common.smk;
+# --set-scatter fit=N sets it outright); each shard job derives its vertex range at run time.
+scattergather:
+    fit=FIT_SHARDS,
+
+
 include: "workflow/rules/synth.smk"
 include: "workflow/rules/ingest.smk"
 include: "workflow/rules/geometry.smk"

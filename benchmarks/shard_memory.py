@@ -1,5 +1,5 @@
 """Peak memory of one fit job (``sellip fit``) against its vertices and views: the measurement behind
-:data:`sellip.fit.shard.SHARD_MEMORY` (docs/speed.md, "Memory of a fit shard").
+:data:`sellip.fit.shard_plan.SHARD_MEMORY` (docs/speed.md, "Memory of a fit shard").
 
     python benchmarks/shard_memory.py [--views 36] [--vertices 4096 65536 262144] [--chunk-size 8192]
         [--max-iterations 3] [--out DIR]
@@ -77,7 +77,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     import numpy as np
 
-    from sellip.fit.shard import SHARD_MEMORY, ShardMemory
+    from sellip.fit.shard_plan import SHARD_MEMORY, ShardMemory
 
     folder = args.out or Path(tempfile.mkdtemp(prefix="shard_memory_"))
     folder.mkdir(parents=True, exist_ok=True)

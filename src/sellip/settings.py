@@ -111,13 +111,16 @@ def describe(field: dataclasses.Field) -> str:
 def record_schema(record: type, *, per_iteration: bool = True) -> dict:
     """The JSON schema of a config section holding (some of) ``record``'s settings: each declared field a property
     of its type, range and description; no other key (``additionalProperties: false``); none required (a missing
-    key takes the declared default). ``per_iteration``: the fields declared so also take a list of values."""
+    key takes the declared default, which ``x-default`` states for the workflow's planning: a JSON-schema ``default``
+    would be written into the config by Snakemake's validation). ``per_iteration``: the fields declared so also take
+    a list of values."""
     properties = {}
     for field in _declared(record):
         value = _value_schema(field)
         if per_iteration and field.metadata["setting"]["per_iteration"]:
             value = {"oneOf": [value, {"type": "array", "items": value, "minItems": 1}]}
-        properties[field.name] = {**value, "description": describe(field)}
+        default = list(field.default) if isinstance(field.default, tuple) else field.default
+        properties[field.name] = {**value, "description": describe(field), "x-default": default}
     return {"type": "object", "x-record": f"{record.__module__}:{record.__qualname__}", "properties": properties,
             "additionalProperties": False}
 

@@ -201,6 +201,19 @@ def capture_view_ids(capture: str | Path) -> list[str] | None:
     return list(dict.fromkeys(row["view_id"] for row in rows if row.get("view_id") is not None))
 
 
+_UNSET = object()
+
+
+def declared_setting(config: Mapping, schema: Mapping, path: str):
+    """The value of the dotted config key ``path`` (``init.max_vertices``): the config's where it sets the key, else
+    the declared default the schema states (``x-default``, written from the settings record); None where neither."""
+    node, value = schema, config
+    for part in path.split("."):
+        node = (node.get("properties") or {}).get(part) or {}
+        value = value.get(part, _UNSET) if isinstance(value, Mapping) else _UNSET
+    return node.get("x-default") if value is _UNSET else value
+
+
 VIEW_LIST_KEYS = ("held_out_views", "render_views")
 """The config keys of section ``evaluate`` that name views of the capture."""
 

@@ -6,13 +6,22 @@ the console's words for a job killed from outside."""
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from sellip import cli, workflow_support
 from sellip.fit import shard as fit_shard_module
-from sellip.fit.shard import SHARD_MEMORY, ShardMemory, ShardMemoryError, available_memory, memory_budget
+from sellip.fit.shard import available_memory, memory_budget
+from sellip.fit.shard_plan import (
+    SHARD_MEMORY,
+    ShardMemory,
+    ShardMemoryError,
+    fit_shard_plan,
+    largest_shard,
+    planned_shards,
+)
 
 MODEL = ShardMemory(base=500e6, loaded=400.0, working=4000.0)
 
@@ -147,9 +156,9 @@ def test_shards_are_whole_store_chunks():
     budget = MODEL.bytes(320, views, chunk)
     assert MODEL.shards_for(600, views, chunk, budget) == 2  # by vertices alone, 300 would fit
     assert MODEL.shards_for(600, views, chunk, budget, vertex_chunk=256) == 3
-    assert fit_shard_module.largest_shard(600, 256, 2) == 344
+    assert largest_shard(600, 256, 2) == 344
     # 591 vertices: the last chunk holds 79, so two shards are 256 + 335.
-    assert fit_shard_module.largest_shard(591, 256, 2) == 335
+    assert largest_shard(591, 256, 2) == 335
     assert MODEL.shards_for(591, views, chunk, MODEL.bytes(335, views, chunk), vertex_chunk=256) == 2
 
 
@@ -158,3 +167,41 @@ def test_a_log_that_is_not_sellips_is_not_called_killed(tmp_path):
     (tmp_path / "empty.log").write_text("")
     assert workflow_support.killed_from_outside(tmp_path / "shell.log") == []
     assert workflow_support.killed_from_outside(tmp_path / "empty.log") == []
+
+
+# --------------------------------------------------------------------------- the shard count planned before a run
+
+def test_planned_shards_keeps_the_requested_count_where_it_fits_and_raises_it_to_the_fewest_that_fit():
+    views, chunk, vertex_chunk = 40, 8192, 1024
+    assert planned_shards(2, 6000, views, chunk, 9000, vertex_chunk, MODEL) == (2, None)
+    budget_mb = MODEL.bytes(largest_shard(200_000, vertex_chunk, 5), views, chunk) / 1e6 + 1
+    count, why = planned_shards(2, 200_000, views, chunk, budget_mb, vertex_chunk, MODEL)
+    assert count == 5 and "fit.shards 2 raised to 5" in why and "init.max_vertices" in why
+    assert MODEL.bytes(largest_shard(200_000, vertex_chunk, count), views, chunk) <= budget_mb * 1e6
+    assert MODEL.bytes(largest_shard(200_000, vertex_chunk, count - 1), views, chunk) > budget_mb * 1e6
+    assert planned_shards(8, 200_000, views, chunk, budget_mb, vertex_chunk, MODEL) == (8, None)  # more is kept
+
+
+def test_planned_shards_refuses_a_memory_no_shard_count_holds():
+    with pytest.raises(ShardMemoryError, match=r"config fit.mem_mb 300 MB is less than one fit job needs at any "
+                                               r"shard count: about 0.52 GB for the smallest shard, 128 vertices"):
+        planned_shards(2, 10_000, 40, 8192, 300, 128, MODEL)
+
+
+def test_the_workflows_plan_reads_the_capture_views_and_the_declared_settings():
+    schema = workflow_support.load_yaml(Path(__file__).resolve().parents[2] / "config" / "config.schema.yaml")
+    config = {"fit": {"shards": 1, "mem_mb": 1200, "settings": {}}, "evaluate": {"held_out_views": ["v001"]},
+              "init": {"max_vertices": 50_000}, "observe": {}}
+    views = [f"v{k:03d}" for k in range(37)]
+    count, why = fit_shard_plan(config, schema, views)  # 36 views, chunk 8192, vertex chunk 4096
+    assert count == SHARD_MEMORY.shards_for(50_000, 36, 8192, 1200e6, 4096) and count > 1 and "36 views" in why
+    capped = {**config, "observe": {"max_views": 12}}
+    assert fit_shard_plan(capped, schema, views)[0] == SHARD_MEMORY.shards_for(
+        50_000, 12, 8192, 1200e6, 4096)
+    smaller = {**config, "augment": {"settings": {"chunk_size": 16384}}}  # the refit's chunk, larger, counts
+    assert fit_shard_plan(smaller, schema, views)[0] == SHARD_MEMORY.shards_for(
+        50_000, 36, 16384, 1200e6, 4096)
+    assert fit_shard_plan(config, schema, None) == (1, None)  # the capture not readable yet
+    assert workflow_support.declared_setting(config, schema, "init.max_vertices") == 50_000
+    assert workflow_support.declared_setting({}, schema, "init.max_vertices") == 30_000
+    assert workflow_support.declared_setting({"observe": {"max_views": None}}, schema, "observe.max_views") is None

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from sellip.fit.records import FitSettings
-from sellip.fit.shard import parse_shard, shard_rows
+from sellip.fit.shard import parse_shard
+from sellip.fit.shard_plan import shard_rows
 from sellip.model.params import ParamsError, fill_from_neighbours, read_params, transfer_nearest, write_params
 from sellip.settings import SettingsError, record_from_mapping
 

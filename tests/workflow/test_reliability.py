@@ -346,6 +346,28 @@ def test_nested_overrides_of_each_type_pass_the_workflow(tmp_path):
     assert '"max_views": null' in text  # null: every view (the record's declared default too)
 
 
+def test_the_fit_shards_are_raised_to_what_the_jobs_memory_holds(tmp_path):
+    """fit.shards 2 at a fit.mem_mb that two shards of the vertex budget overrun: the plan (before any job) runs
+    three, the count sellip.fit.shard_plan's memory model says fits, and says why; --set-scatter still sets it."""
+    from sellip.fit.shard_plan import SHARD_MEMORY, largest_shard
+
+    vertices, views, chunk = 60_000, 32, 8192  # the demo: 36 views, 4 held out; the fit's chunk_size
+    mem_mb = int(SHARD_MEMORY.bytes(largest_shard(vertices, 4096, 3), views, chunk) / 1e6) + 1
+    assert SHARD_MEMORY.bytes(largest_shard(vertices, 4096, 2), views, chunk) > mem_mb * 1e6
+    result = snakemake(tmp_path, tmp_path / "none", "-n", "--config", "capture=", "name=demo",
+                       f"init={{mode: hull, max_vertices: {vertices}}}", f"fit={{mem_mb: {mem_mb}}}", check=False)
+    text = result.stdout + result.stderr
+    assert result.returncode == 0, text[-3000:]
+    jobs = planned_counts(result)
+    assert jobs["fit_pbrdf"] == 3 * jobs["gather_fit"], text[-3000:]
+    assert f"fit.shards 2 raised to 3: {vertices:,} vertices (init.max_vertices) of {views} views" in text
+    result = snakemake(tmp_path, tmp_path / "none", "-n", "--config", "capture=", "name=demo",
+                       f"init={{mode: hull, max_vertices: {vertices}}}", f"fit={{mem_mb: {mem_mb}}}",
+                       "--set-scatter", "fit=5", check=False)
+    jobs = planned_counts(result)
+    assert jobs["fit_pbrdf"] == 5 * jobs["gather_fit"], (result.stdout + result.stderr)[-3000:]
+
+
 def test_a_failed_jobs_message_reaches_the_console(run):
     """With `ingest.bad_frames: error` the missing frame stops linearize: the console shows the stage's own message
     (file, frames.csv row) and where the full log is, not only Snakemake's 'check log file(s)'."""

@@ -109,6 +109,28 @@ ITERATIONS = int(config["iterations"])
 
 DEMO_CAPTURE = f"captures/{config['demo']['scene']}"
 
+# The fit's shard count (the `fit` scatter, Snakefile): config fit.shards, raised where the memory model says a job
+# of that many would need more than fit.mem_mb (sellip.fit.shard_plan.planned_shards; docs/reliability.md).
+from sellip.fit.shard_plan import fit_shard_plan
+
+try:
+    FIT_SHARDS, _shards_raised = fit_shard_plan(
+        config,
+        CONFIG_SCHEMA,
+        (
+            workflow_support.capture_view_ids(config["capture"])
+            if config["capture"]
+            else [
+                f"v{index:03d}"
+                for index in range(int(workflow_support.declared_setting(config, CONFIG_SCHEMA, "demo.views")))
+            ]
+        ),
+    )
+except MemoryError as exc:
+    raise WorkflowError(str(exc)) from None
+if _shards_raised:
+    print(f"sellip: {_shards_raised}", file=sys.stderr)
+
 
 def capture_dir():
     """The capture folder: config `capture`, or the built-in demo (made by rule synth_capture)."""

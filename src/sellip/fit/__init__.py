@@ -57,12 +57,15 @@ Modules and what they export (each name is importable from here too)::
         SelectionSettings, settings_for_model, allowed_models, cap_models, split_vertices, fold_splits, choose,
         decision_margin, margin_confidence, cluster_margins, in_family, nested_fits, select_model, fit_by_model
     shard: One fit shard (rule ``fit_pbrdf``) and the gather of an iteration's shards into ``fit.zarr`` (rule
-      ``gather_fit``): the shard's vertex rows, the fit settings from ``--set KEY=VALUE`` pairs, XLA's persistent
-      compilation cache, :func:`fit_shard` and :func:`gather_shards`; the memory a shard needs (:data:`SHARD_MEMORY`),
-      what the job may use (:func:`memory_budget`) and the error that names the shard count that fits
-      (:class:`ShardMemoryError`)
-        parse_shard, shard_rows, settings_from_pairs, overrides_from_pairs, largest_shard, ShardMemory, SHARD_MEMORY,
-        ShardMemoryError, available_memory, memory_budget, fit_shard, fit_rows, gather_shards
+      ``gather_fit``): the fit settings from ``--set KEY=VALUE`` pairs, XLA's persistent compilation cache,
+      :func:`fit_shard` and :func:`gather_shards`; what the job may use (:func:`memory_budget`) and the message that
+      names the shard count that fits
+        parse_shard, settings_from_pairs, overrides_from_pairs, available_memory, memory_budget, fit_shard, fit_rows,
+        gather_shards
+    shard_plan: How the fit's vertices are split into shards, without JAX: each shard's rows, the memory one shard's
+      job needs (:data:`SHARD_MEMORY`), and the count the workflow plans before it runs (config ``fit.shards``
+      raised to what ``fit.mem_mb`` holds)
+        shard_rows, largest_shard, ShardMemory, SHARD_MEMORY, ShardMemoryError, planned_shards, fit_shard_plan
     simulate: Per-vertex observations simulated with the full forward model: inputs with known answers for the fit's
       tests and benchmark (no mesh, no images: one surface point per vertex)
         vertex_observations
@@ -105,9 +108,10 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "selection": ("SelectionSettings", "settings_for_model", "allowed_models", "cap_models", "split_vertices",
            "fold_splits", "choose", "decision_margin", "margin_confidence", "cluster_margins", "in_family",
            "nested_fits", "select_model", "fit_by_model"),
-    "shard": ("parse_shard", "shard_rows", "settings_from_pairs", "overrides_from_pairs", "largest_shard",
-           "ShardMemory", "SHARD_MEMORY", "ShardMemoryError", "available_memory", "memory_budget", "fit_shard",
-           "fit_rows", "gather_shards"),
+    "shard": ("parse_shard", "settings_from_pairs", "overrides_from_pairs", "available_memory", "memory_budget",
+           "fit_shard", "fit_rows", "gather_shards"),
+    "shard_plan": ("shard_rows", "largest_shard", "ShardMemory", "SHARD_MEMORY", "ShardMemoryError",
+           "planned_shards", "fit_shard_plan"),
     "simulate": ("vertex_observations",),
     "solver": ("free_parameters", "lm_rounds", "ROUGHNESS_GRID", "pick_best_start"),
     "vertex_fit": ("robust_weights", "select_and_prepare", "fit_vertices", "default_prior"),

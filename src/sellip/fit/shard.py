@@ -1,9 +1,7 @@
 """One fit shard (rule ``fit_pbrdf``) and the gather of an iteration's shards into ``fit.zarr`` (rule
-``gather_fit``): the shard's vertex rows, settings records from ``key=value`` pairs (the benchmarks' replay
-tools), XLA's persistent compilation cache, :func:`fit_shard` and :func:`gather_shards`; the memory a shard needs
-(:data:`SHARD_MEMORY`),
-what the job may use (:func:`memory_budget`) and the error that names the shard count that fits
-(:class:`ShardMemoryError`).
+``gather_fit``): settings records from ``key=value`` pairs (the benchmarks' replay tools), XLA's persistent
+compilation cache, :func:`fit_shard` and :func:`gather_shards`; what the job may use (:func:`memory_budget`) and
+the message that names the shard count that fits (the shards' rows and memory model: :mod:`sellip.fit.shard_plan`).
 """
 
 from __future__ import annotations
@@ -18,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from sellip.fit.records import FitJobSettings
+from sellip.fit.shard_plan import SHARD_MEMORY, ShardMemory, ShardMemoryError, largest_shard, shard_rows
 from sellip.jobs import atomic_file
 
 log = logging.getLogger(__name__)
@@ -33,14 +32,6 @@ def parse_shard(text: str) -> tuple[int, int]:
     if not 1 <= index <= total:
         raise argparse.ArgumentTypeError(f"--shard {text!r}: i must be in 1..n")
     return index - 1, total
-
-
-
-def shard_rows(num_vertices: int, chunk: int, index: int, total: int) -> tuple[int, int]:
-    """Vertex range [start, stop) of shard ``index`` (0-based) of ``total``, in whole chunks."""
-    blocks = -(-num_vertices // chunk)
-    first, last = index * blocks // total, (index + 1) * blocks // total
-    return min(first * chunk, num_vertices), min(last * chunk, num_vertices)
 
 
 
@@ -86,54 +77,6 @@ def enable_compilation_cache(directory: str | Path | None) -> None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     kernels.enable(Path(directory).resolve() / "exported")
 
-
-
-def largest_shard(num_vertices: int, chunk: int, total: int) -> int:
-    """Vertices of the largest of ``total`` shards (:func:`shard_rows`)."""
-    return max(stop - start for start, stop in (shard_rows(num_vertices, chunk, k, total) for k in range(total)))
-
-
-@dataclasses.dataclass(frozen=True)
-class ShardMemory:
-    """Peak resident memory of one ``sellip fit`` job, in bytes: ``base`` (Python, JAX, the compiled kernels) +
-    ``loaded`` per (vertex, view) of the shard (its observations, read whole) + ``working`` per (vertex, view) of
-    one chunk of ``FitSettings.chunk_size`` vertices (the fit's arrays)."""
-
-    base: float
-    loaded: float
-    working: float
-
-    def bytes(self, vertices: int, views: int, chunk_size: int) -> float:
-        """Bytes a job fitting ``vertices`` vertices of ``views`` views needs."""
-        return self.base + views * (self.loaded * vertices + self.working * min(vertices, chunk_size))
-
-    def shards_for(self, total_vertices: int, views: int, chunk_size: int, budget: float,
-                   vertex_chunk: int = 1) -> int | None:
-        """The fewest shards of ``total_vertices`` whose largest job fits in ``budget`` bytes; None if none does.
-        Shards are whole store chunks of ``vertex_chunk`` vertices (:func:`largest_shard`)."""
-        blocks = max(-(-total_vertices // vertex_chunk), 1)
-
-        def fits(shards: int) -> bool:
-            return self.bytes(largest_shard(total_vertices, vertex_chunk, shards), views, chunk_size) <= budget
-
-        low, high = 1, blocks
-        if not fits(high):
-            return None
-        while low < high:  # the bytes fall as the shards grow: the first count that fits
-            middle = (low + high) // 2
-            low, high = (low, middle) if fits(middle) else (middle + 1, high)
-        return low
-
-
-SHARD_MEMORY = ShardMemory(base=0.5e9, loaded=40.0, working=3600.0)
-"""Measured with benchmarks/shard_memory.py at 36 views (docs/reliability.md, "Memory of a fit shard"): peaks of
-0.70, 1.25 and 1.36 GB at 4k, 33k and 131k vertices (0.96 GB for a first job, which compiles), fitted by a base of
-0.17 GB, 31 B per loaded and 3,541 B per chunk vertex-view; the base here includes compiling and the rest is
-rounded up: the model predicts 1.29x what was measured above one chunk."""
-
-
-class ShardMemoryError(MemoryError):
-    """A fit shard that does not fit in the memory its job may use; the message says how many shards would."""
 
 
 def available_memory(root: str | Path = "/") -> int | None:

@@ -69,7 +69,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     from sellip.fit.observe import ObserveError
-    from sellip.fit.shard import ShardMemoryError
+    from sellip.fit.shard_plan import ShardMemoryError
 
     try:
         if args.model2_sigma_ss is not None and not 0.02 <= args.model2_sigma_ss <= 1:
