@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 
 from sellip import timing, workflow_support
@@ -61,6 +62,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Run one stage; its last log line is where the job's time went (:mod:`sellip.timing`)."""
     clock = timing.start()
+    # JAX would reserve 75 % of a GPU in the first process; several jobs share one card (workflow/profiles/gpu).
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     argv = sys.argv[1:] if argv is None else list(argv)
     command = next((a for a in argv if not a.startswith("-")), None)
     with timing.phase("imports"):

@@ -368,6 +368,21 @@ def test_the_fit_shards_are_raised_to_what_the_jobs_memory_holds(tmp_path):
     assert jobs["fit_pbrdf"] == 5 * jobs["gather_fit"], (result.stdout + result.stderr)[-3000:]
 
 
+def test_the_gpu_profile_gives_the_fit_shards_and_only_them_the_gpu(tmp_path):
+    """workflow/profiles/gpu (docs/speed.md, "On a GPU"): a dry run plans every fit shard with resource gpu=1 and no
+    other job with a GPU; the machine's limit of one GPU is the profile's."""
+    result = snakemake(tmp_path, tmp_path / "none", "-n", "--workflow-profile", str(REPO / "workflow/profiles/gpu"),
+                       "--config", "capture=", "name=demo", "init={mode: hull}", check=False)
+    text = result.stdout + result.stderr
+    assert result.returncode == 0, text[-3000:]
+    jobs = re.findall(r"^rule (\w+):.*?^\s+resources: ([^\n]*)$", text, re.MULTILINE | re.DOTALL)
+    gpu = {rule for rule, resources in jobs if "gpu=1" in resources}
+    assert gpu == {"fit_pbrdf"}, jobs[:5]
+    assert sum(rule == "fit_pbrdf" for rule, _ in jobs) == planned_counts(result)["fit_pbrdf"] > 0
+    profile = yaml.safe_load((REPO / "workflow/profiles/gpu/config.yaml").read_text())
+    assert profile["resources"] == ["gpu=1"] and profile["set-resources"]["fit_pbrdf"]["gpu"] == 1
+
+
 def test_a_failed_jobs_message_reaches_the_console(run):
     """With `ingest.bad_frames: error` the missing frame stops linearize: the console shows the stage's own message
     (file, frames.csv row) and where the full log is, not only Snakemake's 'check log file(s)'."""
