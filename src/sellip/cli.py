@@ -35,6 +35,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "cluster-lobes": ("cluster_lobes", "material clusters and per-cluster specular lobes (augmentation)"),
     "refine-geometry": ("refine_geometry", "the mesh moved to agree with the fitted normals (normal integration)"),
     "refine-poses": ("refine_poses", "every view's pose aligned to an iteration's model (pose refinement)"),
+    "pass-through": ("pass_through", "a loop job that passes its inputs through once the loop has converged, else "
+                                     "runs its command"),
     "finalize": ("finalize", "the final model: model.ply and params.zarr"),
     "render-outputs": ("render_outputs", "renders, Mueller images, AoLP/DoP and parameter maps of a model"),
     "evaluate": ("evaluate", "figures of merit against the ground truth (metrics.json)"),
@@ -66,6 +68,13 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     argv = sys.argv[1:] if argv is None else list(argv)
     command = next((a for a in argv if not a.startswith("-")), None)
+    if command == "pass-through" and argv[0] == command:
+        from sellip.stages.pass_through import split
+
+        argv = split(argv)
+        if not argv:
+            return 0
+        command = next((a for a in argv if not a.startswith("-")), None)
     with timing.phase("imports"):
         args = build_parser(command if command in COMMANDS else None).parse_args(argv)
         module = importlib.import_module(f"sellip.stages.{args._module}")

@@ -290,6 +290,50 @@ def get_cameras(wildcards):
     return cameras_of(wildcards.it)
 
 
+def may_pass_through(it):
+    """Whether iteration `it`'s jobs pass their inputs through once the loop has converged (config converge,
+    sellip.fit.convergence): from iteration converge.min_iterations to the last before the final pass."""
+    it = int(it)
+    setting = lambda key: workflow_support.declared_setting(config, CONFIG_SCHEMA, f"converge.{key}")
+    return bool(setting("enabled")) and int(setting("min_iterations")) <= it <= ITERATIONS - 1
+
+
+def summary_of(it):
+    """The geometry update summary of iteration `it` (its convergence verdict)."""
+    return f"{RESULTS}/iter/{int(it)}/mesh.ply.json"
+
+
+def pass_through_inputs(it, sources=()):
+    """The inputs a job of iteration `it` passes through (with the previous iteration's summary, which decides)."""
+    return [summary_of(int(it) - 1), *sources] if may_pass_through(it) else []
+
+
+def pass_through(it, links=(), markers=(), folders=()):
+    """The `sellip pass-through ... --` prefix of a job of iteration `it` (nothing where it cannot pass through):
+    `links` (source, output) pairs, `markers` output files and `folders` output folders that nothing reads."""
+    if not may_pass_through(it):
+        return ""
+    words = ["pass-through", "--after", shlex.quote(summary_of(int(it) - 1))]
+    for source, output in links:
+        words += ["--link", shlex.quote(str(source)), shlex.quote(str(output))]
+    words += [f"--marker {shlex.quote(str(path))}" for path in markers]
+    words += [f"--marker-folder {shlex.quote(str(path))}" for path in folders]
+    return " ".join(words + ["--"])
+
+
+def previous_store(wildcards):
+    """The store a gather of iteration it passes through once the loop has converged: iteration it-1's first-pass
+    store for the first pass, the parameters it ended with for the refit."""
+    it = int(wildcards.it)
+    return f"{RESULTS}/iter/{it - 1}/fit.zarr" if wildcards.pass_ == "fit" else params_of(it - 1)
+
+
+def poses_summary_of(it):
+    """The pose refinement summary that made iteration `it`'s cameras; none where they are the poses stage's."""
+    cameras = cameras_of(it)
+    return [f"{cameras}.json"] if cameras != f"{RESULTS}/cameras.csv" else []
+
+
 def get_mesh(wildcards):
     return mesh_of(wildcards.it)
 

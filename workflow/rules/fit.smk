@@ -11,6 +11,7 @@ rule fit_pbrdf:
         observations=f"{RESULTS}/iter/{{it}}/observations.zarr",
         prior=get_fit_prior,
         lobes=get_lobes,
+        passes=lambda wildcards: pass_through_inputs(wildcards.it),
     output:
         temp(f"{RESULTS}/iter/{{it}}/{{pass_}}/{{scatteritem}}.npz"),
     log:
@@ -28,9 +29,11 @@ rule fit_pbrdf:
         settings=fit_settings,
         model2_sigma_ss=model2_sigma_ss(),
         job_settings=fit_job_settings(),
+        # Once the loop has converged (sellip.fit.convergence): a marker, and no fit.
+        pass_through=lambda wildcards, output: pass_through(wildcards.it, markers=[output[0]]),
     shell:
         sellip_shell(
-            "fit --observations {input.observations:q} --shard {wildcards.scatteritem}"
+            "{params.pass_through} fit --observations {input.observations:q} --shard {wildcards.scatteritem}"
             " --output {output:q} {params.prior} {params.lobes} --job-settings {params.job_settings}"
             " --settings {params.settings} {params.model2_sigma_ss} --mem-mb {resources.mem_mb} > {log:q} 2>&1"
         )
@@ -40,6 +43,7 @@ rule gather_fit:
     input:
         observations=f"{RESULTS}/iter/{{it}}/observations.zarr",
         shards=gather.fit(f"{RESULTS}/iter/{{{{it}}}}/{{{{pass_}}}}/{{scatteritem}}.npz"),
+        passes=lambda wildcards: pass_through_inputs(wildcards.it, [previous_store(wildcards)]),
     output:
         directory(f"{RESULTS}/iter/{{it}}/{{pass_}}.zarr"),
     log:
@@ -50,9 +54,13 @@ rule gather_fit:
         "../../envs/fit.yaml"
     params:
         job_settings=fit_job_settings(),
+        # Once the loop has converged (sellip.fit.convergence): the previous iteration's store, linked.
+        pass_through=lambda wildcards, output: pass_through(
+            wildcards.it, links=[(previous_store(wildcards), output[0])]
+        ),
     shell:
         sellip_shell(
-            "gather-fit --observations {input.observations:q} --shards {input.shards:q}"
+            "{params.pass_through} gather-fit --observations {input.observations:q} --shards {input.shards:q}"
             " --output {output:q} --job-settings {params.job_settings} > {log:q} 2>&1"
         )
 
@@ -61,6 +69,7 @@ rule cluster_lobes:
     input:
         params=f"{RESULTS}/iter/{{it}}/fit.zarr",
         observations=f"{RESULTS}/iter/{{it}}/observations.zarr",
+        passes=lambda wildcards: pass_through_inputs(wildcards.it, [f"{RESULTS}/iter/{int(wildcards.it) - 1}/clusters"]),
     output:
         report(
             directory(f"{RESULTS}/iter/{{it}}/clusters"),
@@ -86,9 +95,13 @@ rule cluster_lobes:
         selection=model_selection_settings(),
         inherit=inherit_models,
         job_settings=fit_job_settings(),
+        # Once the loop has converged (sellip.fit.convergence): the previous iteration's clusters, linked.
+        pass_through=lambda wildcards, output: pass_through(
+            wildcards.it, links=[(f"{RESULTS}/iter/{int(wildcards.it) - 1}/clusters", output[0])]
+        ),
     shell:
         sellip_shell(
-            "cluster-lobes --params {input.params:q} --observations {input.observations:q} --output {output:q}"
+            "{params.pass_through} cluster-lobes --params {input.params:q} --observations {input.observations:q} --output {output:q}"
             " --seed {params.seed} --augment-settings {params.augment_settings}"
             " --stability-resamples {params.resamples}"
             " --settings {params.settings} --model-selection {params.selection} {params.inherit}"

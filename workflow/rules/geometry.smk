@@ -73,6 +73,9 @@ rule refine_geometry:
         hdr=f"{RESULTS}/hdr.zarr",
         cameras=get_cameras,
         capture=capture_file("capture.yaml"),
+        previous=lambda wildcards: [params_of(int(wildcards.it) - 1)] if int(wildcards.it) > 0 else [],
+        poses=lambda wildcards: poses_summary_of(wildcards.it),
+        passes=lambda wildcards: pass_through_inputs(wildcards.it),
     output:
         mesh=f"{RESULTS}/iter/{{it}}/mesh.ply",
         summary=f"{RESULTS}/iter/{{it}}/mesh.ply.json",
@@ -89,12 +92,23 @@ rule refine_geometry:
         capture=lambda wildcards, input: Path(input.capture).parent,
         held_out=config["evaluate"]["held_out_views"],
         silhouette_settings=settings_json(config["silhouette"]),
+        # sellip.fit.convergence.ConvergenceSettings: the keys of config converge that are set.
+        convergence=section_settings("converge"),
+        previous=lambda wildcards, input: (
+            f"--previous-params {shlex.quote(input.previous[0])}" if input.previous else ""
+        ),
+        poses=lambda wildcards, input: f"--poses-summary {shlex.quote(input.poses[0])}" if input.poses else "",
+        # Once the loop has converged: the previous iteration's mesh and summary, linked.
+        pass_through=lambda wildcards, input, output: pass_through(
+            wildcards.it, links=[(input.mesh, output.mesh), (summary_of(int(wildcards.it) - 1), output.summary)]
+        ),
     shell:
         sellip_shell(
-            "refine-geometry --params {input.params:q} --mesh {input.mesh:q} --output {output.mesh:q}"
+            "{params.pass_through} refine-geometry --params {input.params:q} --mesh {input.mesh:q} --output {output.mesh:q}"
             " --reference-mesh {input.reference:q} --settings {params.settings} --cameras {input.cameras:q}"
             " --hdr {input.hdr:q} --capture {params.capture:q} --exclude-views {params.held_out:q}"
-            " --silhouette-settings {params.silhouette_settings} > {log:q} 2>&1"
+            " --silhouette-settings {params.silhouette_settings} --iteration {wildcards.it} {params.previous}"
+            " {params.poses} --convergence {params.convergence} > {log:q} 2>&1"
         )
 
 
@@ -107,6 +121,8 @@ rule refine_poses:
         cameras=lambda wildcards: cameras_of(int(wildcards.it) - 1),
         hdr=f"{RESULTS}/hdr.zarr",
         capture=capture_file("capture.yaml"),
+        # Iteration it-1 passed through (the loop converged before it): its cameras, linked.
+        passes=lambda wildcards: pass_through_inputs(int(wildcards.it) - 1),
     output:
         cameras=f"{RESULTS}/iter/{{it}}/cameras.csv",
         summary=f"{RESULTS}/iter/{{it}}/cameras.csv.json",
@@ -124,9 +140,15 @@ rule refine_poses:
         settings=settings_json(
             {key: value for key, value in config["refine_poses"].items() if key not in ("enabled", "after_iteration")}
         ),
+        pass_through=lambda wildcards, input, output: pass_through(
+            int(wildcards.it) - 1,
+            links=[(input.cameras, output.cameras)]
+            + ([(f"{input.cameras}.json", output.summary)] if poses_summary_of(int(wildcards.it) - 1) else []),
+            markers=[] if poses_summary_of(int(wildcards.it) - 1) else [output.summary],
+        ),
     shell:
         sellip_shell(
-            "refine-poses --params {input.params:q} --mesh {input.mesh:q} --cameras {input.cameras:q}"
+            "{params.pass_through} refine-poses --params {input.params:q} --mesh {input.mesh:q} --cameras {input.cameras:q}"
             " --hdr {input.hdr:q} --capture {params.capture:q} --output {output.cameras:q} --settings {params.settings}"
             " > {log:q} 2>&1"
         )

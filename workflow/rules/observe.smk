@@ -10,6 +10,7 @@ rule gather_observations:
         cameras=get_cameras,
         hdr=f"{RESULTS}/hdr.zarr",
         capture=capture_file("capture.yaml"),
+        passes=lambda wildcards: pass_through_inputs(wildcards.it),
     output:
         temp(directory(f"{RESULTS}/iter/{{it}}/observations.zarr")),
     log:
@@ -27,9 +28,11 @@ rule gather_observations:
         settings=section_settings("observe", ("threads",)),
         silhouette_settings=settings_json(config["silhouette"]),
         held_out=config["evaluate"]["held_out_views"],
+        # Once the loop has converged (sellip.fit.convergence): a marker folder, and no observations.
+        pass_through=lambda wildcards, output: pass_through(wildcards.it, folders=[output[0]]),
     shell:
         sellip_shell(
-            "observe --mesh {input.mesh:q} --cameras {input.cameras:q} --hdr {input.hdr:q}"
+            "{params.pass_through} observe --mesh {input.mesh:q} --cameras {input.cameras:q} --hdr {input.hdr:q}"
             " --capture {params.capture:q} --output {output:q} --settings {params.settings}"
             " --silhouette-settings {params.silhouette_settings} --exclude-views {params.held_out:q}"
             " --threads {threads} > {log:q} 2>&1"

@@ -17,6 +17,9 @@ Modules and what they export (each name is importable from here too)::
         ETA_SCALE, VARIANCE_FLOOR, AugmentSettings, Clustering, cluster_features, spatial_coherence, nearest_vertices,
         vertex_coherence, robust_mahalanobis, albedo_separation, one_mode, same_eta_by_albedo, find_eta_cut,
         cluster_materials, squared_distances, cluster_support, clustering_support
+    convergence: Convergence of the outer loop (docs/speed.md "Convergence"): the geometry update's verdict, and the
+      jobs of later iterations that pass their inputs through (the DAG kept static)
+        PASSED_THROUGH, ConvergenceSettings, judge, converged_at, pass_through, loop_convergence
     evidence: No result without evidence (docs/design.md §9): a pass whose fit covers too little of the visible
       surface stops the run with what is missing (views, coverage, exposure)
         MIN_FITTED_SHARE, EvidenceError, fitted_share, check_evidence
@@ -88,6 +91,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "spatial_coherence", "nearest_vertices", "vertex_coherence", "robust_mahalanobis", "albedo_separation",
            "one_mode", "same_eta_by_albedo", "find_eta_cut", "cluster_materials", "squared_distances",
            "cluster_support", "clustering_support"),
+    "convergence": ("PASSED_THROUGH", "ConvergenceSettings", "judge", "converged_at", "pass_through",
+           "loop_convergence"),
     "evidence": ("MIN_FITTED_SHARE", "EvidenceError", "fitted_share", "check_evidence"),
     "finalize": ("FinalSettings", "finalize_model", "vertex_cluster_support"),
     "geometry_jobs": ("GeometryUpdateSettings", "raw_camera", "predicted_diffuse", "measure_silhouettes",

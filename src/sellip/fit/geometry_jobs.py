@@ -170,14 +170,19 @@ def iteration_model(params_path: Path, mesh_path: Path):
 def refine_geometry(params_path: Path, mesh_path: Path, output: Path,
                     settings: GeometryUpdateSettings = GeometryUpdateSettings(), min_confidence: float = 0.5,
                     reference_mesh: Path | None = None, cameras_path: Path | None = None, hdr_path: Path | None = None,
-                    capture_path: Path | None = None, exclude_views=(), mask_options: dict | None = None) -> dict:
+                    capture_path: Path | None = None, exclude_views=(), mask_options: dict | None = None,
+                    iteration: int | None = None, previous_params: Path | None = None,
+                    poses_summary: Path | None = None, convergence=None) -> dict:
     """Write the next iteration's mesh ``output`` and ``<output>.json``; returns the summary written there.
     ``settings``: config ``refine_geometry`` of this iteration (:class:`GeometryUpdateSettings`).
     ``min_confidence``: the vertices whose normal agreement is reported. ``settings.silhouette`` > 0: the weight of the
     silhouette constraints of the photographs (``cameras_path``, ``hdr_path``, ``capture_path`` needed; the
     ``exclude_views`` not used; ``mask_options`` of :func:`sellip.geometry.silhouettes.silhouette_masks`);
     ``settings.keep_surface``: steps that would fold the mesh are shortened
-    (:func:`sellip.geometry.update.step_without_folds`).
+    (:func:`sellip.geometry.update.step_without_folds`). With ``iteration`` given, the summary's ``convergence`` is
+    the loop's verdict (:func:`sellip.fit.convergence.judge`, ``convergence`` a ConvergenceSettings) from the step,
+    ``previous_params`` (iteration - 1's parameters: η's change) and ``poses_summary`` (this iteration's pose
+    refinement, where the poses are refined).
 
     Long: one job's steps in order (read, blend, silhouettes, integrate, carry parameters, write), each a call."""
     from sellip.fit.observe import read_mesh
@@ -236,8 +241,11 @@ def refine_geometry(params_path: Path, mesh_path: Path, output: Path,
                "keep_surface": keep_surface,
                "silhouette_weight": silhouette,
                "silhouette_constraints": 0 if silhouettes is None else len(silhouettes),
-               "silhouette_offset_px": per_view,
-               "seconds": time.perf_counter() - started}
+               "silhouette_offset_px": per_view}
+    if iteration is not None:
+        summary["convergence"] = _verdict(iteration, offsets, mesh, store, confident, previous_params, poses_summary,
+                                          convergence)
+    summary["seconds"] = time.perf_counter() - started
     write_text(json.dumps(summary, indent=1), f"{output}.json")
     with atomic_file(output) as tmp:
         write_param_mesh(tmp, ParamMesh(new_vertices, mesh.faces, new_normals, params),
@@ -249,6 +257,24 @@ def refine_geometry(params_path: Path, mesh_path: Path, output: Path,
                                           for key in ("fitted_vs_mesh_before_deg", "fitted_vs_mesh_after_deg")))
     return summary
 
+
+
+def _verdict(iteration, offsets, mesh, store, confident, previous_params, poses_summary, convergence) -> dict:
+    """The loop's convergence verdict of this geometry update (:func:`sellip.fit.convergence.judge`)."""
+    from sellip.fit.convergence import ConvergenceSettings, judge
+    from sellip.model.params import read_params
+
+    edges = mesh.vertices[mesh.faces[:, [1, 2, 0]]] - mesh.vertices[mesh.faces]
+    mean_edge = float(np.linalg.norm(edges, axis=-1).mean())
+    eta_before = None if previous_params is None else np.asarray(read_params(previous_params)["eta"], np.float64)
+    eta = np.asarray(store["eta"], np.float64)
+    if eta_before is not None and eta_before.shape != eta.shape:
+        eta_before = None  # another mesh (a user's restart): nothing to compare
+    poses = None if poses_summary is None else json.loads(Path(poses_summary).read_text(encoding="utf-8"))
+    verdict = judge(iteration, offsets, mean_edge, eta.ravel(), None if eta_before is None else eta_before.ravel(),
+                    confident, poses, convergence or ConvergenceSettings())
+    log.info("iteration %d: %s", iteration, verdict["reason"])
+    return verdict
 
 
 def refine_poses(params_path: Path, mesh_path: Path, cameras_path: Path, hdr_path: Path, capture_path: Path,

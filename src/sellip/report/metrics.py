@@ -15,6 +15,7 @@ import numpy as np
 from sellip import workflow_support
 from sellip.capture.files import GROUND_TRUTH_MESH
 from sellip.capture.reader import read_capture
+from sellip.fit.convergence import loop_convergence
 from sellip.geometry.alignment import Similarity
 from sellip.geometry.cameras import load_cameras
 from sellip.jobs import write_text
@@ -310,7 +311,11 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
 
     ``iteration_meshes``: the loop's meshes in order (the initial one, then each iteration's), and
     ``iteration_fits``: the first-pass fit store of each (its fitted normals): ``geometry_iterations``
-    in metrics.json and the ``convergence_plot``."""
+    in metrics.json and the ``convergence_plot``; where the loop converged (``convergence``) from the summaries beside
+    the meshes.
+
+    Long: one figure after another, each a call or a few lines; split, the figures' shared inputs would travel as
+    a dozen arguments."""
     started = time.perf_counter()
     model_path, capture_path, output = Path(model_path), Path(capture_path), Path(output)
     if not model_path.is_file():
@@ -368,6 +373,10 @@ def evaluate_model(model_path: str | Path, cameras_path: str | Path, hdr_path: s
             save_figure(convergence_figure(metrics["geometry_iterations"]), convergence_plot)
     else:
         reasons["geometry_iterations"] = "no --iteration-meshes given"
+    # Where the loop converged and which iterations passed through (sellip.fit.convergence).
+    metrics["convergence"] = loop_convergence(iteration_meshes or [])
+    if metrics["convergence"] is None:
+        reasons["convergence"] = "no iteration's geometry update recorded a convergence verdict"
 
     metrics["material_support"] = material_support(params_path, reasons)
     metrics["timings"] = _timings(benchmarks, timings_plot, reasons)

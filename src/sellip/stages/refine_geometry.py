@@ -23,7 +23,9 @@ the model's silhouette onto the photograph's (:func:`measure_silhouettes`,
 keeps its parameters (the next fit's warm start) and the vertex count does not drift. Written atomically as a
 model PLY (:func:`sellip.model.ply.write_param_mesh`) with the normals of the new surface and the ``confidence``: the
 mesh of the next iteration. Beside it, ``<output>.json`` says how far the surface moved and how far the fitted
-normals were from the mesh's before and after (a convergence figure that needs no ground truth).
+normals were from the mesh's before and after (a convergence figure that needs no ground truth), and with
+``--iteration`` whether the loop has converged (:func:`sellip.fit.convergence.judge`; later iterations then pass
+through, ``sellip pass-through``).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ import argparse
 import logging
 from pathlib import Path
 
+from sellip.fit.convergence import ConvergenceSettings
 from sellip.fit.geometry_jobs import GeometryUpdateSettings, refine_geometry
 from sellip.settings import add_settings_argument
 from sellip.stages._arguments import add_silhouette_argument
@@ -52,6 +55,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--exclude-views", nargs="*", default=[], help="views whose silhouettes are not used "
                         "(the held-out views)")
     add_silhouette_argument(parser)
+    parser.add_argument("--iteration", type=int, default=None,
+                        help="the loop's iteration: judge whether the loop has converged (the summary's convergence)")
+    parser.add_argument("--previous-params", type=Path, default=None,
+                        help="iteration - 1's parameters (eta's change for the convergence verdict)")
+    parser.add_argument("--poses-summary", type=Path, default=None,
+                        help="this iteration's pose refinement summary (cameras.csv.json), where poses are refined")
+    add_settings_argument(parser, ConvergenceSettings, flag="--convergence", section="converge")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -62,7 +72,9 @@ def main(args: argparse.Namespace) -> int:
         refine_geometry(args.params, args.mesh, args.output, args.settings, reference_mesh=args.reference_mesh,
                         cameras_path=args.cameras, hdr_path=args.hdr, capture_path=args.capture,
                         exclude_views=args.exclude_views,
-                        mask_options={"threshold": args.silhouette_settings.threshold})
+                        mask_options={"threshold": args.silhouette_settings.threshold}, iteration=args.iteration,
+                        previous_params=args.previous_params, poses_summary=args.poses_summary,
+                        convergence=args.convergence)
     except (ParamsError, ObserveError, ValueError) as error:
         log.error("%s", error)
         return 1
