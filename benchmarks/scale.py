@@ -62,8 +62,10 @@ def run_size(scene: str, size: dict, work: Path, cores: int) -> dict:
         synthesize_capture(scene, capture, views=size["views"], width=size["width"], height=size["height"],
                            progress=False)
         synth_s = time.perf_counter() - started
+    # Every iteration runs (converge off): the cost model measures what one full iteration costs (docs/speed.md,
+    # "Convergence": a converged run's later iterations cost a second each).
     config = {"capture": str(capture), "name": "run", "iterations": size["iterations"],
-              "init": {"max_vertices": size["max_vertices"]},
+              "converge": {"enabled": False}, "init": {"max_vertices": size["max_vertices"]},
               "evaluate": {"held_out_views": held_out_views(size["views"], HELD_OUT)}}
     log = folder / "snakemake.log"
     print(f"{tag}: snakemake ({size['iterations']} iterations), log {log}", flush=True)

@@ -72,7 +72,8 @@ def main(argv: list[str] | None = None) -> int:
         from sellip.stages.pass_through import split
 
         argv = split(argv)
-        if not argv:
+        if not argv:  # passed through: the job's time is its start-up and the links
+            logging.getLogger("sellip").info(timing.format_report(clock.report()))
             return 0
         command = next((a for a in argv if not a.startswith("-")), None)
     with timing.phase("imports"):
