@@ -72,13 +72,15 @@ def test_pass_through_links_marks_and_copies_the_summary_once_converged(tmp_path
     (store / "eta").mkdir(parents=True)
     (store / "eta" / "c0").write_bytes(b"12345")
     (store / "zarr.json").write_text("{}")
+    (store / ".snakemake_timestamp").write_text("")
     mesh = tmp_path / "mesh_3.ply"
     mesh.write_bytes(b"ply")
     links = [(store, tmp_path / "fit_4.zarr"), (mesh, tmp_path / "mesh_4.ply"), (after, tmp_path / "mesh_4.ply.json")]
     markers = [tmp_path / "shard.npz", tmp_path / "cameras.csv.json"]
     assert pass_through(after, links, markers, [tmp_path / "observations.zarr"]) == 3
     assert os.path.samefile(tmp_path / "fit_4.zarr" / "eta" / "c0", store / "eta" / "c0")  # linked, not copied
-    assert os.path.samefile(tmp_path / "mesh_4.ply", mesh)
+    assert not (tmp_path / "fit_4.zarr" / ".snakemake_timestamp").exists()  # Snakemake's own, never shared
+    assert (tmp_path / "mesh_4.ply").read_bytes() == b"ply" and not os.path.samefile(tmp_path / "mesh_4.ply", mesh)
     summary = json.loads((tmp_path / "mesh_4.ply.json").read_text())
     assert summary["passed_through"] and summary["convergence"]["iteration"] == 3
     assert "converged at iteration 3" in (tmp_path / "shard.npz").read_text()

@@ -8,10 +8,10 @@ change), and, where the poses are refined, how far this iteration's pose refinem
 rotation, degrees). The verdict goes into ``iter/<it>/mesh.ply.json`` (``convergence``). Every job of a later
 iteration before the final pass runs through ``sellip pass-through --after iter/<it-1>/mesh.ply.json ... --
 <its command>`` (:func:`pass_through`): when that summary says converged, the job links its predecessor's outputs
-to its own (hard links: no copy) or writes a marker where nothing reads its output, and its command does not run;
-otherwise the command runs as before. The final pass always runs, on the converged iteration's mesh, parameters,
-lobes and cameras. A converged summary stays converged when passed through (the iteration it converged at is kept),
-so ``metrics.json`` can say where the loop converged (:func:`loop_convergence`).
+to its own (a store's files hard-linked, a mesh or table copied) or writes a marker where nothing reads its output,
+and its command does not run; otherwise the command runs as before. The final pass always runs, on the converged
+iteration's mesh, parameters, lobes and cameras. A converged summary stays converged when passed through (the
+iteration it converged at is kept), so ``metrics.json`` can say where the loop converged (:func:`loop_convergence`).
 """
 
 from __future__ import annotations
@@ -97,23 +97,30 @@ def converged_at(summary: str | Path) -> int | None:
     return block.get("iteration") if block.get("converged") else None
 
 
+WORKFLOW_STAMP = ".snakemake_timestamp"
+"""The file whose time Snakemake takes for a folder's: never linked (touching a link would date the source)."""
+
+
 def _link_tree(source: Path, output: Path) -> None:
-    """``output`` as hard links to every file of the folder ``source`` (atomic: renamed into place)."""
+    """``output`` as hard links to every file of the folder ``source`` but Snakemake's time stamp (atomic: renamed
+    into place). The files of a store are written once and replaced whole, never changed in place."""
     with atomic_directory(output) as tmp:
-        shutil.copytree(source, tmp, copy_function=os.link)
+        shutil.copytree(source, tmp, copy_function=os.link, ignore=shutil.ignore_patterns(WORKFLOW_STAMP))
 
 
-def _link_file(source: Path, output: Path) -> None:
+def _copy_file(source: Path, output: Path) -> None:
+    """A copy, not a link: the output must be newer than its inputs (Snakemake compares modification times)."""
     with atomic_file(output) as tmp:
-        os.link(source, tmp)
+        shutil.copyfile(source, tmp)
 
 
 def pass_through(after: str | Path, links: list[tuple[Path, Path]] = (), markers: list[Path] = (),
                  marker_folders: list[Path] = ()) -> int | None:
     """If the summary ``after`` (the previous iteration's ``mesh.ply.json``) says the loop has converged: make each
-    ``(source, output)`` of ``links`` (a folder or file linked; a ``.json`` summary copied with ``passed_through``
-    set), write each file of ``markers`` and each folder of ``marker_folders`` (holding :data:`PASSED_THROUGH`),
-    and return the iteration it converged at; else touch nothing and return None (the job then runs)."""
+    ``(source, output)`` of ``links`` (a folder's files hard-linked; a file copied, so that it is newer than its
+    inputs; a ``.json`` summary copied with ``passed_through`` set), write each file of ``markers`` and each folder
+    of ``marker_folders`` (holding :data:`PASSED_THROUGH`), and return the iteration it converged at; else touch
+    nothing and return None (the job then runs)."""
     iteration = converged_at(after)
     if iteration is None:
         return None
@@ -128,7 +135,7 @@ def pass_through(after: str | Path, links: list[tuple[Path, Path]] = (), markers
         elif source.is_dir():
             _link_tree(source, output)
         else:
-            _link_file(source, output)
+            _copy_file(source, output)
     for output in markers:
         output = Path(output)
         text = json.dumps({"passed_through": True, "converged_at": iteration}) if output.suffix == ".json" else note
