@@ -293,7 +293,7 @@ def test_flash_on_the_board_within_2_mm_at_half_size(tmp_path):
     """At half the device's size (1224x1024, 6 layouts of 3 spheres of 20 mm on the board, the true intrinsics)
     the flash is within 2 mm and within 3 sigma, and passes its gate."""
     out = synthetic_set.synthesize_calibration(tmp_path / "half", 1224, 1024, seed=0, board_frames=0, sphere_frames=0,
-                                           raw_format="tiff")
+                                               raw_format="tiff")
     truth = yaml.safe_load((out / "truth.yaml").read_text())
     device = _calibrated(truth)
     result = board_spheres.calibrate_flash_on_board(_frames(out / "board_spheres", device["sensor"]), device,
