@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +46,15 @@ from sellip.calibrate.synthetic import (
 )
 from sellip.capture.writer import write_raw_file
 from sellip.jobs import refuse_to_replace_folder
+
+_LAP = [0.0]
+
+
+def _lap() -> float:
+    """Seconds since the last call (the progress lines' time per frame, rendering and exposure)."""
+    now = time.perf_counter()
+    lap, _LAP[0] = now - (_LAP[0] or now), now
+    return lap
 
 
 def _burst_seed(base: list[int], frame: int) -> list[int]:
@@ -75,7 +85,7 @@ def _write_board_spheres(folder: Path, device: dict, spec: BoardSpec, count: int
         record["centres_m"][name + suffix] = [c.tolist() for c in centres]
         record["poses"][name + suffix] = {"rotation": rotation.tolist(), "translation_m": translation.tolist()}
         if progress:
-            print(f"spheres on the board {k + 1}/{count}", flush=True)
+            print(f"spheres on the board {k + 1}/{count} ({_lap():.1f} s)", flush=True)
 
 
 def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 2048, seed: int = 0,
@@ -105,6 +115,7 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
     scale = width / 2448
     white = device["sensor"]["white_level"] - float(np.max(device["sensor"]["black_level"]))
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+    _lap()  # the progress lines time each frame from here
     if tmp.exists():
         shutil.rmtree(tmp)
     truth = {"renderer": frames.description, "device": device,
@@ -125,7 +136,7 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
                 truth["board"]["poses"][name] = {"rotation": rotation.tolist(),
                                                  "translation_m": translation.tolist()}
             if progress:
-                print(f"board {k + 1}/{board_frames}", flush=True)
+                print(f"board {k + 1}/{board_frames} ({_lap():.1f} s)", flush=True)
         rng = np.random.default_rng([seed, 20])
         radius = SPHERE_RADIUS_M if scale >= 0.5 else SPHERE_RADIUS_M * 0.6
         truth["spheres"]["radius_m"] = radius
@@ -140,7 +151,7 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
                 write_raw_file(tmp / "spheres" / name, raw, device["sensor"])
                 truth["spheres"]["centres_m"][name] = [c.tolist() for c in centres]
             if progress:
-                print(f"spheres {k + 1}/{sphere_frames}", flush=True)
+                print(f"spheres {k + 1}/{sphere_frames} ({_lap():.1f} s)", flush=True)
         _write_board_spheres(tmp / "board_spheres", device, spec, board_sphere_frames, radius, 0.75 * white, seed,
                              suffix, truth["board_spheres"], progress, frames)
         rng = np.random.default_rng([seed, 30])
