@@ -314,9 +314,14 @@ def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius
         scores={str(layouts[i]): scores[i] for i in np.argsort(scores)[::-1]}, left_out=left_out,
         rim_score=rim_scores[best])
     if scores[best] - ranked[order[1]] < MIN_SCORE_MARGIN:
+        level = float(np.nanmedian(values.mean(axis=-1)))
         raise CalibrationError(f"the sphere limbs cannot tell the polarizer layouts apart (best {layouts[best]} "
                                f"{scores[best]:+.3f}, next {layouts[order[1]]} {scores[order[1]]:+.3f}): expected "
-                               "dielectric spheres whose limbs are lit and below the white level")
+                               "dielectric spheres whose limbs are lit and below the white level; their diffuse "
+                               f"light at {DIFFUSE_ZENITH_DEG[0]:g}-{DIFFUSE_ZENITH_DEG[1]:g} deg reads "
+                               f"{100 * level:.2g} % of full scale, and its polarization is 0.5-2 % of that: expose "
+                               "brighter (the highlights just below the white level) or use a lighter-coloured glossy "
+                               "sphere, whose highlight is less bright against its diffuse light")
     # the sum rule must pick the pairing clearly: the per-pixel misfit of the next pairing exceeds the best's by
     # SUM_RULE_Z standard errors of their paired difference
     other = [i for i in range(len(perms)) if not paired[i]]
