@@ -57,7 +57,7 @@ def main(args: argparse.Namespace) -> int:
                                      spec=BoardSpec(cols, rows, args.square_mm / 1000),
                                      raw_format=args.raw_format, polarizer_deg=args.polarizer_deg, burst=args.burst,
                                      force=args.force, renderer=args.renderer)
-    except WouldReplaceError as exc:
+    except (WouldReplaceError, ImportError) as exc:
         raise SystemExit(f"sellip synth-calibration: {exc}") from None
     log.info("wrote %s in %.0f s", out, time.perf_counter() - started)
     return 0
