@@ -43,7 +43,8 @@ from sellip.calibrate import synthetic
 CALIBRATION_RENDERERS = ("sellip", "mitsuba")
 
 SUPERSAMPLE = {"board": 3, "spheres": 6, "board_spheres": 6, "chart": 3}
-"""Stratified samples per pixel side, per kind of frame (spheres: the mirrored panel and room are sampled)."""
+"""Stratified samples per pixel side, per kind of frame (spheres: the mirrored panel and room are sampled; both
+frames of a board pair take "board_spheres")."""
 
 SPHERE_PPLASTIC = {"diffuse_reflectance": 0.05, "alpha": 0.08, "eta": 1.5, "specular_reflectance": 1.0}
 """A black glossy ball in Mitsuba's ``pplastic`` (GGX): a faint diffuse base under a sharp dielectric lobe."""
@@ -249,7 +250,9 @@ class MitsubaScenes:
         shapes = {"board": _plane("board", spec.outline(), rotation, translation, _board_texture(spec))}
         if room:
             shapes["room"] = {"type": "constant", "radiance": ROOM_RADIANCE}
-        return self._render(device, shapes, "board")
+        # the board frame of a pair: as many samples as its sphere frame, or the room's sampling noise differs
+        # between the two and reads as a change (a sphere) to the flash step
+        return self._render(device, shapes, "board_spheres" if room else "board")
 
     def spheres(self, device, spheres):
         """Spheres before the light panel (:data:`PANEL_RADIANCE`), which they mirror."""
