@@ -13,7 +13,17 @@ import pandas as pd
 import pytest
 import yaml
 
-from sellip.calibrate import board_spheres, color, flash, intrinsics, panel, polarization, synthetic, targets
+from sellip.calibrate import (
+    board_spheres,
+    color,
+    flash,
+    intrinsics,
+    panel,
+    polarization,
+    synthetic,
+    synthetic_set,
+    targets,
+)
 from sellip.calibrate import device as devices
 from sellip.calibrate.intrinsics import CalibrationError
 from sellip.capture import assemble, files, ingest, reader, writer
@@ -26,7 +36,7 @@ SPEC = synthetic.BoardSpec()
 def calib(tmp_path_factory):
     """A synthetic calibration folder at 612x512: 24 board frames, 6 sphere frames of 3 spheres, a chart."""
     out = tmp_path_factory.mktemp("calib") / "calib"
-    synthetic.synthesize_calibration(out, W, H, seed=0, raw_format="tiff")
+    synthetic_set.synthesize_calibration(out, W, H, seed=0, raw_format="tiff")
     return out, yaml.safe_load((out / "truth.yaml").read_text())
 
 
@@ -282,8 +292,8 @@ def test_flash_from_spheres_resting_on_the_board(calib):
 def test_flash_on_the_board_within_2_mm_at_half_size(tmp_path):
     """At half the device's size (1224x1024, 6 layouts of 3 spheres of 20 mm on the board, the true intrinsics)
     the flash is within 2 mm and within 3 sigma, and passes its gate."""
-    out = synthetic.synthesize_calibration(tmp_path / "half", 1224, 1024, seed=0, board_frames=0, sphere_frames=0,
-                                           raw_format="tiff")
+    out = synthetic_set.synthesize_calibration(tmp_path / "half", 1224, 1024, seed=0, board_frames=0, sphere_frames=0,
+                                               raw_format="tiff")
     truth = yaml.safe_load((out / "truth.yaml").read_text())
     device = _calibrated(truth)
     result = board_spheres.calibrate_flash_on_board(_frames(out / "board_spheres", device["sensor"]), device,
@@ -299,8 +309,8 @@ def test_flash_on_the_board_one_sigma_covers_the_error_over_seeds(tmp_path):
     """Five more synthetic sets (6 layouts of 3 spheres on the board, 612x512, the true intrinsics): the flash is
     within 3 of its reported sigma on every axis in each (at this size up to 11 mm off in depth, sigma 4-5 mm)."""
     for seed in range(1, 6):
-        out = synthetic.synthesize_calibration(tmp_path / f"s{seed}", W, H, seed=seed, board_frames=0, sphere_frames=0,
-                                               raw_format="tiff")
+        out = synthetic_set.synthesize_calibration(tmp_path / f"s{seed}", W, H, seed=seed, board_frames=0,
+                                                   sphere_frames=0, raw_format="tiff")
         truth = yaml.safe_load((out / "truth.yaml").read_text())
         device = _calibrated(truth)
         result = board_spheres.calibrate_flash_on_board(_frames(out / "board_spheres", device["sensor"]), device,

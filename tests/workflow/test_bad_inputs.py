@@ -402,7 +402,7 @@ def test_synth_never_replaces_a_folder_it_did_not_write(pristine, tmp_path):
 
 
 def test_synth_calibration_never_replaces_a_folder_it_did_not_write(tmp_path):
-    from sellip.calibrate.synthetic import synthesize_calibration
+    from sellip.calibrate.synthetic_set import synthesize_calibration
     from sellip.jobs import WouldReplaceError
 
     (tmp_path / "calib").mkdir()

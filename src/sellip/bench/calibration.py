@@ -314,7 +314,7 @@ def run_sensitivity(work: str | Path, scene: str = "sphere_ior", views: int = 36
 def _run_row(work: Path, folder: Path, row: Perturbation, tag: str, scene: str, views: int, max_vertices: int,
              iterations: int, cores: int, device: Mapping, calibration_seed: int) -> dict:
     from sellip.bench.sweep import SnakemakeRunner
-    from sellip.calibrate import synthetic
+    from sellip.calibrate import synthetic_set
 
     width, height = int(device["sensor"]["width"]), int(device["sensor"]["height"])
     capture = _true_capture(work, scene, views, device, row.noise_seed)
@@ -323,7 +323,7 @@ def _run_row(work: Path, folder: Path, row: Perturbation, tag: str, scene: str, 
     if row.kind == "calibrated":
         calib = work / "calibration"
         if not (calib / "truth.yaml").is_file():
-            synthetic.synthesize_calibration(calib, width, height, seed=calibration_seed, raw_format="tiff")
+            synthetic_set.synthesize_calibration(calib, width, height, seed=calibration_seed, raw_format="tiff")
         calibrated, extra = calibrate_synthetic_set(calib)
         change["device"] = calibrated
     elif row.kind == "chart":

@@ -14,7 +14,8 @@ Public API (raw frames are (H, W) uint16 mosaics; a device is device.yaml's mapp
                                                                   # each step's log lines, sections and record
     device.read_device / write_device / update_device            # device.yaml, validated, atomic
     targets.TARGETS / check(step, measured, targets) -> [missed]  # each step's 1-sigma and residual targets
-    synthetic.synthesize_calibration(out, width, height, seed)   # frames with known truth
+    synthetic_set.synthesize_calibration(out, width, height, seed, renderer="sellip")   # frames with known truth
+    renderers.frame_renderer("sellip" | "mitsuba")                # who draws them (Mitsuba 3: independent)
     CalibrationError                                              # names the frames and what is wrong
 """
 

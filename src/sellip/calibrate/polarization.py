@@ -255,6 +255,19 @@ def _check_cues(report: PolarizationReport, claimed, best, claimed_highlight_deg
             f"polarizer is mounted 90 deg off, or the layout is {_turned(claimed).tolist()} and {advice}")
 
 
+def _undecided(best, best_score: float, second, second_score: float, values: np.ndarray) -> CalibrationError:
+    """The error when no layout wins by MIN_SCORE_MARGIN, with the level of the diffuse light that decides
+    (``values``: analyzer samples (N, 4) at DIFFUSE_ZENITH_DEG, 1 = full scale)."""
+    level = float(np.nanmedian(values.mean(axis=-1)))
+    return CalibrationError(f"the sphere limbs cannot tell the polarizer layouts apart (best {best} {best_score:+.3f}, "
+                            f"next {second} {second_score:+.3f}): expected dielectric spheres whose limbs are lit and "
+                            f"below the white level; their diffuse light at {DIFFUSE_ZENITH_DEG[0]:g}-"
+                            f"{DIFFUSE_ZENITH_DEG[1]:g} deg reads {100 * level:.2g} % of full scale, and its "
+                            "polarization is 0.5-2 % of that: expose brighter (the highlights just below the white "
+                            "level) or use a lighter-coloured glossy sphere, whose highlight is less bright against "
+                            "its diffuse light")
+
+
 def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius_m: float,
                        log=None) -> PolarizationReport:
     """Score every polarizer layout on the spheres' limbs and measure the flash polarizer on their highlights
@@ -314,9 +327,7 @@ def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius
         scores={str(layouts[i]): scores[i] for i in np.argsort(scores)[::-1]}, left_out=left_out,
         rim_score=rim_scores[best])
     if scores[best] - ranked[order[1]] < MIN_SCORE_MARGIN:
-        raise CalibrationError(f"the sphere limbs cannot tell the polarizer layouts apart (best {layouts[best]} "
-                               f"{scores[best]:+.3f}, next {layouts[order[1]]} {scores[order[1]]:+.3f}): expected "
-                               "dielectric spheres whose limbs are lit and below the white level")
+        raise _undecided(layouts[best], scores[best], layouts[order[1]], scores[order[1]], values)
     # the sum rule must pick the pairing clearly: the per-pixel misfit of the next pairing exceeds the best's by
     # SUM_RULE_Z standard errors of their paired difference
     other = [i for i in range(len(perms)) if not paired[i]]

@@ -1,5 +1,6 @@
-"""Synthetic calibration captures with known truth: a checkerboard, glossy spheres in front of a light panel,
-and a ColorChecker, all under the rig's polarized flash, through the project's sensor simulator.
+"""Synthetic calibration frames with known truth: a checkerboard, glossy spheres in front of a light panel,
+and a ColorChecker, all under the rig's polarized flash, through the project's sensor simulator (the folder of
+them: :mod:`sellip.calibrate.synthetic_set`).
 
 Public API::
 
@@ -12,7 +13,6 @@ Public API::
     panel.panel_reflection(points, normals, eta, panel) -> analyzers (N, 4)   # the panel mirrored, Fresnel-polarized
     render_chart(device, rotation, translation, supersample=2, shadow=1.0) -> analyzers (H, W, 4, 3)
     expose(analyzers, device, peak_fraction, rng) -> raw (H, W) uint16    # sellip.sensor.simulate_raw
-    synthesize_calibration(out, width=2448, height=2048, seed=0, ...) -> Path   # folder, see below
 
 Everything is rendered analytically in camera coordinates (OpenCV axes, metres): every sub-pixel sample's
 ray (the lens distortion of the device applied exactly at pixel centres, :func:`sellip.render.undistort_normalized`,
@@ -26,35 +26,19 @@ spheres mirror it (Fresnel-weighted, s-polarized), brightest at their limbs, as 
 Shadows are not traced (the board and chart are alone in their frames; spheres are placed apart).
 The analyzer images go through :func:`sellip.sensor.simulate_raw` (mosaic, colour, shot and read noise,
 12-bit rounding, saturation) with the device's sensor.
-
-A calibration folder (``sellip synth-calibration --out DIR``)::
-
-    sensor.yaml                the sensor section only: what a user knows from the datasheet
-    truth.yaml                 the true device (sensor, camera, light), board poses, sphere centres, chart corners
-    board/board_NN.dng         checkerboard frames (board_NN_bK.dng: frame K of a burst of pose NN)
-    spheres/spheres_NN.dng     frames of glossy spheres of known radius (likewise)
-    board_spheres/spheres_NN_board.dng, spheres_NN.dng   the board alone, then spheres resting on it at square
-                               centres, from one camera position (the flash step's board protocol)
-    chart/chart_00.dng         a ColorChecker under the flash
 """
 
 from __future__ import annotations
 
-import os
-import shutil
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
-import yaml
 from scipy import ndimage
 
-from sellip.calibrate.board_spheres import BOARD_SUFFIX, sphere_centre, square_centres
+from sellip.calibrate.board_spheres import sphere_centre, square_centres
 from sellip.calibrate.panel import panel_reflection
 from sellip.capture.scenes import DEVICE_FX_PX, DEVICE_WIDTH_PX
 from sellip.capture.sensor import SensorModel, sensor_from_device
-from sellip.capture.writer import write_raw_file
-from sellip.jobs import refuse_to_replace_folder
 from sellip.model.render import undistort_normalized
 
 DEVICE_DISTORTION = (-0.12, 0.25, 4e-4, -3e-4, 0.0)
@@ -531,120 +515,3 @@ def look_at(target: np.ndarray, tilt_deg: float, rng: np.random.Generator) -> np
 
     axis = rng.uniform(0, 2 * np.pi)
     return Rotation.from_rotvec(np.radians(tilt_deg) * np.array([np.cos(axis), np.sin(axis), 0.0])).as_matrix()
-
-
-def _burst_seed(base: list[int], frame: int) -> list[int]:
-    """The noise seed of a burst's frame: the first frame keeps the seed it has without bursts."""
-    return base if frame == 0 else [*base, frame]
-
-
-def _burst_name(kind: str, pose: int, frame: int, burst: int, suffix: str) -> str:
-    return f"{kind}_{pose:02d}{suffix}" if burst == 1 else f"{kind}_{pose:02d}_b{frame}{suffix}"
-
-
-def _write_board_spheres(folder: Path, device: dict, spec: BoardSpec, count: int, radius: float, peak_dn: float,
-                         seed: int, suffix: str, record: dict, progress: bool) -> None:
-    """``count`` pairs into ``folder``: the board alone (NAME_board) and spheres resting on it (NAME), exposed
-    alike (the sphere frame's peak at ``peak_dn``); their marks, centres and poses into ``record``."""
-    rng = np.random.default_rng([seed, 40])
-    record["radius_m"] = radius
-    for k, (rotation, translation, marks) in enumerate(board_sphere_layouts(spec, device, count, rng, radius)):
-        board = render_board(device, spec, rotation, translation)
-        centres = [sphere_centre(rotation, translation, m, radius) for m in marks]
-        analyzers = render_spheres(device, [(c, radius) for c in centres], reflect_panel=False, background=board)
-        peak = float(np.max(analyzers))
-        name = f"spheres_{k:02d}"
-        for image, stem in ((board, f"{name}{BOARD_SUFFIX}"), (analyzers, name)):
-            raw = expose(image, device, peak_dn, np.random.default_rng([seed, 41, k, len(stem)]),
-                         reference=peak)
-            write_raw_file(folder / f"{stem}{suffix}", raw, device["sensor"])
-        record["marks_m"][name + suffix] = marks.tolist()
-        record["centres_m"][name + suffix] = [c.tolist() for c in centres]
-        record["poses"][name + suffix] = {"rotation": rotation.tolist(), "translation_m": translation.tolist()}
-        if progress:
-            print(f"spheres on the board {k + 1}/{count}", flush=True)
-
-
-def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 2048, seed: int = 0,
-                           board_frames: int = 24, sphere_frames: int = 6, spheres_per_frame: int = 3,
-                           spec: BoardSpec = BoardSpec(), raw_format: str = "dng", polarizer_deg: float = 0.0,
-                           progress: bool = False, burst: int = 1, reflect_panel: bool = True,
-                           board_sphere_frames: int = 6, force: bool = False) -> Path:
-    """Write a calibration folder (module docstring) for the synthetic device; returns it. Atomic: written to a
-    temporary sibling and renamed. The same seed gives the same files. An existing ``out`` without truth.yaml (not
-    one this function wrote) stops it with :class:`sellip.jobs.WouldReplaceError`, unless ``force``.
-
-    ``burst``: frames per pose (board and sphere layouts alike), each with its own sensor noise (a camera's burst):
-    ``board_07_b2.dng`` is pose 7's third frame (``board_07.dng`` at ``burst`` 1, as a burst's first).
-    ``reflect_panel``: the spheres mirror the light panel (as real glossy spheres do). ``board_sphere_frames``:
-    layouts of 3 spheres resting on the board (:func:`board_sphere_layouts`), each a pair of frames from one tripod
-    position, ``board_spheres/spheres_NN_board`` (the board alone) and ``board_spheres/spheres_NN`` (the spheres on
-    it), exposed alike (docs/calibration.md, the board protocol). Long: one loop per kind of frame, kept together
-    so that each kind's seeds stay visible side by side."""
-    out = Path(out)
-    refuse_to_replace_folder(out, "sellip synth-calibration", lambda path: (path / "truth.yaml").is_file(), force)
-    device = true_device(width, height, polarizer_deg)
-    suffix = {"dng": ".dng", "tiff": ".tiff", "png": ".png"}[raw_format]
-    scale = width / 2448
-    white = device["sensor"]["white_level"] - float(np.max(device["sensor"]["black_level"]))
-    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    truth = {"device": device, "board": {"cols": spec.cols, "rows": spec.rows, "square_m": spec.square_m,
-                                          "poses": {}},
-             "spheres": {"radius_m": SPHERE_RADIUS_M, "centres_m": {}, "reflect_panel": bool(reflect_panel)},
-             "board_spheres": {"radius_m": SPHERE_RADIUS_M, "marks_m": {}, "centres_m": {}, "poses": {}},
-             "chart": {}}
-    try:
-        for sub in ("board", "spheres", "board_spheres", "chart"):
-            (tmp / sub).mkdir(parents=True)
-        rng = np.random.default_rng([seed, 10])
-        for k, (rotation, translation) in enumerate(board_poses(spec, device, board_frames, rng)):
-            analyzers = render_board(device, spec, rotation, translation)
-            for b in range(burst):
-                raw = expose(analyzers, device, 0.7 * white, np.random.default_rng(_burst_seed([seed, 11, k], b)))
-                name = _burst_name("board", k, b, burst, suffix)
-                write_raw_file(tmp / "board" / name, raw, device["sensor"])
-                truth["board"]["poses"][name] = {"rotation": rotation.tolist(),
-                                                 "translation_m": translation.tolist()}
-            if progress:
-                print(f"board {k + 1}/{board_frames}", flush=True)
-        rng = np.random.default_rng([seed, 20])
-        radius = SPHERE_RADIUS_M if scale >= 0.5 else SPHERE_RADIUS_M * 0.6
-        truth["spheres"]["radius_m"] = radius
-        for k, centres in enumerate(sphere_layouts(device, sphere_frames, rng, radius=radius,
-                                                   per_frame=spheres_per_frame)):
-            analyzers = render_spheres(device, [(c, radius) for c in centres], reflect_panel=reflect_panel)
-            peak = float(np.max(analyzers))
-            for b in range(burst):
-                raw = expose(analyzers, device, 0.75 * white, np.random.default_rng(_burst_seed([seed, 21, k], b)),
-                             reference=peak)
-                name = _burst_name("spheres", k, b, burst, suffix)
-                write_raw_file(tmp / "spheres" / name, raw, device["sensor"])
-                truth["spheres"]["centres_m"][name] = [c.tolist() for c in centres]
-            if progress:
-                print(f"spheres {k + 1}/{sphere_frames}", flush=True)
-        _write_board_spheres(tmp / "board_spheres", device, spec, board_sphere_frames, radius, 0.75 * white, seed,
-                             suffix, truth["board_spheres"], progress)
-        rng = np.random.default_rng([seed, 30])
-        rotation = look_at(np.zeros(3), 10.0, rng)
-        distance = 1.1 * 6 * CHART_PATCH_M * device["camera"]["fx"] / (0.8 * width)
-        translation = np.array([0.0, 0.0, distance]) - rotation @ chart_corners_board().mean(axis=0)
-        analyzers = render_chart(device, rotation, translation)
-        raw = expose(analyzers, device, 0.6 * white, np.random.default_rng([seed, 31]))
-        write_raw_file(tmp / "chart" / f"chart_00{suffix}", raw, device["sensor"])
-        corners = project(device, chart_corners_board() @ rotation.T + translation)
-        truth["chart"] = {"file": f"chart_00{suffix}", "corners_px": corners.tolist(),
-                          "rotation": rotation.tolist(), "translation_m": translation.tolist()}
-        with open(tmp / "sensor.yaml", "w") as f:
-            yaml.safe_dump({"sensor": device["sensor"]}, f, sort_keys=False, default_flow_style=None)
-        with open(tmp / "truth.yaml", "w") as f:
-            yaml.safe_dump(truth, f, sort_keys=False, default_flow_style=None)
-        if out.exists():
-            shutil.rmtree(out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp.rename(out)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
-    return out

@@ -36,7 +36,8 @@ Modules and what they export (each name is importable from here too)::
         linearize_capture
     mitsuba_capture: An independent renderer for synthetic captures: Mitsuba 3's ``pplastic`` under the rig's polarized
       flash
-        PPlasticError, mitsuba_available, pplastic_materials, render_in_subprocess
+        PPlasticError, mitsuba_available, choose_variant, pplastic_materials, mesh_shape, flash_scene, render_stokes,
+        render_in_subprocess
     mosaic: The sensor mosaic: which analyzer angle and which colour each raw pixel sees
         mosaic_layout
     reader: Reading a capture folder (:func:`read_capture` -> :class:`Capture`) and its raw frames (DNG and camera RAW
@@ -80,7 +81,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "make_ingest_plan", "process_frame", "analyzer_plan", "develop", "hdr_weight", "merge_hdr",
            "FLASH_RATIO_TOLERANCE"),
     "linearize": ("linearize_capture",),
-    "mitsuba_capture": ("PPlasticError", "mitsuba_available", "pplastic_materials", "render_in_subprocess"),
+    "mitsuba_capture": ("PPlasticError", "mitsuba_available", "choose_variant", "pplastic_materials", "mesh_shape",
+                        "flash_scene", "render_stokes", "render_in_subprocess"),
     "mosaic": ("mosaic_layout",),
     "reader": ("read_capture", "read_raw_file", "read_raw_frame", "exposure_time"),
     "scenes": ("SCENES", "DEVICE_WIDTH_PX", "DEVICE_FX_PX", "SPHERE_IOR_ETAS", "icosphere", "TINY_BUMPS",

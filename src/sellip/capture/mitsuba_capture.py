@@ -11,6 +11,9 @@ Public API::
     mitsuba_camera(camera) -> dict                     # a ``perspective`` sensor dict for a sellip Camera
     MitsubaRenderer(mesh, variant=None, seed=0).render(camera, light, supersample=2) -> MitsubaResult
     MitsubaResult.stokes (H, W, 4, 3), .analyzers (H, W, 4, 3)
+    mesh_shape(name, vertices, faces, normals=None, albedo=None, bsdf=None, texcoords=None) -> mi.Mesh
+    flash_scene(camera, light, intensity, supersample, seed, polarizer, variant, max_depth=2) -> dict
+    render_stokes(scene, camera, variant) -> (H, W, 4)  # one channel's Stokes image of a scene dict
 
 The generator beside :mod:`sellip.model.render` (``sellip synth --renderer mitsuba``,
 :func:`sellip.capture.synthetic.synthesize_capture`): the same scene, cameras, flash, sensor and files, rendered
@@ -272,7 +275,7 @@ def _register_textured_pplastic(variant: str) -> None:
     _REGISTERED.add(variant)
 
 
-def _mesh_shape(name: str, vertices, faces, normals=None, albedo=None, bsdf=None, texcoords=None):
+def mesh_shape(name: str, vertices, faces, normals=None, albedo=None, bsdf=None, texcoords=None):
     """A mi.Mesh from numpy arrays (vertices (V, 3), faces (F, 3), optional normals (V, 3), one albedo channel
     (V,) as ALBEDO_ATTRIBUTE and texture coordinates (V, 2)), with ``bsdf``."""
     import mitsuba as mi
@@ -333,10 +336,6 @@ class MitsubaRenderer:
                                      "specular_reflectance": m.specular}) for m in self.materials]
         self._polarizer = mi.load_dict({"type": "polarizer", "theta": 0.0})
 
-    @property
-    def _mono(self) -> bool:
-        return "mono" in self.variant
-
     def _shapes(self, channel: int) -> dict:
         """The object's shapes, one per material, with albedo channel ``channel`` (spectral variants: grey)."""
         albedo = np.asarray(self.mesh.params.rho_d, np.float64).reshape(self.mesh.num_vertices, 3)[:, channel]
@@ -347,46 +346,53 @@ class MitsubaRenderer:
             if not len(own):
                 continue
             used, local = np.unique(own, return_inverse=True)
-            shapes[f"material_{index}"] = _mesh_shape(
+            shapes[f"material_{index}"] = mesh_shape(
                 f"material_{index}", self.mesh.vertices[used], local.reshape(-1, 3), self.mesh.normals[used],
                 albedo[used], bsdf)
         return shapes
 
-    def _scene(self, camera: Camera, light: Light, channel: int, supersample: int, seed: int):
-        import mitsuba as mi
-
-        corners, triangles, texcoords = _polarizer_sheet(camera, light)
-        sensor = {**mitsuba_camera(camera),
-                  "film": {"type": "hdrfilm", "width": int(camera.width), "height": int(camera.height),
-                           "rfilter": {"type": "box"}, "pixel_format": "luminance" if self._mono else "rgb"},
-                  "sampler": {"type": "stratified", "sample_count": int(supersample) ** 2, "seed": int(seed)}}
-        intensity = 2.0 * np.pi * float(light.intensity)
-        return mi.load_dict({
-            "type": "scene",
-            "integrator": {"type": "stokes", "nested": {"type": "volpath", "max_depth": MAX_DEPTH}},
-            "sensor": sensor,
-            "flash": {"type": "point", "position": [float(v) for v in light.position],
-                      "intensity": intensity if self._mono else {"type": "spectrum", "value": intensity}},
-            "polarizer": _mesh_shape("polarizer", corners, triangles, bsdf=self._polarizer,
-                                      texcoords=texcoords),
-            **self._shapes(channel),
-        })
-
     def render(self, camera: Camera, light: Light, supersample: int = 2) -> MitsubaResult:
         """Render one view: Stokes (H, W, 4, 3) per pixel in sellip's camera frame (docs/design.md §3)."""
-        import mitsuba as mi
-
-        if not np.allclose(np.asarray(light.stokes, np.float64), FLASH_STOKES):
-            raise ValueError(f"the Mitsuba generator renders the rig's flash (Stokes {FLASH_STOKES}), "
-                             f"got {light.stokes}")
         seed = self.seed * 100003 + self._views
         self._views += 1
         stokes = np.zeros((camera.height, camera.width, 4, 3), np.float32)
         for channel in range(3):
-            image = np.asarray(mi.render(self._scene(camera, light, channel, supersample, seed)), np.float64)
-            aov = image[..., -12:].reshape(camera.height, camera.width, 4, 3)  # S0..S3 x (R, G, B)
-            stokes[..., channel] = aov[..., 0] if self._mono else aov @ _LUMINANCE
+            scene = {**flash_scene(camera, light, 2.0 * np.pi * float(light.intensity), supersample, seed,
+                                   self._polarizer, self.variant), **self._shapes(channel)}
+            stokes[..., channel] = render_stokes(scene, camera, self.variant)
         return MitsubaResult(stokes=stokes)
+
+
+def flash_scene(camera: Camera, light: Light, intensity: float, supersample: int, seed: int, polarizer,
+                variant: str, max_depth: int = MAX_DEPTH) -> dict:
+    """The parts of a Mitsuba scene dict every sellip render shares: the ``stokes`` integrator over ``volpath``
+    (``max_depth``), the camera (:func:`mitsuba_camera`, a box filter over s x s stratified samples), the flash (a
+    ``point`` emitter of ``intensity`` W/sr) and its polarizer sheet (:func:`_polarizer_sheet`; ``polarizer`` a
+    loaded ``polarizer`` BSDF). Add the shapes and emitters of the scene and pass it to :func:`render_stokes`."""
+    if not np.allclose(np.asarray(light.stokes, np.float64), FLASH_STOKES):
+        raise ValueError(f"the Mitsuba generator renders the rig's flash (Stokes {FLASH_STOKES}), got {light.stokes}")
+    mono = "mono" in variant
+    corners, triangles, texcoords = _polarizer_sheet(camera, light)
+    sensor = {**mitsuba_camera(camera),
+              "film": {"type": "hdrfilm", "width": int(camera.width), "height": int(camera.height),
+                       "rfilter": {"type": "box"}, "pixel_format": "luminance" if mono else "rgb"},
+              "sampler": {"type": "stratified", "sample_count": int(supersample) ** 2, "seed": int(seed)}}
+    return {"type": "scene",
+            "integrator": {"type": "stokes", "nested": {"type": "volpath", "max_depth": int(max_depth)}},
+            "sensor": sensor,
+            "flash": {"type": "point", "position": [float(v) for v in light.position],
+                      "intensity": intensity if mono else {"type": "spectrum", "value": intensity}},
+            "polarizer": mesh_shape("polarizer", corners, triangles, bsdf=polarizer, texcoords=texcoords)}
+
+
+def render_stokes(scene: dict, camera: Camera, variant: str) -> np.ndarray:
+    """Render a scene dict (:func:`flash_scene` plus shapes): one channel's Stokes image (H, W, 4) in sellip's
+    camera frame (mono variants: the rendered channel; spectral: the luminance of the sRGB output)."""
+    import mitsuba as mi
+
+    image = np.asarray(mi.render(mi.load_dict(scene)), np.float64)
+    aov = image[..., -12:].reshape(camera.height, camera.width, 4, 3)  # S0..S3 x (R, G, B)
+    return (aov[..., 0] if "mono" in variant else aov @ _LUMINANCE).astype(np.float32)
 
 
 # --------------------------------------------------------------------------- a fresh process

@@ -2,9 +2,9 @@
 
     sellip synth-calibration --out calib/ [--width 2448 --height 2048 --seed 0 --board-frames 24
                                            --sphere-frames 6 --board-sphere-frames 6 --burst 1
-                                           --polarizer-deg 0]
+                                           --polarizer-deg 0 --renderer sellip|mitsuba]
 
-See :mod:`sellip.calibrate.synthetic` for what is rendered and written (sensor.yaml to start a device.yaml
+See :mod:`sellip.calibrate.synthetic_set` for what is rendered and written (sensor.yaml to start a device.yaml
 from, truth.yaml to compare with).
 """
 
@@ -36,10 +36,14 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--polarizer-deg", type=float, default=0.0, help="the flash polarizer's angle (default: 0)")
     parser.add_argument("--raw-format", choices=["dng", "tiff", "png"], default="dng", help="frame files")
     parser.add_argument("--force", action="store_true", help="replace --out even when it holds no truth.yaml")
+    parser.add_argument("--renderer", choices=["sellip", "mitsuba"], default="sellip",
+                        help="who draws the frames: sellip's analytic renderer (default) or Mitsuba 3 (an independent "
+                             "renderer, the test extra; a pinhole camera with square pixels)")
 
 
 def main(args: argparse.Namespace) -> int:
-    from sellip.calibrate.synthetic import BoardSpec, synthesize_calibration
+    from sellip.calibrate.synthetic import BoardSpec
+    from sellip.calibrate.synthetic_set import synthesize_calibration
     from sellip.jobs import WouldReplaceError
 
     logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
@@ -52,8 +56,8 @@ def main(args: argparse.Namespace) -> int:
                                      sphere_frames=args.sphere_frames, board_sphere_frames=args.board_sphere_frames,
                                      spec=BoardSpec(cols, rows, args.square_mm / 1000),
                                      raw_format=args.raw_format, polarizer_deg=args.polarizer_deg, burst=args.burst,
-                                     force=args.force)
-    except WouldReplaceError as exc:
+                                     force=args.force, renderer=args.renderer)
+    except (WouldReplaceError, ImportError) as exc:
         raise SystemExit(f"sellip synth-calibration: {exc}") from None
     log.info("wrote %s in %.0f s", out, time.perf_counter() - started)
     return 0
