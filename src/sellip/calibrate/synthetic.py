@@ -301,28 +301,47 @@ def board_poses(spec: BoardSpec, device: dict, count: int, rng: np.random.Genera
     sensor = device["sensor"]
     if margin_px is None:
         margin_px = 40.0 * min(1.0, sensor["width"] / 612)
-    centre = spec.outline().mean(axis=0)
+    centre, outline = spec.outline().mean(axis=0), spec.outline()
+    half_fov = 0.5 * sensor["width"] / device["camera"]["fx"]
+
+    def draw(u):  # (..., 6) uniform draws -> rotations (..., 3, 3), translations (..., 3): one try each
+        between = lambda low, high, k: low + (high - low) * u[..., k]  # Generator.uniform(low, high), one draw
+        axis_angle, tilt = between(0, 2 * np.pi, 0), np.radians(between(*tilt_deg, 1))
+        axis = np.stack([np.cos(axis_angle), np.sin(axis_angle), np.zeros_like(axis_angle)], axis=-1)
+        roll = np.stack([np.zeros_like(tilt), np.zeros_like(tilt), np.radians(between(-30, 30, 2))], axis=-1)
+        rotation = (Rotation.from_rotvec(tilt[..., None] * axis) * Rotation.from_rotvec(roll)).as_matrix()
+        distance = between(*distance_m, 3)
+        target = np.stack([between(-0.5, 0.5, 4) * half_fov * distance,
+                           between(-0.5, 0.5, 5) * half_fov * distance * sensor["height"] / sensor["width"],
+                           distance], axis=-1)
+        return rotation, target - rotation @ centre
+
+    def inside(rotation, translation):
+        pixels = project(device, np.einsum("kj,...ij->...ki", outline, rotation) + translation[..., None, :])
+        return np.all((pixels[..., 0] > margin_px) & (pixels[..., 0] < sensor["width"] - margin_px)
+                      & (pixels[..., 1] > margin_px) & (pixels[..., 1] < sensor["height"] - margin_px), axis=-1)
+
+    # A try takes six uniform draws; tries are drawn and tested 4096 at a time, and the generator is then left
+    # where one try at a time would leave it (just after the accepted try's draws): the same seed, the same poses.
     poses = []
     tries = 0
     while len(poses) < count:
-        tries += 1
-        if tries > max_tries * (len(poses) + 1):
+        limit = max_tries * (len(poses) + 1)
+        if tries >= limit:
             raise ValueError(f"no board pose at {distance_m} m keeps the whole board {margin_px:.0f} px inside a "
                              f"{sensor['width']}x{sensor['height']} frame; expected a smaller board or margin")
-        axis_angle = rng.uniform(0, 2 * np.pi)
-        tilt = np.radians(rng.uniform(*tilt_deg))
-        rotation = (Rotation.from_rotvec(tilt * np.array([np.cos(axis_angle), np.sin(axis_angle), 0.0]))
-                    * Rotation.from_rotvec([0, 0, np.radians(rng.uniform(-30, 30))])).as_matrix()
-        distance = rng.uniform(*distance_m)
-        half_fov = 0.5 * sensor["width"] / device["camera"]["fx"]
-        target = np.array([rng.uniform(-0.5, 0.5) * half_fov * distance,
-                           rng.uniform(-0.5, 0.5) * half_fov * distance * sensor["height"] / sensor["width"], distance])
-        translation = target - rotation @ centre
-        pixels = project(device, spec.outline() @ rotation.T + translation)
-        inside = ((pixels[:, 0] > margin_px) & (pixels[:, 0] < sensor["width"] - margin_px)
-                  & (pixels[:, 1] > margin_px) & (pixels[:, 1] < sensor["height"] - margin_px))
-        if inside.all():
-            poses.append((rotation, translation))
+        state = rng.bit_generator.state
+        u = rng.random((min(4096, limit - tries), 6))
+        accepted = np.flatnonzero(inside(*draw(u)))
+        if not len(accepted):
+            tries += len(u)
+            continue
+        first = int(accepted[0])
+        rng.bit_generator.state = state
+        rng.random((first + 1, 6))
+        tries += first + 1
+        rotation, translation = draw(u[first])
+        poses.append((rotation, translation))
     return poses
 
 
