@@ -288,34 +288,39 @@ def test_flash_from_spheres_resting_on_the_board(calib):
                                "board alone, shot from the same camera position before the spheres were set down"}
 
 
+@pytest.fixture
+def board_flash(tmp_path):
+    """The board protocol on a synthetic set of its own: a function of (width, height, seed) that writes the set
+    (6 layouts of 3 spheres of 20 mm on the board, no other frames), calibrates the flash with the true intrinsics
+    and returns (FlashResult, its error (3,) in metres against the true flash)."""
+    def calibrate(width: int, height: int, seed: int):
+        out = synthetic_set.synthesize_calibration(tmp_path / f"{width}x{height}_s{seed}", width, height, seed=seed,
+                                                   board_frames=0, sphere_frames=0, raw_format="tiff")
+        truth = yaml.safe_load((out / "truth.yaml").read_text())
+        device = _calibrated(truth)
+        result = board_spheres.calibrate_flash_on_board(_frames(out / "board_spheres", device["sensor"]), device,
+                                                        truth["board_spheres"]["radius_m"], *BOARD)
+        return result, result.position_m - np.asarray(device["light"]["position_m"])
+
+    return calibrate
+
+
 @pytest.mark.slow
-def test_flash_on_the_board_within_2_mm_at_half_size(tmp_path):
+def test_flash_on_the_board_within_2_mm_at_half_size(board_flash):
     """At half the device's size (1224x1024, 6 layouts of 3 spheres of 20 mm on the board, the true intrinsics)
     the flash is within 2 mm and within 3 sigma, and passes its gate."""
-    out = synthetic_set.synthesize_calibration(tmp_path / "half", 1224, 1024, seed=0, board_frames=0, sphere_frames=0,
-                                               raw_format="tiff")
-    truth = yaml.safe_load((out / "truth.yaml").read_text())
-    device = _calibrated(truth)
-    result = board_spheres.calibrate_flash_on_board(_frames(out / "board_spheres", device["sensor"]), device,
-                                   truth["board_spheres"]["radius_m"], *BOARD)
-    error = result.position_m - np.asarray(device["light"]["position_m"])
+    result, error = board_flash(1224, 1024, seed=0)
     assert len(result.highlights) == 18, result.left_out
     assert np.linalg.norm(error) < 2e-3 and np.all(np.abs(error) <= 3 * result.std_m), (error, result.std_m)
     assert targets.check("flash", result.uncertainty()) == []
 
 
 @pytest.mark.slow
-def test_flash_on_the_board_one_sigma_covers_the_error_over_seeds(tmp_path):
+def test_flash_on_the_board_one_sigma_covers_the_error_over_seeds(board_flash):
     """Five more synthetic sets (6 layouts of 3 spheres on the board, 612x512, the true intrinsics): the flash is
     within 3 of its reported sigma on every axis in each (at this size up to 11 mm off in depth, sigma 4-5 mm)."""
     for seed in range(1, 6):
-        out = synthetic_set.synthesize_calibration(tmp_path / f"s{seed}", W, H, seed=seed, board_frames=0,
-                                                   sphere_frames=0, raw_format="tiff")
-        truth = yaml.safe_load((out / "truth.yaml").read_text())
-        device = _calibrated(truth)
-        result = board_spheres.calibrate_flash_on_board(_frames(out / "board_spheres", device["sensor"]), device,
-                                       truth["board_spheres"]["radius_m"], *BOARD)
-        error = result.position_m - np.asarray(device["light"]["position_m"])
+        result, error = board_flash(W, H, seed)
         assert len(result.highlights) >= 15, (seed, result.left_out)
         assert np.all(np.abs(error) <= 3 * result.std_m), (seed, error, result.std_m)
 

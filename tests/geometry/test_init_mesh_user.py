@@ -169,7 +169,7 @@ def box_views():
     (lambda v: v @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]).T, "rotated, or in another world"),
     (lambda v: 0.01 * v, "the cameras (poses.csv) look like centimetres and the mesh metres; scaling the mesh by 100 "
                          "(a factor of 100)"),
-    (lambda v: 1.5 * v, "wrong scale? the mesh is 1.505 times the size of the silhouettes (median over views"),
+    (lambda v: 1.5 * v, "wrong scale? the mesh is 1.5 times the size of the silhouettes (median over views"),
     (lambda v: v + [0.0, 0.0, 0.05], "wrong place?"),
 ])
 def test_the_silhouette_check_says_what_is_off(box_views, change, expected):

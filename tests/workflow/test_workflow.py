@@ -231,7 +231,18 @@ def test_pose_refinement_joins_the_loop_and_keeps_true_poses(tiny_run, tmp_path_
     _snakemake(workdir, "--cores", "2", "--config", "refine_poses={enabled: true}", "--allowed-rules", "refine_poses",
                "--", f"results/tiny/iter/{ITERATIONS}/cameras.csv")
     report = json.loads((results / "iter" / str(ITERATIONS) / "cameras.csv.json").read_text())
-    assert report["views"] == 24 and report["refined"] >= 20, report["kept"]
+    # Every view was aligned (none short of pixels), and every aligned pose, taken or not, puts the visible surface
+    # within a fraction of a pixel of where the true pose puts it (motion_px: the start is the truth). A view keeps
+    # its pose only by the divergence guard (2 deg, a shift of 3 % of 0.9 m): from exact poses the centres drift
+    # along the narrow field's weak direction, which the photographs do not pin (15 mm median, docs/geometry.md), and
+    # how many cross the guard follows the model's noise, so the count is not the claim: at most 4 of 24 from an
+    # initial mesh of 2,393 vertices, 6 from ones of 2,395 and 2,400 (2026-11-28; turns of 1.8-2.4 deg and shifts of
+    # 28-38 mm that move the visible surface 0.10-0.43 px). Most views take their pose: the bounds below test them.
+    per_view = report["per_view"]
+    assert report["views"] == 24 == len(per_view) and report["refined"] > 12, report["kept"]
+    assert all("taken for a divergence" in why for why in report["kept"].values()), report["kept"]
+    assert all(view["motion_px"] < 0.6 for view in per_view.values()), \
+        {name: view.get("motion_px") for name, view in per_view.items()}
     hdr = results / "hdr.zarr"
     known, _ = load_cameras(results / "cameras.csv", hdr)
     refined, _ = load_cameras(results / "iter" / str(ITERATIONS) / "cameras.csv", hdr)

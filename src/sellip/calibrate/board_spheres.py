@@ -31,7 +31,7 @@ from sellip.calibrate.flash import (
     FlashResult,
     Sphere,
     develop_frame,
-    find_highlight,
+    highlight_rays,
     intensity,
     mirror_ray,
     nearest_point,
@@ -297,15 +297,12 @@ def calibrate_flash_on_board(frames: Mapping[str, np.ndarray], device: Mapping, 
                                  intrinsics["fy"] * centre[1] / centre[2] + intrinsics["cy"]])
             sphere = Sphere(centre, f * radius_m / float(np.linalg.norm(centre)), centroid)
             label = f"{name}#{k} on square ({1e3 * mark[0]:.0f}, {1e3 * mark[1]:.0f}) mm"
-            highlight, problem = find_highlight(s0, sphere)
-            line = None if problem else mirror_ray(centre, radius_m, highlight, intrinsics)
-            if problem is None and line is None:
-                problem = "the highlight's ray misses the sphere (wrong --sphere-radius-mm or --square-mm?)"
-            if problem is not None:
-                left_out[label] = problem
-                if log:
-                    log(f"{label}: {problem}")
+            found = highlight_rays(s0, sphere, [centre], radius_m, intrinsics, label, left_out,
+                                   "the highlight's ray misses the sphere (wrong --sphere-radius-mm or --square-mm?)",
+                                   log)
+            if found is None:
                 continue
+            highlight, (line,) = found
             points.append(line[0])
             directions.append(line[1])
             used.append((name, mark, highlight))

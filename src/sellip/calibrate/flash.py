@@ -8,6 +8,7 @@ Public API::
     rim_silhouette(s0, intrinsics, axis, alpha, background, eta) -> (axis, alpha)  # the rim's mirrored background
     find_highlight(s0, sphere) -> (centre (x, y) | None, problem | None)    # refine_highlight: a Gaussian fit
     mirror_ray(sphere, highlight_px, intrinsics) -> (point (3,), direction (3,))
+    highlight_rays(s0, sphere, centres, radius_m, intrinsics, label, left_out, miss) -> (highlight, lines) | None
     nearest_point(points (N, 3), directions (N, 3), scale_m=0.001) -> (X (3,), distances (N,), weights (N,))
     solve_flash(points, directions, scale_m, centre_samples) -> (X, covariance, distances, centres' covariance)
     calibrate_flash(frames: {name: raw}, device, radius_m) -> FlashResult   # the outline protocol
@@ -405,6 +406,27 @@ def mirror_ray(centre: np.ndarray, radius_m: float, highlight_px: np.ndarray, in
     return point, reflected / np.linalg.norm(reflected)
 
 
+def highlight_rays(s0: np.ndarray, sphere: Sphere, centres: list[np.ndarray], radius_m: float, intrinsics: Mapping,
+                   label: str, left_out: dict, miss: str, log=None
+                   ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]] | None:
+    """One sphere's highlight in the intensity ``s0`` (:func:`find_highlight`) and the flash's line mirrored at it
+    (:func:`mirror_ray`) for each of ``centres`` (each (3,), the same sphere's centre by different estimates):
+    (highlight (x, y), [(point (3,), direction (3,)), ...]). When the sphere has a problem of its own, no highlight
+    is found or a ray misses (``miss``: why, in the protocol's words), records ``left_out[label]`` (and logs it)
+    and returns None. Both protocols' loop over the spheres (:func:`calibrate_flash`,
+    :func:`sellip.calibrate.board_spheres.calibrate_flash_on_board`)."""
+    highlight, problem = (None, sphere.problem) if sphere.problem else find_highlight(s0, sphere)
+    lines = [] if problem else [mirror_ray(centre, radius_m, highlight, intrinsics) for centre in centres]
+    if problem is None and any(line is None for line in lines):
+        problem = miss
+    if problem is not None:
+        left_out[label] = problem
+        if log:
+            log(f"{label}: {problem}")
+        return None
+    return highlight, lines
+
+
 def nearest_point(points: np.ndarray, directions: np.ndarray, scale_m: float = 1e-3, iterations: int = 50
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The point X (3,) nearest lines P_i + t d_i (points, unit directions (N, 3)) in the Huber sense: IRLS on
@@ -547,21 +569,12 @@ def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m:
                 log(f"{name}: {problem}")
         for k, sphere in enumerate(spheres):
             label = f"{name}#{k} at ({sphere.centroid_px[0]:.0f}, {sphere.centroid_px[1]:.0f})"
-            problem = sphere.problem
-            highlight = None
-            if problem is None:
-                highlight, problem = find_highlight(s0, sphere)
-            line = outline_line = None
-            if problem is None:
-                line = mirror_ray(sphere.centre, radius_m, highlight, intrinsics)
-                outline_line = mirror_ray(sphere.outline_centre, radius_m, highlight, intrinsics)
-                if line is None or outline_line is None:
-                    problem = "the highlight's ray misses the fitted sphere (wrong --sphere-radius-mm?)"
-            if problem is not None:
-                left_out[label] = problem
-                if log:
-                    log(f"{label}: {problem}")
+            found = highlight_rays(s0, sphere, [sphere.centre, sphere.outline_centre], radius_m, intrinsics, label,
+                                   left_out, "the highlight's ray misses the fitted sphere (wrong --sphere-radius-mm?)",
+                                   log)
+            if found is None:
                 continue
+            highlight, (line, outline_line) = found
             points.append(line[0])
             directions.append(line[1])
             outline_lines.append(outline_line)

@@ -281,32 +281,32 @@ def board_poses(spec: BoardSpec, device: dict, count: int, rng: np.random.Genera
     at least ``margin_px`` inside it (default 40 px, and on sensors narrower than 612 px the same share of the
     width as 40 px of 612, which the frame can hold). ValueError when ``max_tries`` draws per pose find none."""
     from scipy.spatial.transform import Rotation
+    size = np.array([device["sensor"]["width"], device["sensor"]["height"]])
+    margin_px = 40.0 * min(1.0, size[0] / 612) if margin_px is None else margin_px
+    outline, half_fov = spec.outline(), 0.5 * size[0] / device["camera"]["fx"]
+    low, high = np.array([(0, 2 * np.pi), tilt_deg, (-30, 30), distance_m, (-0.5, 0.5), (-0.5, 0.5)]).T
 
-    sensor = device["sensor"]
-    if margin_px is None:
-        margin_px = 40.0 * min(1.0, sensor["width"] / 612)
-    centre = spec.outline().mean(axis=0)
-    poses = []
-    tries = 0
-    while len(poses) < count:
-        tries += 1
-        if tries > max_tries * (len(poses) + 1):
-            raise ValueError(f"no board pose at {distance_m} m keeps the whole board {margin_px:.0f} px inside a "
-                             f"{sensor['width']}x{sensor['height']} frame; expected a smaller board or margin")
-        axis_angle = rng.uniform(0, 2 * np.pi)
-        tilt = np.radians(rng.uniform(*tilt_deg))
-        rotation = (Rotation.from_rotvec(tilt * np.array([np.cos(axis_angle), np.sin(axis_angle), 0.0]))
-                    * Rotation.from_rotvec([0, 0, np.radians(rng.uniform(-30, 30))])).as_matrix()
-        distance = rng.uniform(*distance_m)
-        half_fov = 0.5 * sensor["width"] / device["camera"]["fx"]
-        target = np.array([rng.uniform(-0.5, 0.5) * half_fov * distance,
-                           rng.uniform(-0.5, 0.5) * half_fov * distance * sensor["height"] / sensor["width"], distance])
-        translation = target - rotation @ centre
-        pixels = project(device, spec.outline() @ rotation.T + translation)
-        inside = ((pixels[:, 0] > margin_px) & (pixels[:, 0] < sensor["width"] - margin_px)
-                  & (pixels[:, 1] > margin_px) & (pixels[:, 1] < sensor["height"] - margin_px))
-        if inside.all():
-            poses.append((rotation, translation))
+    def draw(u):  # (..., 6) uniform draws (Generator.uniform's formula), a try each -> R (..., 3, 3), t (..., 3)
+        a, tilt, roll, distance, x, y = np.moveaxis(low + (high - low) * u, -1, 0)
+        rotation = (Rotation.from_rotvec(np.radians(tilt)[..., None] * np.stack([np.cos(a), np.sin(a), 0 * a], -1))
+                    * Rotation.from_rotvec(np.stack([0 * a, 0 * a, np.radians(roll)], -1))).as_matrix()
+        target = np.stack([x * half_fov * distance, y * half_fov * distance * size[1] / size[0], distance], -1)
+        return rotation, target - rotation @ outline.mean(axis=0)
+
+    # 4096 tries (six draws each) at a time; the generator is left after the accepted try's draws: one seed, one set.
+    poses, tries = [], 0
+    while len(poses) < count and tries < max_tries * (len(poses) + 1):
+        state, u = rng.bit_generator.state, rng.random((min(4096, max_tries * (len(poses) + 1) - tries), 6))
+        rotation, translation = draw(u)
+        pixels = project(device, np.einsum("kj,nij->nki", outline, rotation) + translation[:, None])
+        found = np.flatnonzero(np.all((pixels > margin_px) & (pixels < size - margin_px), axis=(1, 2)))
+        take = int(found[0]) + 1 if len(found) else len(u)
+        tries, rng.bit_generator.state = tries + take, state
+        rng.random((take, 6))  # the generator where one try at a time leaves it
+        poses += [draw(u[take - 1])] if len(found) else []
+    if len(poses) < count:
+        raise ValueError(f"no board pose at {distance_m} m keeps the whole board {margin_px:.0f} px inside a "
+                         f"{size[0]}x{size[1]} frame; expected a smaller board or margin")
     return poses
 
 

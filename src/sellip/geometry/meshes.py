@@ -217,7 +217,10 @@ def remesh_to_count(vertices: np.ndarray, faces: np.ndarray, target_vertices: in
     """Isotropic remeshing (pymeshlab) to about ``target_vertices`` vertices of near-equilateral triangles.
 
     The edge length comes from the area (a regular triangulation has about two faces per vertex:
-    ``L = sqrt(2 A / (sqrt(3) V))``) and is corrected once from the count actually reached.
+    ``L = sqrt(2 A / (sqrt(3) V))``) and is corrected once from the count actually reached. The same arrays give
+    the same mesh in every install: pymeshlab's surface-distance check of a collapse or flip (``checksurfdist``)
+    is off, since its answer depends on the process's memory layout (where pymeshlab is installed); the vertices
+    are reprojected onto the input surface at every step, which keeps them on it (docs/geometry.md).
     Returns vertices (V, 3) float64 and faces (F, 3) int64.
     """
     import pymeshlab
@@ -231,7 +234,7 @@ def remesh_to_count(vertices: np.ndarray, faces: np.ndarray, target_vertices: in
                                        face_matrix=np.asarray(faces, np.int32)))
         meshes.meshing_isotropic_explicit_remeshing(iterations=iterations,
                                                     targetlen=pymeshlab.PureValue(float(length)),
-                                                    featuredeg=180.0)
+                                                    featuredeg=180.0, checksurfdist=False)
         mesh = meshes.current_mesh()
         out_vertices = mesh.vertex_matrix().astype(np.float64)
         out_faces = mesh.face_matrix().astype(np.int64)
