@@ -3,7 +3,8 @@
 One row per material cluster of ``final/params.zarr`` (``cluster``; a store without one is one material):
 
     cluster, vertices, area_share, confident_vertices,
-    eta, eta_ci_low, eta_ci_high, eta_spread, eta_fit_std, eta_own_vertices,
+    eta, eta_ci_low, eta_ci_high, eta_scatter_low, eta_scatter_high, eta_shared_std, eta_spread, eta_fit_std,
+    eta_own_vertices,
     rho_d_r, rho_d_g, rho_d_b, rho_s, sigma_s, rho_ss_r, rho_ss_g, rho_ss_b, sigma_ss,
     model, model_name, lobe_own_vertices, selection_margin, runner_up_model, cluster_support, cluster_alternative
     [+ with a ground truth: gt_material, gt_eta, gt_rho_d_r, gt_rho_d_g, gt_rho_d_b, gt_sigma_s, gt_sigma_ss]
@@ -14,10 +15,17 @@ confidence > 0, whose own eta is not pinned at a bound of the fit, :func:`sellip
 - ``eta``: the median of the estimating vertices' own eta (``eta_vertex``, the per-vertex fit): the material's
   eta as ``sellip finalize`` sets it (:func:`sellip.augment.cluster_medians`); the median of the model's eta where
   no vertex estimates it.
-- ``eta_ci_low``/``eta_ci_high``: a 95 % confidence interval of that median **from the spread of its vertices**: the
-  2.5 / 97.5 percentiles of the median over :data:`BOOTSTRAP_ROUNDS` bootstrap resamples of the estimating vertices
-  (seeded: the same store gives the same table). It treats vertices as independent samples; neighbours share views,
-  so it is optimistic by the square root of the number of vertices per independent patch.
+- ``eta_ci_low``/``eta_ci_high``: a 95 % interval of the material's eta that includes what moves all its vertices
+  together (issue #49; :func:`eta_interval`): the scatter interval below, each side widened in quadrature by 1.96 x
+  ``eta_shared_std``. ``eta_shared_std`` = :data:`SHARED_STD_FACTOR` x ``eta_fit_std``: the 1-sigma error shared by
+  the material's vertices (normal and geometry error, model mismatch, calibration), in units of the fits' own
+  uncertainty, which grows where the polarization signal is weak (dark, rough, few views); the factor was fitted on
+  the stability suite's scenes of both renderers and each renderer's fit validated on the other's (docs/viewer.md).
+- ``eta_scatter_low``/``eta_scatter_high``: the 95 % interval of the median from the spread of the vertices alone:
+  the 2.5 / 97.5 percentiles of the median over :data:`BOOTSTRAP_ROUNDS` spatial block bootstrap resamples
+  (:func:`block_median_interval`: patches of neighbouring vertices, cubes of :data:`PATCH_FRACTION` of the model's
+  bounding-box diagonal, resampled, since neighbours share views and errors; seeded: the same store gives the same
+  table).
   ``eta_spread`` = 1.4826 MAD of their own eta (how much vertices differ), ``eta_fit_std`` = the median of their
   Gauss-Newton std ``eta_std`` (the fit's own uncertainty per vertex; NaN where the store has none).
 - ``rho_d_*``, ``rho_ss_*``: the mean over the cluster's vertices (relative: one global scale is free,
