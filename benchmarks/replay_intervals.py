@@ -29,6 +29,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     ignore_snakemake_zarr_warnings()
 
+    import numpy as np
     import pandas as pd
 
     from sellip.bench.intervals import coverage, fit_shared_factor, intervals, material_rows
@@ -51,6 +52,13 @@ def main(argv=None) -> int:
     for name, factor in factors.items():
         ci = intervals(rows, factor)
         report[f"ci_{name}"] = {"factor": factor, **coverage(rows, ci["low"], ci["high"])}
+    # The alternative error model: a fixed share of eta, fitted and validated the same way.
+    for renderer in ["all", *sorted(rows["renderer"].unique())]:
+        fit_rows = rows if renderer == "all" else rows[rows["renderer"] == renderer]
+        factor = fit_shared_factor(fit_rows, grid=np.arange(0, 0.1, 0.0002), scale="eta")
+        factors[f"relative_fit_on_{renderer}"] = factor
+        ci = intervals(rows, factor, scale="eta")
+        report[f"relative_fit_on_{renderer}"] = {"factor": factor, **coverage(rows, ci["low"], ci["high"])}
     ci = intervals(rows, SHARED_STD_FACTOR)
     rows["ci_low"], rows["ci_high"] = ci["low"], ci["high"]
     pd.set_option("display.width", 200)

@@ -78,30 +78,32 @@ def material_rows(results: str | Path) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=list(ROW_COLUMNS))
 
 
-def intervals(rows: pd.DataFrame, factor: float, level: float = 0.95) -> pd.DataFrame:
-    """(low, high) of the materials.csv interval of each row with shared-error ``factor`` (the formula of
-    :func:`sellip.report.materials.eta_interval`)."""
+def intervals(rows: pd.DataFrame, factor: float, level: float = 0.95, scale: str = "eta_std") -> pd.DataFrame:
+    """(low, high) of the materials.csv interval of each row with shared-error ``factor`` x the row's ``scale``
+    column (``eta_std``: the formula of :func:`sellip.report.materials.eta_interval`; ``eta``: an error model
+    that is a fixed share of eta, the alternative the replay compares)."""
     from scipy.stats import norm
 
     z = float(norm.ppf(0.5 + level / 2))
-    shared = z * factor * rows["eta_std"].to_numpy(np.float64)
+    shared = z * factor * rows[scale].to_numpy(np.float64)
     eta = rows["eta"].to_numpy(np.float64)
     return pd.DataFrame({"low": eta - np.hypot(eta - rows["scatter_low"].to_numpy(np.float64), shared),
                          "high": eta + np.hypot(rows["scatter_high"].to_numpy(np.float64) - eta, shared)},
                         index=rows.index)
 
 
-def fit_shared_factor(rows: pd.DataFrame, level: float = 0.95, grid: np.ndarray | None = None) -> float:
-    """The factor (of eta_std, >= 0) that maximises the normal likelihood of the rows' errors eta - gt_eta, each
-    of variance s^2 + (factor x eta_std)^2, s the half-width of its scatter interval over the normal quantile of
-    ``level``; a grid search (default 0 to 2 by 0.005)."""
+def fit_shared_factor(rows: pd.DataFrame, level: float = 0.95, grid: np.ndarray | None = None,
+                      scale: str = "eta_std") -> float:
+    """The factor (of the ``scale`` column, >= 0) that maximises the normal likelihood of the rows' errors
+    eta - gt_eta, each of variance s^2 + (factor x scale)^2, s the half-width of its scatter interval over the
+    normal quantile of ``level``; a grid search (default 0 to 2 by 0.0025)."""
     from scipy.stats import norm
 
     z = float(norm.ppf(0.5 + level / 2))
-    grid = np.arange(0, 2.0001, 0.005) if grid is None else np.asarray(grid, np.float64)
+    grid = np.arange(0, 2.0001, 0.0025) if grid is None else np.asarray(grid, np.float64)
     error = (rows["eta"] - rows["gt_eta"]).to_numpy(np.float64)
     scatter = ((rows["scatter_high"] - rows["scatter_low"]).to_numpy(np.float64) / (2 * z))
-    std = rows["eta_std"].to_numpy(np.float64)
+    std = rows[scale].to_numpy(np.float64)
     variance = scatter[None] ** 2 + (grid[:, None] * std[None]) ** 2 + 1e-12
     loglik = -0.5 * np.sum(np.log(variance) + error[None] ** 2 / variance, axis=1)
     return float(grid[int(np.argmax(loglik))])
