@@ -56,7 +56,7 @@ def test_the_interval_covers_a_shared_offset_the_scatter_does_not():
 def test_the_block_bootstrap_keeps_what_neighbours_share():
     """Vertices of one patch sharing an error of 0.03 (their own noise 0.005): resampling vertices one by one sees
     ~1280 samples and a narrow interval; resampling patches sees the ~50 patches per material and a wider one."""
-    from sellip.report.materials import (PATCH_FRACTION, block_median_interval, median_interval, patch_labels)
+    from sellip.report.materials import PATCH_FRACTION, block_median_interval, median_interval, patch_labels
 
     store, _ = synthetic_store(bias=0.0, noise=0.005, patch_noise=0.03, seed=3)
     vertices = np.asarray(store["vertices"], np.float64)

@@ -294,8 +294,8 @@ def material_table(arrays: dict, faces: np.ndarray, ground_truth=None, shared_fa
         if use.any():
             interval = eta_interval(eta_own[use], patches[use], eta_std[use], seed=BOOTSTRAP_SEED + int(k),
                                     shared_factor=shared_factor)
-            eta, low, high = interval["eta"], interval["low"], interval["high"]
-            scatter_low, scatter_high, shared = interval["scatter_low"], interval["scatter_high"], interval["shared_std"]
+            eta, low, high, shared = interval["eta"], interval["low"], interval["high"], interval["shared_std"]
+            scatter_low, scatter_high = interval["scatter_low"], interval["scatter_high"]
             spread = MAD_TO_SD * float(np.median(np.abs(eta_own[use] - eta)))
             finite_std = eta_std[use][np.isfinite(eta_std[use])]
             fit_std = float(np.median(finite_std)) if finite_std.size else np.nan

@@ -149,7 +149,7 @@ def load_inputs(results: str | Path, capture: str | Path | None = None) -> Viewe
 
         try:
             inputs.materials = read_materials(table)
-        except MaterialsError as error:  # an older table (say without the interval's columns): `sellip view` rewrites it
+        except MaterialsError as error:  # an older table (without the interval's columns): `sellip view` rewrites it
             inputs.notes.append(f"{error}: not used (`sellip view` writes it again)")
     return inputs
 
