@@ -8,7 +8,8 @@ material cluster: the estimate, the true eta, and three 95 % intervals (:mod:`se
 (the vertex bootstrap materials.csv gave before), ``scatter`` (the spatial block bootstrap) and ``ci`` (what
 materials.csv gives: the scatter widened by the shared error). It fits the shared-error factor on each renderer's
 runs and validates it on the other's, then on all, and prints the coverage (materials whose interval holds the
-truth, per renderer) and the median relative width of each interval. docs/viewer.md quotes it.
+truth, per renderer) and the median relative width of each interval; and per run how the vertices' residuals
+correlate with distance (what the block bootstrap's patch size was chosen from). docs/viewer.md quotes it.
 """
 
 from __future__ import annotations
@@ -32,15 +33,20 @@ def main(argv=None) -> int:
     import numpy as np
     import pandas as pd
 
-    from sellip.bench.intervals import coverage, fit_shared_factor, intervals, material_rows
+    from sellip.bench.intervals import coverage, fit_shared_factor, intervals, material_rows, residual_correlation
+    from sellip.model.params import read_params
     from sellip.report.materials import SHARED_STD_FACTOR
 
-    frames = []
+    frames, correlations = [], {}
     for results in args.results:
         try:
             frames.append(material_rows(results))
         except FileNotFoundError as error:
             print(f"skipped {results}: {error}", file=sys.stderr)
+            continue
+        correlations[results.name] = residual_correlation(read_params(results / "final" / "params.zarr"))
+        print(f"{results.name}: residual correlation by distance (fraction of the diagonal): "
+              + " ".join(f"<{edge:g}: {value:.2f}" for edge, value in correlations[results.name].items()))
     if not frames:
         parser.error("no run could be read")
     rows = pd.concat(frames, ignore_index=True)
@@ -71,7 +77,8 @@ def main(argv=None) -> int:
     if args.rows:
         rows.to_csv(args.rows, index=False, float_format="%.6g")
     if args.json:
-        args.json.write_text(json.dumps({"factors": factors, "coverage": report}, indent=1))
+        args.json.write_text(json.dumps({"factors": factors, "coverage": report, "residual_correlation": correlations},
+                                        indent=1))
     return 0
 
 

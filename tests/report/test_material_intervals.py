@@ -66,6 +66,11 @@ def test_the_block_bootstrap_keeps_what_neighbours_share():
     vertex_low, vertex_high = median_interval(store["eta_vertex"][use])
     assert high - low > 2.5 * (vertex_high - vertex_low)
     assert low <= TRUE_ETA[0] <= high
+    # The replay's measure of it: residuals correlate between close vertices (mostly one patch), not far ones.
+    from sellip.bench.intervals import residual_correlation
+
+    correlation = residual_correlation(store)
+    assert correlation[0.02] > 0.5 and abs(correlation[0.3]) < 0.2
 
 
 def test_the_table_is_seeded_and_checked():

@@ -123,3 +123,36 @@ def coverage(rows: pd.DataFrame, low: np.ndarray, high: np.ndarray) -> dict:
                      "share": float(inside[select].mean()) if count else None,
                      "median_width_pct": float(np.median(width[select])) if count else None}
     return out
+
+
+CORRELATION_EDGES = (0.0, 0.02, 0.04, 0.06, 0.1, 0.15, 0.2, 0.3)
+
+
+def residual_correlation(store: dict, edges: tuple = CORRELATION_EDGES) -> dict:
+    """How far apart two vertices' errors stop moving together: the correlation of the estimating vertices'
+    residuals (own eta minus their material's median, over their std) between pairs of vertices at a distance in
+    each bin (``edges``: fractions of the model's bounding-box diagonal). Returns {upper edge: correlation} (NaN
+    where no pair). What :data:`sellip.report.materials.PATCH_FRACTION` was chosen from."""
+    from scipy.spatial import cKDTree
+
+    from sellip.report.materials import estimating_vertices
+
+    vertices = np.asarray(store["vertices"], np.float64)
+    diagonal = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+    eta_own = np.asarray(store.get("eta_vertex", store["eta"]), np.float64)
+    cluster = np.asarray(store.get("cluster", np.zeros(len(eta_own))), np.int64)
+    use = estimating_vertices(store)
+    residual = np.full(len(eta_own), np.nan)
+    for k in np.unique(cluster[use]):
+        member = use & (cluster == k)
+        residual[member] = eta_own[member] - np.median(eta_own[member])
+    points, residual = vertices[use], residual[use]
+    residual = residual / (residual.std() or 1.0)
+    tree = cKDTree(points)
+    out = {}
+    for low, high in zip(edges[:-1], edges[1:]):
+        pairs = tree.query_pairs(high * diagonal, output_type="ndarray")
+        distance = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
+        pairs = pairs[distance >= low * diagonal]
+        out[float(high)] = float(np.mean(residual[pairs[:, 0]] * residual[pairs[:, 1]])) if len(pairs) else np.nan
+    return out
