@@ -20,7 +20,8 @@ confidence > 0, whose own eta is not pinned at a bound of the fit, :func:`sellip
   ``eta_shared_std``. ``eta_shared_std`` = :data:`SHARED_STD_FACTOR` x ``eta_fit_std``: the 1-sigma error shared by
   the material's vertices (normal and geometry error, model mismatch, calibration), in units of the fits' own
   uncertainty, which grows where the polarization signal is weak (dark, rough, few views); the factor was fitted on
-  the stability suite's scenes of both renderers and each renderer's fit validated on the other's (docs/viewer.md).
+  the stability suite's scenes of both renderers and each renderer's fit validated on the other's (docs/viewer.md);
+  0 where the store has no ``eta_std`` (the interval is then the scatter's alone).
 - ``eta_scatter_low``/``eta_scatter_high``: the 95 % interval of the median from the spread of the vertices alone:
   the 2.5 / 97.5 percentiles of the median over :data:`BOOTSTRAP_ROUNDS` spatial block bootstrap resamples
   (:func:`block_median_interval`: patches of neighbouring vertices, cubes of :data:`PATCH_FRACTION` of the model's
