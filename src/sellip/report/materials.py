@@ -71,7 +71,7 @@ PATCH_FRACTION = 0.1
 # The 1-sigma error that moves all of a material's vertices together, in units of the median Gauss-Newton std of
 # their own eta (``eta_std``): fitted by maximum likelihood on the stability suite's scenes of both renderers, each
 # renderer's fit validated on the other's (docs/viewer.md, "How the interval was measured").
-SHARED_STD_FACTOR = 0.1
+SHARED_STD_FACTOR = 0.16
 
 COLUMNS = ("cluster", "vertices", "area_share", "confident_vertices", "eta", "eta_ci_low", "eta_ci_high",
            "eta_scatter_low", "eta_scatter_high", "eta_shared_std", "eta_spread", "eta_fit_std", "eta_own_vertices",
