@@ -66,11 +66,12 @@ MAD_TO_SD = 1.4826
 LEVEL = 0.95
 # The edge of a spatial patch of the block bootstrap, as a fraction of the model's bounding-box diagonal. The
 # residuals of neighbouring vertices' own eta correlate (0.2-0.4 within 0.02 of the diagonal) and stop doing so by
-# 0.04-0.1 of it (docs/viewer.md, "How the interval was measured"): a patch of 0.1 holds what neighbours share.
+# 0.06-0.1 of it (docs/viewer.md, "The eta interval"): a patch of 0.1 holds what neighbours share.
 PATCH_FRACTION = 0.1
 # The 1-sigma error that moves all of a material's vertices together, in units of the median Gauss-Newton std of
-# their own eta (``eta_std``): fitted by maximum likelihood on the stability suite's scenes of both renderers, each
-# renderer's fit validated on the other's (docs/viewer.md, "How the interval was measured").
+# their own eta (``eta_std``): the maximum-likelihood fit (0.158) on 16 materials of five runs of both renderers (the
+# demo and stability scenes), each renderer's own fit validated on the other's (docs/viewer.md, "The eta interval";
+# benchmarks/replay_intervals.py).
 SHARED_STD_FACTOR = 0.16
 
 COLUMNS = ("cluster", "vertices", "area_share", "confident_vertices", "eta", "eta_ci_low", "eta_ci_high",
