@@ -69,7 +69,7 @@ LEVEL = 0.95
 # 0.06-0.1 of it (docs/viewer.md, "The eta interval"): a patch of 0.1 holds what neighbours share.
 PATCH_FRACTION = 0.1
 # The 1-sigma error that moves all of a material's vertices together, in units of the median Gauss-Newton std of
-# their own eta (``eta_std``): the maximum-likelihood fit (0.158) on 16 materials of five runs of both renderers (the
+# their own eta (``eta_std``): the maximum-likelihood fit (0.152) on 17 materials of six runs of both renderers (the
 # demo and stability scenes), each renderer's own fit validated on the other's (docs/viewer.md, "The eta interval";
 # benchmarks/replay_intervals.py).
 SHARED_STD_FACTOR = 0.16
