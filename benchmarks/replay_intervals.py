@@ -7,9 +7,10 @@ poses, e.g. the stability suite's ``OUT/runs/<case>/results/<case>``, kept by ``
 material cluster: the estimate, the true eta, and three 95 % intervals (:mod:`sellip.bench.intervals`): ``vertex``
 (the vertex bootstrap materials.csv gave before), ``scatter`` (the spatial block bootstrap) and ``ci`` (what
 materials.csv gives: the scatter widened by the shared error). It fits the shared-error factor on each renderer's
-runs and validates it on the other's, then on all, and prints the coverage (materials whose interval holds the
-truth, per renderer) and the median relative width of each interval; and per run how the vertices' residuals
-correlate with distance (what the block bootstrap's patch size was chosen from). docs/viewer.md quotes it.
+runs and validates it on the other's, then on all, and scores each run with the factor fitted on the other runs; it
+prints the coverage (materials whose interval holds the truth, per renderer) and the median relative width of each
+interval, and per run how the vertices' residuals correlate with distance (what the block bootstrap's patch size was
+chosen from). docs/viewer.md quotes it.
 """
 
 from __future__ import annotations
@@ -58,6 +59,13 @@ def main(argv=None) -> int:
     for name, factor in factors.items():
         ci = intervals(rows, factor)
         report[f"ci_{name}"] = {"factor": factor, **coverage(rows, ci["low"], ci["high"])}
+    # Each run's materials scored with the factor fitted on the other runs.
+    held_low, held_high = np.empty(len(rows)), np.empty(len(rows))
+    for run in rows["run"].unique():
+        out = (rows["run"] == run).to_numpy()
+        ci = intervals(rows[out], fit_shared_factor(rows[~out]))
+        held_low[out], held_high[out] = ci["low"], ci["high"]
+    report["ci_leave_one_run_out"] = coverage(rows, held_low, held_high)
     # The alternative error model: a fixed share of eta, fitted and validated the same way.
     for renderer in ["all", *sorted(rows["renderer"].unique())]:
         fit_rows = rows if renderer == "all" else rows[rows["renderer"] == renderer]
