@@ -65,7 +65,7 @@ BOOTSTRAP_SEED = 0
 MAD_TO_SD = 1.4826
 LEVEL = 0.95
 # The edge of a spatial patch of the block bootstrap, as a fraction of the model's bounding-box diagonal. The
-# residuals of neighbouring vertices' own eta correlate (0.2-0.4 within 0.02 of the diagonal) and stop doing so by
+# residuals of neighbouring vertices' own eta correlate (0.2-0.5 within 0.02 of the diagonal) and stop doing so by
 # 0.06-0.1 of it (docs/viewer.md, "The eta interval"): a patch of 0.1 holds what neighbours share.
 PATCH_FRACTION = 0.1
 # The 1-sigma error that moves all of a material's vertices together, in units of the median Gauss-Newton std of
