@@ -18,6 +18,10 @@ Modules and what they export (each name is importable from here too)::
         FiguresError, Run, Figure, TOLERANCES, RUNS, FIGURES, NOT_COVERED, run_named, table_row, documented, measured,
         Comparison, tolerance_of, compare, select, tolerance_line, document_problems, check, report_lines, provenance,
         record
+    intervals: Coverage of the per-material eta intervals of ``final/materials.csv`` (issue #49 item 4), replayed on
+      finished runs with a ground truth (``benchmarks/replay_intervals.py``; docs/viewer.md quotes it)
+        ROW_COLUMNS, run_renderer, capture_of, material_rows, intervals, fit_shared_factor, coverage,
+        CORRELATION_EDGES, residual_correlation
     ladder: The accuracy ladder (docs/accuracy.md): where the error of a reconstruction enters, rung by rung
         render_hdr, fit_true_mesh, figures, resampled_truth, psnr_ceiling
     renderers: Both renderers side by side (issue #36): the figures of runs on captures of the same scenes rendered by
@@ -74,6 +78,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "figures": ("FiguresError", "Run", "Figure", "TOLERANCES", "RUNS", "FIGURES", "NOT_COVERED", "run_named",
            "table_row", "documented", "measured", "Comparison", "tolerance_of", "compare", "select", "tolerance_line",
            "document_problems", "check", "report_lines", "provenance", "record"),
+    "intervals": ("ROW_COLUMNS", "run_renderer", "capture_of", "material_rows", "intervals", "fit_shared_factor",
+           "coverage", "CORRELATION_EDGES", "residual_correlation"),
     "ladder": ("render_hdr", "fit_true_mesh", "figures", "resampled_truth", "psnr_ceiling"),
     "renderers": ("single_scattering_shares", "false_single_scattering", "renderer_markdown"),
     "replay": ("replay_parser", "ignore_snakemake_zarr_warnings", "clustering_overrides_and_truth"),

@@ -12,7 +12,8 @@ Modules and what they export (each name is importable from here too)::
         PSNR_MAX_DB, transform_mesh, camera_alignment, truth_reprojection, eta_per_material, parameter_errors,
         geometry_errors, geometry_series, psnr, stage_timings, vertex_errors
     materials: The per-material table of a final model (``final/materials.csv``; issue #40)
-        MaterialsError, validate_materials, median_interval, material_table, read_materials
+        MaterialsError, validate_materials, median_interval, material_table, read_materials, BOOTSTRAP_SEED,
+        PATCH_FRACTION, SHARED_STD_FACTOR, patch_labels, block_median_interval, eta_interval, estimating_vertices
     metrics: The figures of merit of a reconstruction (docs/design.md §8; rule ``evaluate_model``): normals, η per
       material and per vertex, albedo, roughness, Chamfer and Hausdorff, held-out and new-light PSNR, the geometry's
       convergence over the iterations -> ``metrics.json`` (:func:`evaluate_model`)
@@ -38,7 +39,9 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "figures_of_merit": ("PSNR_MAX_DB", "transform_mesh", "camera_alignment", "truth_reprojection",
            "eta_per_material", "parameter_errors", "geometry_errors", "geometry_series", "psnr", "stage_timings",
            "vertex_errors"),
-    "materials": ("MaterialsError", "validate_materials", "median_interval", "material_table", "read_materials"),
+    "materials": ("MaterialsError", "validate_materials", "median_interval", "material_table", "read_materials",
+           "BOOTSTRAP_SEED", "PATCH_FRACTION", "SHARED_STD_FACTOR", "patch_labels", "block_median_interval",
+           "eta_interval", "estimating_vertices"),
     "metrics": ("confident_vertices", "view_psnr", "evaluate_model", "headline_figures", "material_support"),
     "outputs": ("MAP_SPECS", "novel_camera", "mueller_image", "polarization_images", "parameter_maps", "fit_scale",
            "save_figure", "DEFAULT_VIEWS", "EvaluateSettings", "OutputsError", "default_views",

@@ -145,9 +145,12 @@ def load_inputs(results: str | Path, capture: str | Path | None = None) -> Viewe
                             "coordinates, polarizer 0 deg")
     table = results / "final" / "materials.csv"
     if table.is_file():
-        from sellip.report.materials import read_materials
+        from sellip.report.materials import MaterialsError, read_materials
 
-        inputs.materials = read_materials(table)
+        try:
+            inputs.materials = read_materials(table)
+        except MaterialsError as error:  # an older table (without the interval's columns): `sellip view` rewrites it
+            inputs.notes.append(f"{error}: not used (`sellip view` writes it again)")
     return inputs
 
 
