@@ -115,9 +115,10 @@ def test_a_changed_readme_value_makes_the_check_disagree(tmp_path):
     docs = tmp_path / "checkout"
     docs.mkdir()
     line, row = figures.table_row(readme, "make demo")
-    changed = row["normals (median)"].replace(row["normals (median)"].rstrip("°"), "0.80")
+    wrong = f"{float(row['normals (median)'].rstrip('°')) + 0.2:.2f}"  # four times the tolerance off
+    changed = row["normals (median)"].replace(row["normals (median)"].rstrip("°"), wrong)
     (docs / "README.md").write_text(readme.replace("| " + row["normals (median)"] + " |", f"| {changed} |", 1))
-    assert figures.table_row((docs / "README.md").read_text(), "make demo")[1]["normals (median)"] == "0.80°"
+    assert figures.table_row((docs / "README.md").read_text(), "make demo")[1]["normals (median)"] == f"{wrong}°"
     result = _check(docs, tmp_path / "results")
     assert result.returncode == 1
     failing = [text for text in result.stdout.splitlines() if "FAIL" in text]
