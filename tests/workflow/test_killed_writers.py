@@ -95,7 +95,8 @@ def stage_of_rule() -> dict[str, str]:
     for smk in (REPO / "workflow" / "rules").glob("*.smk"):
         for block in re.split(r"^rule ", smk.read_text(), flags=re.MULTILINE)[1:]:
             name = block.split(":", 1)[0].strip()
-            match = re.search(r'sellip_shell\(\s*"([a-z-]+)', block)
+            # a loop job's command may follow the pass-through prefix (sellip.fit.convergence)
+            match = re.search(r'sellip_shell\(\s*"(?:\{params\.pass_through\} )?([a-z-]+)', block)
             if match:
                 stages[name] = match.group(1)
     return stages
