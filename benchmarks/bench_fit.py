@@ -24,7 +24,7 @@ intensity; starting normals 5 deg off, eta = 1.5.
 - ``--gpu``: the same N vertices fitted once more in one process on the GPU (JAX's CUDA backend, ``pip install
   sellip[cuda]``), ``--gpu-batch`` vertices advanced together by one LM kernel (the CPU's 512 starves a GPU),
   compile run then timed run as above; prints its throughput and the GPU / CPU-shards ratio, measured in the same
-  run. ``--baseline 0`` skips the scipy baseline.
+  run. ``--baseline 0`` skips the scipy baseline; ``--workers 0`` the CPU shards (GPU only).
 
 Prints both throughputs (vertex-fits per second of wall time, and per CPU-second, which a busy
 machine disturbs less), their ratios, and both accuracies (normal angle, eta relative error,
@@ -47,7 +47,9 @@ OBS_FIELDS = ("diffuse", "diffuse_pol", "specular", "to_light", "to_camera", "li
 
 
 def _single_core(core: int | None) -> None:
-    """This process: one XLA thread, one BLAS thread, pinned to ``core`` (when given)."""
+    """This process: on the CPU (a GPU in the machine is left to ``--gpu``), one XLA thread, one BLAS thread, pinned
+    to ``core`` (when given)."""
+    os.environ["JAX_PLATFORMS"] = "cpu"
     os.environ["XLA_FLAGS"] = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
@@ -123,7 +125,7 @@ def main() -> int:
     parser.add_argument("--baseline", type=int, default=100, help="vertices fitted by the scipy baseline")
     parser.add_argument("--noise", type=float, default=0.01)
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    parser.add_argument("--workers", type=int, default=2, help="shard processes, one core each")
+    parser.add_argument("--workers", type=int, default=2, help="shard processes, one core each (0: GPU only)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--gpu", action="store_true", help="also fit the same vertices on the GPU (one process)")
     parser.add_argument("--gpu-batch", type=int, nargs="+", default=[4096],
@@ -187,7 +189,7 @@ def main() -> int:
         np.save(Path(folder) / "start.npy", start)
         bounds = np.linspace(0, n, args.workers + 1).astype(int)
         context = multiprocessing.get_context("spawn")
-        barrier, results = context.Barrier(args.workers), context.Queue()
+        barrier, results = context.Barrier(max(args.workers, 1)), context.Queue()
         workers = [context.Process(target=_worker, args=(folder, int(a), int(b), cores[i], barrier, results))
                    for i, (a, b) in enumerate(zip(bounds, bounds[1:]))]
         for w in workers:
@@ -197,8 +199,9 @@ def main() -> int:
             w.join()
             if w.exitcode != 0:
                 raise RuntimeError(f"a fit worker failed (exit code {w.exitcode})")
-        load = lambda name: np.concatenate([np.load(Path(folder) / f"{name}_{a}.npy") for a in bounds[:-1]])
-        result_normal, result_params = load("normal"), truth._replace(eta=load("eta"), rho_d=load("rho_d"))
+        if workers:
+            load = lambda name: np.concatenate([np.load(Path(folder) / f"{name}_{a}.npy") for a in bounds[:-1]])
+            result_normal, result_params = load("normal"), truth._replace(eta=load("eta"), rho_d=load("rho_d"))
         gpu_runs = []
         for batch in args.gpu_batch if args.gpu else ():
             gpu_results = context.Queue()
@@ -212,21 +215,23 @@ def main() -> int:
                                         rho_d=np.load(Path(folder) / "gpu_rho_d.npy"))
             gpu_runs.append((batch, gpu_wall, gpu_first, gpu_device, np.load(Path(folder) / "gpu_normal.npy"),
                              gpu_params))
-    ours = max(t[1] for t in timings)
-    ours_cpu = sum(t[2] for t in timings)
-    ours_rate, ours_cpu_rate = n / ours, n / ours_cpu
-    first = max(t[3] for t in timings)
-    print(f"sellip   : {ours:8.1f} s for {n} vertices = {ours_rate:8.1f} vertex-fits/s "
-          f"({args.workers} shard processes of one core; {ours_cpu_rate:.1f} vertex-fits per CPU-second); "
-          f"first run, compiling: {first:.1f} s")
-    print(f"           {accuracy(result_normal, result_params, slice(None))}")
+    if timings:
+        ours = max(t[1] for t in timings)
+        ours_cpu = sum(t[2] for t in timings)
+        ours_rate, ours_cpu_rate = n / ours, n / ours_cpu
+        first = max(t[3] for t in timings)
+        print(f"sellip   : {ours:8.1f} s for {n} vertices = {ours_rate:8.1f} vertex-fits/s "
+              f"({args.workers} shard processes of one core; {ours_cpu_rate:.1f} vertex-fits per CPU-second); "
+              f"first run, compiling: {first:.1f} s")
+        print(f"           {accuracy(result_normal, result_params, slice(None))}")
     for batch, gpu_wall, gpu_first, gpu_device, gpu_normal, gpu_params in gpu_runs:
         print(f"gpu      : {gpu_wall:8.1f} s for {n} vertices = {n / gpu_wall:8.1f} vertex-fits/s "
               f"(one process on {gpu_device}, {batch} vertices per LM kernel); first run, compiling: "
               f"{gpu_first:.1f} s")
         print(f"           {accuracy(gpu_normal, gpu_params, slice(None))}")
-        print(f"gpu / cpu: {ours / gpu_wall:.1f}x the {args.workers} CPU shard processes' vertex-fits/s")
-    if args.baseline <= 0:
+        if timings:
+            print(f"gpu / cpu: {ours / gpu_wall:.1f}x the {args.workers} CPU shard processes' vertex-fits/s")
+    if args.baseline <= 0 or not timings:
         return 0
 
     # Baseline: the same procedure (sellip.fit.vertex_fit._fit_chunk), one vertex at a time, with scipy least_squares
