@@ -57,6 +57,10 @@ def test_params_round_trip_and_errors(tmp_path):
     np.testing.assert_allclose(back["rho_d"], arrays["rho_d"][10:20].astype(np.float32))
     assert back["status"].dtype == np.int8 and back["attrs"]["num_vertices"] == n
     assert not (tmp_path / "p.zarr.tmp").exists()
+    only_eta = read_params(tmp_path / "p.zarr", fields=["eta"])
+    assert sorted(only_eta) == ["attrs", "eta"] and only_eta["eta"].shape == (n,)
+    with pytest.raises(ParamsError, match="albedo"):
+        read_params(tmp_path / "p.zarr", fields=["albedo"])
     with pytest.raises(ParamsError, match="eta"):
         write_params(tmp_path / "q.zarr", {k: v for k, v in arrays.items() if k != "eta"})
     with pytest.raises(ParamsError, match="nothing.zarr"):

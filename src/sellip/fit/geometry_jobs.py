@@ -266,7 +266,7 @@ def _verdict(iteration, offsets, mesh, store, confident, previous_params, poses_
 
     edges = mesh.vertices[mesh.faces[:, [1, 2, 0]]] - mesh.vertices[mesh.faces]
     mean_edge = float(np.linalg.norm(edges, axis=-1).mean())
-    eta_before = None if previous_params is None else np.asarray(read_params(previous_params)["eta"], np.float64)
+    eta_before = None if previous_params is None else np.asarray(read_params(previous_params, fields=["eta"])["eta"], np.float64)
     eta = np.asarray(store["eta"], np.float64)
     if eta_before is not None and eta_before.shape != eta.shape:
         eta_before = None  # another mesh (a user's restart): nothing to compare

@@ -92,8 +92,9 @@ def write_params(path: str | Path, arrays: dict, chunk: int = 65536, attrs: dict
     return path
 
 
-def read_params(path: str | Path, start: int = 0, stop: int | None = None) -> dict:
-    """Rows [start, stop) of a parameter store as a dict of numpy arrays (plus ``attrs``)."""
+def read_params(path: str | Path, start: int = 0, stop: int | None = None, fields=None) -> dict:
+    """Rows [start, stop) of a parameter store as a dict of numpy arrays (plus ``attrs``); ``fields`` (names) reads
+    only those arrays (every one by default)."""
     path = Path(path)
     try:
         group = zarr.open_group(str(path), mode="r")
@@ -103,7 +104,11 @@ def read_params(path: str | Path, start: int = 0, stop: int | None = None) -> di
     if missing:
         raise ParamsError(f"{path}: missing arrays {missing}")
     rows = slice(start, stop)
-    out = {name: np.asarray(group[name][rows]) for name in group.array_keys()}
+    names = list(group.array_keys()) if fields is None else list(fields)
+    absent = [name for name in names if name not in group]
+    if absent:
+        raise ParamsError(f"{path}: missing arrays {absent}")
+    out = {name: np.asarray(group[name][rows]) for name in names}
     out["attrs"] = dict(group.attrs)
     return out
 
