@@ -13,6 +13,7 @@
 # --target     output to build and compare, relative to the workdir (default: the parameter store
 #              of iteration 0's first fit, results/tiny/iter/0/{fit,params}.zarr, whichever exists)
 # --keep-cluster  leave slurmctld/slurmd (and munged, when this script started it) running
+# SELLIP_JAX_CACHE (environment)  the XLA compilation cache both runs use (default: the tiny config's own)
 #
 # Needs root (apt-get install slurm-wlm munge on first use, daemons without systemd) on
 # Debian/Ubuntu. Idempotent: daemons left by an earlier run are stopped first, the work folder is
@@ -192,9 +193,13 @@ import yaml
 repo, work, partition, cpus, mem = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], int(sys.argv[4]), int(sys.argv[5])
 sys.path[:0] = [str(repo / "tests" / "workflow"), str(repo / "tests")]
 from test_workflow import tiny_config
+import os
 for run in ("slurm", "local"):
     (work / run).mkdir(parents=True, exist_ok=True)
-    (work / run / "tiny.yaml").write_text(yaml.safe_dump(tiny_config(work / run)))
+    config = tiny_config(work / run)
+    if os.environ.get("SELLIP_JAX_CACHE"):  # the caller's XLA cache (the test suite's session cache)
+        config["fit"]["compilation_cache"] = os.environ["SELLIP_JAX_CACHE"]
+    (work / run / "tiny.yaml").write_text(yaml.safe_dump(config))
 profile = yaml.safe_load((repo / "workflow/profiles/slurm/config.yaml").read_text())
 defaults = profile.setdefault("default-resources", {})
 defaults["slurm_partition"] = partition

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import pytest
 
+from helpers import session_jax_cache
+
 pytestmark = pytest.mark.slow  # the whole module: `make test-fast` leaves it out
 
 REPO = Path(__file__).resolve().parents[2]
@@ -34,7 +36,7 @@ def test_family_environments():
 
 @pytest.mark.skipif(os.environ.get("SELLIP_SLURM_TEST") != "1",
                     reason="needs root and apt: set SELLIP_SLURM_TEST=1 to run the localhost SLURM test")
-def test_tiny_scene_on_a_localhost_slurm_cluster():
+def test_tiny_scene_on_a_localhost_slurm_cluster(tmp_path):
     if os.geteuid() != 0:
         pytest.fail("SELLIP_SLURM_TEST=1 needs root (apt-get install slurm-wlm munge, slurmctld/slurmd)")
     # a short folder: slurmd's step sockets sit in it, and a Unix socket path has at most 108 bytes (pytest's
@@ -44,7 +46,8 @@ def test_tiny_scene_on_a_localhost_slurm_cluster():
     try:
         result = subprocess.run(["bash", str(REPO / "scripts" / "slurm_localhost.sh"), "--repo", str(REPO),
                                  "--workdir", str(workdir), "--python", sys.executable],
-                                capture_output=True, text=True, timeout=1800, check=False)
+                                capture_output=True, text=True, timeout=1800, check=False,
+                                env={**os.environ, "SELLIP_JAX_CACHE": str(session_jax_cache(tmp_path))})
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
     print(result.stdout[-6000:])

@@ -4,7 +4,7 @@ Public API::
 
     SCENES: tuple of scene names ("demo", "demo_fine", "demo_feathers", "sphere_ior", "tiny", "tiny_dark",
             "tiny_white", "tiny_mirror", "tiny_bumpy", "tiny_relief", "tiny_speckle", "uniform_dark",
-            "uniform_bright", "cow", "cow_painted", "tiny_plain", "pplastic_set")
+            "uniform_bright", "cow", "cow_painted", "tiny_plain", "pplastic_set", "bowl")
     build_scene(name) -> Scene                       # mesh with per-vertex pBRDF parameters, fixed per name
     handheld_orbit(views, width, height, rng, ...) -> list[Camera]
     device_intrinsics(width, height) -> (3, 3) K    # the 25 mm lens on the IMX250 scaled to width
@@ -50,6 +50,9 @@ Scenes:
   4 cm sphere with four wedges of PPLASTIC_SET_MATERIALS (η 1.33-2.0, σ_s 0.1-0.4, among them the η 1.663 / α 0.25
   material that gained a false single-scattering lobe in issue #36): scenes both renderers draw (Mitsuba's pplastic
   has no single scattering; sellip.capture.mitsuba_capture), so any fitted ρ_ss is a false positive.
+- ``bowl``: a 4 cm ball with a bowl-shaped hollow 14 mm deep and about 25 mm across, opening 35 deg above the
+  horizon where the cameras look into it, in one textured material: a concavity that no silhouette reveals, so a
+  visual hull bridges it (issue #53 item 6).
 """
 
 from __future__ import annotations
@@ -65,7 +68,7 @@ from sellip.model.render import Camera, ParamMesh
 
 SCENES = ("demo", "demo_fine", "demo_feathers", "sphere_ior", "tiny", "tiny_dark", "tiny_white", "tiny_mirror",
           "tiny_bumpy", "tiny_relief", "tiny_speckle", "uniform_dark", "uniform_bright", "cow", "cow_painted",
-          "tiny_plain", "pplastic_set")
+          "tiny_plain", "pplastic_set", "bowl")
 
 DEVICE_WIDTH_PX = 2448
 DEVICE_FX_PX = 7246.0
@@ -508,12 +511,33 @@ def _pplastic_set() -> Scene:
     return Scene("pplastic_set", mesh, PPLASTIC_SET_MATERIALS, flash_power=TINY_FLASH_POWER)
 
 
+BOWL_AXIS = (0.0, 35.0)
+"""Azimuth and elevation (degrees) of the bowl scene's hollow."""
+BOWL_DEPTH_M = 0.014
+BOWL_WIDTH_RAD = 0.3
+
+
+def _bowl() -> Scene:
+    """A 4 cm ball (10242 vertices) with a hollow BOWL_DEPTH_M deep (a Gaussian dent of BOWL_WIDTH_RAD, its rim at
+    full radius all round, so no silhouette shows it and a visual hull bridges it), opening at BOWL_AXIS, where the
+    cameras' elevations reach into it. One material (eta 1.5, sigma_s 0.2) painted with 400 sharp-edged patches
+    (about 7 mm across) of two greys and a tan: texture that multi-view matching can use. Star-shaped about the
+    origin: it never folds."""
+    d, faces = icosphere(5)
+    radius = 0.04 - BOWL_DEPTH_M * bump(d, _direction(*BOWL_AXIS), BOWL_WIDTH_RAD)
+    _, _, cell = cellular(d, 400, np.random.default_rng(8))
+    colours = np.array([(0.2, 0.2, 0.2), (0.7, 0.68, 0.64), (0.55, 0.4, 0.25)])
+    albedo = colours[np.random.default_rng(9).integers(0, len(colours), 400)][cell]
+    material = Material("bowl", eta=1.5, rho_d=tuple(colours[1]), rho_s=0.8, sigma_s=0.2)
+    return _one_material_mesh("bowl", material, d, radius[:, None] * d, faces, albedo)
+
+
 _BUILDERS = {"demo": _demo, "demo_fine": _demo_fine, "demo_feathers": _demo_feathers, "sphere_ior": _sphere_ior,
              "tiny": _tiny,
              "tiny_dark": _tiny_dark, "tiny_white": _tiny_white, "tiny_mirror": _tiny_mirror, "tiny_bumpy": _tiny_bumpy,
              "tiny_relief": _tiny_relief, "tiny_speckle": _tiny_speckle, "uniform_dark": _uniform_dark,
              "uniform_bright": _uniform_bright, "cow": _cow, "cow_painted": _cow_painted, "tiny_plain": _tiny_plain,
-             "pplastic_set": _pplastic_set}
+             "pplastic_set": _pplastic_set, "bowl": _bowl}
 
 
 def build_scene(name: str) -> Scene:
