@@ -43,14 +43,6 @@ class GeometryUpdateSettings:
                                 "are not used; 0: none", unit="no units", minimum=0, per_iteration=True)
     keep_surface: bool = setting(True, "shorten each vertex's step where the full step would make triangles cross, "
                                  "flip or degenerate (docs/geometry_update.md, \"Folds\"); false: every step in full")
-    carve: float = setting(1.0, "weight of the photographs' agreement in depth: an unconfident vertex moves in along "
-                           "its normal to where the views see the same texture (a hollow the hull bridged; "
-                           "docs/geometry_update.md, \"Concavities\"); 0: none", unit="no units", minimum=0,
-                           per_iteration=True)
-    carve_max_depth: float = setting(0.3, "deepest carving searched per update, a fraction of the model's mean "
-                                     "radius about its centroid", unit="fraction", exclusive_minimum=0, maximum=1)
-    carve_max_confidence: float = setting(0.5, "the vertices searched: normal confidence below this (a confident "
-                                          "fit already places the surface)", unit="fraction", minimum=0, maximum=1)
 
 
 def raw_camera(capture, camera):
@@ -150,52 +142,6 @@ def measure_silhouettes(mesh, mesh_normals: np.ndarray, shading_normals: np.ndar
 
 
 
-def measure_carve(mesh, mesh_normals: np.ndarray, normal_confidence: np.ndarray, cameras_path: Path, hdr_path: Path,
-                  settings: GeometryUpdateSettings, exclude_views=()):
-    """The carving targets (:func:`sellip.geometry.carve.carve_targets`) of the vertices whose normal confidence is
-    below ``settings.carve_max_confidence``, from the photographs of cameras.csv but ``exclude_views``: each view
-    sees a vertex that faces it and that the current mesh does not hide. Depths searched in steps of half the mean
-    edge length down to ``settings.carve_max_depth`` of the mean radius; patch points half an edge apart."""
-    import open3d as o3d
-
-    from sellip.geometry.cameras import diffuse_view, load_cameras
-    from sellip.geometry.carve import CarveTargets, CarveView, carve_targets
-
-    vertices = np.asarray(mesh.vertices, np.float64)
-    candidates = np.flatnonzero(normal_confidence < settings.carve_max_confidence)
-    if candidates.size == 0:
-        return CarveTargets.none()
-    edges = vertices[mesh.faces[:, [1, 2, 0]]] - vertices[mesh.faces]
-    mean_edge = float(np.linalg.norm(edges, axis=-1).mean())
-    radius = float(np.linalg.norm(vertices - vertices.mean(0), axis=1).mean())
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(mesh.faces.astype(np.uint32)))
-    cameras, hdr = load_cameras(cameras_path, hdr_path)
-    excluded = set(exclude_views)
-    points, normals = vertices[candidates], mesh_normals[candidates]
-    views, visible = [], []
-    for view in (v for v in cameras if v not in excluded):
-        camera = cameras[view]
-        centre = -camera.rotation.T @ camera.translation
-        ray = points - centre
-        distance = np.linalg.norm(ray, axis=1)
-        facing = -np.sum(ray * normals, axis=1) / distance > 0.2
-        rays = np.concatenate([np.broadcast_to(centre, points.shape), ray / distance[:, None]], 1)
-        hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
-        seen = facing & (hit >= distance - 0.5 * mean_edge)
-        if not seen.any():
-            continue
-        image, valid = diffuse_view(hdr, hdr.view_ids.index(view))
-        views.append(CarveView(image, valid, camera.intrinsics, camera.rotation, camera.translation))
-        visible.append(seen)
-    if not views:
-        return CarveTargets.none()
-    full_visible = np.zeros((len(vertices), len(views)), bool)
-    full_visible[candidates] = np.stack(visible, 1)
-    return carve_targets(vertices, mesh_normals, candidates, full_visible, views,
-                         max_depth=settings.carve_max_depth * radius, step=0.5 * mean_edge, spacing=0.5 * mean_edge)
-
-
 def iteration_model(params_path: Path, mesh_path: Path):
     """One iteration's model: (the params store, its mesh (:func:`sellip.fit.observe.read_mesh`), the pBRDF
     parameters (float64), each vertex's confidence (V,) (1 where the store has none), its normal confidence (V,)
@@ -274,16 +220,10 @@ def refine_geometry(params_path: Path, mesh_path: Path, output: Path,
                  "average (RMS %.3f px)", len(per_view), len(silhouettes),
                  *((float(np.mean(silhouettes.offset_px)), float(np.sqrt(np.mean(silhouettes.offset_px ** 2))))
                    if len(silhouettes) else (np.nan, np.nan)))
-    carve = None
-    if settings.carve > 0 and None not in (cameras_path, hdr_path):
-        carve = measure_carve(mesh, mesh_normals, normal_confidence, cameras_path, hdr_path, settings, exclude_views)
-        log.info("carving: %d vertices placed deeper by the photographs (depth median %.2f mm, max %.2f mm)",
-                 len(carve), *((1e3 * float(np.median(carve.depth)), 1e3 * float(carve.depth.max()))
-                               if len(carve) else (0.0, 0.0)))
     new_vertices = refine_from_normals(mesh.vertices, mesh.faces, fitted, normal_confidence, smoothness=smoothness,
                                        smoothness_unconfident=smoothness_unconfident, anchor=anchor, rounds=rounds,
                                        reference=reference, silhouettes=silhouettes, silhouette_weight=silhouette,
-                                       keep_surface=keep_surface, carve=carve, carve_weight=settings.carve)
+                                       keep_surface=keep_surface)
     new_normals = vertex_normals(new_vertices, mesh.faces)
     output = Path(output)
     moved = mesh_distances(new_vertices, mesh.faces, mesh.vertices, mesh.faces, count=20000)
@@ -301,11 +241,7 @@ def refine_geometry(params_path: Path, mesh_path: Path, output: Path,
                "keep_surface": keep_surface,
                "silhouette_weight": silhouette,
                "silhouette_constraints": 0 if silhouettes is None else len(silhouettes),
-               "silhouette_offset_px": per_view,
-               "carve_weight": settings.carve,
-               "carved_vertices": 0 if carve is None else len(carve),
-               "carve_depth_median_mm": (1e3 * float(np.median(carve.depth)) if carve is not None and len(carve)
-                                         else None)}
+               "silhouette_offset_px": per_view}
     if iteration is not None:
         summary["convergence"] = _verdict(iteration, offsets, mesh, store, confident, previous_params, poses_summary,
                                           convergence)

@@ -115,7 +115,7 @@ def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals:
                         rounds: int = 3, reference: np.ndarray | None = None,
                         silhouettes: SilhouetteConstraints | None = None,
                         silhouette_weight: float = 0.01, smoothness_unconfident: float = 1.0,
-                        keep_surface: bool = True, carve=None, carve_weight: float = 1.0) -> np.ndarray:
+                        keep_surface: bool = True) -> np.ndarray:
     """The geometry update of one iteration (paper §4.4): the mesh's vertices (V, 3) moved along its
     normals so that its surface agrees with the fitted normals (V, 3), as far as their ``confidence``
     (V,) in [0, 1] allows. Returns the new vertices (V, 3); the faces (F, 3) are kept.
@@ -149,10 +149,6 @@ def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals:
     ``silhouette_weight sum_k (g_k . (x_i + d_i m_i - x0_i) - offset_k)^2``: each contour vertex moves its
     view's silhouette onto the observed one. This is what fixes the mean offset and size that normals cannot tell,
     and that the anchor would otherwise keep from the initial mesh.
-    ``carve`` (:class:`sellip.geometry.carve.CarveTargets`, measured at ``vertices``): before the rounds, the
-    vertices the photographs place deeper (a hollow the hull bridged) move in along their normals by a smooth field
-    that decays within a few edges of them (:func:`carve_step`, ``carve_weight`` the targets' weight); the normals'
-    shape, which says nothing of a mean offset, cannot hold the rest of the mesh against them.
     ``keep_surface``: each round's step is shortened where it would fold the mesh (:func:`step_without_folds`).
     Long: the rounds of one sparse least-squares problem (normal targets, smoothness, anchor, silhouettes).
     """
@@ -161,9 +157,6 @@ def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals:
 
     vertices = np.asarray(vertices, np.float64)
     measured_at = vertices
-    if carve is not None and len(carve) and carve_weight > 0:  # first, so that the anchor holds what it carved
-        step = carve_step(vertices, faces, carve, carve_weight)
-        vertices = vertices + step if not keep_surface else step_without_folds(vertices, faces, step, measured_at)[0]
     weight = np.clip(np.nan_to_num(np.asarray(confidence, np.float64)), 0, 1)
     reference = vertices if reference is None else np.asarray(reference, np.float64)
     if reference.shape != vertices.shape:
@@ -207,29 +200,6 @@ def refine_from_normals(vertices: np.ndarray, faces: np.ndarray, fitted_normals:
         step = offsets[:, None] * normals
         vertices = vertices + step if not keep_surface else step_without_folds(vertices, faces, step, measured_at)[0]
     return vertices
-
-
-CARVE_DECAY_EDGES = 2.0
-"""How far (in edges) a carving target's pull reaches into the vertices around it (:func:`carve_step`)."""
-
-
-def carve_step(vertices: np.ndarray, faces: np.ndarray, carve, weight: float = 1.0) -> np.ndarray:
-    """The carving step (V, 3): each vertex moves by e_i along its normal (inwards for e_i > 0), the field e
-    minimising ``weight sum_k w_k (e_k - depth_k)^2 + sum_ij (e_i - e_j)^2 + sum_i e_i^2 / CARVE_DECAY_EDGES^2``
-    over the ``carve`` targets (:class:`sellip.geometry.carve.CarveTargets`) and the mesh's edges: smooth across a
-    hollow of targets, decaying to 0 within a few edges outside it."""
-    from scipy import sparse
-    from scipy.sparse.linalg import spsolve
-
-    n = len(vertices)
-    edges = mesh_edges(faces)
-    difference = sparse.csr_matrix((np.concatenate([-np.ones(len(edges)), np.ones(len(edges))]),
-                                    (np.concatenate([np.arange(len(edges))] * 2), edges.T.ravel())),
-                                   shape=(len(edges), n))
-    data = weight * np.bincount(carve.vertex, carve.weight, n)
-    matrix = difference.T @ difference + sparse.diags(data + 1.0 / CARVE_DECAY_EDGES ** 2)
-    field = spsolve(matrix.tocsc(), weight * np.bincount(carve.vertex, carve.weight * carve.depth, n))
-    return -field[:, None] * vertex_normals(vertices, faces)
 
 
 def step_without_folds(vertices: np.ndarray, faces: np.ndarray, step: np.ndarray, start: np.ndarray | None = None,

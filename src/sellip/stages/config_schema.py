@@ -43,7 +43,10 @@ def generated(schema: dict) -> dict:
                 module, name = node["x-record"].split(":")
                 record = getattr(importlib.import_module(module), name)
                 derived = record_schema(record, per_iteration=node.get("x-per-iteration", True))
-                own = {k: v for k, v in (node.get("properties") or {}).items() if k not in derived["properties"]}
+                # the section's own keys (the workflow's: threads, enabled, ...); a key with an x-default came from the
+                # record, and is dropped once the record no longer declares it
+                own = {k: v for k, v in (node.get("properties") or {}).items()
+                       if k not in derived["properties"] and not (isinstance(v, dict) and "x-default" in v)}
                 node["properties"] = {**own, **derived["properties"]}
                 node["additionalProperties"] = False
             for value in node.values():
