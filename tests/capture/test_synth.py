@@ -150,6 +150,29 @@ def test_the_painted_cow_is_the_cow_with_a_texture_sfm_can_match():
     assert set(np.asarray(painted.material).tolist()) == {0}
 
 
+def test_the_bowl_is_a_ball_with_a_hollow_its_silhouettes_never_show():
+    """bowl: a 4 cm ball whose deepest point, 14 mm in, lies on the hollow's axis; the rim around the hollow is at
+    full radius, so its convex hull (the most that silhouettes from every side can carve) lies 6 mm above the
+    surface there (the chord across the hollow) and nowhere else; one material; no self-intersection."""
+    import open3d as o3d
+
+    from sellip.capture.scenes import BOWL_AXIS, BOWL_DEPTH_M, _direction
+
+    mesh = build_scene("bowl").mesh
+    radius = np.linalg.norm(mesh.vertices, axis=1)
+    deepest = mesh.vertices[np.argmin(radius)] / radius.min()
+    assert abs(radius.min() - (0.04 - BOWL_DEPTH_M)) < 2e-4 and deepest @ _direction(*BOWL_AXIS) > 0.999
+    triangles = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
+                                          o3d.utility.Vector3iVector(mesh.faces))
+    assert triangles.is_watertight() and not triangles.is_self_intersecting()
+    hull = triangles.compute_convex_hull()[0]
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(hull))
+    gap = np.abs(scene.compute_signed_distance(o3d.core.Tensor(mesh.vertices.astype(np.float32))).numpy())
+    assert 0.005 < gap.max() < 0.007 and np.all(gap[radius > 0.0399] < 5e-4)
+    assert set(np.asarray(mesh.material).tolist()) == {0}
+
+
 def test_sphere_ior_has_the_table_1_indices():
     scene = build_scene("sphere_ior")
     assert sorted(np.unique(np.round(scene.mesh.params.eta, 3))) == sorted(SPHERE_IOR_ETAS)

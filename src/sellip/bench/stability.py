@@ -127,8 +127,8 @@ CASES: tuple[Case, ...] = (
          config={"demo": {"scene": "uniform_dark", "renderer": "mitsuba"}}, needs=("mitsuba",)),
     Case("mitsuba_cow", "renderer", "the cow (flat black and white patches, concavities) rendered by Mitsuba 3",
          config={"demo": {"scene": "cow", "renderer": "mitsuba"}}, needs=("mitsuba",)),
-    Case("bowl", "geometry", "a 14 mm deep hollow that no silhouette shows, so the visual hull bridges it (scene "
-         "bowl)", config={"demo": {"scene": "bowl"}}),
+    Case("bowl", "geometry", "a 14 mm deep hollow that no silhouette shows, so the visual hull bridges it (up to "
+         "6 mm above its floor; scene bowl)", config={"demo": {"scene": "bowl"}}),
     Case("mitsuba_bowl", "renderer", "the bowl rendered by Mitsuba 3 (its hollow lit by interreflections too)",
          config={"demo": {"scene": "bowl", "renderer": "mitsuba"}}, needs=("mitsuba",)),
 )

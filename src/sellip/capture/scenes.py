@@ -52,7 +52,7 @@ Scenes:
   has no single scattering; sellip.capture.mitsuba_capture), so any fitted ρ_ss is a false positive.
 - ``bowl``: a 4 cm ball with a bowl-shaped hollow 14 mm deep and about 25 mm across, opening 35 deg above the
   horizon where the cameras look into it, in one textured material: a concavity that no silhouette reveals, so a
-  visual hull bridges it (issue #53 item 6).
+  visual hull bridges it (its convex hull lies up to 6 mm above it; issue #53 item 6).
 """
 
 from __future__ import annotations
