@@ -40,6 +40,17 @@ def test_a_measure_over_its_limit_keeps_the_loop_running_and_says_which(change, 
     assert not verdict["converged"] and verdict["iteration"] is None and words in verdict["reason"]
 
 
+def test_a_region_still_moving_keeps_the_loop_running_while_the_median_rests():
+    """2 % of the vertices (a hollow being carved) still step by half an edge: the median step is within its limit,
+    the 99th percentile is not."""
+    offsets = np.where(np.arange(1000) < 20, 0.5, 0.002) * EDGE
+    eta = np.full(1000, 1.5)
+    verdict = judge(4, offsets, EDGE, eta, eta, None, None)
+    assert verdict["offset_edges"] == pytest.approx(0.002) and verdict["offset_p99_edges"] == pytest.approx(0.5)
+    assert not verdict["converged"] and "the surface's 99th-percentile step (edges) 0.5 > 0.1" in verdict["reason"]
+    assert judge(4, np.minimum(offsets, 0.05 * EDGE), EDGE, eta, eta, None, None)["converged"]
+
+
 def test_the_poses_count_where_they_are_refined_and_nothing_unmeasured_converges():
     turning = _verdict(poses={"rotation_deg": {"median": 0.05}})
     assert not turning["converged"] and "the poses' median rotation (deg) 0.05 > 0.01" in turning["reason"]

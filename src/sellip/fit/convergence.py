@@ -2,8 +2,8 @@
 pass their inputs through at almost no cost, with the DAG kept static.
 
 The geometry update of iteration ``it`` (rule ``refine_geometry``) judges whether the loop has converged
-(:func:`judge`) from what it already has: how far it moved the surface (the median vertex offset, in the mesh's
-mean edge lengths), how far the confident vertices' η moved from iteration ``it - 1``'s fit (median relative
+(:func:`judge`) from what it already has: how far it moved the surface (the median and the 99th-percentile vertex
+offset, in the mesh's mean edge lengths), how far the confident vertices' η moved from iteration ``it - 1``'s fit (median relative
 change), and, where the poses are refined, how far this iteration's pose refinement turned the views (median
 rotation, degrees). The verdict goes into ``iter/<it>/mesh.ply.json`` (``convergence``). Every job of a later
 iteration before the final pass runs through ``sellip pass-through --after iter/<it-1>/mesh.ply.json ... --
@@ -44,6 +44,10 @@ class ConvergenceSettings:
                                      "converge (iteration 0 has no previous fit to compare with)", minimum=2)
     max_offset_edges: float = setting(0.01, "converged only if the geometry update moved the vertices by at most "
                                             "this median offset, in mean edge lengths of the mesh", minimum=0)
+    max_offset_p99_edges: float = setting(0.1, "converged only if the geometry update moved 99 % of the vertices by "
+                                                "at most this offset, in mean edge lengths: a region still moving (a "
+                                                "hollow being carved) keeps the loop going while the median rests",
+                                          minimum=0)
     max_eta_change: float = setting(0.001, "converged only if the confident vertices' eta moved from the previous "
                                            "iteration's by at most this median relative change", minimum=0)
     max_rotation_deg: float = setting(0.01, "converged only if, where the poses are refined, this iteration's pose "
@@ -60,7 +64,9 @@ def judge(iteration: int, offsets_m: np.ndarray, mean_edge_m: float, eta: np.nda
     whose η counts (None: all); ``poses`` the summary of the pose refinement that made this iteration's cameras
     (``cameras.csv.json``), None where the poses are not refined. Returns a JSON-able dict: ``converged``,
     ``iteration`` (this one where converged, else None), each measure, its limit, and ``reason`` in words."""
-    offset_edges = float(np.median(offsets_m) / mean_edge_m) if len(offsets_m) and mean_edge_m > 0 else None
+    measurable = len(offsets_m) and mean_edge_m > 0
+    offset_edges = float(np.median(offsets_m) / mean_edge_m) if measurable else None
+    offset_p99_edges = float(np.percentile(offsets_m, 99) / mean_edge_m) if measurable else None
     eta_change = None
     if eta is not None and eta_before is not None:
         use = np.isfinite(eta) & np.isfinite(eta_before) & (eta_before > 0)
@@ -70,6 +76,8 @@ def judge(iteration: int, offsets_m: np.ndarray, mean_edge_m: float, eta: np.nda
             eta_change = float(np.median(np.abs(eta[use] - eta_before[use]) / eta_before[use]))
     rotation = ((poses or {}).get("rotation_deg") or {}).get("median") if poses is not None else None
     measures = [("offset_edges", offset_edges, settings.max_offset_edges, "the surface's median step (edges)"),
+                ("offset_p99_edges", offset_p99_edges, settings.max_offset_p99_edges,
+                 "the surface's 99th-percentile step (edges)"),
                 ("eta_change", eta_change, settings.max_eta_change, "eta's median relative change")]
     if poses is not None:
         measures.append(("rotation_deg", rotation, settings.max_rotation_deg, "the poses' median rotation (deg)"))
