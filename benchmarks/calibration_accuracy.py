@@ -91,6 +91,7 @@ def measure(folder: Path, flash_only: bool = False) -> dict:
                         "centre_std_mm": (f.centre_std_m * 1e3).tolist(), "rms_mm": f.rms_mm,
                         "within_3_sigma": bool(np.all(np.abs(error) <= 3 * f.std_m)),
                         "seconds": time.perf_counter() - started,
+                        "dropped": f.dropped, "left_out": f.left_out,
                         "missed_targets": targets.check("flash", f.uncertainty()), "causes": f.causes(),
                         "position_m": f.position_m.tolist()}
         print(f"{key}:", json.dumps(summary[key]), flush=True)
@@ -100,13 +101,15 @@ def measure(folder: Path, flash_only: bool = False) -> dict:
     if flash_only:
         return summary
     try:
-        report = polarization.check_polarization(frames("spheres"), device, radius)
+        exposures = {p.name: reader.exposure_time(p) for p in (folder / "spheres").iterdir()}
+        report = polarization.check_polarization(frames("spheres"), device, radius, exposures=exposures)
         summary["polarization"] = {"layout_ok": report.layout_ok, "best_layout": report.best_layout,
                                    "layout_right": bool(np.array_equal(report.best_layout,
                                                                        true["sensor"]["polarizer_layout"])),
                                    "score": report.best_score, "next_score": report.second_score,
                                    "rim_score": report.rim_score, "polarizer_error_deg": report.polarizer_error_deg,
                                    "polarizer_std_deg": report.polarizer_std_deg, "ok": report.ok,
+                                   "long_frames": report.long_frames, "diffuse_level": report.diffuse_level,
                                    "missed_targets": targets.check("polarization", report.uncertainty())}
     except CalibrationError as exc:
         summary["polarization"] = {"failed": str(exc)}
@@ -163,7 +166,8 @@ def verdicts(summary: dict) -> list[dict]:
             continue
         rows.append({"step": key, "right": f["error_norm_mm"] <= TRUTH_TARGETS["flash_mm"], "gate": _gate(f),
                      "result": f"{f['error_norm_mm']:.2f} mm off ({', '.join(f'{v:+.2f}' for v in f['error_mm'])}), "
-                               f"1σ ({', '.join(f'{v:.2f}' for v in f['std_mm'])}) mm"})
+                               f"1σ ({', '.join(f'{v:.2f}' for v in f['std_mm'])}) mm, {f['highlights']} highlights, "
+                               f"{f.get('dropped', 0)} dropped as outliers"})
     p = summary.get("polarization")
     if p is not None:
         if "failed" in p:
@@ -174,7 +178,9 @@ def verdicts(summary: dict) -> list[dict]:
             rows.append({"step": "polarization", "gate": _gate(p, extra),
                          "right": p["layout_right"] and abs(p["polarizer_error_deg"]) <= TRUTH_TARGETS["polarizer_deg"],
                          "result": f"layout {layout} (score {p['score']:+.3f}, next {p['next_score']:+.3f}, limb "
-                                   f"{p['rim_score']:+.3f}); flash polarizer {p['polarizer_error_deg']:+.2f}° "
+                                   f"{p['rim_score']:+.3f}; {p.get('long_frames', 0)} long exposures, diffuse "
+                                   f"{100 * p.get('diffuse_level', float('nan')):.2g} % of full scale); flash "
+                                   f"polarizer {p['polarizer_error_deg']:+.2f}° "
                                    f"(1σ {p['polarizer_std_deg']:.2f}°)"})
     for how, c in summary.get("color", {}).items():
         if "failed" in c:

@@ -10,6 +10,8 @@ Public API::
     mirror_ray(sphere, highlight_px, intrinsics) -> (point (3,), direction (3,))
     highlight_rays(s0, sphere, centres, radius_m, intrinsics, label, left_out, miss) -> (highlight, lines) | None
     nearest_point(points (N, 3), directions (N, 3), scale_m=0.001) -> (X (3,), distances (N,), weights (N,))
+    drop_outliers(points, directions, scale_m, min_lines) -> (keep (N,) bool, [Outlier])   # leave-one-out
+    drop_outlier_highlights(points, directions, labels, left_out, ...) -> keep (N,) bool     # named, logged
     solve_flash(points, directions, scale_m, centre_samples) -> (X, covariance, distances, centres' covariance)
     calibrate_flash(frames: {name: raw}, device, radius_m) -> FlashResult   # the outline protocol
     MIN_HIGHLIGHTS
@@ -36,7 +38,10 @@ Geometry (camera coordinates, metres; the images are the ingest chain's undistor
    (:func:`refine_highlight`), gives a ray d; it meets the sphere at P with normal n; the flash lies
    on P + t (d - 2 (d . n) n), t > 0.
 4. The flash is the point nearest all those lines: iteratively reweighted least squares with Huber weights
-   (scale 1 mm), so one bad highlight cannot pull it; the residual of each highlight is its line's distance.
+   (scale 1 mm), so one bad highlight cannot pull it far; the residual of each highlight is its line's distance.
+   Before that, a highlight whose line passes more than :data:`OUTLIER_SIGMA` times the others' residual sigma
+   from the flash fitted to the others (leave-one-out) is dropped, named and logged, and the rest refitted
+   (:func:`drop_outliers`): Huber weights at 1 mm only damp a line hundreds of millimetres off.
 """
 
 from __future__ import annotations
@@ -86,6 +91,11 @@ RIM_SECTORS = 8
 
 NO_SPHERE = "no sphere found (expected dark spheres in front of a bright background)"
 
+LONG_SUFFIX = "_long"
+"""NAME_long.ext is the long exposure of the sphere frame NAME.ext (the same layout from the same camera position,
+exposed for the spheres' diffuse light, the highlights clipped): the polarization check's bracket
+(:func:`sellip.calibrate.polarization.check_polarization`); the flash step leaves it out."""
+
 
 @dataclass
 class Sphere:
@@ -100,6 +110,13 @@ class Sphere:
     outline_rms_px: float = float("nan")
     problem: str | None = None
     outline_centre: np.ndarray | None = None
+
+
+def is_long(name: str) -> bool:
+    """Whether the frame ``name`` (a file name) is a long exposure of a sphere frame (:data:`LONG_SUFFIX`)."""
+    from pathlib import Path
+
+    return Path(name).stem.endswith(LONG_SUFFIX)
 
 
 def develop_frame(raw: np.ndarray, device: Mapping) -> tuple[np.ndarray, dict]:
@@ -447,12 +464,85 @@ def nearest_point(points: np.ndarray, directions: np.ndarray, scale_m: float = 1
     return x, distances, weights
 
 
+OUTLIER_SIGMA = 5.0
+"""A highlight is an outlier when its mirror line passes farther than this many sigmas from the flash fitted to the
+other highlights; sigma is the others' residual per axis, sqrt(sum d_j^2 / (2 (N - 1) - 3)). A line's distance from
+the true point is Rayleigh-distributed for Gaussian errors: beyond 5 sigma with probability exp(-12.5) = 4e-6."""
+
+OUTLIER_FLOOR_M = 2e-4
+"""The sigma that :data:`OUTLIER_SIGMA` multiplies is at least this (m): lines that agree better than 0.2 mm (the
+synthetic spheres at full size) do not make a 1 mm residual an outlier."""
+
+MAX_OUTLIER_SHARE = 0.25
+"""At most this share of the highlights is dropped as outliers: more is a spread the 1-sigma must show, not a few
+bad spheres."""
+
+
+@dataclass
+class Outlier:
+    """A highlight dropped by :func:`drop_outliers`: its index, its line's distance from the flash fitted to the
+    others (m), that fit's residual sigma (m) and their ratio."""
+
+    index: int
+    distance_m: float
+    sigma_m: float
+
+    @property
+    def ratio(self) -> float:
+        return self.distance_m / self.sigma_m
+
+
+def drop_outliers(points: np.ndarray, directions: np.ndarray, scale_m: float = 1e-3,
+                  min_lines: int = MIN_HIGHLIGHTS) -> tuple[np.ndarray, list[Outlier]]:
+    """Leave-one-out outlier test of mirror lines (points, unit directions (N, 3)): each line's distance from the
+    point :func:`nearest_point` fits to the others, against their residual sigma (per axis, 2 (N - 1) - 3 degrees of
+    freedom, at least :data:`OUTLIER_FLOOR_M`). The line farthest in sigmas is dropped while it is beyond
+    :data:`OUTLIER_SIGMA`, then the test repeats on the rest; it stops at ``min_lines`` lines or
+    :data:`MAX_OUTLIER_SHARE` dropped. Returns (keep (N,) bool, the dropped lines in the order dropped)."""
+    count = len(points)
+    keep = np.ones(count, bool)
+    dropped: list[Outlier] = []
+    projectors = np.eye(3) - directions[:, :, None] * directions[:, None, :]
+    while keep.sum() > min_lines and len(dropped) < int(MAX_OUTLIER_SHARE * count):
+        worst = None
+        for i in np.flatnonzero(keep):
+            others = keep.copy()
+            others[i] = False
+            x, distances, _ = nearest_point(points[others], directions[others], scale_m)
+            sigma = max(float(np.sqrt(np.sum(distances ** 2) / max(2 * others.sum() - 3, 1))), OUTLIER_FLOOR_M)
+            candidate = Outlier(int(i), float(np.linalg.norm(projectors[i] @ (x - points[i]))), sigma)
+            if worst is None or candidate.ratio > worst.ratio:
+                worst = candidate
+        if worst is None or worst.ratio <= OUTLIER_SIGMA:
+            break
+        keep[worst.index] = False
+        dropped.append(worst)
+    return keep, dropped
+
+
+def drop_outlier_highlights(points: np.ndarray, directions: np.ndarray, labels: list[str], left_out: dict,
+                            scale_m: float, min_highlights: int, log=None) -> np.ndarray:
+    """:func:`drop_outliers` on both protocols' highlights: each dropped one is recorded in ``left_out`` under its
+    ``labels`` entry (frame and sphere) with its residual and sigma, and logged. Returns keep (N,) bool."""
+    keep, dropped = drop_outliers(points, directions, scale_m, min_highlights)
+    for outlier in dropped:
+        why = (f"highlight residual {1e3 * outlier.distance_m:.1f} mm from the flash fitted to the others, "
+               f"{outlier.ratio:.1f} sigma of their residual ({1e3 * outlier.sigma_m:.2f} mm; more than "
+               f"{OUTLIER_SIGMA:g} sigma): dropped as an outlier and the flash refitted (a sphere off its square's "
+               "centre or on the wrong square, a wrong outline, a sphere of another radius)")
+        left_out[labels[outlier.index]] = why
+        if log:
+            log(f"{labels[outlier.index]}: {why}")
+    return keep
+
+
 @dataclass
 class FlashResult:
     """position_m (3,) camera coordinates; std_m (3,) one-sigma: the lines' spread and the sphere centres' error
     together (:func:`solve_flash`); centre_std_m (3,) the centres' part alone; highlights: one record per used
     highlight (frame, sphere index, centre, residual_mm); left_out: {"frame[#k]": why}; protocol: "board" (spheres
-    resting on the board, centres from its pose) or "outline" (spheres before a bright background)."""
+    resting on the board, centres from its pose) or "outline" (spheres before a bright background); dropped: the
+    highlights dropped as outliers (:func:`drop_outliers`, also in left_out)."""
 
     position_m: np.ndarray
     std_m: np.ndarray
@@ -462,6 +552,7 @@ class FlashResult:
     image_size: tuple[int, int] = (0, 0)
     centre_std_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
     protocol: str = "outline"
+    dropped: int = 0
 
     def uncertainty(self) -> dict[str, float]:
         """What :mod:`sellip.calibrate.targets` gates the flash on: {flash_std_mm (largest axis), flash_rms_mm}."""
@@ -481,6 +572,9 @@ class FlashResult:
             if count:
                 out.append(f"{count} sphere(s) {words}" if key not in ("no sphere", "board not found")
                            else f"{count} {words}")
+        if self.dropped:
+            out.append(f"{self.dropped} highlight(s) dropped as outliers (more than {OUTLIER_SIGMA:g} sigma from the "
+                       "flash fitted to the others; named above)")
         count = len(self.highlights)
         if count < 2 * MIN_HIGHLIGHTS:
             out.append(f"only {count} highlights: take more frames, 2-3 spheres each "
@@ -558,7 +652,12 @@ def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m:
     than ``min_highlights`` usable highlights raise CalibrationError saying how many more are needed."""
     points, directions, records, left_out, outline_lines = [], [], [], {}, []
     image_size = (0, 0)
+    labels = []
     for name, raw in frames.items():
+        if is_long(name):
+            if log:
+                log(f"{name}: a long exposure for the polarization check ({LONG_SUFFIX}), not used for the flash")
+            continue
         analyzers, intrinsics = develop_frame(raw, device)
         s0 = intensity(analyzers)
         image_size = (s0.shape[1], s0.shape[0])
@@ -580,9 +679,14 @@ def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m:
             outline_lines.append(outline_line)
             records.append({"frame": name, "sphere": k, "centre_m": sphere.centre.tolist(),
                             "outline_rms_px": sphere.outline_rms_px, "highlight_px": highlight.tolist()})
+            labels.append(label)
     if len(points) < min_highlights:
         raise too_few_highlights(len(points), min_highlights, left_out)
     points, directions = np.asarray(points), np.asarray(directions)
+    keep = drop_outlier_highlights(points, directions, labels, left_out, scale_m, min_highlights, log)
+    points, directions = points[keep], directions[keep]
+    records = [r for r, k in zip(records, keep) if k]
+    outline_lines = [line for line, k in zip(outline_lines, keep) if k]
     # the rim model's correction of the centres, taken as their systematic error: the flash from the half-level
     # outline's centres is one draw at +1 sigma and its mirror at -1 sigma
     outline, *_ = nearest_point(np.asarray([p for p, _ in outline_lines]),
@@ -594,4 +698,5 @@ def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m:
         record["residual_mm"] = float(distance * 1e3)
     return FlashResult(position_m=position, std_m=np.sqrt(np.diag(cov)),
                        rms_mm=float(np.sqrt(np.mean(distances ** 2)) * 1e3), highlights=records, left_out=left_out,
-                       image_size=image_size, centre_std_m=np.sqrt(np.diag(centre)), protocol="outline")
+                       image_size=image_size, centre_std_m=np.sqrt(np.diag(centre)), protocol="outline",
+                       dropped=int(np.sum(~keep)))
