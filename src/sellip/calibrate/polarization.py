@@ -281,9 +281,10 @@ def _check_cues(report: PolarizationReport, claimed, best, claimed_highlight_deg
 
 
 def _undecided(best, best_score: float, second, second_score: float, values: np.ndarray,
-               long_frames: int) -> CalibrationError:
+               long_frames: int, notes: Mapping[str, str]) -> CalibrationError:
     """The error when no layout wins by MIN_SCORE_MARGIN, with the level of the diffuse light that decides
-    (``values``: analyzer samples (N, 4) at DIFFUSE_ZENITH_DEG, 1 = full scale)."""
+    (``values``: analyzer samples (N, 4) at DIFFUSE_ZENITH_DEG, 1 = full scale; ``notes``: {long exposure: why it
+    was left out})."""
     level = float(np.nanmedian(values.mean(axis=-1)))
     return CalibrationError(f"the sphere limbs cannot tell the polarizer layouts apart (best {best} {best_score:+.3f}, "
                             f"next {second} {second_score:+.3f}, at least {MIN_SCORE_MARGIN:g} apart needed): "
@@ -292,7 +293,8 @@ def _undecided(best, best_score: float, second, second_score: float, values: np.
                             f"full scale over {len(values)} pixels ({long_frames} long exposures), and its "
                             "polarization is 0.5-2 % of that: shoot each sphere layout NAME again as "
                             f"NAME{LONG_SUFFIX} (same camera position), exposed so that the spheres read 10-30 % of "
-                            "full scale (the highlights may clip)")
+                            "full scale (the highlights may clip)" +
+                            "".join(f"\n  {name}: {why}" for name, why in notes.items()))
 
 
 def _brackets(names, left_out: dict) -> dict[str, str]:
@@ -363,6 +365,8 @@ def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius
             if why:
                 left_out[brackets[name]] = why
                 long_analyzers = None
+                if log:
+                    log(f"{brackets[name]}: {why}")
             else:
                 long_frames += 1
                 if log:
@@ -414,7 +418,8 @@ def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius
         rim_score=rim_scores[best], long_frames=long_frames,
         diffuse_level=float(np.nanmedian(values.mean(axis=-1))) if len(values) else float("nan"))
     if scores[best] - ranked[order[1]] < MIN_SCORE_MARGIN:
-        raise _undecided(layouts[best], scores[best], layouts[order[1]], scores[order[1]], values, long_frames)
+        raise _undecided(layouts[best], scores[best], layouts[order[1]], scores[order[1]], values, long_frames,
+                         {name: why for name, why in left_out.items() if is_long(name)})
     # the sum rule must pick the pairing clearly: the per-pixel misfit of the next pairing exceeds the best's by
     # SUM_RULE_Z standard errors of their paired difference
     other = [i for i in range(len(perms)) if not paired[i]]
