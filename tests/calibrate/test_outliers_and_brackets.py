@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from sellip.calibrate import board_spheres, flash, polarization, synthetic, synthetic_set
+from sellip.calibrate import board_spheres, flash_fit, polarization, synthetic, synthetic_set
 from sellip.calibrate.intrinsics import CalibrationError
 from sellip.capture import reader, writer
 
@@ -36,14 +36,14 @@ def test_leave_one_out_drops_the_outlier_and_the_refit_lands_on_the_flash():
     Clean lines lose none; the test never drops below the minimum number of highlights."""
     rng = np.random.default_rng(3)
     target, points, directions = _lines(rng)
-    keep, dropped = flash.drop_outliers(points, directions)
+    keep, dropped = flash_fit.drop_outliers(points, directions)
     assert keep.all() and dropped == []
     points[4] += (np.eye(3) - np.outer(directions[4], directions[4])) @ np.array([0.04, 0.0, 0.0])
-    keep, dropped = flash.drop_outliers(points, directions)
+    keep, dropped = flash_fit.drop_outliers(points, directions)
     assert [d.index for d in dropped] == [4] and dropped[0].ratio > 20
-    refit, *_ = flash.nearest_point(points[keep], directions[keep])
+    refit, *_ = flash_fit.nearest_point(points[keep], directions[keep])
     assert np.linalg.norm(refit - target) < 1e-3
-    keep, dropped = flash.drop_outliers(points[:6], directions[:6], min_lines=6)
+    keep, dropped = flash_fit.drop_outliers(points[:6], directions[:6], min_lines=6)
     assert keep.all() and dropped == []
 
 
@@ -90,7 +90,7 @@ def test_a_sphere_off_its_square_is_dropped_named_and_the_flash_refitted(pairs, 
     assert np.linalg.norm(result.position_m - clean.position_m) < 1e-3
     assert np.all(np.abs(error) <= 3 * result.std_m), (error, result.std_m)
 
-    monkeypatch.setattr(flash, "OUTLIER_SIGMA", np.inf)
+    monkeypatch.setattr(flash_fit, "OUTLIER_SIGMA", np.inf)
     kept = board_spheres.calibrate_flash_on_board(frames, device, radius, *BOARD)
     assert kept.dropped == 0 and np.linalg.norm(kept.position_m - clean.position_m) > 5e-3
 

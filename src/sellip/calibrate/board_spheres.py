@@ -31,15 +31,13 @@ from sellip.calibrate.flash import (
     FlashResult,
     Sphere,
     develop_frame,
-    drop_outlier_highlights,
     highlight_rays,
     intensity,
     mirror_ray,
-    nearest_point,
     pixel_rays,
-    solve_flash,
     too_few_highlights,
 )
+from sellip.calibrate.flash_fit import drop_outlier_highlights, nearest_point, solve_flash
 
 
 def square_centres(cols: int, rows: int, square_m: float) -> np.ndarray:

@@ -330,6 +330,30 @@ def _bracket_problem(name: str, long_name: str, ratio: float, exposures: Mapping
             "so that the spheres read 10-30 % of full scale")
 
 
+def _long_exposure(name: str, long_name: str, long_raw: np.ndarray, analyzers: np.ndarray, intrinsics: Mapping,
+                   centres: list[np.ndarray], device: Mapping, radius_m: float, exposures: Mapping, left_out: dict,
+                   log=None) -> np.ndarray | None:
+    """The developed long exposure ``long_name`` of sphere frame ``name`` (its spheres at ``centres``), or None when
+    it is not :data:`MIN_BRACKET` times as bright on their diffuse band (then in ``left_out``, logged) or no sphere
+    was found."""
+    if not centres:
+        return None
+    long_analyzers, _ = develop_frame(long_raw, device)
+    bands = [(limb_samples(analyzers, centre, radius_m, intrinsics, DIFFUSE_ZENITH_DEG)[0],
+              limb_samples(long_analyzers, centre, radius_m, intrinsics, DIFFUSE_ZENITH_DEG)[0]) for centre in centres]
+    ratio = (float(np.median(np.concatenate([b[1] for b in bands]).sum(-1)))
+             / max(float(np.median(np.concatenate([b[0] for b in bands]).sum(-1))), 1e-12))
+    why = _bracket_problem(name, long_name, ratio, exposures)
+    if why:
+        left_out[long_name] = why
+        if log:
+            log(f"{long_name}: {why}")
+        return None
+    if log:
+        log(f"{long_name}: the diffuse light of {name}'s spheres, {ratio:.1f}x as bright")
+    return long_analyzers
+
+
 def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius_m: float,
                        log=None, exposures: Mapping[str, float | None] | None = None) -> PolarizationReport:
     """Score every polarizer layout on the spheres' diffuse light and measure the flash polarizer on their
@@ -337,7 +361,8 @@ def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius
     bracket, module docstring), its diffuse band used instead of NAME's; ``exposures``: {file name: ExposureTime
     (s) the file records, or None}, quoted when a long exposure is not brighter. Raises CalibrationError if no
     sphere gives a limb, if no layout wins by :data:`MIN_SCORE_MARGIN`, if the sum rule cannot pick the pairing,
-    or if the cues disagree (:func:`_check_cues`)."""
+    or if the cues disagree (:func:`_check_cues`). Long: one pass over the frames gathers both cues' samples, then
+    the three decisions follow in order, each failing with its own message."""
     claimed = [list(map(int, row)) for row in device["sensor"]["polarizer_layout"]]
     layouts = candidate_layouts()
     perms = [permutation(claimed, layout) for layout in layouts]
@@ -352,25 +377,12 @@ def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius
         spheres, problem = find_spheres_or_why(s0, intrinsics, radius_m)
         if problem:
             left_out[name] = problem
-        usable = [(k, sphere) for k, sphere in enumerate(spheres) if not sphere.problem]
         long_analyzers = None
-        if name in brackets and usable:
-            long_analyzers, _ = develop_frame(frames[brackets[name]], device)
-            bands = [(limb_samples(analyzers, sphere.centre, radius_m, intrinsics, DIFFUSE_ZENITH_DEG)[0],
-                      limb_samples(long_analyzers, sphere.centre, radius_m, intrinsics, DIFFUSE_ZENITH_DEG)[0])
-                     for _, sphere in usable]
-            ratio = (float(np.median(np.concatenate([b[1] for b in bands]).sum(-1)))
-                     / max(float(np.median(np.concatenate([b[0] for b in bands]).sum(-1))), 1e-12))
-            why = _bracket_problem(name, brackets[name], ratio, exposures or {})
-            if why:
-                left_out[brackets[name]] = why
-                long_analyzers = None
-                if log:
-                    log(f"{brackets[name]}: {why}")
-            else:
-                long_frames += 1
-                if log:
-                    log(f"{brackets[name]}: the diffuse light of {name}'s spheres, {ratio:.1f}x as bright")
+        if name in brackets:
+            long_analyzers = _long_exposure(name, brackets[name], frames[brackets[name]], analyzers, intrinsics,
+                                            [s.centre for s in spheres if not s.problem], device, radius_m,
+                                            exposures or {}, left_out, log)
+            long_frames += long_analyzers is not None
         for k, sphere in enumerate(spheres):
             label = f"{name}#{k}"
             if sphere.problem:
