@@ -104,8 +104,9 @@ Mitsuba's black ball, a frame exposed for the highlight leaves its diffuse light
 def dark_spheres(tmp_path_factory):
     """3 layouts of 3 dark glossy spheres before the panel at 612x512 (sellip's renderer), each as a bracket:
     NAME.tiff exposed for the highlights (peak at 75 % of full scale, ExposureTime 10 ms), NAME_long.tiff 16x
-    brighter (160 ms, the highlights clipped), and NAME_flat.tiff: exposed as NAME, recording 80 ms (a flash whose
-    pulse the shutter does not lengthen). Returns (folder, device, radius)."""
+    brighter (160 ms, the highlights clipped), NAME_flat.tiff: exposed as NAME, recording 80 ms (a flash whose
+    pulse the shutter does not lengthen), and NAME_hot.tiff: 400x brighter, the diffuse light clipped too. Returns
+    (folder, device, radius)."""
     folder = tmp_path_factory.mktemp("dark")
     device = synthetic.true_device(W, H)
     sensor = device["sensor"]
@@ -115,20 +116,20 @@ def dark_spheres(tmp_path_factory):
     for k, centres in enumerate(synthetic.sphere_layouts(device, 3, rng, radius=radius)):
         image = synthetic.render_spheres(device, [(c, radius) for c in centres], params=DARK_BALL)
         peak = float(image.max())
-        for suffix, gain, seconds in (("", 1, 0.01), ("_long", 16, 0.16), ("_flat", 1, 0.08)):
+        for suffix, gain, seconds in (("", 1, 0.01), ("_long", 16, 0.16), ("_flat", 1, 0.08), ("_hot", 400, 4.0)):
             raw = synthetic.expose(image, device, gain * 0.75 * white, np.random.default_rng([7, k, gain, len(suffix)]),
                                    reference=peak)
             writer.write_raw_file(folder / f"spheres_{k:02d}{suffix}.tiff", raw, sensor, exposure_s=seconds)
     return folder, device, radius
 
 
-def _bracket(folder, sensor, suffixes):
+def _bracket(folder, sensor, suffixes, stand_in="_long"):
+    """({name: raw}, {name: ExposureTime}) of the frames spheres_<suffix>.tiff, ``stand_in`` frames named as the
+    long ones."""
     paths = [p for p in sorted(folder.iterdir()) if p.stem[len("spheres_"):] in suffixes]
-    frames = {}
-    for p in paths:  # the flat frames stand in for the long ones where asked
-        name = p.name.replace("_flat", "_long")
-        frames[name] = reader.read_raw_file(p, sensor)
-    return frames, {p.name.replace("_flat", "_long"): reader.exposure_time(p) for p in paths}
+    names = {p: p.name.replace(stand_in, "_long") for p in paths}
+    return ({names[p]: reader.read_raw_file(p, sensor) for p in paths},
+            {names[p]: reader.exposure_time(p) for p in paths})
 
 
 @pytest.mark.slow
@@ -160,11 +161,19 @@ def test_dark_spheres_need_the_long_exposure_and_cues_that_disagree_still_fail(d
     turned["light"]["polarizer_deg"] = 90.0
     with pytest.raises(CalibrationError, match="the cues disagree"):
         polarization.check_polarization(frames, turned, radius, exposures=exposures)
+    frames["spheres_09_long.tiff"] = frames["spheres_00_long.tiff"]
+    report = polarization.check_polarization(frames, device, radius, exposures=exposures)
+    assert report.ok and report.left_out["spheres_09_long.tiff"].startswith("a long exposure without its sphere frame")
 
-    flat, exposures = _bracket(folder, sensor, {"00", "01", "02", "00_flat", "01_flat", "02_flat"})
+    flat, exposures = _bracket(folder, sensor, {"00", "01", "02", "00_flat", "01_flat", "02_flat"}, "_flat")
     with pytest.raises(CalibrationError, match="cannot tell the polarizer layouts apart") as failed:
         polarization.check_polarization(flat, device, radius, exposures=exposures)
     assert "(0 long exposures)" in str(failed.value)
     assert "spheres_00_long.tiff: only " in str(failed.value)
     assert ("x as bright on the spheres as spheres_00.tiff (ExposureTime 0.08 s against 0.01 s: 8x): a flash's pulse "
             "is shorter than the shutter") in str(failed.value)
+    hot, exposures = _bracket(folder, sensor, {"00", "01", "02", "00_hot", "01_hot", "02_hot"}, "_hot")
+    with pytest.raises(CalibrationError, match="cannot tell the polarizer layouts apart") as failed:
+        polarization.check_polarization(hot, device, radius, exposures=exposures)
+    assert "spheres_01_long.tiff: " in str(failed.value)
+    assert "of the spheres' diffuse band saturated" in str(failed.value)

@@ -341,9 +341,13 @@ def _long_exposure(name: str, long_name: str, long_raw: np.ndarray, analyzers: n
     long_analyzers, _ = develop_frame(long_raw, device)
     bands = [(limb_samples(analyzers, centre, radius_m, intrinsics, DIFFUSE_ZENITH_DEG)[0],
               limb_samples(long_analyzers, centre, radius_m, intrinsics, DIFFUSE_ZENITH_DEG)[0]) for centre in centres]
-    ratio = (float(np.median(np.concatenate([b[1] for b in bands]).sum(-1)))
-             / max(float(np.median(np.concatenate([b[0] for b in bands]).sum(-1))), 1e-12))
-    why = _bracket_problem(name, long_name, ratio, exposures)
+    short, long = np.concatenate([b[0] for b in bands]), np.concatenate([b[1] for b in bands])
+    if len(long) < 0.5 * len(short):  # saturated pixels are NaN and not sampled
+        why = (f"{100 * (1 - len(long) / max(len(short), 1)):.0f} % of the spheres' diffuse band saturated: expose it "
+               "so that the spheres read 10-30 % of full scale")
+    else:
+        ratio = float(np.median(long.sum(-1))) / max(float(np.median(short.sum(-1))), 1e-12)
+        why = _bracket_problem(name, long_name, ratio, exposures)
     if why:
         left_out[long_name] = why
         if log:
