@@ -1,7 +1,7 @@
 """Calibration accuracy on synthetic frames with known truth, drawn by sellip's renderer and/or Mitsuba 3.
 
     python benchmarks/calibration_accuracy.py [--folder DIR] [--width 2448 --height 2048 --seed 0]
-                                              [--renderer sellip mitsuba]
+                                              [--renderer sellip mitsuba] [--wrong-square K]
 
 Writes the calibration folder with ``sellip synth-calibration`` (unless it already holds one) in the protocol
 docs/calibration.md recommends: 96 poses of a 14x10-corner, 10 mm board; 6 layouts of 3 glossy spheres before a
@@ -47,9 +47,36 @@ TRUTH_TARGETS = {"f_pct": 0.1, "c_px_full": 0.5, "flash_mm": 2.0, "polarizer_deg
 """Issue #51's targets against the truth (cx, cy: raw pixels of the 2448-pixel-wide sensor)."""
 
 
-def measure(folder: Path, flash_only: bool = False) -> dict:
+class _WrongSquare:
+    """Fault injection for the board protocol (``--wrong-square K``): while active, the first sphere found in the
+    K-th pair (spheres_K, in name order) is put one square off (+y) the square it rests on -- what a black ball on
+    black squares once did on a Mitsuba frame (its silhouette too faint there), which put the flash 175 mm off
+    before outlier highlights were dropped."""
+
+    def __init__(self, pair: int | None, square_m: float):
+        self.pair, self.square_m, self.calls = pair, square_m, 0
+        self.original = board_spheres.board_sphere_marks
+
+    def __enter__(self):
+        if self.pair is not None:
+            board_spheres.board_sphere_marks = self
+        return self
+
+    def __exit__(self, *exc):
+        board_spheres.board_sphere_marks = self.original
+
+    def __call__(self, *args, **kwargs):
+        marks, left_out = self.original(*args, **kwargs)
+        if self.calls == self.pair and marks:
+            marks[0] = marks[0] + np.array([0.0, self.square_m])
+        self.calls += 1
+        return marks, left_out
+
+
+def measure(folder: Path, flash_only: bool = False, wrong_square: int | None = None) -> dict:
     """Every step on the set in ``folder`` against its truth.yaml: {step: figures}. Long: one block per step,
-    each the library call the command makes, its error against the truth and the targets it misses."""
+    each the library call the command makes, its error against the truth and the targets it misses.
+    ``wrong_square``: put one sphere of that pair on the wrong square (:class:`_WrongSquare`)."""
     truth = yaml.safe_load((folder / "truth.yaml").read_text())
     true = truth["device"]
     sensor = true["sensor"]
@@ -79,8 +106,9 @@ def measure(folder: Path, flash_only: bool = False) -> dict:
     for key, (sub, on_board) in protocols.items():
         started = time.perf_counter()
         try:
-            f = (board_spheres.calibrate_flash_on_board(frames(sub), device, radius, *on_board) if on_board
-                 else flash.calibrate_flash(frames(sub), device, radius))
+            with _WrongSquare(wrong_square if on_board else None, spec.square_m):
+                f = (board_spheres.calibrate_flash_on_board(frames(sub), device, radius, *on_board) if on_board
+                     else flash.calibrate_flash(frames(sub), device, radius))
         except CalibrationError as exc:
             summary[key] = {"failed": str(exc)}
             print(f"{key}:", json.dumps(summary[key]), flush=True)
@@ -91,6 +119,7 @@ def measure(folder: Path, flash_only: bool = False) -> dict:
                         "centre_std_mm": (f.centre_std_m * 1e3).tolist(), "rms_mm": f.rms_mm,
                         "within_3_sigma": bool(np.all(np.abs(error) <= 3 * f.std_m)),
                         "seconds": time.perf_counter() - started,
+                        "dropped": f.dropped, "left_out": f.left_out,
                         "missed_targets": targets.check("flash", f.uncertainty()), "causes": f.causes(),
                         "position_m": f.position_m.tolist()}
         print(f"{key}:", json.dumps(summary[key]), flush=True)
@@ -100,13 +129,15 @@ def measure(folder: Path, flash_only: bool = False) -> dict:
     if flash_only:
         return summary
     try:
-        report = polarization.check_polarization(frames("spheres"), device, radius)
+        exposures = {p.name: reader.exposure_time(p) for p in (folder / "spheres").iterdir()}
+        report = polarization.check_polarization(frames("spheres"), device, radius, exposures=exposures)
         summary["polarization"] = {"layout_ok": report.layout_ok, "best_layout": report.best_layout,
                                    "layout_right": bool(np.array_equal(report.best_layout,
                                                                        true["sensor"]["polarizer_layout"])),
                                    "score": report.best_score, "next_score": report.second_score,
                                    "rim_score": report.rim_score, "polarizer_error_deg": report.polarizer_error_deg,
                                    "polarizer_std_deg": report.polarizer_std_deg, "ok": report.ok,
+                                   "long_frames": report.long_frames, "diffuse_level": report.diffuse_level,
                                    "missed_targets": targets.check("polarization", report.uncertainty())}
     except CalibrationError as exc:
         summary["polarization"] = {"failed": str(exc)}
@@ -163,7 +194,8 @@ def verdicts(summary: dict) -> list[dict]:
             continue
         rows.append({"step": key, "right": f["error_norm_mm"] <= TRUTH_TARGETS["flash_mm"], "gate": _gate(f),
                      "result": f"{f['error_norm_mm']:.2f} mm off ({', '.join(f'{v:+.2f}' for v in f['error_mm'])}), "
-                               f"1σ ({', '.join(f'{v:.2f}' for v in f['std_mm'])}) mm"})
+                               f"1σ ({', '.join(f'{v:.2f}' for v in f['std_mm'])}) mm, {f['highlights']} highlights, "
+                               f"{f.get('dropped', 0)} dropped as outliers"})
     p = summary.get("polarization")
     if p is not None:
         if "failed" in p:
@@ -174,7 +206,9 @@ def verdicts(summary: dict) -> list[dict]:
             rows.append({"step": "polarization", "gate": _gate(p, extra),
                          "right": p["layout_right"] and abs(p["polarizer_error_deg"]) <= TRUTH_TARGETS["polarizer_deg"],
                          "result": f"layout {layout} (score {p['score']:+.3f}, next {p['next_score']:+.3f}, limb "
-                                   f"{p['rim_score']:+.3f}); flash polarizer {p['polarizer_error_deg']:+.2f}° "
+                                   f"{p['rim_score']:+.3f}; {p.get('long_frames', 0)} long exposures, diffuse "
+                                   f"{100 * p.get('diffuse_level', float('nan')):.2g} % of full scale); flash "
+                                   f"polarizer {p['polarizer_error_deg']:+.2f}° "
                                    f"(1σ {p['polarizer_std_deg']:.2f}°)"})
     for how, c in summary.get("color", {}).items():
         if "failed" in c:
@@ -216,6 +250,8 @@ def main() -> None:
     parser.add_argument("--sphere-frames", type=int, default=6, help="sphere layouts, 3 spheres each (6)")
     parser.add_argument("--burst", type=int, default=1, help="frames per pose and layout (default 1)")
     parser.add_argument("--flash-only", action="store_true", help="stop after the flash (skip polarization, colour)")
+    parser.add_argument("--wrong-square", type=int, metavar="K",
+                        help="fault injection: one sphere of the K-th board pair put one square off (flash_board)")
     parser.add_argument("--no-panel-reflection", action="store_true",
                         help="spheres that do not mirror the light panel (sellip's renderer before 2026-11-27)")
     args = parser.parse_args()
@@ -229,7 +265,7 @@ def main() -> None:
                                    reflect_panel=not args.no_panel_reflection, renderer=renderer)
             print(f"synthesized {folder} in {time.perf_counter() - started:.0f} s", flush=True)
         print(f"== {renderer}: {folder}", flush=True)
-        summaries[renderer] = measure(folder, args.flash_only)
+        summaries[renderer] = measure(folder, args.flash_only, args.wrong_square)
     print(table(summaries), flush=True)
     print(json.dumps(summaries))
 

@@ -17,6 +17,7 @@ from sellip.calibrate import (
     board_spheres,
     color,
     flash,
+    flash_fit,
     intrinsics,
     panel,
     polarization,
@@ -196,7 +197,7 @@ def test_nearest_point_ignores_one_bad_line():
     directions = target - points
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     points[0] += [0.02, 0.0, 0.0]  # one highlight 20 mm off
-    x, distances, weights = flash.nearest_point(points, directions)
+    x, distances, weights = flash_fit.nearest_point(points, directions)
     assert np.linalg.norm(x - target) < 5e-4 and weights[0] < 0.2 and distances[0] > 0.01
 
 
@@ -353,8 +354,8 @@ def _flash_from_geometry(device, centres, radius, rng, centre_std_m=1e-5, highli
     draws = []
     for _ in range(100):
         drawn = [flash.mirror_ray(c + rng.normal(0, centre_std_m, 3), radius, p, grid) for c, p in zip(centres, pixels)]
-        draws.append(flash.nearest_point(np.asarray([a for a, _ in drawn]), np.asarray([b for _, b in drawn]))[0])
-    position, cov, distances, centre = flash.solve_flash(np.asarray([a for a, _ in lines]),
+        draws.append(flash_fit.nearest_point(np.asarray([a for a, _ in drawn]), np.asarray([b for _, b in drawn]))[0])
+    position, cov, distances, centre = flash_fit.solve_flash(np.asarray([a for a, _ in lines]),
                                                          np.asarray([b for _, b in lines]), centre_samples=draws)
     records = [{"frame": "f", "sphere": k, "highlight_px": p.tolist(), "centre_m": c.tolist(), "residual_mm": 1e3 * d}
                for k, (p, c, d) in enumerate(zip(pixels, centres, distances))]

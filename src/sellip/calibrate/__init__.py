@@ -8,7 +8,9 @@ Public API (raw frames are (H, W) uint16 mosaics; a device is device.yaml's mapp
     flash.calibrate_flash(frames, device, radius_m) -> FlashResult   # spheres -> mirror rays -> nearest point
     board_spheres.calibrate_flash_on_board(frames, device, radius_m, cols, rows, square_m) -> FlashResult
                                                                   # spheres resting on the board: its pose
-    polarization.check_polarization(frames, device, radius_m) -> PolarizationReport   # layout, flash polarizer
+    flash_fit.nearest_point / solve_flash / drop_outliers         # the flash from mirror lines; outliers dropped
+    polarization.check_polarization(frames, device, radius_m, exposures) -> PolarizationReport
+                                                                  # layout, flash polarizer; NAME_long brackets
     color.calibrate_color(raw, device, corners_px=None) -> ColorResult   # 3x3 camera RGB -> sRGB, dE2000
     report.intrinsics_report / flash_report / polarization_report / color_report -> StepReport
                                                                   # each step's log lines, sections and record

@@ -34,11 +34,10 @@ from sellip.calibrate.flash import (
     highlight_rays,
     intensity,
     mirror_ray,
-    nearest_point,
     pixel_rays,
-    solve_flash,
     too_few_highlights,
 )
+from sellip.calibrate.flash_fit import drop_outlier_highlights, nearest_point, solve_flash
 
 
 def square_centres(cols: int, rows: int, square_m: float) -> np.ndarray:
@@ -270,7 +269,7 @@ def calibrate_flash_on_board(frames: Mapping[str, np.ndarray], device: Mapping, 
     there): the error the centres share (:func:`solve_flash`)."""
     pairs, left_out = _pairs(frames)
     std = (device.get("calibration") or {}).get("intrinsics", {}).get("std_px", {}) or {}
-    points, directions, records, used = [], [], [], []
+    points, directions, records, used, labels = [], [], [], [], []
     image_size = (0, 0)
     poses: dict[str, BoardPose] = {}
     for name, board_name in pairs.items():
@@ -308,13 +307,19 @@ def calibrate_flash_on_board(frames: Mapping[str, np.ndarray], device: Mapping, 
             used.append((name, mark, highlight))
             records.append({"frame": name, "sphere": k, "mark_m": mark.tolist(), "centre_m": centre.tolist(),
                             "highlight_px": highlight.tolist()})
+            labels.append(label)
     if len(points) < min_highlights:
         raise too_few_highlights(len(points), min_highlights, left_out)
     points, directions = np.asarray(points), np.asarray(directions)
+    keep = drop_outlier_highlights(points, directions, labels, left_out, scale_m, min_highlights, log)
+    points, directions = points[keep], directions[keep]
+    records = [r for r, k in zip(records, keep) if k]
+    used = [u for u, k in zip(used, keep) if k]
     draws = _centre_draws(poses, used, device, std, radius_m, samples, seed, scale_m, min_highlights)
     position, cov, distances, centre = solve_flash(points, directions, scale_m, np.asarray(draws))
     for record, distance in zip(records, distances):
         record["residual_mm"] = float(distance * 1e3)
     return FlashResult(position_m=position, std_m=np.sqrt(np.diag(cov)),
                        rms_mm=float(np.sqrt(np.mean(distances ** 2)) * 1e3), highlights=records, left_out=left_out,
-                       image_size=image_size, centre_std_m=np.sqrt(np.diag(centre)), protocol="board")
+                       image_size=image_size, centre_std_m=np.sqrt(np.diag(centre)), protocol="board",
+                       dropped=int(np.sum(~keep)))

@@ -9,8 +9,6 @@ Public API::
     find_highlight(s0, sphere) -> (centre (x, y) | None, problem | None)    # refine_highlight: a Gaussian fit
     mirror_ray(sphere, highlight_px, intrinsics) -> (point (3,), direction (3,))
     highlight_rays(s0, sphere, centres, radius_m, intrinsics, label, left_out, miss) -> (highlight, lines) | None
-    nearest_point(points (N, 3), directions (N, 3), scale_m=0.001) -> (X (3,), distances (N,), weights (N,))
-    solve_flash(points, directions, scale_m, centre_samples) -> (X, covariance, distances, centres' covariance)
     calibrate_flash(frames: {name: raw}, device, radius_m) -> FlashResult   # the outline protocol
     MIN_HIGHLIGHTS
 
@@ -36,7 +34,10 @@ Geometry (camera coordinates, metres; the images are the ingest chain's undistor
    (:func:`refine_highlight`), gives a ray d; it meets the sphere at P with normal n; the flash lies
    on P + t (d - 2 (d . n) n), t > 0.
 4. The flash is the point nearest all those lines: iteratively reweighted least squares with Huber weights
-   (scale 1 mm), so one bad highlight cannot pull it; the residual of each highlight is its line's distance.
+   (scale 1 mm), so one bad highlight cannot pull it far; the residual of each highlight is its line's distance.
+   Before that, a highlight whose line passes more than 5 times the others' residual sigma from the flash fitted
+   to the others (leave-one-out) is dropped, named and logged, and the rest refitted
+   (:func:`sellip.calibrate.flash_fit.drop_outliers`): Huber weights only damp a line hundreds of mm off.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from sellip.calibrate.flash_fit import OUTLIER_SIGMA, drop_outlier_highlights, nearest_point, solve_flash
 from sellip.calibrate.intrinsics import CalibrationError
 from sellip.capture import ingest
 from sellip.capture.mosaic import mosaic_layout
@@ -86,6 +88,11 @@ RIM_SECTORS = 8
 
 NO_SPHERE = "no sphere found (expected dark spheres in front of a bright background)"
 
+LONG_SUFFIX = "_long"
+"""NAME_long.ext is the long exposure of the sphere frame NAME.ext (the same layout from the same camera position,
+exposed for the spheres' diffuse light, the highlights clipped): the polarization check's bracket
+(:func:`sellip.calibrate.polarization.check_polarization`); the flash step leaves it out."""
+
 
 @dataclass
 class Sphere:
@@ -100,6 +107,13 @@ class Sphere:
     outline_rms_px: float = float("nan")
     problem: str | None = None
     outline_centre: np.ndarray | None = None
+
+
+def is_long(name: str) -> bool:
+    """Whether the frame ``name`` (a file name) is a long exposure of a sphere frame (:data:`LONG_SUFFIX`)."""
+    from pathlib import Path
+
+    return Path(name).stem.endswith(LONG_SUFFIX)
 
 
 def develop_frame(raw: np.ndarray, device: Mapping) -> tuple[np.ndarray, dict]:
@@ -427,32 +441,13 @@ def highlight_rays(s0: np.ndarray, sphere: Sphere, centres: list[np.ndarray], ra
     return highlight, lines
 
 
-def nearest_point(points: np.ndarray, directions: np.ndarray, scale_m: float = 1e-3, iterations: int = 50
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The point X (3,) nearest lines P_i + t d_i (points, unit directions (N, 3)) in the Huber sense: IRLS on
-    sum_i w_i |(I - d_i d_i^T)(X - P_i)|^2, the Huber scale ``scale_m`` or, when the lines scatter more, twice the
-    median distance after a fifth of the iterations (so that the lines' ordinary scatter keeps full weight and
-    only an outlier is down-weighted). Returns (X, distances (N,), final weights (N,))."""
-    projectors = np.eye(3) - directions[:, :, None] * directions[:, None, :]
-    weights = np.ones(len(points))
-    x = np.zeros(3)
-    for iteration in range(iterations):
-        a = np.einsum("n,nij->ij", weights, projectors)
-        b = np.einsum("n,nij,nj->i", weights, projectors, points)
-        x = np.linalg.solve(a, b)
-        distances = np.linalg.norm(np.einsum("nij,nj->ni", projectors, x - points), axis=-1)
-        if iteration == iterations // 5:
-            scale_m = max(scale_m, 2 * float(np.median(distances)))
-        weights = np.where(distances <= scale_m, 1.0, scale_m / np.maximum(distances, 1e-15))
-    return x, distances, weights
-
-
 @dataclass
 class FlashResult:
     """position_m (3,) camera coordinates; std_m (3,) one-sigma: the lines' spread and the sphere centres' error
     together (:func:`solve_flash`); centre_std_m (3,) the centres' part alone; highlights: one record per used
     highlight (frame, sphere index, centre, residual_mm); left_out: {"frame[#k]": why}; protocol: "board" (spheres
-    resting on the board, centres from its pose) or "outline" (spheres before a bright background)."""
+    resting on the board, centres from its pose) or "outline" (spheres before a bright background); dropped: the
+    highlights dropped as outliers (:func:`sellip.calibrate.flash_fit.drop_outliers`, also in left_out)."""
 
     position_m: np.ndarray
     std_m: np.ndarray
@@ -462,6 +457,7 @@ class FlashResult:
     image_size: tuple[int, int] = (0, 0)
     centre_std_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
     protocol: str = "outline"
+    dropped: int = 0
 
     def uncertainty(self) -> dict[str, float]:
         """What :mod:`sellip.calibrate.targets` gates the flash on: {flash_std_mm (largest axis), flash_rms_mm}."""
@@ -481,6 +477,9 @@ class FlashResult:
             if count:
                 out.append(f"{count} sphere(s) {words}" if key not in ("no sphere", "board not found")
                            else f"{count} {words}")
+        if self.dropped:
+            out.append(f"{self.dropped} highlight(s) dropped as outliers (more than {OUTLIER_SIGMA:g} sigma from the "
+                       "flash fitted to the others; named above)")
         count = len(self.highlights)
         if count < 2 * MIN_HIGHLIGHTS:
             out.append(f"only {count} highlights: take more frames, 2-3 spheres each "
@@ -523,24 +522,6 @@ def intensity(analyzers: np.ndarray) -> np.ndarray:
     return analyzers.sum(axis=-2).mean(axis=-1) / 2
 
 
-def solve_flash(points: np.ndarray, directions: np.ndarray, scale_m: float = 1e-3,
-                centre_samples: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The flash X (3,) from mirror lines (points, unit directions (N, 3), :func:`nearest_point`) with its
-    covariance: the lines' spread (sigma^2 (sum_i w_i (I - d_i d_i^T))^-1, sigma^2 from the weighted residuals,
-    2 N - 3 degrees of freedom) plus ``centre_samples`` (S, 3): the flash recomputed with the sphere centres
-    (and whatever else they hang on) drawn from their error model, whose covariance is added -- the lines' spread
-    cannot see an error that all centres share. Returns (X, covariance (3, 3), distances (N,), centre part (3, 3))."""
-    position, distances, weights = nearest_point(points, directions, scale_m)
-    projectors = np.eye(3) - directions[:, :, None] * directions[:, None, :]
-    dof = max(len(points) * 2 - 3, 1)
-    sigma2 = float(np.sum(weights * distances ** 2) / dof)
-    cov = sigma2 * np.linalg.inv(np.einsum("n,nij->ij", weights, projectors))
-    centre = np.zeros((3, 3))
-    if centre_samples is not None and len(centre_samples) > 1:
-        centre = np.atleast_2d(np.cov(np.asarray(centre_samples).T, bias=True))
-    return position, cov + centre, distances, centre
-
-
 def too_few_highlights(count: int, min_highlights: int, left_out: Mapping[str, str]) -> CalibrationError:
     lines = "".join(f"\n  {k}: {v}" for k, v in left_out.items())
     return CalibrationError(f"{count} usable sphere highlight(s), at least {min_highlights} needed: take "
@@ -558,7 +539,12 @@ def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m:
     than ``min_highlights`` usable highlights raise CalibrationError saying how many more are needed."""
     points, directions, records, left_out, outline_lines = [], [], [], {}, []
     image_size = (0, 0)
+    labels = []
     for name, raw in frames.items():
+        if is_long(name):
+            if log:
+                log(f"{name}: a long exposure for the polarization check ({LONG_SUFFIX}), not used for the flash")
+            continue
         analyzers, intrinsics = develop_frame(raw, device)
         s0 = intensity(analyzers)
         image_size = (s0.shape[1], s0.shape[0])
@@ -580,9 +566,14 @@ def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m:
             outline_lines.append(outline_line)
             records.append({"frame": name, "sphere": k, "centre_m": sphere.centre.tolist(),
                             "outline_rms_px": sphere.outline_rms_px, "highlight_px": highlight.tolist()})
+            labels.append(label)
     if len(points) < min_highlights:
         raise too_few_highlights(len(points), min_highlights, left_out)
     points, directions = np.asarray(points), np.asarray(directions)
+    keep = drop_outlier_highlights(points, directions, labels, left_out, scale_m, min_highlights, log)
+    points, directions = points[keep], directions[keep]
+    records = [r for r, k in zip(records, keep) if k]
+    outline_lines = [line for line, k in zip(outline_lines, keep) if k]
     # the rim model's correction of the centres, taken as their systematic error: the flash from the half-level
     # outline's centres is one draw at +1 sigma and its mirror at -1 sigma
     outline, *_ = nearest_point(np.asarray([p for p, _ in outline_lines]),
@@ -594,4 +585,5 @@ def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m:
         record["residual_mm"] = float(distance * 1e3)
     return FlashResult(position_m=position, std_m=np.sqrt(np.diag(cov)),
                        rms_mm=float(np.sqrt(np.mean(distances ** 2)) * 1e3), highlights=records, left_out=left_out,
-                       image_size=image_size, centre_std_m=np.sqrt(np.diag(centre)), protocol="outline")
+                       image_size=image_size, centre_std_m=np.sqrt(np.diag(centre)), protocol="outline",
+                       dropped=int(np.sum(~keep)))

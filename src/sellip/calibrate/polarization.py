@@ -5,7 +5,7 @@ Public API::
     candidate_layouts() -> list of 2x2 layouts     # all 24 arrangements of 0/45/90/135
     permutation(claimed, candidate) -> (4,) int    # analyzer axis of images developed with ``claimed`` -> candidate
     limb_samples(analyzers, sphere, radius_m, intrinsics) -> (stokes (N, 3), azimuth (N,), zenith (N,))
-    check_polarization(frames, device, radius_m) -> PolarizationReport
+    check_polarization(frames, device, radius_m, exposures=None) -> PolarizationReport
 
 Two physical facts, on glossy dielectric spheres (camera-frame Stokes, sellip.conventions):
 
@@ -24,6 +24,14 @@ Two physical facts, on glossy dielectric spheres (camera-frame Stokes, sellip.co
   coefficients of s and p agree to 1e-3): under the right layout the highlight's AoLP is ``light.polarizer_deg``.
   The two cues are checked against each other (:func:`_check_cues`): when they disagree about a 90-degree turn
   the check fails and names no layout.
+
+The two cues want different exposures: a dark glossy ball's highlight is 30-100x brighter than its diffuse light,
+so a frame exposed for the highlight leaves the diffuse light at 25-45 deg below 1 % of full scale, where its
+0.5-2 % polarization is lost in the noise. So each sphere layout is shot as a bracket: NAME (exposed for the
+highlights, which give the flash polarizer) and NAME_long (:data:`sellip.calibrate.flash.LONG_SUFFIX`; the same
+layout from the same camera position, exposed for the spheres' diffuse light, the highlights clipped: saturated
+pixels are NaN after development and left out). The spheres are found in NAME; the diffuse band is read in
+NAME_long, whose brightness on the spheres against NAME's must be at least :data:`MIN_BRACKET`.
 """
 
 from __future__ import annotations
@@ -31,10 +39,19 @@ from __future__ import annotations
 import itertools
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from sellip.calibrate.flash import develop_frame, find_highlight, find_spheres_or_why, intensity, pixel_rays
+from sellip.calibrate.flash import (
+    LONG_SUFFIX,
+    develop_frame,
+    find_highlight,
+    find_spheres_or_why,
+    intensity,
+    is_long,
+    pixel_rays,
+)
 from sellip.calibrate.intrinsics import CalibrationError
 from sellip.model.conventions import ANALYZER_ANGLES_DEG
 
@@ -55,6 +72,10 @@ check; it does not decide."""
 
 MIN_SCORE_MARGIN = 0.3
 """The best layout must beat the second by this much in score, or the frames cannot decide."""
+
+MIN_BRACKET = 2.0
+"""A long exposure (NAME_long) must read at least this many times its sphere frame's (NAME) brightness on the
+spheres' diffuse band, or it is left out (named): it adds nothing the sphere frame has not."""
 
 
 def candidate_layouts() -> list[list[list[int]]]:
@@ -125,6 +146,8 @@ class PolarizationReport:
     scores: dict = field(default_factory=dict)
     left_out: dict = field(default_factory=dict)
     rim_score: float = float("nan")
+    long_frames: int = 0
+    diffuse_level: float = float("nan")
 
     @property
     def layout_ok(self) -> bool:
@@ -147,7 +170,8 @@ class PolarizationReport:
         if self.layout_ok:
             out.append(f"polarizer_layout {self.claimed_layout} fits: diffuse score {self.claimed_score:+.3f} "
                        f"(next best layout {self.second_score:+.3f}) over {self.limb_pixels} pixels at "
-                       f"{DIFFUSE_ZENITH_DEG[0]:g}-{DIFFUSE_ZENITH_DEG[1]:g} deg")
+                       f"{DIFFUSE_ZENITH_DEG[0]:g}-{DIFFUSE_ZENITH_DEG[1]:g} deg, reading "
+                       f"{100 * self.diffuse_level:.2g} % of full scale ({self.long_frames} long exposures)")
         else:
             out.append(f"polarizer_layout {self.claimed_layout} does NOT fit: diffuse score {self.claimed_score:+.3f} "
                        f"({_describe(self.claimed_layout, self.best_layout)}); the layout that fits is "
@@ -178,7 +202,8 @@ class PolarizationReport:
     def record(self) -> dict:
         return {"ok": self.ok, "claimed_layout": self.claimed_layout, "best_layout": self.best_layout,
                 "claimed_score": self.claimed_score, "best_score": self.best_score, "second_score": self.second_score,
-                "limb_pixels": self.limb_pixels, "rim_score": self.rim_score,
+                "limb_pixels": self.limb_pixels, "rim_score": self.rim_score, "long_frames": self.long_frames,
+                "diffuse_level": self.diffuse_level,
                 "polarizer_deg_measured": self.polarizer_deg,
                 "polarizer_std_deg": self.polarizer_std_deg, "polarizer_deg_claimed": self.claimed_polarizer_deg,
         "highlights": self.highlights, "messages": self.messages(), "left_out": self.left_out}
@@ -255,39 +280,120 @@ def _check_cues(report: PolarizationReport, claimed, best, claimed_highlight_deg
             f"polarizer is mounted 90 deg off, or the layout is {_turned(claimed).tolist()} and {advice}")
 
 
-def _undecided(best, best_score: float, second, second_score: float, values: np.ndarray) -> CalibrationError:
+def _undecided(best, best_score: float, second, second_score: float, values: np.ndarray,
+               long_frames: int, notes: Mapping[str, str]) -> CalibrationError:
     """The error when no layout wins by MIN_SCORE_MARGIN, with the level of the diffuse light that decides
-    (``values``: analyzer samples (N, 4) at DIFFUSE_ZENITH_DEG, 1 = full scale)."""
+    (``values``: analyzer samples (N, 4) at DIFFUSE_ZENITH_DEG, 1 = full scale; ``notes``: {long exposure: why it
+    was left out})."""
     level = float(np.nanmedian(values.mean(axis=-1)))
     return CalibrationError(f"the sphere limbs cannot tell the polarizer layouts apart (best {best} {best_score:+.3f}, "
-                            f"next {second} {second_score:+.3f}): expected dielectric spheres whose limbs are lit and "
-                            f"below the white level; their diffuse light at {DIFFUSE_ZENITH_DEG[0]:g}-"
-                            f"{DIFFUSE_ZENITH_DEG[1]:g} deg reads {100 * level:.2g} % of full scale, and its "
-                            "polarization is 0.5-2 % of that: expose brighter (the highlights just below the white "
-                            "level) or use a lighter-coloured glossy sphere, whose highlight is less bright against "
-                            "its diffuse light")
+                            f"next {second} {second_score:+.3f}, at least {MIN_SCORE_MARGIN:g} apart needed): "
+                            f"expected dielectric spheres whose diffuse light is lit and below the white level; at "
+                            f"{DIFFUSE_ZENITH_DEG[0]:g}-{DIFFUSE_ZENITH_DEG[1]:g} deg it reads {100 * level:.2g} % of "
+                            f"full scale over {len(values)} pixels ({long_frames} long exposures), and its "
+                            "polarization is 0.5-2 % of that: shoot each sphere layout NAME again as "
+                            f"NAME{LONG_SUFFIX} (same camera position), exposed so that the spheres read 10-30 % of "
+                            "full scale (the highlights may clip)" +
+                            "".join(f"\n  {name}: {why}" for name, why in notes.items()))
+
+
+def _brackets(names, left_out: dict) -> dict[str, str]:
+    """{sphere frame NAME: its long exposure NAME_long} among the frame names; a long exposure without its sphere
+    frame goes to ``left_out``."""
+    short = {Path(n).stem: n for n in names if not is_long(n)}
+    out = {}
+    for name in names:
+        if not is_long(name):
+            continue
+        stem = Path(name).stem[: -len(LONG_SUFFIX)]
+        if stem in short:
+            out[short[stem]] = name
+        else:
+            left_out[name] = (f"a long exposure without its sphere frame (expected {stem}{Path(name).suffix} beside "
+                              "it: the same layout exposed for the highlights)")
+    return out
+
+
+def _bracket_problem(name: str, long_name: str, ratio: float, exposures: Mapping) -> str | None:
+    """Why the long exposure ``long_name`` is left out (its spheres' diffuse band only ``ratio`` times as bright as
+    in ``name``), or None; the ExposureTime the files record (``exposures``, s or None) is quoted."""
+    if ratio >= MIN_BRACKET:
+        return None
+    t_short, t_long = exposures.get(name), exposures.get(long_name)
+    tags = ""
+    if t_short and t_long:
+        tags = f" (ExposureTime {t_long:.4g} s against {t_short:.4g} s: {t_long / t_short:.3g}x)"
+        if t_long / t_short >= MIN_BRACKET:
+            tags += (": a flash's pulse is shorter than the shutter, so a longer exposure does not brighten what it "
+                     "lights; raise the flash power or the gain instead")
+    return (f"only {ratio:.2f}x as bright on the spheres as {name}{tags}, at least {MIN_BRACKET:g}x needed: expose it "
+            "so that the spheres read 10-30 % of full scale")
+
+
+def _long_exposure(name: str, long_name: str, long_raw: np.ndarray, analyzers: np.ndarray, intrinsics: Mapping,
+                   centres: list[np.ndarray], device: Mapping, radius_m: float, exposures: Mapping, left_out: dict,
+                   log=None) -> np.ndarray | None:
+    """The developed long exposure ``long_name`` of sphere frame ``name`` (its spheres at ``centres``), or None when
+    it is not :data:`MIN_BRACKET` times as bright on their diffuse band (then in ``left_out``, logged) or no sphere
+    was found."""
+    if not centres:
+        return None
+    long_analyzers, _ = develop_frame(long_raw, device)
+    bands = [(limb_samples(analyzers, centre, radius_m, intrinsics, DIFFUSE_ZENITH_DEG)[0],
+              limb_samples(long_analyzers, centre, radius_m, intrinsics, DIFFUSE_ZENITH_DEG)[0]) for centre in centres]
+    short, long = np.concatenate([b[0] for b in bands]), np.concatenate([b[1] for b in bands])
+    if len(long) < 0.5 * len(short):  # saturated pixels are NaN and not sampled
+        why = (f"{100 * (1 - len(long) / max(len(short), 1)):.0f} % of the spheres' diffuse band saturated: expose it "
+               "so that the spheres read 10-30 % of full scale")
+    else:
+        ratio = float(np.median(long.sum(-1))) / max(float(np.median(short.sum(-1))), 1e-12)
+        why = _bracket_problem(name, long_name, ratio, exposures)
+    if why:
+        left_out[long_name] = why
+        if log:
+            log(f"{long_name}: {why}")
+        return None
+    if log:
+        log(f"{long_name}: the diffuse light of {name}'s spheres, {ratio:.1f}x as bright")
+    return long_analyzers
 
 
 def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius_m: float,
-                       log=None) -> PolarizationReport:
-    """Score every polarizer layout on the spheres' limbs and measure the flash polarizer on their highlights
-    (module docstring). Raises CalibrationError if no sphere gives a limb."""
+                       log=None, exposures: Mapping[str, float | None] | None = None) -> PolarizationReport:
+    """Score every polarizer layout on the spheres' diffuse light and measure the flash polarizer on their
+    highlights (module docstring). ``frames``: {file name: raw}; NAME_long is the long exposure of NAME (the
+    bracket, module docstring), its diffuse band used instead of NAME's; ``exposures``: {file name: ExposureTime
+    (s) the file records, or None}, quoted when a long exposure is not brighter. Raises CalibrationError if no
+    sphere gives a limb, if no layout wins by :data:`MIN_SCORE_MARGIN`, if the sum rule cannot pick the pairing,
+    or if the cues disagree (:func:`_check_cues`). Long: one pass over the frames gathers both cues' samples, then
+    the three decisions follow in order, each failing with its own message."""
     claimed = [list(map(int, row)) for row in device["sensor"]["polarizer_layout"]]
     layouts = candidate_layouts()
     perms = [permutation(claimed, layout) for layout in layouts]
     limb_stokes, limb_phi, rim_stokes, rim_phi, highlight_pixels, left_out = [], [], [], [], [], {}
+    brackets = _brackets(list(frames), left_out)
+    long_frames = 0
     for name, raw in frames.items():
+        if is_long(name):
+            continue
         analyzers, intrinsics = develop_frame(raw, device)
         s0 = intensity(analyzers)
         spheres, problem = find_spheres_or_why(s0, intrinsics, radius_m)
         if problem:
             left_out[name] = problem
+        long_analyzers = None
+        if name in brackets:
+            long_analyzers = _long_exposure(name, brackets[name], frames[brackets[name]], analyzers, intrinsics,
+                                            [s.centre for s in spheres if not s.problem], device, radius_m,
+                                            exposures or {}, left_out, log)
+            long_frames += long_analyzers is not None
         for k, sphere in enumerate(spheres):
             label = f"{name}#{k}"
             if sphere.problem:
                 left_out[label] = sphere.problem
                 continue
-            values, phi, _ = limb_samples(analyzers, sphere.centre, radius_m, intrinsics, DIFFUSE_ZENITH_DEG)
+            diffuse = analyzers if long_analyzers is None else long_analyzers
+            values, phi, _ = limb_samples(diffuse, sphere.centre, radius_m, intrinsics, DIFFUSE_ZENITH_DEG)
             limb_stokes.append(values)
             limb_phi.append(phi)
             values, phi, _ = limb_samples(analyzers, sphere.centre, radius_m, intrinsics)
@@ -325,9 +431,11 @@ def check_polarization(frames: Mapping[str, np.ndarray], device: Mapping, radius
         polarizer_std_deg=polarizer_std, claimed_polarizer_deg=float(device.get("light", {}).get("polarizer_deg", 0.0)),
         limb_pixels=len(values), highlights=len(highlight_pixels),
         scores={str(layouts[i]): scores[i] for i in np.argsort(scores)[::-1]}, left_out=left_out,
-        rim_score=rim_scores[best])
+        rim_score=rim_scores[best], long_frames=long_frames,
+        diffuse_level=float(np.nanmedian(values.mean(axis=-1))) if len(values) else float("nan"))
     if scores[best] - ranked[order[1]] < MIN_SCORE_MARGIN:
-        raise _undecided(layouts[best], scores[best], layouts[order[1]], scores[order[1]], values)
+        raise _undecided(layouts[best], scores[best], layouts[order[1]], scores[order[1]], values, long_frames,
+                         {name: why for name, why in left_out.items() if is_long(name)})
     # the sum rule must pick the pairing clearly: the per-pixel misfit of the next pairing exceeds the best's by
     # SUM_RULE_Z standard errors of their paired difference
     other = [i for i in range(len(perms)) if not paired[i]]

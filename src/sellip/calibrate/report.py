@@ -61,7 +61,8 @@ def flash_report(result, device: Mapping, sphere_radius_mm: float) -> StepReport
     summary = (f"flash at {np.round(np.asarray(result.position_m) * 1e3, 2).tolist()} mm (1-sigma "
                f"{np.round(np.asarray(result.std_m) * 1e3, 2).tolist()} mm, of which the sphere centres' "
                f"{np.round(np.asarray(result.centre_std_m) * 1e3, 2).tolist()} mm), RMS residual "
-               f"{result.rms_mm:.3f} mm over {len(result.highlights)} highlights ({result.protocol} protocol)")
+               f"{result.rms_mm:.3f} mm over {len(result.highlights)} highlights ({result.protocol} protocol; "
+               f"{result.dropped} dropped as outliers)")
     lines.append((logging.INFO, summary))
     light = dict(device.get("light", {"polarizer_deg": 0.0}))
     light["position_m"] = np.asarray(result.position_m, np.float64).tolist()
@@ -69,7 +70,8 @@ def flash_report(result, device: Mapping, sphere_radius_mm: float) -> StepReport
         "sphere_radius_mm": sphere_radius_mm, "protocol": result.protocol,
         "std_mm": (np.asarray(result.std_m) * 1e3).tolist(),
         "centre_std_mm": (np.asarray(result.centre_std_m) * 1e3).tolist(),
-        "rms_mm": result.rms_mm, "highlights": result.highlights, "left_out": result.left_out})
+        "rms_mm": result.rms_mm, "highlights": result.highlights, "dropped": result.dropped,
+        "left_out": result.left_out})
 
 
 def polarization_report(report, device: Mapping, write: bool) -> StepReport:

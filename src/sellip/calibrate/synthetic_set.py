@@ -11,7 +11,11 @@ A calibration folder (``sellip synth-calibration --out DIR [--renderer mitsuba]`
     truth.yaml                 the renderer, the true device (sensor, camera, light), board poses, sphere centres,
                                chart corners
     board/board_NN.dng         checkerboard frames (board_NN_bK.dng: frame K of a burst of pose NN)
-    spheres/spheres_NN.dng     frames of glossy spheres of known radius (likewise)
+    spheres/spheres_NN.dng     frames of glossy spheres of known radius (likewise), exposed for the highlights
+    spheres/spheres_NN_long.dng   the same layout exposed for the spheres' diffuse light (the polarization
+                               check's bracket, :data:`sellip.calibrate.flash.LONG_SUFFIX`): the spheres' median at
+                               :data:`LONG_LEVEL` of full scale, highlights and panel clipped; both record their
+                               ExposureTime
     board_spheres/spheres_NN_board.dng, spheres_NN.dng   the board alone, then spheres resting on it at square
                                centres, from one camera position (the flash step's board protocol)
     chart/chart_00.dng         a ColorChecker under the flash
@@ -31,6 +35,7 @@ import numpy as np
 import yaml
 
 from sellip.calibrate.board_spheres import BOARD_SUFFIX, sphere_centre
+from sellip.calibrate.flash import LONG_SUFFIX
 from sellip.calibrate.renderers import frame_renderer
 from sellip.calibrate.synthetic import (
     CHART_PATCH_M,
@@ -48,6 +53,27 @@ from sellip.capture.writer import write_raw_file
 from sellip.jobs import refuse_to_replace_folder
 
 _LAP = [0.0]
+
+SPHERE_EXPOSURE_S = 0.01
+"""ExposureTime recorded in the sphere frames exposed for their highlights; the long frames record it times the
+brightness ratio."""
+
+LONG_LEVEL = 0.2
+"""The long sphere frame's exposure: the median over the spheres' discs (their diffuse light, the highlight a small
+part) reads this share of full scale (docs/calibration.md, section 4)."""
+
+
+def _disc_median(analyzers: np.ndarray, device: dict, spheres: list[tuple[np.ndarray, float]]) -> float:
+    """The median of ``analyzers`` (H, W, 4, C) over the discs of ``spheres`` (centre (3,), radius): what the
+    spheres' diffuse light reads."""
+    height, width = analyzers.shape[:2]
+    yy, xx = np.mgrid[0:height, 0:width]
+    inside = np.zeros((height, width), bool)
+    for centre, radius in spheres:
+        u, v = project(device, np.asarray(centre))
+        r_px = device["camera"]["fx"] * radius / np.sqrt(centre @ centre - radius ** 2)
+        inside |= np.hypot(xx - u, yy - v) < 0.95 * r_px
+    return float(np.median(analyzers[inside]))
 
 
 def _lap() -> float:
@@ -144,11 +170,19 @@ def synthesize_calibration(out: str | Path, width: int = 2448, height: int = 204
                                                    per_frame=spheres_per_frame)):
             analyzers = frames.spheres(device, [(c, radius) for c in centres], reflect_panel)
             peak = float(np.max(analyzers))
+            diffuse = _disc_median(analyzers, device, [(c, radius) for c in centres])
+            # the bracket: exposed for the highlight (peak at 75 % of full scale), and for the diffuse light
+            long_exposure = SPHERE_EXPOSURE_S * (LONG_LEVEL / diffuse) / (0.75 / peak)
             for b in range(burst):
                 raw = expose(analyzers, device, 0.75 * white, np.random.default_rng(_burst_seed([seed, 21, k], b)),
                              reference=peak)
                 name = _burst_name("spheres", k, b, burst, suffix)
-                write_raw_file(tmp / "spheres" / name, raw, device["sensor"])
+                write_raw_file(tmp / "spheres" / name, raw, device["sensor"], exposure_s=SPHERE_EXPOSURE_S)
+                truth["spheres"]["centres_m"][name] = [c.tolist() for c in centres]
+                raw = expose(analyzers, device, LONG_LEVEL * white,
+                             np.random.default_rng(_burst_seed([seed, 22, k], b)), reference=diffuse)
+                name = _burst_name("spheres", k, b, burst, LONG_SUFFIX + suffix)
+                write_raw_file(tmp / "spheres" / name, raw, device["sensor"], exposure_s=long_exposure)
                 truth["spheres"]["centres_m"][name] = [c.tolist() for c in centres]
             if progress:
                 print(f"spheres {k + 1}/{sphere_frames} ({_lap():.1f} s)", flush=True)

@@ -172,8 +172,9 @@ def _polarization(args, device) -> int:
     from sellip.calibrate.polarization import check_polarization
     from sellip.calibrate.report import polarization_report
 
+    exposures = {path.name: reader.exposure_time(path) for path in map(_existing, args.frames)}
     report = check_polarization(_frames(args.frames, device["sensor"]), device, args.sphere_radius_mm / 1000,
-                                log=log.info)
+                                log=log.info, exposures=exposures)
     targets = _gate(args, "polarization", report.uncertainty(), report.causes())
     _apply(args, "polarization", polarization_report(report, device, args.write), targets)
     return 0 if report.ok or args.write else 3
