@@ -45,7 +45,7 @@ Modules and what they export (each name is importable from here too)::
         read_capture, read_raw_file, read_raw_frame, exposure_time
     scenes: Procedural test scenes with known ground truth (no downloads) and handheld camera orbits
         SCENES, DEVICE_WIDTH_PX, DEVICE_FX_PX, SPHERE_IOR_ETAS, icosphere, TINY_BUMPS, TINY_MATERIALS, build_scene,
-        device_intrinsics, look_at_rotation, handheld_orbit
+        device_intrinsics, look_at_rotation, handheld_orbit, BOWL_AXIS, BOWL_DEPTH_M
     sensor: Sensor simulation: the IMX250MYR colour-polarization mosaic (docs/design.md §3) from rendered analyzer
       images
         DEFAULT_COLOR_MATRIX, SensorModel, sensor_from_device, camera_rgb_from_srgb, mosaic_sample, sensor_mosaic,
@@ -86,7 +86,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "mosaic": ("mosaic_layout",),
     "reader": ("read_capture", "read_raw_file", "read_raw_frame", "exposure_time"),
     "scenes": ("SCENES", "DEVICE_WIDTH_PX", "DEVICE_FX_PX", "SPHERE_IOR_ETAS", "icosphere", "TINY_BUMPS",
-           "TINY_MATERIALS", "build_scene", "device_intrinsics", "look_at_rotation", "handheld_orbit"),
+           "TINY_MATERIALS", "build_scene", "device_intrinsics", "look_at_rotation", "handheld_orbit", "BOWL_AXIS",
+           "BOWL_DEPTH_M"),
     "sensor": ("DEFAULT_COLOR_MATRIX", "SensorModel", "sensor_from_device", "camera_rgb_from_srgb", "mosaic_sample",
            "sensor_mosaic", "sensor_colors", "simulate_raw"),
     "synthetic": ("RENDERERS", "DemoSettings", "synthesize_capture", "is_synthetic_folder"),
