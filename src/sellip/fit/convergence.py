@@ -5,8 +5,8 @@ The geometry update of iteration ``it`` (rule ``refine_geometry``) judges whethe
 (:func:`judge`) from what it already has: how far it moved the surface (the median and the 99th-percentile vertex
 offset, in the mesh's mean edge lengths), how far the confident vertices' η moved from iteration ``it - 1``'s fit
 (median relative change), and, where the poses are refined, how far this iteration's pose refinement turned the
-views (median rotation, degrees). The verdict goes into ``iter/<it>/mesh.ply.json`` (``convergence``). Every job of a later
-iteration before the final pass runs through ``sellip pass-through --after iter/<it-1>/mesh.ply.json ... --
+views (median rotation, degrees). The verdict goes into ``iter/<it>/mesh.ply.json`` (``convergence``). Every job of
+a later iteration before the final pass runs through ``sellip pass-through --after iter/<it-1>/mesh.ply.json ... --
 <its command>`` (:func:`pass_through`): when that summary says converged, the job links its predecessor's outputs
 to its own (a store's files hard-linked, a mesh or table copied) or writes a marker where nothing reads its output,
 and its command does not run; otherwise the command runs as before. The final pass always runs, on the converged
