@@ -552,14 +552,14 @@ def test_device_yaml_round_trip_and_errors(tmp_path):
         devices.read_device(tmp_path / "bad.yaml")
 
 
-def _frame_folder(tmp_path, names, width=64, height=48, exposure_s=None):
+def _frame_folder(tmp_path, names, width=64, height=48, exposure_s=None, flash_fired=None):
     device = synthetic.true_device(width, height)
     raw_dir = tmp_path / "owl" / "raw"
     raw_dir.mkdir(parents=True)
     rng = np.random.default_rng(0)
     for name in names:
         writer.write_raw_file(raw_dir / name, rng.integers(64, 4000, (height, width)).astype(np.uint16),
-                              device["sensor"], exposure_s=exposure_s)
+                              device["sensor"], exposure_s=exposure_s, flash_fired=flash_fired)
     path = devices.write_device(tmp_path / "device.yaml", device)
     return raw_dir, devices.read_device(path, complete=True), path
 
@@ -637,6 +637,27 @@ def test_capture_new_reads_the_exposure_from_the_files(tmp_path):
     writer.write_raw_file(tmp_path / "x.png", np.full((48, 64), 100, np.uint16), device["sensor"])
     assert (reader.exposure_time(tmp_path / "x.tiff") == pytest.approx(0.02)
             and reader.exposure_time(tmp_path / "x.png") is None)
+
+
+def test_capture_new_refuses_a_frame_whose_flash_did_not_fire(tmp_path):
+    """A raw file whose Flash tag (0x9209) records that the flash did not fire is named with its row; one that
+    records it fired, or says nothing, passes; nothing is written on failure."""
+    names = ["v000_f4.dng", "v000_f8.tiff", "v001_f4.dng"]
+    raw_dir, device, _ = _frame_folder(tmp_path, names, exposure_s=0.005, flash_fired=True)
+    assert [reader.flash_fired(raw_dir / name) for name in names] == [True, True, True]
+    writer.write_raw_file(tmp_path / "x.png", np.full((48, 64), 100, np.uint16), device["sensor"])
+    assert reader.flash_fired(tmp_path / "x.png") is None
+    writer.write_raw_file(raw_dir / "v001_f8.dng", np.full((48, 64), 100, np.uint16), device["sensor"],
+                          exposure_s=0.005, flash_fired=False)
+    assert reader.flash_fired(raw_dir / "v001_f8.dng") is False
+    with pytest.raises(files.CaptureError, match=r"v001_f8.dng: Flash: the file records that the flash did not fire, "
+                                                 r"but frame 'v001_f8' \(row 4\) has flash_level 0.125"):
+        assemble.assemble_capture(raw_dir, device, 0.9, pattern="{view}_f{level}.*")
+    assert not (raw_dir.parent / files.CAPTURE_YAML).exists()
+    writer.write_raw_file(raw_dir / "v001_f8.dng", np.full((48, 64), 100, np.uint16), device["sensor"],
+                          exposure_s=0.005)
+    out = assemble.assemble_capture(raw_dir, device, 0.9, pattern="{view}_f{level}.*")
+    assert len(reader.read_capture(out).frames) == 4
 
 
 def test_capture_new_refuses_a_failed_calibration(tmp_path):

@@ -104,7 +104,8 @@ Mitsuba's black ball, a frame exposed for the highlight leaves its diffuse light
 def dark_spheres(tmp_path_factory):
     """3 layouts of 3 dark glossy spheres before the panel at 612x512 (sellip's renderer), each as a bracket:
     NAME.tiff exposed for the highlights (peak at 75 % of full scale, ExposureTime 10 ms), NAME_long.tiff 16x
-    brighter (160 ms, the highlights clipped), NAME_flat.tiff: exposed as NAME, recording 80 ms (a flash whose
+    brighter (160 ms, the highlights and the panel clipped), NAME_mid.tiff 3x (30 ms, the panel below white),
+    NAME_flat.tiff: exposed as NAME, recording 80 ms (a flash whose
     pulse the shutter does not lengthen), and NAME_hot.tiff: 400x brighter, the diffuse light clipped too. Returns
     (folder, device, radius)."""
     folder = tmp_path_factory.mktemp("dark")
@@ -116,7 +117,8 @@ def dark_spheres(tmp_path_factory):
     for k, centres in enumerate(synthetic.sphere_layouts(device, 3, rng, radius=radius)):
         image = synthetic.render_spheres(device, [(c, radius) for c in centres], params=DARK_BALL)
         peak = float(image.max())
-        for suffix, gain, seconds in (("", 1, 0.01), ("_long", 16, 0.16), ("_flat", 1, 0.08), ("_hot", 400, 4.0)):
+        for suffix, gain, seconds in (("", 1, 0.01), ("_long", 16, 0.16), ("_mid", 3, 0.03), ("_flat", 1, 0.08),
+                                      ("_hot", 400, 4.0)):
             raw = synthetic.expose(image, device, gain * 0.75 * white, np.random.default_rng([7, k, gain, len(suffix)]),
                                    reference=peak)
             writer.write_raw_file(folder / f"spheres_{k:02d}{suffix}.tiff", raw, sensor, exposure_s=seconds)
@@ -138,7 +140,8 @@ def test_dark_spheres_need_the_long_exposure_and_cues_that_disagree_still_fail(d
     check fails naming none (and saying to shoot NAME_long); with the long exposures it names the right layout by
     more than the margin and measures the flash polarizer on the short frames' highlights. A claim turned by 90 deg
     with the flash polarizer claimed 90 deg off still fails with the cues disagreeing. A "long" frame no brighter
-    than its sphere frame is left out, quoting the ExposureTime that says otherwise."""
+    than its sphere frame is left out, quoting the ExposureTime that says otherwise; so is a long frame of another
+    layout."""
     folder, device, radius = dark_spheres
     sensor = device["sensor"]
     short, _ = _bracket(folder, sensor, {"00", "01", "02"})
@@ -164,6 +167,18 @@ def test_dark_spheres_need_the_long_exposure_and_cues_that_disagree_still_fail(d
     frames["spheres_09_long.tiff"] = frames["spheres_00_long.tiff"]
     report = polarization.check_polarization(frames, device, radius, exposures=exposures)
     assert report.ok and report.left_out["spheres_09_long.tiff"].startswith("a long exposure without its sphere frame")
+    swapped = dict(frames)
+    swapped["spheres_01_long.tiff"] = frames["spheres_02_long.tiff"]
+    report = polarization.check_polarization(swapped, device, radius, exposures=exposures)
+    assert report.ok and report.long_frames == 2
+    assert "not the layout of spheres_01.tiff" in report.left_out["spheres_01_long.tiff"]  # its band clips
+    mid, exposures = _bracket(folder, sensor, {"00", "01", "02", "00_mid", "01_mid", "02_mid"}, "_mid")
+    assert polarization.check_polarization(mid, device, radius, exposures=exposures).long_frames == 3
+    mid["spheres_01_long.tiff"] = mid["spheres_02_long.tiff"]
+    with pytest.raises(CalibrationError, match="(2 long exposures)") as failed:  # two 3x brackets cannot decide
+        polarization.check_polarization(mid, device, radius, exposures=exposures)
+    assert ("spheres_01_long.tiff: not the layout of spheres_01.tiff: around its sphere #0 this frame ranks"
+            in str(failed.value))
 
     flat, exposures = _bracket(folder, sensor, {"00", "01", "02", "00_flat", "01_flat", "02_flat"}, "_flat")
     with pytest.raises(CalibrationError, match="cannot tell the polarizer layouts apart") as failed:

@@ -77,6 +77,12 @@ MIN_BRACKET = 2.0
 """A long exposure (NAME_long) must read at least this many times its sphere frame's (NAME) brightness on the
 spheres' diffuse band, or it is left out (named): it adds nothing the sphere frame has not."""
 
+MIN_LAYOUT_AGREEMENT = 0.5
+"""A long exposure must show its sphere frame's layout: around each sphere of NAME, the two frames must rank
+their pixels alike (:func:`layout_agreement`) by at least this much, or NAME_long is left out (named). A sphere
+moved between the two shots, or a long frame of another layout, would read the background's (or another
+sphere's) light on the diffuse band. Measured in docs/calibration.md (section 4)."""
+
 
 def candidate_layouts() -> list[list[list[int]]]:
     """Every 2x2 arrangement of the four analyzer angles (row-major), 24 in all."""
@@ -330,6 +336,46 @@ def _bracket_problem(name: str, long_name: str, ratio: float, exposures: Mapping
             "so that the spheres read 10-30 % of full scale")
 
 
+def layout_agreement(analyzers: np.ndarray, long_analyzers: np.ndarray, intrinsics: Mapping,
+                     centres: list[np.ndarray], radius_m: float) -> np.ndarray:
+    """(K,) for spheres at ``centres`` (camera frame, m) found in a sphere frame (``analyzers``): Spearman's rank
+    correlation between that frame's intensity and a long exposure's (``long_analyzers``) over the square of 1.5
+    radii around each sphere, saturated pixels ranked above everything. The same layout: the dark disc and the
+    bright background rank alike in both (near 1). Another layout, or the sphere moved: near 0. NaN where either
+    frame reads the same everywhere there (all of it clipped)."""
+    from scipy import stats
+
+    short, long = (np.where(np.isfinite(image), image, np.inf)
+                   for image in (intensity(analyzers), intensity(long_analyzers)))
+    height, width = short.shape
+    out = np.full(len(centres), np.nan)
+    for k, centre in enumerate(centres):
+        u0 = intrinsics["fx"] * centre[0] / centre[2] + intrinsics["cx"]
+        v0 = intrinsics["fy"] * centre[1] / centre[2] + intrinsics["cy"]
+        r_px = float(np.sqrt(intrinsics["fx"] * intrinsics["fy"])) * radius_m / np.sqrt(
+            max(centre @ centre - radius_m ** 2, 1e-12))
+        rows = slice(max(int(v0 - 1.5 * r_px), 0), min(int(v0 + 1.5 * r_px) + 2, height))
+        cols = slice(max(int(u0 - 1.5 * r_px), 0), min(int(u0 + 1.5 * r_px) + 2, width))
+        a, b = stats.rankdata(short[rows, cols].ravel()), stats.rankdata(long[rows, cols].ravel())
+        if a.size > 8 and np.ptp(a) > 0 and np.ptp(b) > 0:
+            out[k] = float(np.corrcoef(a, b)[0, 1])
+    return out
+
+
+def _layout_change(name: str, analyzers: np.ndarray, long_analyzers: np.ndarray, intrinsics: Mapping,
+                   centres: list[np.ndarray], radius_m: float) -> str | None:
+    """Why a long exposure does not show the layout of its sphere frame ``name`` (spheres at ``centres``), or None:
+    around each sphere the two frames' :func:`layout_agreement` must reach :data:`MIN_LAYOUT_AGREEMENT`."""
+    for k, agreement in enumerate(layout_agreement(analyzers, long_analyzers, intrinsics, centres, radius_m)):
+        if not agreement >= MIN_LAYOUT_AGREEMENT:
+            reads = ("reads the same everywhere there" if np.isnan(agreement) else
+                     f"ranks its pixels unlike {name} (rank correlation {agreement:.2f}, at least "
+                     f"{MIN_LAYOUT_AGREEMENT:g} expected)")
+            return (f"not the layout of {name}: around its sphere #{k} this frame {reads}; shoot the bracket from the "
+                    "same place without touching the spheres")
+    return None
+
+
 def _long_exposure(name: str, long_name: str, long_raw: np.ndarray, analyzers: np.ndarray, intrinsics: Mapping,
                    centres: list[np.ndarray], device: Mapping, radius_m: float, exposures: Mapping, left_out: dict,
                    log=None) -> np.ndarray | None:
@@ -344,10 +390,12 @@ def _long_exposure(name: str, long_name: str, long_raw: np.ndarray, analyzers: n
     short, long = np.concatenate([b[0] for b in bands]), np.concatenate([b[1] for b in bands])
     if len(long) < 0.5 * len(short):  # saturated pixels are NaN and not sampled
         why = (f"{100 * (1 - len(long) / max(len(short), 1)):.0f} % of the spheres' diffuse band saturated: expose it "
-               "so that the spheres read 10-30 % of full scale")
+               f"so that the spheres read 10-30 % of full scale (if they do, it is not the layout of {name}: shoot "
+               "the bracket from the same place without touching the spheres)")
     else:
         ratio = float(np.median(long.sum(-1))) / max(float(np.median(short.sum(-1))), 1e-12)
-        why = _bracket_problem(name, long_name, ratio, exposures)
+        why = _bracket_problem(name, long_name, ratio, exposures) or _layout_change(name, analyzers, long_analyzers,
+                                                                                  intrinsics, centres, radius_m)
     if why:
         left_out[long_name] = why
         if log:

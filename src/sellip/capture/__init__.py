@@ -8,7 +8,7 @@ Modules and what they export (each name is importable from here too)::
 
     assemble: A capture folder (docs/design.md §3) from a folder of raw frames and a calibrated device.yaml (``sellip
       capture new``)
-        parse_pattern, flash_level, assemble_capture
+        parse_pattern, flash_level, assemble_capture, check_flash_fired
     capture_yaml: capture.yaml (docs/design.md §3): its JSON schema and :func:`validate_config`, which names the key,
       what was expected and what was found
         CONFIG_SCHEMA, schema_problem, validate_config
@@ -42,7 +42,7 @@ Modules and what they export (each name is importable from here too)::
         mosaic_layout
     reader: Reading a capture folder (:func:`read_capture` -> :class:`Capture`) and its raw frames (DNG and camera RAW
       with rawpy, 16-bit TIFF/PNG as they are) as (H, W) mosaics in raw units
-        read_capture, read_raw_file, read_raw_frame, exposure_time
+        read_capture, read_raw_file, read_raw_frame, exposure_time, flash_fired
     scenes: Procedural test scenes with known ground truth (no downloads) and handheld camera orbits
         SCENES, DEVICE_WIDTH_PX, DEVICE_FX_PX, SPHERE_IOR_ETAS, icosphere, TINY_BUMPS, TINY_MATERIALS, build_scene,
         device_intrinsics, look_at_rotation, handheld_orbit, BOWL_AXIS, BOWL_DEPTH_M
@@ -68,7 +68,7 @@ See docs/architecture.md for what this package owns and what it may import.
 from sellip._exports import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
-    "assemble": ("parse_pattern", "flash_level", "assemble_capture"),
+    "assemble": ("parse_pattern", "flash_level", "assemble_capture", "check_flash_fired"),
     "capture_yaml": ("CONFIG_SCHEMA", "schema_problem", "validate_config"),
     "checks": ("PoseUnitsError", "camera_distances", "check_pose_units", "SamePoseError"),
     "files": ("CAPTURE_YAML", "FRAMES_CSV", "POSES_CSV", "POSE_COLUMNS", "CaptureError", "MissingFileError",
@@ -84,7 +84,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "mitsuba_capture": ("PPlasticError", "mitsuba_available", "choose_variant", "pplastic_materials", "mesh_shape",
                         "flash_scene", "render_stokes", "render_in_subprocess"),
     "mosaic": ("mosaic_layout",),
-    "reader": ("read_capture", "read_raw_file", "read_raw_frame", "exposure_time"),
+    "reader": ("read_capture", "read_raw_file", "read_raw_frame", "exposure_time", "flash_fired"),
     "scenes": ("SCENES", "DEVICE_WIDTH_PX", "DEVICE_FX_PX", "SPHERE_IOR_ETAS", "icosphere", "TINY_BUMPS",
            "TINY_MATERIALS", "build_scene", "device_intrinsics", "look_at_rotation", "handheld_orbit", "BOWL_AXIS",
            "BOWL_DEPTH_M"),

@@ -8,6 +8,7 @@ Public API::
     frames_from_pattern(files, pattern, exposure_s) -> DataFrame   # frames.csv rows
     frames_from_csv(path, exposure_s=None) -> DataFrame
     fill_exposure(frames, frames_dir, given_by) -> DataFrame   # exposure_s from the files' ExposureTime tags
+    check_flash_fired(frames, frames_dir)          # no frame whose file records that the flash did not fire
     failed_steps(device) -> {step: why}            # calibration records with ok: false
     assemble_capture(frames_dir, device, out=None, pattern=None, csv=None, distance_m, exposure_s=None,
                      accept_failed_calibration=False, force=False) -> Path
@@ -142,6 +143,19 @@ def fill_exposure(frames: pd.DataFrame, frames_dir: Path, given_by: str) -> pd.D
     return frames
 
 
+def check_flash_fired(frames: pd.DataFrame, frames_dir: Path) -> None:
+    """Every frame of a capture is lit by the flash (its ``flash_level`` > 0): a frame whose file records that the
+    flash did not fire (:func:`sellip.capture.reader.flash_fired`) is an error naming the file and its row; a file
+    that does not say passes."""
+    for row_number, row in enumerate(frames.itertuples(index=False), start=1):
+        path = frames_dir / row.file
+        if path.is_file() and reader.flash_fired(path) is False:
+            raise AssembleError(str(path), "Flash",
+                                f"the file records that the flash did not fire, but frame {row.frame_id!r} (row "
+                                f"{row_number}) has flash_level {row.flash_level:g}: every frame must be lit by "
+                                "the flash; leave it out, or shoot it again (a flash not yet recharged?)")
+
+
 def failed_steps(device: Mapping) -> dict[str, str]:
     """{step: why} for every ``calibration.<step>`` record of a device that says ``ok: false``."""
     out = {}
@@ -192,6 +206,7 @@ def assemble_capture(frames_dir: str | Path, device: Mapping, distance_m: float,
     frames = frames_from_pattern(files, pattern, exposure_s) if pattern else frames_from_csv(csv, exposure_s)
     given_by = "--exposure-s" if exposure_s is not None or pattern else f"{csv} (column exposure_s) or --exposure-s"
     frames = fill_exposure(frames, frames_dir, given_by)
+    check_flash_fired(frames, frames_dir)
     prefix = _relative(frames_dir, out)
     frames["file"] = [f if prefix == "." else f"{prefix}/{f}" for f in frames["file"]]
     config = {section: dict(device[section]) for section in ("sensor", "camera", "light")}

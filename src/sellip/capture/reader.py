@@ -128,30 +128,49 @@ def read_capture(path: str | Path, check_raw: bool = False, check_files: bool = 
 EXPOSURE_TIME_TAG = 33434
 """TIFF/EP and EXIF ExposureTime (0x829A): a RATIONAL, seconds."""
 
+FLASH_TAG = 37385
+"""TIFF/EP and EXIF Flash (0x9209): a SHORT whose bit 0 says the flash fired."""
 
-def exposure_time(path: str | Path) -> float | None:
-    """The exposure time (s) a camera recorded in a raw file: the ExposureTime tag (0x829A) of the first IFD or
-    of its EXIF IFD, read with tifffile (DNG and the TIFF-based camera raws: NEF, ARW, CR2, ...). None when the
-    file has no such tag or is not TIFF-based (PNG, CR3)."""
+
+def _recorded(path: str | Path, tag_id: int, exif_name: str) -> list:
+    """The values of TIFF tag ``tag_id`` in a raw file's first IFD and of ``exif_name`` in its EXIF IFD (absent ones
+    left out), read with tifffile; [] when the file is not TIFF-based."""
     import tifffile
 
     try:
         with tifffile.TiffFile(path) as tif:
             tags = tif.pages[0].tags
-            tag = tags.get(EXPOSURE_TIME_TAG)
-            values = [None if tag is None else tag.value]
+            tag = tags.get(tag_id)
+            values = [] if tag is None else [tag.value]
             exif = tags.get(34665)  # ExifTag: tifffile reads the EXIF IFD into a dict
-            if exif is not None and isinstance(exif.value, dict):
-                values.append(exif.value.get("ExposureTime"))
+            if exif is not None and isinstance(exif.value, dict) and exif.value.get(exif_name) is not None:
+                values.append(exif.value[exif_name])
     except (tifffile.TiffFileError, OSError, ValueError, KeyError, IndexError):
-        return None
-    for value in values:
-        if value is None:
-            continue
+        return []
+    return values
+
+
+def exposure_time(path: str | Path) -> float | None:
+    """The exposure time (s) a camera recorded in a raw file: the ExposureTime tag (0x829A) of the first IFD or
+    of its EXIF IFD, read with tifffile (DNG and the TIFF-based camera raws: NEF, ARW, CR2, ...). None when the
+    file has no such tag or is not TIFF-based (PNG, CR3)."""
+    for value in _recorded(path, EXPOSURE_TIME_TAG, "ExposureTime"):
         if isinstance(value, (tuple, list)) and len(value) == 2:
             value = value[0] / value[1] if value[1] else None
         if value is not None and float(value) > 0:
             return float(value)
+    return None
+
+
+def flash_fired(path: str | Path) -> bool | None:
+    """Whether the camera recorded its flash as fired for a raw file: bit 0 of the Flash tag (0x9209) of the first
+    IFD or of its EXIF IFD. None when the file does not say (no tag, or not TIFF-based). Cameras record the flash's
+    power only in their maker notes, which are not read."""
+    for value in _recorded(path, FLASH_TAG, "Flash"):
+        try:
+            return bool(int(value) & 1)
+        except (TypeError, ValueError):
+            continue
     return None
 
 

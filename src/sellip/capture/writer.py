@@ -31,23 +31,29 @@ from sellip.capture.tables import validate_frames, validate_poses
 # --------------------------------------------------------------------------- writing
 
 
-def _exposure_tag(exposure_s: float | None) -> list:
-    """The ExposureTime tag (33434, one RATIONAL, seconds) for tifffile's extratags; none without a time."""
-    if exposure_s is None:
-        return []
-    from fractions import Fraction
+def _shot_tags(exposure_s: float | None, flash_fired: bool | None) -> list:
+    """The ExposureTime tag (33434, one RATIONAL, seconds) and the Flash tag (37385, one SHORT, bit 0: fired) for
+    tifffile's extratags; each left out when not given."""
+    tags = []
+    if exposure_s is not None:
+        from fractions import Fraction
 
-    ratio = Fraction(float(exposure_s)).limit_denominator(1_000_000)
-    return [(33434, "2I", 1, (ratio.numerator, ratio.denominator), True)]
+        ratio = Fraction(float(exposure_s)).limit_denominator(1_000_000)
+        tags.append((33434, "2I", 1, (ratio.numerator, ratio.denominator), True))
+    if flash_fired is not None:
+        tags.append((37385, "H", 1, int(bool(flash_fired)), True))
+    return tags
 
 
-def write_raw_file(path: str | Path, raw: np.ndarray, sensor: Mapping, exposure_s: float | None = None) -> None:
+def write_raw_file(path: str | Path, raw: np.ndarray, sensor: Mapping, exposure_s: float | None = None,
+                   flash_fired: bool | None = None) -> None:
     """Write one (H, W) uint16 mosaic; the format follows the suffix (.dng, .tif/.tiff, .png).
 
     DNG: uncompressed CFA DNG with a dummy 2x2 RGGB pattern, BlackLevel and
     WhiteLevel tags from ``sensor``; rawpy's ``raw_image`` returns it bit-exact.
     LibRaw needs DNGs of at least DNG_MIN_SIZE pixels a side. ``exposure_s``: written as the TIFF/EP
-    ExposureTime tag (33434) of a DNG or TIFF, as a camera records it (:func:`sellip.capture.reader.exposure_time`).
+    ExposureTime tag (33434) of a DNG or TIFF, as a camera records it (:func:`sellip.capture.reader.exposure_time`);
+    ``flash_fired``: its Flash tag (37385, :func:`sellip.capture.reader.flash_fired`).
     """
     path = Path(path)
     raw = np.ascontiguousarray(raw)
@@ -74,14 +80,14 @@ def write_raw_file(path: str | Path, raw: np.ndarray, sensor: Mapping, exposure_
             (50714, "H", 1, black, True),               # BlackLevel
             (50717, "H", 1, int(sensor["white_level"]), True),  # WhiteLevel
             (50721, "2i", 9, identity, True),            # ColorMatrix1 (required by the DNG spec)
-        ] + _exposure_tag(exposure_s)
+        ] + _shot_tags(exposure_s, flash_fired)
         tifffile.imwrite(path, raw, photometric=32803, compression=None, subfiletype=0,
                          extratags=tags, metadata=None)
     elif suffix in TIFF_SUFFIXES:
         import tifffile
 
         tifffile.imwrite(path, raw, photometric="minisblack", compression=None, metadata=None,
-                         extratags=_exposure_tag(exposure_s))
+                         extratags=_shot_tags(exposure_s, flash_fired))
     elif suffix in PNG_SUFFIXES:
         import imageio.v3 as iio
 
@@ -144,7 +150,7 @@ class CaptureWriter:
                                 f"expected ({sensor['height']}, {sensor['width']}) with {sensor['bit_depth']}-bit "
                                 f"values, got {raw.shape} with maximum {int(raw.max())}")
         rel = f"{RAW_DIR}/{frame_id}{RAW_FORMATS[self.raw_format]}"
-        write_raw_file(self._tmp / rel, raw, sensor, exposure_s=exposure_s)
+        write_raw_file(self._tmp / rel, raw, sensor, exposure_s=exposure_s, flash_fired=True)
         self._frames.append({"frame_id": frame_id, "view_id": view_id, "file": rel,
                              "flash_level": flash_level, "exposure_s": exposure_s})
 
