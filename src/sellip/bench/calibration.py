@@ -9,6 +9,7 @@ Public API::
     Perturbation(label, change)                       # one row: a change of the capture.yaml description
     PERTURBATIONS                                     # the rows of the table, in the order they run (telling first)
     FULL_SIZE_ERRORS                                  # what the calibration got wrong at 2448x2048, seed 1
+    MITSUBA_FULL_SIZE_ERRORS                          # likewise on Mitsuba 3's frames, seed 0
     perturb_description(config, change, width=None) -> dict       # capture.yaml's dict with ``change`` applied
     perturbed_capture(capture, out, change) -> Path   # a capture sharing the frames, capture.yaml changed
     noisy_chart_matrix(device, noise_scale, seed) -> (matrix (3, 3), delta_e_mean)
@@ -61,6 +62,13 @@ FULL_SIZE_ERRORS = {"fx_rel": -0.00004, "cx_px": -0.31, "cy_px": -0.93, "flash_m
 the two measured sets (docs/calibration.md, "Measured accuracy"): fx -0.004 %, cx -0.31 px, cy -0.93 px, the
 flash (-0.09, -0.05, +1.32) mm, the polarizer 0.002 deg."""
 
+MITSUBA_FULL_SIZE_ERRORS = {"fx_rel": -0.000013, "cx_px": 0.07, "cy_px": 0.35, "flash_mm": (0.00, 0.14, -0.73),
+                            "polarizer_deg": 0.03}
+"""The errors of ``sellip calibrate`` on Mitsuba 3's frames of the synthetic device at its full size (2448x2048,
+seed 0, the recommended protocol: 96 board poses, spheres resting on the board, bracketed sphere frames;
+docs/calibration.md, "An independent renderer at full size"): fx -0.001 %, cx +0.07 px, cy +0.35 px, the flash
+(+0.00, +0.14, -0.73) mm, the polarizer +0.03 deg."""
+
 PERTURBATIONS: tuple[Perturbation, ...] = (
     Perturbation("true description", {}),
     Perturbation("true description, noise seed 1", {}, noise_seed=1),
@@ -75,6 +83,7 @@ PERTURBATIONS: tuple[Perturbation, ...] = (
     Perturbation("polarizer 1 deg off", {"polarizer_deg": 1.0}),
     Perturbation("flash 2 mm off (x)", {"flash_mm": (2.0, 0.0, 0.0)}),
     Perturbation("flash 5 mm off (z)", {"flash_mm": (0.0, 0.0, 5.0)}),
+    Perturbation("Mitsuba full-size calibration's errors (seed 0)", MITSUBA_FULL_SIZE_ERRORS),
 )
 
 CHART_NOISE_SCALE = 8.0
@@ -273,7 +282,8 @@ def _true_capture(work: Path, scene: str, views: int, device: Mapping, noise_see
 def run_sensitivity(work: str | Path, scene: str = "sphere_ior", views: int = 36, width: int = 612,
                     height: int = 512, max_vertices: int = 10000, iterations: int = 2, cores: int = 2,
                     rows: tuple[Perturbation, ...] = PERTURBATIONS, calibration_seed: int = 0) -> list[dict]:
-    """Every row of ``rows`` (resumable: a row whose ``rows/<k>/row.json`` exists is read back), one workflow run
+    """Every row of ``rows`` (resumable: a row whose ``rows/<k>/row.json`` exists is read back; k its index in
+    :data:`PERTURBATIONS`, else in ``rows``), one workflow run
     each on the capture of its noise seed (:func:`_true_capture`: ``scene`` shot by the synthetic device of
     ``sellip synth-calibration`` at ``width`` x ``height``), capture.yaml changed; writes ``work/rows.json`` and
     ``work/table.md``; returns the rows.
@@ -288,7 +298,7 @@ def run_sensitivity(work: str | Path, scene: str = "sphere_ior", views: int = 36
     device = synthetic.true_device(width, height)
     done = []
     for k, row in enumerate(rows):
-        folder = work / "rows" / f"{k:02d}"
+        folder = work / "rows" / f"{PERTURBATIONS.index(row) if row in PERTURBATIONS else k:02d}"
         if (folder / "row.json").is_file():
             kept = json.loads((folder / "row.json").read_text())
             if kept["label"] == row.label:  # its figures read again from its run (columns added since get filled)
