@@ -46,6 +46,8 @@ Scenes:
   and white patches with sharp edges: many identical albedo rows, for the stability suite.
 - ``cow_painted``: the cow's shape on a finer mesh, painted with a base coat and 2,000 sharp-edged dabs about
   3 mm across in random colours: a textured figure that SfM can register (issue #36 item 4).
+- ``cow_dark``: the cow's shape on the finer mesh in one very dark glossy material (rho_d 0.045) with no texture:
+  a dark uniform figure.
 - ``tiny_plain``: ``tiny`` without its single scattering (the rough half's ρ_ss is 0), and ``pplastic_set``: a
   4 cm sphere with four wedges of PPLASTIC_SET_MATERIALS (η 1.33-2.0, σ_s 0.1-0.4, among them the η 1.663 / α 0.25
   material that gained a false single-scattering lobe in issue #36): scenes both renderers draw (Mitsuba's pplastic
@@ -68,7 +70,7 @@ from sellip.model.render import Camera, ParamMesh
 
 SCENES = ("demo", "demo_fine", "demo_feathers", "sphere_ior", "tiny", "tiny_dark", "tiny_white", "tiny_mirror",
           "tiny_bumpy", "tiny_relief", "tiny_speckle", "uniform_dark", "uniform_bright", "cow", "cow_painted",
-          "tiny_plain", "pplastic_set", "bowl")
+          "tiny_plain", "pplastic_set", "bowl", "cow_dark")
 
 DEVICE_WIDTH_PX = 2448
 DEVICE_FX_PX = 7246.0
@@ -482,6 +484,16 @@ def _cow_painted() -> Scene:
     return _one_material_mesh("cow_painted", material, d, vertices, faces, albedo)
 
 
+def _cow_dark() -> Scene:
+    """The cow's shape (40962 vertices) in one uniformly coloured very dark glossy material (rho_d 0.045, eta 1.5,
+    sigma_s 0.15) with no texture at all: the dark uniform figure of issue #53 (legs, concavities, a head), where
+    the fit has the least diffuse light to go on and SfM nothing to match."""
+    d, vertices, faces = _cow_shape(6)
+    material = Material("cow_dark", eta=1.5, rho_d=(0.045, 0.045, 0.045), rho_s=1.0, sigma_s=0.15)
+    albedo = np.tile(np.asarray(material.rho_d, np.float64), (len(d), 1))
+    return _one_material_mesh("cow_dark", material, d, vertices, faces, albedo)
+
+
 PPLASTIC_SET_MATERIALS = (
     Material("polypropylene", eta=1.49, rho_d=(0.25, 0.1, 0.05), rho_s=1.0, sigma_s=0.1),
     Material("issue36_1663", eta=1.663, rho_d=(0.08, 0.15, 0.25), rho_s=1.0, sigma_s=0.25),
@@ -537,7 +549,7 @@ _BUILDERS = {"demo": _demo, "demo_fine": _demo_fine, "demo_feathers": _demo_feat
              "tiny_dark": _tiny_dark, "tiny_white": _tiny_white, "tiny_mirror": _tiny_mirror, "tiny_bumpy": _tiny_bumpy,
              "tiny_relief": _tiny_relief, "tiny_speckle": _tiny_speckle, "uniform_dark": _uniform_dark,
              "uniform_bright": _uniform_bright, "cow": _cow, "cow_painted": _cow_painted, "tiny_plain": _tiny_plain,
-             "pplastic_set": _pplastic_set, "bowl": _bowl}
+             "pplastic_set": _pplastic_set, "bowl": _bowl, "cow_dark": _cow_dark}
 
 
 def build_scene(name: str) -> Scene:
