@@ -150,6 +150,16 @@ def test_the_painted_cow_is_the_cow_with_a_texture_sfm_can_match():
     assert set(np.asarray(painted.material).tolist()) == {0}
 
 
+def test_the_dark_cow_is_the_painted_cows_shape_in_one_dark_albedo():
+    """cow_dark: the painted cow's vertices and faces exactly, one material, every vertex the same dark albedo."""
+    painted, dark = build_scene("cow_painted").mesh, build_scene("cow_dark").mesh
+    np.testing.assert_array_equal(dark.vertices, painted.vertices)
+    np.testing.assert_array_equal(dark.faces, painted.faces)
+    rho_d = np.asarray(dark.params.rho_d)
+    assert rho_d.shape == (len(dark.vertices), 3) and np.all(rho_d == 0.045)
+    assert set(np.asarray(dark.material).tolist()) == {0} and np.allclose(np.asarray(dark.params.eta), 1.5)
+
+
 def test_the_bowl_is_a_ball_with_a_hollow_its_silhouettes_never_show():
     """bowl: a 4 cm ball whose deepest point, 14 mm in, lies on the hollow's axis; the rim around the hollow is at
     full radius, so its convex hull (the most that silhouettes from every side can carve) lies 6 mm above the

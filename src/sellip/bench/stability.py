@@ -127,6 +127,10 @@ CASES: tuple[Case, ...] = (
          config={"demo": {"scene": "uniform_dark", "renderer": "mitsuba"}}, needs=("mitsuba",)),
     Case("mitsuba_cow", "renderer", "the cow (flat black and white patches, concavities) rendered by Mitsuba 3",
          config={"demo": {"scene": "cow", "renderer": "mitsuba"}}, needs=("mitsuba",)),
+    Case("cow_dark", "degenerate", "the cow's shape in one uniformly coloured very dark glossy material, rho_d "
+         "0.045, no texture (scene cow_dark)", config={"demo": {"scene": "cow_dark"}}),
+    Case("mitsuba_cow_dark", "renderer", "cow_dark rendered by Mitsuba 3",
+         config={"demo": {"scene": "cow_dark", "renderer": "mitsuba"}}, needs=("mitsuba",)),
     Case("bowl", "geometry", "a 14 mm deep hollow that no silhouette shows, so the visual hull bridges it (up to "
          "6 mm above its floor; scene bowl)", config={"demo": {"scene": "bowl"}}),
     Case("mitsuba_bowl", "renderer", "the bowl rendered by Mitsuba 3 (its hollow lit by interreflections too)",
