@@ -31,7 +31,8 @@ so a frame exposed for the highlight leaves the diffuse light at 25-45 deg below
 highlights, which give the flash polarizer) and NAME_long (:data:`sellip.calibrate.flash.LONG_SUFFIX`; the same
 layout from the same camera position, exposed for the spheres' diffuse light, the highlights clipped: saturated
 pixels are NaN after development and left out). The spheres are found in NAME; the diffuse band is read in
-NAME_long, whose brightness on the spheres against NAME's must be at least :data:`MIN_BRACKET`.
+NAME_long, whose brightness on the spheres against NAME's must be at least :data:`MIN_BRACKET` and which must show
+NAME's layout (:func:`layout_agreement`, :data:`MIN_LAYOUT_AGREEMENT`); else it is left out, named.
 """
 
 from __future__ import annotations
