@@ -5,6 +5,7 @@ Public API::
     candidate_layouts() -> list of 2x2 layouts     # all 24 arrangements of 0/45/90/135
     permutation(claimed, candidate) -> (4,) int    # analyzer axis of images developed with ``claimed`` -> candidate
     limb_samples(analyzers, sphere, radius_m, intrinsics) -> (stokes (N, 3), azimuth (N,), zenith (N,))
+    layout_agreement(analyzers, long_analyzers, intrinsics, centres, radius_m) -> (K,)   # a bracket's same layout
     check_polarization(frames, device, radius_m, exposures=None) -> PolarizationReport
 
 Two physical facts, on glossy dielectric spheres (camera-frame Stokes, sellip.conventions):

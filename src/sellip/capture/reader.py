@@ -1,6 +1,6 @@
 """Reading a capture folder (:func:`read_capture` -> :class:`Capture`) and its raw frames (DNG and
 camera RAW with rawpy, 16-bit TIFF/PNG as they are) as (H, W) mosaics in raw units; a raw file's recorded
-exposure time (:func:`exposure_time`, tifffile).
+exposure time (:func:`exposure_time`) and whether its flash fired (:func:`flash_fired`), with tifffile.
 """
 
 from __future__ import annotations
