@@ -105,15 +105,21 @@ def _stokes(analyzers: np.ndarray) -> np.ndarray:
     return np.stack([(i0 + i45 + i90 + i135) / 2, i0 - i90, i45 - i135], axis=-1)
 
 
+def _projected_disc(centre: np.ndarray, radius_m: float, intrinsics: Mapping) -> tuple[float, float, float]:
+    """(u, v, radius) in output pixels of a sphere at ``centre`` (3,) of ``radius_m`` seen by ``intrinsics``."""
+    u = intrinsics["fx"] * centre[0] / centre[2] + intrinsics["cx"]
+    v = intrinsics["fy"] * centre[1] / centre[2] + intrinsics["cy"]
+    f = float(np.sqrt(intrinsics["fx"] * intrinsics["fy"]))
+    return float(u), float(v), f * radius_m / float(np.sqrt(max(centre @ centre - radius_m ** 2, 1e-12)))
+
+
 def limb_samples(analyzers: np.ndarray, centre: np.ndarray, radius_m: float, intrinsics: Mapping,
                  zenith_deg: tuple[float, float] = LIMB_ZENITH_DEG) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The limb's pixels of one sphere: analyzers (N, 4) (colour-averaged), the normal's azimuth phi (N,) in each
     ray's Stokes frame and its zenith (N,) (radians), from the sphere's centre (3,) and radius."""
     height, width = analyzers.shape[:2]
-    f = float(np.sqrt(intrinsics["fx"] * intrinsics["fy"]))
-    u0 = intrinsics["fx"] * centre[0] / centre[2] + intrinsics["cx"]
-    v0 = intrinsics["fy"] * centre[1] / centre[2] + intrinsics["cy"]
-    r_px = f * radius_m / np.sqrt(max(centre @ centre - radius_m ** 2, 1e-12)) * 1.1 + 2
+    u0, v0, r_px = _projected_disc(centre, radius_m, intrinsics)
+    r_px = r_px * 1.1 + 2
     top, bottom = max(int(v0 - r_px), 0), min(int(v0 + r_px) + 1, height)
     left, right = max(int(u0 - r_px), 0), min(int(u0 + r_px) + 1, width)
     yy, xx = np.mgrid[top:bottom, left:right]
@@ -352,10 +358,7 @@ def layout_agreement(analyzers: np.ndarray, long_analyzers: np.ndarray, intrinsi
     height, width = short.shape
     out = np.full(len(centres), np.nan)
     for k, centre in enumerate(centres):
-        u0 = intrinsics["fx"] * centre[0] / centre[2] + intrinsics["cx"]
-        v0 = intrinsics["fy"] * centre[1] / centre[2] + intrinsics["cy"]
-        r_px = float(np.sqrt(intrinsics["fx"] * intrinsics["fy"])) * radius_m / np.sqrt(
-            max(centre @ centre - radius_m ** 2, 1e-12))
+        u0, v0, r_px = _projected_disc(centre, radius_m, intrinsics)
         rows = slice(max(int(v0 - 1.5 * r_px), 0), min(int(v0 + 1.5 * r_px) + 2, height))
         cols = slice(max(int(u0 - 1.5 * r_px), 0), min(int(u0 + 1.5 * r_px) + 2, width))
         a, b = stats.rankdata(short[rows, cols].ravel()), stats.rankdata(long[rows, cols].ravel())
