@@ -67,7 +67,8 @@ MITSUBA_FULL_SIZE_ERRORS = {"fx_rel": -0.000013, "cx_px": 0.07, "cy_px": 0.35, "
 """The errors of ``sellip calibrate`` on Mitsuba 3's frames of the synthetic device at its full size (2448x2048,
 seed 0, the recommended protocol: 96 board poses, spheres resting on the board, bracketed sphere frames;
 docs/calibration.md, "An independent renderer at full size"): fx -0.001 %, cx +0.07 px, cy +0.35 px, the flash
-(+0.00, +0.14, -0.73) mm, the polarizer +0.03 deg."""
+(+0.00, +0.14, -0.73) mm, the polarizer +0.03 deg; measured before the corners were refined on the full-resolution
+mosaic (the same set now: cx -0.17 px, cy +0.05 px)."""
 
 PERTURBATIONS: tuple[Perturbation, ...] = (
     Perturbation("true description", {}),

@@ -35,6 +35,7 @@ from sellip.calibrate.flash import (
     intensity,
     mirror_ray,
     pixel_rays,
+    shared_highlight_covariance,
     too_few_highlights,
 )
 from sellip.calibrate.flash_fit import drop_outlier_highlights, nearest_point, solve_flash
@@ -91,9 +92,9 @@ def board_pose(raw: np.ndarray, device: Mapping, cols: int, rows: int, square_m:
     distortion) with its covariance, or (None, why)."""
     import cv2
 
-    from sellip.calibrate.intrinsics import detect_board, intensity_image, opencv_single_threaded
+    from sellip.calibrate.intrinsics import detect_board, opencv_single_threaded
 
-    found = detect_board(intensity_image(raw, device["sensor"]), cols, rows)
+    found = detect_board(raw, device["sensor"], cols, rows)
     if found.problem:
         return None, found.problem
     camera = device["camera"]
@@ -317,6 +318,7 @@ def calibrate_flash_on_board(frames: Mapping[str, np.ndarray], device: Mapping, 
     used = [u for u, k in zip(used, keep) if k]
     draws = _centre_draws(poses, used, device, std, radius_m, samples, seed, scale_m, min_highlights)
     position, cov, distances, centre = solve_flash(points, directions, scale_m, np.asarray(draws))
+    cov = cov + shared_highlight_covariance(records, radius_m, intrinsics, position, scale_m)
     for record, distance in zip(records, distances):
         record["residual_mm"] = float(distance * 1e3)
     return FlashResult(position_m=position, std_m=np.sqrt(np.diag(cov)),

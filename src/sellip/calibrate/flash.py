@@ -420,6 +420,30 @@ def mirror_ray(centre: np.ndarray, radius_m: float, highlight_px: np.ndarray, in
     return point, reflected / np.linalg.norm(reflected)
 
 
+HIGHLIGHT_SHARED_PX = 0.015
+"""One-sigma (output pixels, each axis) of an error that every highlight shares: the highlight's centre is a
+Gaussian fit about its centroid, but a lobe on a curved surface lit from off the camera's axis is not symmetric
+about the mirror point; at 2448x2048 all 18 highlights lay +0.013 px (sellip's renderer) and +0.008 px (Mitsuba 3)
+from it, all towards the flash (docs/calibration.md). The lines' spread cannot see a shift they share."""
+
+
+def shared_highlight_covariance(highlights: list[dict], radius_m: float, intrinsics: Mapping, position: np.ndarray,
+                                scale_m: float = 1e-3, shift_px: float = HIGHLIGHT_SHARED_PX) -> np.ndarray:
+    """(3, 3) covariance of the flash from an error of ``shift_px`` (1-sigma, output px) in x and in y shared by
+    all ``highlights`` (records with ``centre_m`` and ``highlight_px``): the flash refitted with every highlight
+    moved by ``shift_px`` along each axis, the two moves taken as independent 1-sigma errors (linear)."""
+    cov = np.zeros((3, 3))
+    for axis in np.eye(2):
+        lines = [mirror_ray(np.asarray(h["centre_m"]), radius_m, np.asarray(h["highlight_px"]) + shift_px * axis,
+                            intrinsics) for h in highlights]
+        lines = [line for line in lines if line is not None]
+        if len(lines) < 2:
+            continue
+        moved = nearest_point(np.asarray([p for p, _ in lines]), np.asarray([d for _, d in lines]), scale_m)[0]
+        cov += np.outer(moved - position, moved - position)
+    return cov
+
+
 def highlight_rays(s0: np.ndarray, sphere: Sphere, centres: list[np.ndarray], radius_m: float, intrinsics: Mapping,
                    label: str, left_out: dict, miss: str, log=None
                    ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]] | None:
@@ -443,11 +467,12 @@ def highlight_rays(s0: np.ndarray, sphere: Sphere, centres: list[np.ndarray], ra
 
 @dataclass
 class FlashResult:
-    """position_m (3,) camera coordinates; std_m (3,) one-sigma: the lines' spread and the sphere centres' error
-    together (:func:`solve_flash`); centre_std_m (3,) the centres' part alone; highlights: one record per used
-    highlight (frame, sphere index, centre, residual_mm); left_out: {"frame[#k]": why}; protocol: "board" (spheres
-    resting on the board, centres from its pose) or "outline" (spheres before a bright background); dropped: the
-    highlights dropped as outliers (:func:`sellip.calibrate.flash_fit.drop_outliers`, also in left_out)."""
+    """position_m (3,) camera coordinates; std_m (3,) one-sigma: the lines' spread, the sphere centres' error and
+    the highlights' shared error together (:func:`solve_flash`, :func:`shared_highlight_covariance`);
+    centre_std_m (3,) the centres' part alone; highlights: one record per used highlight (frame, sphere index,
+    centre, residual_mm); left_out: {"frame[#k]": why}; protocol: "board" (spheres resting on the board, centres
+    from its pose) or "outline" (spheres before a bright background); dropped: the highlights dropped as outliers
+    (:func:`sellip.calibrate.flash_fit.drop_outliers`, also in left_out)."""
 
     position_m: np.ndarray
     std_m: np.ndarray
@@ -581,6 +606,7 @@ def calibrate_flash(frames: Mapping[str, np.ndarray], device: Mapping, radius_m:
     position, *_ = nearest_point(points, directions, scale_m)
     samples = np.stack([outline, 2 * position - outline])
     position, cov, distances, centre = solve_flash(points, directions, scale_m, samples)
+    cov = cov + shared_highlight_covariance(records, radius_m, intrinsics, position, scale_m)
     for record, distance in zip(records, distances):
         record["residual_mm"] = float(distance * 1e3)
     return FlashResult(position_m=position, std_m=np.sqrt(np.diag(cov)),

@@ -1,11 +1,13 @@
-"""Camera intrinsics from checkerboard frames: Zhang's method (OpenCV) on the polarization mosaic's intensity image.
+"""Camera intrinsics from checkerboard frames: Zhang's method (OpenCV); the board found on the polarization mosaic's
+intensity image, its corners refined on the full-resolution mosaic.
 
 Public API::
 
     intensity_image(raw, sensor) -> (H/2, W/2) float32      # s0 per polarizer cell, 1 = full scale
     half_to_raw(points) / raw_to_half(points)                # the half-resolution <-> raw pixel mapping
-    detect_board(image, cols, rows, max_edge_px=...) -> BoardDetection   # corners in raw pixels, or why not
-    refine_corners(image, corners, cols, rows) -> (N, 2)        # cv2.cornerSubPix, window following the squares
+    flat_mosaic(raw, sensor) -> (H, W) float32               # the raw mosaic with each filter's gain divided out
+    detect_board(raw, sensor, cols, rows, max_edge_px=...) -> BoardDetection   # corners in raw pixels, or why not
+    refine_corners(mosaic, corners, cols, rows) -> (N, 2)    # cv2.cornerSubPix on flat_mosaic, raw pixels
     calibrate_intrinsics(frames: {name: raw}, sensor, cols, rows, square_m, ...) -> IntrinsicsResult
     opencv_single_threaded()                                 # context: OpenCV on one thread (deterministic)
     MIN_BOARD_FRAMES
@@ -16,6 +18,15 @@ The intensity image
     made with the ingest chain (:func:`sellip.ingest.linearize`, :func:`sellip.ingest.demosaic`: every analyzer
     and colour on the cell grid), averaged over the four analyzers and the colour channels (camera RGB; a grey
     board needs no colour matrix). It is NOT undistorted: the lens is what is calibrated.
+
+The full-resolution mosaic
+    On the half-resolution intensity image cv2.cornerSubPix pulls a corner towards the image's pixel centres: its
+    error swings by +-0.05 raw px with the corner's position within a cell, which left the principal point's
+    1-sigma at 0.4-0.6 px with 96 board poses at 2448x2048. The board's paper is grey, so every raw pixel sees the
+    same scene through its own analyzer and colour filter: :func:`flat_mosaic` divides each of the mosaic's
+    positions by its gain (measured on the frame's bright paper) and smooths the result by a Gaussian of
+    :data:`CORNER_BLUR_PX`; refined there, the corners scatter 2-3 times less (0.02-0.03 raw px per axis on
+    Mitsuba's and sellip's full-size frames) and the 1-sigma is 0.15-0.22 px (docs/calibration.md).
 
 Half-resolution pixel centres (stated once, tested in tests/test_calibrate.py)
     The demosaiced analyzer k sits at raw (2j + dx_k, 2i + dy_k) for cell (i, j); the four analyzers' mean
@@ -116,12 +127,37 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(scaled * 255), 0, 255).astype(np.uint8)
 
 
-def detect_board(image: np.ndarray, cols: int, rows: int, max_edge_px: float = MAX_EDGE_WIDTH_PX) -> BoardDetection:
-    """Find the cols x rows inner corners on an intensity image (H/2, W/2) with OpenCV's sector-based detector
-    (findChessboardCornersSB, accuracy mode), refine them (:func:`refine_corners`); return them in raw pixels
-    (:func:`half_to_raw`)."""
+def flat_mosaic(raw: np.ndarray, sensor: Mapping) -> np.ndarray:
+    """The raw mosaic (H, W) at full resolution as one grey image (H, W) float32 for corner refinement: linear,
+    each position of the mosaic's period divided by its gain (the median ratio of its pixels to their period's
+    mean, over the brightest 30 % of blocks: the analyzer's and colour filter's response to the board's paper),
+    then smoothed by a Gaussian of :data:`CORNER_BLUR_PX`. Saturated samples take the image's largest value."""
+    from scipy import ndimage
+
+    period = mosaic_layout(sensor["polarizer_layout"], sensor["color_layout"]).period
+    height, width = raw.shape
+    linear, invalid = ingest.linearize(raw, ingest.black_level_map(sensor["black_level"], height, width),
+                                       float(sensor["white_level"]))
+    linear = np.where(invalid, np.nan, linear).astype(np.float64)
+    blocks = ndimage.uniform_filter(np.nan_to_num(linear), period, mode="nearest")
+    bright = np.isfinite(linear) & (blocks > np.percentile(blocks, 70))
+    flat = np.empty_like(linear)
+    for i in range(period):
+        for j in range(period):
+            cell = (slice(i, None, period), slice(j, None, period))
+            flat[cell] = linear[cell] / np.median(linear[cell][bright[cell]] / blocks[cell][bright[cell]])
+    flat = np.nan_to_num(flat, nan=float(np.nanmax(flat)))
+    return ndimage.gaussian_filter(flat, CORNER_BLUR_PX).astype(np.float32)
+
+
+def detect_board(raw: np.ndarray, sensor: Mapping, cols: int, rows: int,
+                 max_edge_px: float = MAX_EDGE_WIDTH_PX) -> BoardDetection:
+    """Find the cols x rows inner corners of a raw frame (H, W): OpenCV's sector-based detector
+    (findChessboardCornersSB, accuracy mode) on the intensity image (:func:`intensity_image`), then each corner
+    refined on the full-resolution mosaic (:func:`refine_corners`); corners in raw pixels."""
     import cv2
 
+    image = intensity_image(raw, sensor)
     gray = _to_uint8(image)
     if np.mean(np.isnan(image)) > 0.01:
         return BoardDetection(None, problem=f"{100 * np.mean(np.isnan(image)):.1f} % of the image is saturated; "
@@ -140,26 +176,32 @@ def detect_board(image: np.ndarray, cols: int, rows: int, max_edge_px: float = M
     if width > max_edge_px:
         return BoardDetection(None, width, f"board blurred: edges {width:.2f} px wide on the intensity image, "
                                            f"expected at most {max_edge_px} (focus, or hold still)")
-    return BoardDetection(half_to_raw(refine_corners(image, corners, cols, rows)), width)
+    return BoardDetection(refine_corners(flat_mosaic(raw, sensor), half_to_raw(corners), cols, rows), width)
 
+
+CORNER_BLUR_PX = 1.5
+"""Standard deviation (raw pixels) of the Gaussian that smooths :func:`flat_mosaic` before corners are refined on
+it: it removes what is left of the mosaic's pattern and the refinement's pull towards pixel centres (0.5-2
+measured, docs/calibration.md "Corners on the full-resolution mosaic")."""
 
 SUBPIX_WINDOW_FRACTION = 0.35
-"""cv2.cornerSubPix's half window as a share of the board's square on the intensity image (2 to 16 pixels)."""
+"""cv2.cornerSubPix's half window as a share of the board's square (raw pixels, 4 to 32 pixels)."""
 
 
-def refine_corners(image: np.ndarray, corners: np.ndarray, cols: int, rows: int) -> np.ndarray:
-    """The (cols * rows, 2) corners of :func:`detect_board` (intensity-image pixels) refined by ``cv2.cornerSubPix``
-    on the float intensity image, in a half window of :data:`SUBPIX_WINDOW_FRACTION` of the median square (2-16
-    px): the sector detector's corners carry a bias that put the principal point 1 px off on one set of 96 board
-    poses at 2448x2048 (docs/calibration.md "Measured accuracy"); refined, within 0.5 px on three."""
+def refine_corners(mosaic: np.ndarray, corners: np.ndarray, cols: int, rows: int) -> np.ndarray:
+    """The (cols * rows, 2) corners (raw pixels) refined by ``cv2.cornerSubPix`` on the full-resolution mosaic
+    (:func:`flat_mosaic`, (H, W)), in a half window of :data:`SUBPIX_WINDOW_FRACTION` of the median square (4-32
+    raw px). On the half-resolution intensity image the corners were pulled towards its pixel centres by up to
+    0.06 raw px, which left the principal point's 1-sigma at 0.4-0.6 px with 96 board poses at 2448x2048; here
+    the pull is below 0.01 px and the corners' scatter 2-3 times smaller (docs/calibration.md)."""
     import cv2
 
     grid = corners.reshape(rows, cols, 2)
     square = float(np.median(np.linalg.norm(np.diff(grid, axis=1), axis=-1)))
-    half_window = int(np.clip(round(SUBPIX_WINDOW_FRACTION * square), 2, 16))
-    intensity = np.nan_to_num(image, nan=float(np.nanmax(image))).astype(np.float32)
+    half_window = int(np.clip(round(SUBPIX_WINDOW_FRACTION * square), 4, 32))
     with opencv_single_threaded():
-        refined = cv2.cornerSubPix(intensity, corners.astype(np.float32).reshape(-1, 1, 2), (half_window, half_window),
+        refined = cv2.cornerSubPix(np.ascontiguousarray(mosaic, np.float32),
+                                   corners.astype(np.float32).reshape(-1, 1, 2), (half_window, half_window),
                                    (-1, -1), (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4))
     return refined.reshape(-1, 2).astype(np.float64)
 
@@ -190,21 +232,28 @@ COVERAGE_GRID = 8
 """The field is cut into this many x this many cells to say how much of it the board's corners covered."""
 
 RECOMMENDED_POSES = 96
-"""Board poses of the recommended protocol (docs/calibration.md): the principal point's 1-sigma ~0.45-0.6 px."""
+"""Board poses of the recommended protocol (docs/calibration.md): the principal point's 1-sigma 0.15-0.22 px at
+2448x2048."""
 
 
-def intrinsics_uncertainty(result: IntrinsicsResult) -> tuple[dict[str, float], list[str]]:
+def intrinsics_uncertainty(result: IntrinsicsResult, c_std_target_px: float | None = None
+                           ) -> tuple[dict[str, float], list[str]]:
     """What :mod:`sellip.calibrate.targets` gates the intrinsics on ({f_std_pct, c_std_px, reprojection_rms_px})
-    and the causes of a large uncertainty the frames show (too few poses, the field's corners not covered)."""
+    and the causes of a large uncertainty the frames show (too few poses, the field's corners not covered). With
+    ``c_std_target_px`` (the gate on the principal point's 1-sigma) the poses to add are those that bring the
+    1-sigma, falling as 1/sqrt(poses), to it; without, those up to :data:`RECOMMENDED_POSES`."""
     std = result.std
     measured = {"f_std_pct": 100 * max(std.get("fx", np.nan) / result.fx, std.get("fy", np.nan) / result.fy),
                 "c_std_px": max(std.get("cx", np.nan), std.get("cy", np.nan)),
                 "reprojection_rms_px": result.rms_px}
     causes = []
     used = len(result.per_frame)
-    if used < RECOMMENDED_POSES:
+    needed = RECOMMENDED_POSES
+    if c_std_target_px and measured["c_std_px"] > c_std_target_px:
+        needed = max(needed, int(np.ceil(used * (measured["c_std_px"] / c_std_target_px) ** 2)))
+    if used < needed:
         causes.append(f"{used} board poses used: the principal point's 1-sigma falls only as 1/sqrt(poses); take "
-                      f"about {RECOMMENDED_POSES - used} more, each another pose, tilted 20-50 deg")
+                      f"about {needed - used} more, each another pose, tilted 20-50 deg")
     if result.field_coverage < 0.8:
         causes.append(f"the board's corners covered {100 * result.field_coverage:.0f} % of the field "
                       f"({COVERAGE_GRID}x{COVERAGE_GRID} cells): put the board in the image corners too")
@@ -241,7 +290,7 @@ def calibrate_intrinsics(frames: Mapping[str, np.ndarray], sensor: Mapping, cols
         if raw.shape != (height, width):
             left_out[name] = f"size {raw.shape[1]}x{raw.shape[0]}, expected the sensor's {width}x{height}"
             continue
-        found = detect_board(intensity_image(raw, sensor), cols, rows, max_edge_px)
+        found = detect_board(raw, sensor, cols, rows, max_edge_px)
         if found.problem:
             left_out[name] = found.problem
         else:

@@ -40,8 +40,8 @@ class Target:
 
 TARGETS: tuple[Target, ...] = (
     Target("f_std_pct", "intrinsics", 0.1, "%", "1-sigma of fx and fy, relative to them"),
-    Target("c_std_px", "intrinsics", 0.75, "raw px",
-           "1-sigma of the principal point cx, cy (96 poses give 0.45-0.6 px at 2448x2048, 24 poses 0.9)"),
+    Target("c_std_px", "intrinsics", 0.25, "raw px",
+           "1-sigma of the principal point cx, cy (96 poses give 0.15-0.22 px at 2448x2048)"),
     Target("reprojection_rms_px", "intrinsics", 0.5, "raw px", "RMS reprojection error of the board corners"),
     Target("flash_std_mm", "flash", 2.0, "mm", "1-sigma of the flash position, largest of x, y, z"),
     Target("flash_rms_mm", "flash", 3.0, "mm", "RMS distance of the highlights' mirror rays from the flash"),

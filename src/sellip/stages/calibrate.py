@@ -142,7 +142,7 @@ def _intrinsics(args, device) -> int:
     cols, rows = args.board
     result = calibrate_intrinsics(_frames(args.frames, device["sensor"]), device["sensor"], cols, rows,
                                   args.square_mm / 1000, fix_k3=not args.k3, log=log.info)
-    measured, causes = intrinsics_uncertainty(result)
+    measured, causes = intrinsics_uncertainty(result, _targets(args, "intrinsics")["c_std_px"])
     targets = _gate(args, "intrinsics", measured, causes)
     _apply(args, "intrinsics", intrinsics_report(result, args.board, args.square_mm), targets)
     return 0
