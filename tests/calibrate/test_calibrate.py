@@ -91,7 +91,7 @@ def test_refined_corners_lie_on_the_true_projection_and_the_window_follows_the_s
     original = cv2.cornerSubPix
     monkeypatch.setattr(cv2, "cornerSubPix",
                         lambda img, c, win, *a: windows.append(win[0]) or original(img, c, win, *a))
-    mosaic = intrinsics.flat_mosaic(raw, device["sensor"])
+    mosaic = intrinsics.flat_mosaic(intrinsics.linear_mosaic(raw, device["sensor"]), device["sensor"])
     square = np.median(np.linalg.norm(np.diff(truth.reshape(SPEC.rows, SPEC.cols, 2), axis=1), axis=-1))
     intrinsics.refine_corners(mosaic, truth.copy(), SPEC.cols, SPEC.rows)
     centre = truth.mean(axis=0)
@@ -130,7 +130,7 @@ def test_flat_mosaic_takes_out_each_filters_gain_and_keeps_the_image():
     layout = mosaic.mosaic_layout(sensor["polarizer_layout"], sensor["color_layout"])
     black = ingest.black_level_map(sensor["black_level"], H, W)
     linear, _ = ingest.linearize(raw, black, float(sensor["white_level"]))
-    flat = intrinsics.flat_mosaic(raw, sensor)
+    flat = intrinsics.flat_mosaic(intrinsics.linear_mosaic(raw, sensor), sensor)
     assert flat.shape == raw.shape
     blocks = ndimage.uniform_filter(linear, layout.period)
     paper = blocks > np.percentile(blocks, 80)

@@ -3,9 +3,10 @@
 Public API (raw frames are (H, W) uint16 mosaics; a device is device.yaml's mapping)::
 
     intrinsics.calibrate_intrinsics(frames, sensor, cols, rows, square_m) -> IntrinsicsResult  # OpenCV Zhang
-    intrinsics.intensity_image(raw, sensor) -> (H/2, W/2)      # s0 per polarizer cell
+    intrinsics.linear_mosaic(raw, sensor) -> (H, W)             # linear, saturated samples NaN
+    intrinsics.intensity_image(linear, sensor) -> (H/2, W/2)   # s0 per polarizer cell
     intrinsics.half_to_raw(p) = 2 p + 0.5                       # half-resolution -> raw pixel centres
-    intrinsics.flat_mosaic(raw, sensor) -> (H, W)               # full resolution, each filter's gain divided out
+    intrinsics.flat_mosaic(linear, sensor) -> (H, W)            # full resolution, each filter's gain divided out
     flash.calibrate_flash(frames, device, radius_m) -> FlashResult   # spheres -> mirror rays -> nearest point
     board_spheres.calibrate_flash_on_board(frames, device, radius_m, cols, rows, square_m) -> FlashResult
                                                                   # spheres resting on the board: its pose

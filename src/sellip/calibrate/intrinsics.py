@@ -3,9 +3,10 @@ intensity image, its corners refined on the full-resolution mosaic.
 
 Public API::
 
-    intensity_image(raw, sensor) -> (H/2, W/2) float32      # s0 per polarizer cell, 1 = full scale
+    linear_mosaic(raw, sensor) -> (H, W) float32            # linear, 1 = full scale, saturated samples NaN
+    intensity_image(linear, sensor) -> (H/2, W/2) float32   # s0 per polarizer cell, 1 = full scale
     half_to_raw(points) / raw_to_half(points)                # the half-resolution <-> raw pixel mapping
-    flat_mosaic(raw, sensor) -> (H, W) float32               # the raw mosaic with each filter's gain divided out
+    flat_mosaic(linear, sensor) -> (H, W) float32            # the linear mosaic with each filter's gain divided out
     detect_board(raw, sensor, cols, rows, max_edge_px=...) -> BoardDetection   # corners in raw pixels, or why not
     refine_corners(mosaic, corners, cols, rows) -> (N, 2)    # cv2.cornerSubPix on flat_mosaic, raw pixels
     calibrate_intrinsics(frames: {name: raw}, sensor, cols, rows, square_m, ...) -> IntrinsicsResult
@@ -85,15 +86,22 @@ class CalibrationError(ValueError):
     """Calibration inputs that cannot give a trustworthy result; the message names the frames and what is wrong."""
 
 
-def intensity_image(raw: np.ndarray, sensor: Mapping) -> np.ndarray:
-    """s0 / 2 per polarizer cell (H/2, W/2) float32 from a raw mosaic (H, W): linear (1 = full scale), the
+def linear_mosaic(raw: np.ndarray, sensor: Mapping) -> np.ndarray:
+    """(H, W) float32 linear intensities (1 = full scale, the black level map subtracted) of a raw mosaic (H, W);
+    saturated samples are NaN. What :func:`intensity_image` and :func:`flat_mosaic` are made from."""
+    height, width = raw.shape
+    linear, invalid = ingest.linearize(raw, ingest.black_level_map(sensor["black_level"], height, width),
+                                       float(sensor["white_level"]))
+    linear[invalid] = np.nan
+    return linear
+
+
+def intensity_image(linear: np.ndarray, sensor: Mapping) -> np.ndarray:
+    """s0 / 2 per polarizer cell (H/2, W/2) float32 from a linear mosaic (H, W) (:func:`linear_mosaic`): the
     mean over the four analyzers and the colour channels; saturated samples are NaN (see module docstring
     for where each pixel sits on the raw grid)."""
     layout = mosaic_layout(sensor["polarizer_layout"], sensor["color_layout"])
-    height, width = raw.shape
-    black = ingest.black_level_map(sensor["black_level"], height, width)
-    linear, invalid = ingest.linearize(raw, black, float(sensor["white_level"]))
-    linear[invalid] = np.nan
+    height, width = linear.shape
     plan = ingest.make_demosaic_plan(layout, height, width)
     images = ingest.demosaic(linear, plan)  # (4, Hc, Wc, C)
     return images.mean(axis=(0, 3)).astype(np.float32)
@@ -127,18 +135,16 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(scaled * 255), 0, 255).astype(np.uint8)
 
 
-def flat_mosaic(raw: np.ndarray, sensor: Mapping) -> np.ndarray:
-    """The raw mosaic (H, W) at full resolution as one grey image (H, W) float32 for corner refinement: linear,
-    each position of the mosaic's period divided by its gain (the median ratio of its pixels to their period's
-    mean, over the brightest 30 % of blocks: the analyzer's and colour filter's response to the board's paper),
-    then smoothed by a Gaussian of :data:`CORNER_BLUR_PX`. Saturated samples take the image's largest value."""
+def flat_mosaic(linear: np.ndarray, sensor: Mapping) -> np.ndarray:
+    """The linear mosaic (H, W) (:func:`linear_mosaic`) at full resolution as one grey image (H, W) float32 for
+    corner refinement: each position of the mosaic's period divided by its gain (the median ratio of its pixels to
+    their period's mean, over the brightest 30 % of blocks: the analyzer's and colour filter's response to the
+    board's paper), then smoothed by a Gaussian of :data:`CORNER_BLUR_PX`. Saturated samples (NaN) take the
+    image's largest value."""
     from scipy import ndimage
 
     period = mosaic_layout(sensor["polarizer_layout"], sensor["color_layout"]).period
-    height, width = raw.shape
-    linear, invalid = ingest.linearize(raw, ingest.black_level_map(sensor["black_level"], height, width),
-                                       float(sensor["white_level"]))
-    linear = np.where(invalid, np.nan, linear).astype(np.float64)
+    linear = np.asarray(linear, np.float64)
     blocks = ndimage.uniform_filter(np.nan_to_num(linear), period, mode="nearest")
     bright = np.isfinite(linear) & (blocks > np.percentile(blocks, 70))
     flat = np.empty_like(linear)
@@ -157,7 +163,8 @@ def detect_board(raw: np.ndarray, sensor: Mapping, cols: int, rows: int,
     refined on the full-resolution mosaic (:func:`refine_corners`); corners in raw pixels."""
     import cv2
 
-    image = intensity_image(raw, sensor)
+    linear = linear_mosaic(raw, sensor)
+    image = intensity_image(linear, sensor)
     gray = _to_uint8(image)
     if np.mean(np.isnan(image)) > 0.01:
         return BoardDetection(None, problem=f"{100 * np.mean(np.isnan(image)):.1f} % of the image is saturated; "
@@ -176,7 +183,7 @@ def detect_board(raw: np.ndarray, sensor: Mapping, cols: int, rows: int,
     if width > max_edge_px:
         return BoardDetection(None, width, f"board blurred: edges {width:.2f} px wide on the intensity image, "
                                            f"expected at most {max_edge_px} (focus, or hold still)")
-    return BoardDetection(refine_corners(flat_mosaic(raw, sensor), half_to_raw(corners), cols, rows), width)
+    return BoardDetection(refine_corners(flat_mosaic(linear, sensor), half_to_raw(corners), cols, rows), width)
 
 
 CORNER_BLUR_PX = 1.5
