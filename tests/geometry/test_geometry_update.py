@@ -356,6 +356,29 @@ def test_the_true_model_predicts_the_photographs_silhouettes(tiny_capture):
 
 
 @pytest.mark.slow
+def test_model_offsets_measure_the_truth_and_a_fitted_iteration_alike(tiny_capture):
+    """sellip.bench.silhouettes.model_offsets (benchmarks/silhouette_offsets.py): the true model's offsets are the
+    update's own (within 0.05 px of zero on the tiny sphere), and an iteration whose fitted store and mesh are the
+    truth's gives the same numbers; 4 views of 8 spread evenly are 4 views."""
+    from sellip.bench.silhouettes import model_offsets
+    from sellip.model.params import write_params
+    from sellip.model.ply import write_param_mesh
+
+    root, truth = tiny_capture["root"], tiny_capture["truth"]
+    (root / "mesh").mkdir(exist_ok=True)
+    write_param_mesh(root / "mesh" / "init.ply", truth)
+    n = len(truth.vertices)
+    write_params(root / "iter" / "0" / "fit.zarr", {"vertices": truth.vertices, "normals": truth.normals,
+                                                    **truth.params._asdict(), "confidence": np.ones(n)})
+    true_row = model_offsets(root, tiny_capture["folder"], None, views=4)
+    fitted_row = model_offsets(root, tiny_capture["folder"], 0, views=4)
+    assert len(true_row["views"]) == 4 and true_row["constraints"] > 200
+    assert abs(true_row["offset_px_mean"]) < 0.05 and true_row["offset_px_rms"] < 0.1
+    assert fitted_row["constraints"] == true_row["constraints"]
+    assert fitted_row["offset_px_mean"] == pytest.approx(true_row["offset_px_mean"], abs=0.005)
+
+
+@pytest.mark.slow
 def test_the_prediction_is_the_photograph_of_the_render(tiny_capture):
     """predicted_diffuse (a render of the 90-degree analyzer's raw pixels inside the model's box, one analyzer
     developed) equals the whole chain: every raw pixel rendered, sampled by the mosaic (sellip.capture.sensor),

@@ -42,8 +42,9 @@ Modules and what they export (each name is importable from here too)::
     silhouettes: How well the silhouettes of a run's photographs match the true ones: the ground-truth mesh ray-cast
       through each pixel centre of the capture's true cameras, against
       :func:`sellip.geometry.silhouettes.silhouette_masks` of the run's HDR views under several cuts
-      (``benchmarks/silhouette_iou.py``; docs/geometry.md quotes it)
-        agreement, silhouette_agreement, cut_difference
+      (``benchmarks/silhouette_iou.py``; docs/geometry.md quotes it); how far the photographs' silhouettes lie
+      outside the true or a fitted model's, as the geometry update measures it (``benchmarks/silhouette_offsets.py``)
+        agreement, silhouette_agreement, cut_difference, model_offsets
     stability: The stability suite (issue #9): small reconstructions built to hit the known failure modes
         BASE_VIEWS, StabilityError, CASES, CASE_NAMES, held_out_views, case_config, perturb_along_normals,
         perturb_mesh_file, miscalibrate_flash, damage_frames, snakemake_command, failure_reason, missing_packages,
@@ -85,7 +86,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "replay": ("replay_parser", "ignore_snakemake_zarr_warnings", "clustering_overrides_and_truth"),
     "reproducibility": ("KINDS", "perturbed_inputs", "replay", "decisions", "summarise", "merge_rule"),
     "scale": ("CaptureSize", "size_terms", "job_costs", "rule_costs", "fit_cost_model", "predict"),
-    "silhouettes": ("agreement", "silhouette_agreement", "cut_difference"),
+    "silhouettes": ("agreement", "silhouette_agreement", "cut_difference", "model_offsets"),
     "stability": ("BASE_VIEWS", "StabilityError", "CASES", "CASE_NAMES", "held_out_views", "case_config",
            "perturb_along_normals", "perturb_mesh_file", "miscalibrate_flash", "damage_frames", "snakemake_command",
            "failure_reason", "missing_packages", "run_suite"),

@@ -62,3 +62,39 @@ def cut_difference(run: str | Path, options: dict, reference: dict) -> dict[str,
         figures["removed"] += int((before & ~mask).sum())
         figures["object"] += int(before.sum())
     return figures
+
+
+def model_offsets(run: str | Path, capture: str | Path, iteration: int | None = None,
+                  views: int = 8) -> dict:
+    """How far the photographs' silhouettes lie outside a model's, as the geometry update measures it
+    (:func:`sellip.fit.geometry_jobs.measure_silhouettes`, positive outside), over ``views`` views spread evenly over
+    ``run``/cameras.csv. The model: the true one of ``capture`` (its ground_truth/model.ply) when ``iteration`` is
+    None, else iteration N's fitted one on the mesh it was fitted on (iter/N/refit.zarr, or fit.zarr where the
+    iteration had no refit, on mesh/init.ply or iter/N-1/mesh.ply: what that iteration's geometry update saw).
+    Returns ``{"views": {view: {"constraints", "offset_px_mean", "offset_px_rms"}}, "constraints", "offset_px_mean",
+    "offset_px_rms"}`` (px at the HDR grid)."""
+    from sellip.capture.files import GROUND_TRUTH_MESH
+    from sellip.fit.geometry_jobs import iteration_model, measure_silhouettes
+    from sellip.geometry.cameras import read_cameras
+    from sellip.geometry.meshes import blend_normals, vertex_normals
+    from sellip.model.ply import read_param_mesh
+
+    run, capture = Path(run), Path(capture)
+    if iteration is None:
+        model = read_param_mesh(capture / GROUND_TRUTH_MESH)
+        mesh, shading, params = model, model.normals, model.params
+    else:
+        folder = run / "iter" / str(iteration)
+        store_path = folder / "refit.zarr" if (folder / "refit.zarr").exists() else folder / "fit.zarr"
+        mesh_path = run / "mesh" / "init.ply" if iteration == 0 else run / "iter" / str(iteration - 1) / "mesh.ply"
+        store, mesh, params, _, normal_confidence = iteration_model(store_path, mesh_path)
+        shading = blend_normals(store["normals"], vertex_normals(mesh.vertices, mesh.faces), normal_confidence)
+    names = list(read_cameras(run / "cameras.csv")[0])
+    chosen = names[::max(1, len(names) // views)][:views]
+    constraints, per_view = measure_silhouettes(mesh, vertex_normals(mesh.vertices, mesh.faces), shading, params,
+                                                run / "cameras.csv", run / "hdr.zarr", capture,
+                                                exclude_views=[name for name in names if name not in chosen])
+    offset = constraints.offset_px
+    return {"views": per_view, "constraints": int(len(offset)),
+            "offset_px_mean": float(np.mean(offset)) if len(offset) else float("nan"),
+            "offset_px_rms": float(np.sqrt(np.mean(offset ** 2))) if len(offset) else float("nan")}

@@ -28,7 +28,8 @@ Modules and what they export (each name is importable from here too)::
       ``model``: ``final/model.ply`` and ``final/params.zarr`` (:func:`finalize_model`)
         FinalSettings, finalize_model, vertex_cluster_support
     geometry_jobs: The updates between iterations
-        GeometryUpdateSettings, raw_camera, predicted_diffuse, measure_silhouettes, refine_geometry, refine_poses
+        GeometryUpdateSettings, raw_camera, predicted_diffuse, measure_silhouettes, iteration_model, refine_geometry,
+        refine_poses
     kernels: Compiled kernels that later processes load instead of tracing again (docs/speed.md)
         code_version, enable, kernel
     lobe_store: The cluster-lobes output directory (``labels.npy``, ``models.npy``, ``lobes.csv``, ``lobes.png``,
@@ -96,7 +97,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "evidence": ("MIN_FITTED_SHARE", "EvidenceError", "fitted_share", "check_evidence"),
     "finalize": ("FinalSettings", "finalize_model", "vertex_cluster_support"),
     "geometry_jobs": ("GeometryUpdateSettings", "raw_camera", "predicted_diffuse", "measure_silhouettes",
-           "refine_geometry", "refine_poses"),
+                      "iteration_model", "refine_geometry", "refine_poses"),
     "kernels": ("code_version", "enable", "kernel"),
     "lobe_store": ("LOBE_COLUMNS", "read_lobes", "read_models", "recorded_fit_settings", "clustering_settings",
            "load_rows"),
