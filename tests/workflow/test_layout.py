@@ -83,3 +83,21 @@ def test_the_checker_finds_a_private_name_taken_and_a_name_missing_from_the_pack
         "tests/test_x.py:2: takes sellip.fit.solver._hidden, a private name of another module (make it public)",
         "tests/test_x.py:3: takes sellip.fit.solver._hidden, a private name of another module (make it public)",
     ]
+
+
+def test_every_commands_help_formats():
+    """`sellip COMMAND [STEP] --help` prints for every command and sub-step: argparse expands %-formats in help
+    texts, so a unit such as "%" in a generated help (the calibration targets' --max-f-std-pct) must be escaped."""
+    import argparse
+
+    from sellip.cli import build_parser
+
+    def parsers(parser):
+        yield parser
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for child in action.choices.values():
+                    yield from parsers(child)
+
+    helps = [p.format_help() for p in parsers(build_parser())]
+    assert len(helps) > 25 and any("--max-f-std-pct" in h and "(%;" in h for h in helps)

@@ -105,7 +105,8 @@ def _add_targets(parser: argparse.ArgumentParser, step: str) -> None:
     for target in gates.for_step(step):
         parser.add_argument(target.option, dest=f"target_{target.name}", type=float, default=target.default,
                             metavar=target.unit.replace(" ", "_").upper(),
-                            help=f"target: {target.help} ({target.unit}; default {target.default:g})")
+                            help=f"target: {target.help} ({target.unit}; default {target.default:g})"
+                            .replace("%", "%%"))  # argparse expands %-formats: the unit may be "%"
 
 
 def _targets(args, step: str) -> dict[str, float]:
