@@ -375,13 +375,17 @@ def test_every_case_config_is_valid_for_the_workflow(tmp_path):
         damaged = {f.split("_")[0] for f in case.missing + case.corrupt + case.truncated}
         assert not damaged & set(config["evaluate"]["held_out_views"] + config["evaluate"]["render_views"])
         names.add(case.name)
+        assert "noise_seed" not in config["demo"]
+        seeded = stability.case_config(case, tmp_path, noise_seed=3)
+        jsonschema.validate(merge(defaults, seeded), schema)
+        assert seeded["demo"] == {**config["demo"], "noise_seed": 3}
     assert len(names) == len(stability.CASES)
 
 
 def test_suite_writes_validated_tables_and_keeps_going_after_a_failure(tmp_path):
     calls = []
 
-    def fake_runner(case, workdir, snakefile, cores, iterations, jax_cache):
+    def fake_runner(case, workdir, snakefile, cores, iterations, jax_cache, noise_seed=None):
         calls.append(case.name)
         workdir.mkdir(parents=True, exist_ok=True)
         if case.name == "dark":
@@ -436,7 +440,7 @@ def test_suite_skips_a_case_whose_package_is_missing(tmp_path, caplog):
 
     calls = []
 
-    def fake_runner(case, workdir, snakefile, cores, iterations, jax_cache):
+    def fake_runner(case, workdir, snakefile, cores, iterations, jax_cache, noise_seed=None):
         calls.append(case.name)
         workdir.mkdir(parents=True, exist_ok=True)
         _fake_run(workdir, case)

@@ -265,7 +265,10 @@ def test_the_demo_section_rejects_a_misspelt_key_and_a_value_out_of_range():
                                                               r"'demo.noise_scale'\?"):
         workflow_support.check_config_keys(_config_with("demo", {"noise_scal": 1}), schema)
     jsonschema.validate(_config_with("demo", {"width": 64, "renderer": "mitsuba"}), schema)
-    for bad in ({"width": 610}, {"height": 20}, {"views": 2}, {"noise_scale": 0}, {"scene": "teapot"}):
+    jsonschema.validate(_config_with("demo", {"noise_seed": 3}), schema)
+    jsonschema.validate(_config_with("demo", {"noise_seed": None}), schema)
+    for bad in ({"width": 610}, {"height": 20}, {"views": 2}, {"noise_scale": 0}, {"scene": "teapot"},
+                {"noise_seed": -1}):
         with pytest.raises(jsonschema.ValidationError):
             jsonschema.validate(_config_with("demo", bad), schema)
         with pytest.raises(SettingsError, match=rf"setting 'demo.{next(iter(bad))}'"):
@@ -286,12 +289,12 @@ def test_the_jobs_defaults_are_the_declarations():
 
     args = build_parser("synth").parse_args(["synth", "--out", "o"])
     declared = DemoSettings()
-    assert (args.scene, args.renderer, args.views, args.width, args.height, args.seed, args.noise_scale) == (
-        declared.scene, declared.renderer, declared.views, declared.width, declared.height, declared.seed,
-        declared.noise_scale)
+    assert (args.scene, args.renderer, args.views, args.width, args.height, args.seed, args.noise_scale,
+            args.noise_seed) == (declared.scene, declared.renderer, declared.views, declared.width, declared.height,
+                                 declared.seed, declared.noise_scale, declared.noise_seed)
     synth = inspect.signature(synthesize_capture).parameters
     assert all(synth[name].default == getattr(declared, name)
-               for name in ("views", "width", "height", "seed", "noise_scale", "renderer"))
+               for name in ("views", "width", "height", "seed", "noise_scale", "renderer", "noise_seed"))
     evaluate = EvaluateSettings()
     assert (evaluate.supersample, evaluate.metrics_supersample, evaluate.geometry_samples) == (1, 2, 50000)
     assert inspect.signature(evaluate_model).parameters["supersample"].default == evaluate.metrics_supersample

@@ -236,13 +236,13 @@ def section_settings(section, workflow_keys=(), it=None, keys=None):
 
 
 def synth_options():
-    """The `sellip synth` options of the keys of config demo that are set (`--noise-scale 0.5`); a key left out takes
-    the declared default (sellip.capture.synthetic.DemoSettings)."""
+    """The `sellip synth` options of the keys of config demo that are set (`--noise-scale 0.5`); a key left out (or
+    null) takes the declared default (sellip.capture.synthetic.DemoSettings)."""
     demo = config.get("demo") or {}
     return " ".join(
         f"--{key.replace('_', '-')} {shlex.quote(str(value))}"
         for key, value in demo.items()
-        if key not in ("scene", "overrides")
+        if key not in ("scene", "overrides") and value is not None
     )
 
 

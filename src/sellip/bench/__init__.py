@@ -24,6 +24,11 @@ Modules and what they export (each name is importable from here too)::
         CORRELATION_EDGES, residual_correlation
     ladder: The accuracy ladder (docs/accuracy.md): where the error of a reconstruction enters, rung by rung
         render_hdr, fit_true_mesh, figures, resampled_truth, psnr_ceiling
+    noise_seeds: Whole runs over sensor-noise seeds and core counts (issue #49): the demo over seeds x 1 and 2 cores
+      against its targets (``benchmarks/demo_seeds.py``), the suite's scenes' decisions over seeds
+      (``benchmarks/suite_seeds.py``; docs/reproducibility.md)
+        TARGETS, demo_overrides, seed_run_config, seed_captures, run_name, run_seed, seed_row, seed_summary,
+        decision_agreement
     renderers: Both renderers side by side (issue #36): the figures of runs on captures of the same scenes rendered by
       sellip and by Mitsuba 3 (stability-suite cases, :mod:`sellip.bench.stability`), with the share of vertices that
       got a single-scattering lobe their ground truth does not have
@@ -47,8 +52,8 @@ Modules and what they export (each name is importable from here too)::
         agreement, silhouette_agreement, cut_difference, model_offsets
     stability: The stability suite (issue #9): small reconstructions built to hit the known failure modes
         BASE_VIEWS, StabilityError, CASES, CASE_NAMES, held_out_views, case_config, perturb_along_normals,
-        perturb_mesh_file, miscalibrate_flash, damage_frames, snakemake_command, failure_reason, missing_packages,
-        run_suite
+        perturb_mesh_file, miscalibrate_flash, damage_frames, snakemake_command, failure_reason, run_snakemake,
+        missing_packages, run_suite
     stability_table: The stability suite's measurements: one row per case from its results folder (figures of merit,
       non-finite outputs, how well confidence flags bad vertices), the table's schema, and the markdown tables of
       docs/benchmarks.md
@@ -82,6 +87,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "intervals": ("ROW_COLUMNS", "run_renderer", "capture_of", "material_rows", "intervals", "fit_shared_factor",
            "coverage", "CORRELATION_EDGES", "residual_correlation"),
     "ladder": ("render_hdr", "fit_true_mesh", "figures", "resampled_truth", "psnr_ceiling"),
+    "noise_seeds": ("TARGETS", "demo_overrides", "seed_run_config", "seed_captures", "run_name", "run_seed",
+           "seed_row", "seed_summary", "decision_agreement"),
     "renderers": ("single_scattering_shares", "false_single_scattering", "renderer_markdown"),
     "replay": ("replay_parser", "ignore_snakemake_zarr_warnings", "clustering_overrides_and_truth"),
     "reproducibility": ("KINDS", "perturbed_inputs", "replay", "decisions", "summarise", "merge_rule"),
@@ -89,7 +96,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "silhouettes": ("agreement", "silhouette_agreement", "cut_difference", "model_offsets"),
     "stability": ("BASE_VIEWS", "StabilityError", "CASES", "CASE_NAMES", "held_out_views", "case_config",
            "perturb_along_normals", "perturb_mesh_file", "miscalibrate_flash", "damage_frames", "snakemake_command",
-           "failure_reason", "missing_packages", "run_suite"),
+           "failure_reason", "run_snakemake", "missing_packages", "run_suite"),
     "stability_table": ("Case", "rank_auc", "confidence_flagging", "nonfinite_outputs", "COLUMNS", "case_row",
            "validate_table", "geometry_folds", "stability_markdown"),
     "sweep": ("UPSTREAM_RULES", "UPSTREAM_OUTPUTS", "link_upstream", "SnakemakeRunner", "xla_compile_seconds",

@@ -25,6 +25,7 @@ Public API::
     STABILITY_SCHEMA, validate_table(rows) -> DataFrame
     stability_markdown(table) -> str
     run_case(case, workdir, snakefile, cores=2, ...) -> dict
+    run_snakemake(command, workdir, log_path, timeout_s, cpus=None) -> None   # StabilityError with the reason
     missing_packages(case) -> list[str]                  # the packages of case.needs not installed (case skipped)
     run_suite(cases, out, snakefile, cores=2, ...) -> DataFrame       # writes stability.csv / .md
 
@@ -168,10 +169,15 @@ def base_config(workdir: str | Path, views: int = BASE_VIEWS, iterations: int = 
     }
 
 
-def case_config(case: Case, workdir: str | Path, iterations: int = 2, jax_cache: str | Path | None = None) -> dict:
-    """The full override of one case: :func:`base_config` with the case's views and ``config`` merged in."""
+def case_config(case: Case, workdir: str | Path, iterations: int = 2, jax_cache: str | Path | None = None,
+                noise_seed: int | None = None) -> dict:
+    """The full override of one case: :func:`base_config` with the case's views and ``config`` merged in;
+    ``noise_seed``: the capture's sensor noise drawn with that seed (``demo.noise_seed``; None: the case's own)."""
     config = base_config(workdir, case.views or BASE_VIEWS, iterations, jax_cache)
-    return merge(config, {"name": case.name, **case.config})
+    config = merge(config, {"name": case.name, **case.config})
+    if noise_seed is not None:
+        config["demo"]["noise_seed"] = int(noise_seed)
+    return config
 
 
 # --------------------------------------------------------------------------- breaking things
@@ -292,13 +298,17 @@ def failure_reason(output: str, workdir: Path) -> str:
     return f"{rule.rstrip(':')}: {detail}"[:300]
 
 
-def _run_snakemake(command: list[str], workdir: Path, log_path: Path, timeout_s: float) -> None:
+def run_snakemake(command: list[str], workdir: Path, log_path: Path, timeout_s: float,
+                   cpus: set[int] | None = None) -> None:
+    """Run ``command``, its output appended to ``log_path``; ``cpus``: pin it and everything it starts to those CPUs
+    (XLA then sizes its thread pool to them). Raises :class:`StabilityError` with the reason when it fails."""
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    pin = (lambda: os.sched_setaffinity(0, cpus)) if cpus else None
     with open(log_path, "a") as log_file:
         log_file.write(f"$ {' '.join(command)}\n")
         log_file.flush()
         result = subprocess.run(command, stdout=log_file, stderr=subprocess.STDOUT, env=env, timeout=timeout_s,
-                                check=False)
+                                check=False, preexec_fn=pin)
     if result.returncode != 0:
         raise StabilityError(failure_reason(log_path.read_text(errors="replace"), workdir))
 
@@ -316,7 +326,7 @@ def _write_row(workdir: Path, row: Mapping) -> None:
 
 
 def run_case(case: Case, workdir: str | Path, snakefile: str | Path, cores: int = 2, iterations: int = 2,
-             jax_cache: str | Path | None = None, timeout_s: float = 3600.0) -> dict:
+             jax_cache: str | Path | None = None, timeout_s: float = 3600.0, noise_seed: int | None = None) -> dict:
     """Run one case from scratch in ``workdir`` (deleted first) and return its table row.
 
     Steps: write ``override.yaml`` (:func:`case_config`); when the case edits the capture, make it
@@ -330,7 +340,7 @@ def run_case(case: Case, workdir: str | Path, snakefile: str | Path, cores: int 
     if workdir.exists():
         shutil.rmtree(workdir)
     workdir.mkdir(parents=True)
-    config = case_config(case, workdir, iterations, jax_cache)
+    config = case_config(case, workdir, iterations, jax_cache, noise_seed)
     override = workdir / "override.yaml"
     override.write_text(yaml.safe_dump(config, sort_keys=False))
     log_path = workdir / "snakemake.log"
@@ -339,7 +349,7 @@ def run_case(case: Case, workdir: str | Path, snakefile: str | Path, cores: int 
     error = None
     try:
         def snakemake(*args: str) -> None:
-            _run_snakemake(snakemake_command(Path(snakefile), workdir, override, "--cores", str(cores), *args),
+            run_snakemake(snakemake_command(Path(snakefile), workdir, override, "--cores", str(cores), *args),
                            workdir, log_path, timeout_s)
 
         if case.edits_capture:
@@ -384,11 +394,11 @@ def write_tables(rows: Sequence[Mapping], out: str | Path) -> Path:
 
 
 def run_suite(cases: Sequence[Case], out: str | Path, snakefile: str | Path, cores: int = 2, iterations: int = 2,
-              keep: bool = False, runner: Callable[..., dict] = run_case):
+              keep: bool = False, runner: Callable[..., dict] = run_case, noise_seed: int | None = None):
     """Run ``cases`` one after the other under ``out/runs/<case>`` (sharing ``out/jax_cache``) and write the
-    tables (:func:`write_tables`). ``keep``: reuse the run of a case that already ran (``runs/<case>/row.json``):
-    its figures are read again from its run folder (columns added since it ran get filled), its times and
-    error kept. Returns the validated table."""
+    tables (:func:`write_tables`); ``noise_seed``: every case's capture with that sensor-noise seed. ``keep``: reuse
+    the run of a case that already ran (``runs/<case>/row.json``): its figures are read again from its run folder
+    (columns added since it ran get filled), its times and error kept. Returns the validated table."""
     out = Path(out)
     rows = []
     began = time.perf_counter()
@@ -408,7 +418,8 @@ def run_suite(cases: Sequence[Case], out: str | Path, snakefile: str | Path, cor
             log.info("[%d/%d] %s: kept the earlier run (%s)", index, len(cases), case.name, previous)
             continue
         log.info("[%d/%d] %s: %s", index, len(cases), case.name, case.breaks)
-        row = runner(case, workdir, snakefile, cores=cores, iterations=iterations, jax_cache=out / "jax_cache")
+        row = runner(case, workdir, snakefile, cores=cores, iterations=iterations, jax_cache=out / "jax_cache",
+                     noise_seed=noise_seed)
         rows.append(row)
         log.info("[%d/%d] %s: %s in %.0f s (CPU %s s); normal median %s deg, eta median %s %%, finite %s, "
                  "bad flagged %s", index, len(cases), case.name, row["status"], row["wall_s"],

@@ -54,6 +54,8 @@ class DemoSettings:
     width: int = setting(612, "raw mosaic width", unit="pixels", minimum=24, multiple_of=4)
     height: int = setting(512, "raw mosaic height", unit="pixels", minimum=24, multiple_of=4)
     seed: int = setting(0, "seed of the orbit's cameras and the sensor noise", minimum=0)
+    noise_seed: int | None = setting(None, "seed of the sensor noise alone, the orbit kept (null: `seed`; another "
+                                     "photon draw of the same capture, docs/reproducibility.md)", minimum=0)
     noise_scale: float = setting(1.0, "sensor noise standard deviations x this at the same signal, as with 1/k^2 of "
                                  "the photons at k^2 the gain (1: the real device; docs/synthetic.md)",
                                  exclusive_minimum=0)
@@ -89,7 +91,7 @@ def synthesize_capture(scene_name: str, out: str | Path, views: int = DemoSettin
                        seed: int = DemoSettings.seed, supersample: int = 2, raw_format: str = "dng", distortion=None,
                        flash_levels=FLASH_LEVELS, progress: bool = True, noise_scale: float = DemoSettings.noise_scale,
                        renderer: str = DemoSettings.renderer, mitsuba_variant: str | None = None, device=None,
-                       noise_seed: int | None = None, force: bool = False) -> Path:
+                       noise_seed: int | None = DemoSettings.noise_seed, force: bool = False) -> Path:
     """Render and write a synthetic capture of ``scene_name`` to ``out``; returns the folder. ``out`` is replaced as
     a whole: a folder there that is not a synthetic capture (:func:`is_synthetic_folder`) stops it with
     :class:`sellip.jobs.WouldReplaceError` before anything is rendered, unless ``force``.

@@ -1,7 +1,7 @@
 """``sellip bench-stability``: the stability suite (issue #9) -> stability.csv and stability.md.
 
     sellip bench-stability --out results/bench/stability [--cases baseline dark ...] [--cores 2]
-                           [--iterations 2] [--keep] [--snakefile Snakefile]
+                           [--iterations 2] [--keep] [--snakefile Snakefile] [--noise-seed S]
 
 Each case (:data:`sellip.bench.stability.CASES`) is a real Snakemake run of the workflow on a small synthetic
 capture with one failure mode built in, under ``OUT/runs/<case>/`` (its own captures/ and results/, its
@@ -39,6 +39,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iterations", type=int, default=2, help="outer iterations of each run (default: 2)")
     parser.add_argument("--keep", action="store_true",
                         help="reuse the row of a case that already ran (runs/<case>/row.json)")
+    parser.add_argument("--noise-seed", type=int, default=None,
+                        help="draw every case's sensor noise with this seed (config demo.noise_seed; default: the "
+                             "case's own): the same captures but for the photons (docs/reproducibility.md)")
     parser.add_argument("--snakefile", type=Path, default=None,
                         help="the workflow's Snakefile (default: ./Snakefile, else the installed checkout's)")
 
@@ -54,7 +57,7 @@ def main(args: argparse.Namespace) -> int:
     by_name = {case.name: case for case in stability.CASES}
     cases = [by_name[name] for name in dict.fromkeys(args.cases)]
     table = stability.run_suite(cases, args.out, snakefile, cores=args.cores, iterations=args.iterations,
-                                keep=args.keep)
+                                keep=args.keep, noise_seed=args.noise_seed)
     failed = table.loc[table["status"] != "ok", "case"].tolist()
     if failed:
         log.warning("%d case(s) failed: %s", len(failed), ", ".join(failed))

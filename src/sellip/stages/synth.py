@@ -14,8 +14,8 @@ views with Mitsuba 3's pplastic instead (:mod:`sellip.capture.mitsuba_capture`; 
 unchanged: an independent renderer for the validation set (docs/synthetic.md). ``--device`` shoots the frames
 with a described device (device.yaml, or ``sellip synth-calibration``'s truth.yaml): its sensor, lens, colour
 matrix and flash, as the calibration set of that device was (docs/calibration.md, "The synthetic example").
-The defaults of ``--scene``, ``--renderer``, ``--views``, ``--width``, ``--height``, ``--seed`` and ``--noise-scale``
-are the declarations of :class:`sellip.capture.synthetic.DemoSettings` (config ``demo``; rule ``synth_capture``
+The defaults of ``--scene``, ``--renderer``, ``--views``, ``--width``, ``--height``, ``--seed``, ``--noise-scale`` and
+``--noise-seed`` are the declarations of :class:`sellip.capture.synthetic.DemoSettings` (config ``demo``; rule ``synth_capture``
 passes the keys the config sets).
 """
 
@@ -60,7 +60,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="device.yaml (or synth-calibration's truth.yaml) whose sensor, lens and flash shoot the "
                              "frames; its sensor size is the capture's (default: the built-in device at --width "
                              "x --height)")
-    parser.add_argument("--noise-seed", type=int, default=None,
+    parser.add_argument("--noise-seed", type=int, default=DemoSettings.noise_seed,
                         help="seed of the sensor noise alone (default: --seed, which also sets the orbit)")
     parser.add_argument("--force", action="store_true",
                         help="replace --out even when it is not a synthetic capture (it is replaced as a whole)")
