@@ -24,9 +24,10 @@ from pathlib import Path
 
 def replay(run: Path, iteration: int, overrides: dict | None = None):
     """The clustering of ``run``'s pass ``iteration`` re-run on its stored fit with the run's settings and seed
-    (clusters.json) and ``overrides`` (AugmentSettings fields) over them. Returns (clustering, settings, store)."""
+    (clusters.json), the previous pass's clusters (the hysteresis) and ``overrides`` (AugmentSettings fields) over
+    them. Returns (clustering, settings, store)."""
     from sellip.fit import clusters as fit_clusters
-    from sellip.fit.lobe_store import clustering_settings
+    from sellip.fit.lobe_store import clustering_settings, previous_labels
     from sellip.model.params import read_params
 
     folder = run / "iter" / str(iteration)
@@ -34,7 +35,8 @@ def replay(run: Path, iteration: int, overrides: dict | None = None):
     settings = clustering_settings(info, overrides)
     store = read_params(folder / "fit.zarr")
     clustering = fit_clusters.cluster_materials(store["eta"], store["rho_d"], store["status"], store["confidence"],
-                                           settings, info.get("seed", 0), vertices=store["vertices"])
+                                           settings, info.get("seed", 0), vertices=store["vertices"],
+                                           previous_labels=previous_labels(run, iteration))
     return clustering, dataclasses.asdict(settings), store
 
 

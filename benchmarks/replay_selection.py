@@ -41,7 +41,7 @@ def main(argv=None) -> int:
     from sellip.fit import selection as fit_selection
     from sellip.fit.augment_pass import cluster_rows
     from sellip.fit.clusters import cluster_materials
-    from sellip.fit.lobe_store import clustering_settings, load_rows, recorded_fit_settings
+    from sellip.fit.lobe_store import clustering_settings, load_rows, previous_labels, recorded_fit_settings
     from sellip.fit.observe import open_observations
     from sellip.fit.shard import overrides_from_pairs
     from sellip.model.params import read_params
@@ -72,7 +72,8 @@ def main(argv=None) -> int:
     truth_ss = np.asarray(truth.params.rho_ss, np.float64).reshape(truth.num_vertices, -1).max(1)[nearest] > 0
     seed = int(info.get("seed", 0))
     clustering = cluster_materials(store["eta"], store["rho_d"], store["status"], store["confidence"], settings, seed,
-                                   vertices=store["vertices"])
+                                   vertices=store["vertices"],
+                                   previous_labels=previous_labels(args.run, args.iteration))
     print(f"{args.run.name}, pass {args.iteration}: K = {len(clustering.centres)}; selection {selection}")
     print("| cluster | vertices | true material (share) | model | margin (runner-up) | s | reason |")
     print("|---|---|---|---|---|---|---|")

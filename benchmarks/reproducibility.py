@@ -3,11 +3,13 @@ no information (issue #49; docs/reproducibility.md).
 
     python benchmarks/reproducibility.py RUN --truth CAPTURE/ground_truth/model.ply \
         [--iterations 0 3 10] [--replicates 10] [--kinds exact noise permute subsample seed] \
-        [--set min_coherence=0.5 ...] [--json OUT.json]
+        [--set min_coherence=0.5 ...] [--no-previous] [--json OUT.json]
 
 RUN is a workflow's results folder (``results/<name>``). Per pass (``iter/N``, every pass with a clusters.json by
 default) the run's clustering is replayed on its stored first-pass fit (``iter/N/fit.zarr``) with the run's own
-settings and seed (``clusters.json``; ``--set`` overrides AugmentSettings fields), once per replicate of each
+settings and seed (``clusters.json``; ``--set`` overrides AugmentSettings fields) and, after the first pass, the
+previous pass's clusters (``iter/N-1/clusters/labels.npy``, the hysteresis; ``--no-previous``: without), once per
+replicate of each
 perturbation (:data:`sellip.bench.reproducibility.KINDS`). It prints, per pass and perturbation, the
 distribution of K, of the merge sequence (by rule), of the regions added, and per true material the share of
 replays in which it has a cluster of its own and its eta error (min / median / max over replays, the cluster's
@@ -35,6 +37,8 @@ def main(argv=None) -> int:
     parser.add_argument("--kinds", nargs="*", default=["exact", "noise", "permute", "subsample", "seed"])
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                         help="AugmentSettings fields over the run's own")
+    parser.add_argument("--no-previous", dest="previous", action="store_false",
+                        help="replay without the previous pass's clusters (no hysteresis; the workflow gives them)")
     parser.add_argument("--json", type=Path, default=None, help="write every replay and the summaries here")
     args = parser.parse_args(argv)
     ignore_snakemake_zarr_warnings()
@@ -43,7 +47,7 @@ def main(argv=None) -> int:
     from scipy.spatial import cKDTree
 
     from sellip.bench import reproducibility as rep
-    from sellip.fit.lobe_store import clustering_settings
+    from sellip.fit.lobe_store import clustering_settings, previous_labels
     from sellip.model.params import read_params
 
     overrides, truth = clustering_overrides_and_truth(parser, args.set, args.truth)
@@ -58,13 +62,16 @@ def main(argv=None) -> int:
         info = json.loads((folder / "clusters" / "clusters.json").read_text())
         settings = clustering_settings(info, overrides)
         store = read_params(folder / "fit.zarr")
+        # The previous pass's clusters, as the workflow gives them (hysteresis); --no-previous: without.
+        previous = previous_labels(args.run, iteration) if args.previous else None
         nearest = cKDTree(np.asarray(truth.vertices)).query(np.asarray(store["vertices"]))[1]
         material = np.asarray(truth.material)[nearest]
         eta_true = np.asarray(truth.params.eta, np.float64)[nearest]
         rows, start = [], time.perf_counter()
         for kind in args.kinds:
             for replicate in range(1 if kind == "exact" else args.replicates):
-                labels, clustering, used = rep.replay(store, settings, info.get("seed", 0), kind, replicate)
+                labels, clustering, used = rep.replay(store, settings, info.get("seed", 0), kind, replicate,
+                                                      previous)
                 rows.append({"kind": kind, "replicate": replicate,
                              "decisions": rep.decisions(clustering, labels, used, store["eta"], material, eta_true),
                              "merge_reasons": [m["reason"] for m in clustering.merges],

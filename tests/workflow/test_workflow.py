@@ -144,6 +144,11 @@ def test_the_clustering_replay_reproduces_the_runs_clusters(tiny_run, capsys):
     clustering, settings, _ = replay.replay(run, 0)
     assert settings["min_coherence"] == 0.5  # the default
     np.testing.assert_array_equal(clustering.labels, np.load(run / "iter" / "0" / "clusters" / "labels.npy"))
+    # The final pass was given pass 0's clusters (the hysteresis), and its replay with them gives its labels.
+    assert "the previous pass's clusters: results/tiny/iter/0/clusters" in (
+        run / "logs" / "cluster_lobes" / "1.log").read_text()
+    final, _, _ = replay.replay(run, 1)
+    np.testing.assert_array_equal(final.labels, np.load(run / "iter" / "1" / "clusters" / "labels.npy"))
     truth = tiny_run / "captures" / "tiny" / "ground_truth" / "model.ply"
     assert replay.main([str(run), "--iteration", "0", "--truth", str(truth), "--set", "min_coherence=0"]) == 0
     out = capsys.readouterr().out

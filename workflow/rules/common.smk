@@ -415,6 +415,11 @@ def model_selection_settings():
     )
 
 
+def previous_clusters(it):
+    """cluster_lobes' `previous` input: the previous pass's clusters (none at iteration 0)."""
+    return [f"{RESULTS}/iter/{int(it) - 1}/clusters"] if int(it) > 0 else []
+
+
 def inherit_models(wildcards):
     """`--inherit-models` where cluster_lobes fits no candidate: candidates are fitted at iteration 0, every
     `model_selection.every`-th iteration and the final pass; the others inherit their vertices' models."""

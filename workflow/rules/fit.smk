@@ -70,6 +70,8 @@ rule cluster_lobes:
         params=f"{RESULTS}/iter/{{it}}/fit.zarr",
         observations=f"{RESULTS}/iter/{{it}}/observations.zarr",
         passes=lambda wildcards: pass_through_inputs(wildcards.it, [f"{RESULTS}/iter/{int(wildcards.it) - 1}/clusters"]),
+        # The previous pass's clusters: a material found there is kept on less evidence (hysteresis).
+        previous=lambda wildcards: previous_clusters(wildcards.it),
     output:
         report(
             directory(f"{RESULTS}/iter/{{it}}/clusters"),
@@ -94,6 +96,9 @@ rule cluster_lobes:
         settings=cluster_settings,
         selection=model_selection_settings(),
         inherit=inherit_models,
+        previous=lambda wildcards, input: (
+            f"--previous-clusters {shlex.quote(input.previous[0])}" if input.previous else ""
+        ),
         job_settings=fit_job_settings(),
         # Once the loop has converged (sellip.fit.convergence): the previous iteration's clusters, linked.
         pass_through=lambda wildcards, output: pass_through(
@@ -105,5 +110,6 @@ rule cluster_lobes:
             " --seed {params.seed} --augment-settings {params.augment_settings}"
             " --stability-resamples {params.resamples}"
             " --settings {params.settings} --model-selection {params.selection} {params.inherit}"
+            " {params.previous}"
             " --job-settings {params.job_settings} > {log:q} 2>&1"
         )

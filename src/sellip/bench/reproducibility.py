@@ -17,7 +17,7 @@ Public API::
 
     KINDS, NOISE_RELATIVE, SUBSAMPLE_KEEP
     perturbed_inputs(arrays, kind, replicate, seed) -> (arrays, order, seed)
-    replay(arrays, settings, seed, kind, replicate) -> (labels (N,), Clustering, used (N,))  # store's order
+    replay(arrays, settings, seed, kind, replicate, previous_labels=None) -> (labels (N,), Clustering, used (N,))
     merge_rule(reason) -> str                                 # "size", "coherence", "eta_cut" or "other"
     decisions(clustering, labels, eta, material, eta_true) -> dict   # one replay against the truth
     summarise(rows) -> dict                                   # the distribution of each decision over replays
@@ -60,16 +60,18 @@ def perturbed_inputs(arrays: dict, kind: str, replicate: int, seed: int) -> tupl
     return out, order, seed
 
 
-def replay(arrays: dict, settings, seed: int, kind: str = "exact", replicate: int = 0):
+def replay(arrays: dict, settings, seed: int, kind: str = "exact", replicate: int = 0, previous_labels=None):
     """The clustering of ``arrays`` (a fit store: :func:`perturbed_inputs`) with ``settings``
-    (:class:`sellip.fit.clusters.AugmentSettings`) and ``seed`` under ``kind``. Returns (labels (N,) int in the
+    (:class:`sellip.fit.clusters.AugmentSettings`), ``seed`` and the previous pass's ``previous_labels`` (N,) (None:
+    none) under ``kind``. Returns (labels (N,) int in the
     store's vertex order, the :class:`sellip.fit.clusters.Clustering` of the perturbed inputs, used (N,) bool in the
     store's order)."""
     from sellip.fit.clusters import cluster_materials
 
     inputs, order, run_seed = perturbed_inputs(arrays, kind, replicate, seed)
+    previous = None if previous_labels is None else np.asarray(previous_labels)[order]
     clustering = cluster_materials(inputs["eta"], inputs["rho_d"], inputs["status"], inputs["confidence"], settings,
-                                   run_seed, vertices=inputs["vertices"])
+                                   run_seed, vertices=inputs["vertices"], previous_labels=previous)
     labels = np.empty(len(order), np.int64)
     labels[order] = clustering.labels
     used = np.empty(len(order), bool)

@@ -10,13 +10,17 @@ Modules and what they export (each name is importable from here too)::
       each cluster's model chosen on held-out vertices, each cluster's lobe fitted, written to the cluster-lobes
       directory (:func:`cluster_and_fit_lobes`)
         cluster_rows, cluster_and_fit_lobes
+    cluster_support: How often the material clustering comes out again (docs/reproducibility.md, "Saying when it is
+      fragile"): the clustering repeated on seeded subsamples of the clustered vertices, each cluster matched to the
+      repeats' clusters, and the materials the repeats split off
+        SUPPORT_KEEP, RECOVERED_JACCARD, cluster_support, split_from, clustering_support
     clusters: Material clusters (paper §4.3, docs/design.md §7; docs/augment.md): K-means on the feature (eta, rho_d
       RGB) of the confidently fitted vertices, K chosen by BIC; small clusters merged; spatially incoherent clusters (a
       cut through one material's noise) merged; regions of another albedo inside a cluster added; a material cut along
       its eta merged
         ETA_SCALE, VARIANCE_FLOOR, AugmentSettings, Clustering, cluster_features, spatial_coherence, nearest_vertices,
         vertex_coherence, robust_mahalanobis, albedo_separation, one_mode, same_eta_by_albedo, find_eta_cut,
-        cluster_materials, squared_distances, cluster_support, clustering_support
+        cluster_materials, squared_distances
     convergence: Convergence of the outer loop (docs/speed.md "Convergence"): the geometry update's verdict, and the
       jobs of later iterations that pass their inputs through (the DAG kept static)
         PASSED_THROUGH, ConvergenceSettings, judge, converged_at, pass_through, loop_convergence
@@ -34,7 +38,8 @@ Modules and what they export (each name is importable from here too)::
         code_version, enable, kernel
     lobe_store: The cluster-lobes output directory (``labels.npy``, ``models.npy``, ``lobes.csv``, ``lobes.png``,
       ``clusters.json``): its schema, readers, the settings it records, and the lobe plot (paper Fig. 7b)
-        LOBE_COLUMNS, read_lobes, read_models, recorded_fit_settings, clustering_settings, load_rows
+        LOBE_COLUMNS, read_lobes, read_labels, previous_labels, read_models, recorded_fit_settings, clustering_settings,
+        load_rows
     lobes: Per-cluster specular lobes and virtual samples (paper §4.3 "Specular and single scattering loss", Eqs.
       24-25): a cluster's eta, sigma_s, sigma_ss, rho_s, rho_ss fitted to the pooled observations of its vertices with a
       per-sample half-angle error Delta theta_h and the regularizer lambda_theta Delta theta_h^2; per vertex, M virtual
@@ -90,8 +95,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "augment_pass": ("cluster_rows", "cluster_and_fit_lobes"),
     "clusters": ("ETA_SCALE", "VARIANCE_FLOOR", "AugmentSettings", "Clustering", "cluster_features",
            "spatial_coherence", "nearest_vertices", "vertex_coherence", "robust_mahalanobis", "albedo_separation",
-           "one_mode", "same_eta_by_albedo", "find_eta_cut", "cluster_materials", "squared_distances",
-           "cluster_support", "clustering_support"),
+           "one_mode", "same_eta_by_albedo", "find_eta_cut", "cluster_materials", "squared_distances"),
+    "cluster_support": ("SUPPORT_KEEP", "RECOVERED_JACCARD", "cluster_support", "split_from", "clustering_support"),
     "convergence": ("PASSED_THROUGH", "ConvergenceSettings", "judge", "converged_at", "pass_through",
            "loop_convergence"),
     "evidence": ("MIN_FITTED_SHARE", "EvidenceError", "fitted_share", "check_evidence"),
@@ -99,8 +104,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "geometry_jobs": ("GeometryUpdateSettings", "raw_camera", "predicted_diffuse", "measure_silhouettes",
                       "iteration_model", "refine_geometry", "refine_poses"),
     "kernels": ("code_version", "enable", "kernel"),
-    "lobe_store": ("LOBE_COLUMNS", "read_lobes", "read_models", "recorded_fit_settings", "clustering_settings",
-           "load_rows"),
+    "lobe_store": ("LOBE_COLUMNS", "read_lobes", "read_labels", "previous_labels", "read_models",
+           "recorded_fit_settings", "clustering_settings", "load_rows"),
     "lobes": ("ClusterLobe", "fit_cluster_lobe", "virtual_samples", "cluster_medians", "material_or_own"),
     "observe": ("MISSING_POSES", "ObserveError", "ObserveSettings", "ObserveMesh", "read_mesh", "bilinear_sample",
            "silhouette_distance", "relative_slope", "Observer", "ObservationWriter", "open_observations",

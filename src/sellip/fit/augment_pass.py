@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sellip.fit.lobe_store import LOBE_COLUMNS, load_rows, lobes_schema, plot_lobes
+from sellip.fit.lobe_store import LOBE_COLUMNS, load_rows, lobes_schema, plot_lobes, read_labels
 from sellip.jobs import atomic_directory
 
 log = logging.getLogger(__name__)
@@ -114,10 +114,12 @@ def _write_directory(output: Path, labels, vertex_models, table, lobes, colors, 
 
 def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: int = 0, settings=None,
               fit_settings=None, compilation_cache: str | None = None, selection=None,
-              inherit_models: bool = False) -> dict:
+              inherit_models: bool = False, previous_clusters: Path | None = None) -> dict:
     """Cluster the vertices of ``params``, choose each cluster's model (``selection``:
     :class:`sellip.fit.selection.SelectionSettings`, default on), fit the cluster lobes on ``observations``,
-    write ``output``.
+    write ``output``. ``previous_clusters``: the previous pass's cluster-lobes directory, whose ``labels.npy`` keeps
+    a material found there on less evidence (:func:`sellip.fit.clusters.cluster_materials` ``previous_labels``;
+    ignored, said so, when it labels other vertices).
 
     Long: the per-cluster loop gathers the lobes table, the plot's colours and the choices that clusters.json
     records side by side; the model choice and the writing are :func:`_choose_model` and :func:`_write_directory`."""
@@ -132,7 +134,8 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
     enable_compilation_cache(compilation_cache)
     import pandas as pd
 
-    from sellip.fit.clusters import AugmentSettings, cluster_materials, clustering_support
+    from sellip.fit.cluster_support import clustering_support
+    from sellip.fit.clusters import AugmentSettings, cluster_materials
     from sellip.fit.lobes import fit_cluster_lobe
     from sellip.fit.observe import ObserveError, open_observations
     from sellip.fit.records import FitSettings
@@ -155,8 +158,15 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
         raise ObserveError(observations, f"holds {total} vertices that are not the {n} vertices of {params} "
                                          "(cluster-lobes needs the params and observations of the same mesh)")
     mark("cluster")
+    previous = None if previous_clusters is None else read_labels(previous_clusters, n)
+    if previous is not None:
+        log.info("the previous pass's clusters: %s (a material found there is kept on %g less coherence)",
+                 previous_clusters, settings.keep_coherence_margin)
+    elif previous_clusters is not None:
+        log.warning("%s labels other vertices than the %d of %s: no hysteresis this pass", previous_clusters, n,
+                    params)
     clustering = cluster_materials(store["eta"], store["rho_d"], store["status"], store["confidence"], settings, seed,
-                                   vertices=store["vertices"])
+                                   vertices=store["vertices"], previous_labels=previous)
     k = len(clustering.centres)
     log.info("K = %d clusters (BIC over K: %s), %d merges, %d regions", k,
              {key: round(value, 1) for key, value in clustering.bic.items()}, len(clustering.merges),
@@ -165,7 +175,7 @@ def cluster_and_fit_lobes(params: Path, observations: Path, output: Path, seed: 
     if settings.stability_resamples > 0:
         mark("support")
         support = clustering_support(store["eta"], store["rho_d"], store["status"], store["confidence"], clustering,
-                                     settings, seed, vertices=store["vertices"])
+                                     settings, seed, vertices=store["vertices"], previous_labels=previous)
         log.info("support of each cluster over %d resamples: %s (K over them: %s)", support["resamples"],
                  [row["support"] for row in support["clusters"]], support["k"])
     allowed = allowed_models(fit_settings, selection.candidates)

@@ -11,7 +11,6 @@ statistics (flat colours, no confident vertex) degrade to fewer clusters and a n
 from __future__ import annotations
 
 import logging
-from collections import Counter
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -40,8 +39,7 @@ CUT_ETA_SE = 3.0  # ... or, within CUT_MODES_ALBEDO_SD, two albedo modes whose e
                   # SE apart
 CUT_MODES_ALBEDO_SD = 5.0  # the albedo modes of one textured material: 2.4-4.1 sd apart; two real materials 5.45
                            # and more
-SUPPORT_KEEP = 0.9  # share of the clustered vertices each repeat of clustering_support keeps (seeded)
-RECOVERED_JACCARD = 0.5  # a cluster is found again by a repeat's cluster that shares at least this Jaccard with it
+KEPT_SHARE = 0.5  # a region was found before when at least this share of its core had one earlier material's label
 
 
 @dataclass(frozen=True)
@@ -62,6 +60,14 @@ class AugmentSettings:
                                    "another albedo at least this coherent, and merge two clusters that are one "
                                    "material cut along its eta; 0 turns all three off (docs/augment.md)",
                                    unit="share of neighbours", minimum=0, maximum=1)
+    # Hysteresis across passes (docs/reproducibility.md): a material found at one pass is not dropped at the next on
+    # weaker evidence than found it. A region whose core was mostly one material of the previous pass, other than
+    # its host cluster's, passes the coherence test at min_coherence less this (the demo's eyes: 0.56-0.66 when
+    # found, 0.48 at the final pass of one noise seed, where they were lost and their eta went 8.5 % off).
+    keep_coherence_margin: float = setting(0.1, "hysteresis: a region of another albedo that was a material of its own "
+                                           "at the previous pass is split off at min_coherence less this (0: no "
+                                           "hysteresis; docs/reproducibility.md)", unit="share of neighbours",
+                                           minimum=0, maximum=1)
     coherence_neighbours: int = 6  # the nearest vertices (3-D) that stand for a vertex's 1-ring
     min_confidence: float = 0.1  # vertices clustered and pooled: status fitted and confidence >= this
     cluster_points: int = 20000  # at most this many vertices (seeded subsample) choose K and the centres
@@ -92,8 +98,8 @@ class AugmentSettings:
                                         "of its vertices do); 0: every vertex (docs/augment.md, \"Coherent pools\")",
                                         unit="share of neighbours", minimum=0, maximum=1)
     # Support (docs/reproducibility.md): the clustering is repeated this many times, each on a seeded
-    # SUPPORT_KEEP share of the clustered vertices with another seed, and each cluster's support is the share of
-    # those repeats that find it again (:func:`clustering_support`; clusters.json ``support``, materials.csv
+    # sellip.fit.cluster_support.SUPPORT_KEEP share of the clustered vertices with another seed, and each cluster's
+    # support is the share of those repeats that find it again whole (clusters.json ``support``, materials.csv
     # ``cluster_support``). 0: not measured. It changes no decision; it says which one the data do not settle.
     stability_resamples: int = 0
 
@@ -248,7 +254,8 @@ def _coherence(labels, near) -> np.ndarray:
         return sums / members
 
 
-def _region_centres(features, used, centres, near, settings: AugmentSettings, rng) -> tuple[np.ndarray, list, list]:
+def _region_centres(features, used, centres, near, settings: AugmentSettings, rng,
+                    previous: np.ndarray | None = None) -> tuple[np.ndarray, list, list]:
     """Centres (K + R, d) with a centre added for each small material that k-means left inside a cluster, one
     record per added centre, and the notes of clusters whose albedos had no spread (:func:`robust_mahalanobis`).
 
@@ -264,6 +271,11 @@ def _region_centres(features, used, centres, near, settings: AugmentSettings, rn
     mean feature (eta too). Only the group's core counts: its members with at least ``REGION_CORE_NEIGHBOURS`` of
     their nearest vertices in the group (scattered tail vertices that DBSCAN chained to it are not the region), and
     it must be at least ``REGION_CORE_SHARE`` of the clustered vertices its centre takes.
+
+    ``previous`` (N,) int: the previous pass's label of every vertex (None: the first pass). A group whose core is
+    mostly (:data:`KEPT_SHARE`) one previous material other than the one most of its host cluster's vertices had
+    was found before: it passes the coherence test at ``min_coherence - keep_coherence_margin`` (its record says
+    ``found_before``), so that a material is not lost on less evidence than found it.
     """
     from scipy.stats import chi2
     from sklearn.cluster import DBSCAN
@@ -283,6 +295,7 @@ def _region_centres(features, used, centres, near, settings: AugmentSettings, rn
         outliers = members[distances > threshold]
         if outliers.size < REGION_MIN_SAMPLES:
             continue
+        host_before = _mode(previous[members]) if previous is not None else None
         groups = DBSCAN(eps=REGION_EPS, min_samples=REGION_MIN_SAMPLES).fit_predict(features[outliers, :3])
         for group in range(groups.max() + 1):
             region = np.zeros(len(features), bool)
@@ -301,7 +314,7 @@ def _region_centres(features, used, centres, near, settings: AugmentSettings, rn
             known = used[around]  # a neighbour without a clustered fit says nothing either way
             coherence = float(region[around][known].mean()) if known.any() else 0.0
             record = {"inside": cluster, "vertices": int(region.sum()), "coherence": round(coherence, 3)}
-            if coherence < settings.min_coherence:
+            if coherence < _needed_coherence(region, previous, host_before, settings, record):
                 log.debug("albedo outliers of cluster %d not a region: %s", cluster, record)
                 continue
             trial = np.vstack([centres, features[region].mean(0)])
@@ -320,6 +333,24 @@ def _region_centres(features, used, centres, near, settings: AugmentSettings, rn
             centres = trial
             regions.append(record)
     return centres, regions, notes
+
+
+def _needed_coherence(region, previous, host_before, settings: AugmentSettings, record: dict) -> float:
+    """The coherence the group ``region`` (N,) bool needs: ``min_coherence``, or ``keep_coherence_margin`` less where
+    most (:data:`KEPT_SHARE`) of it was one material of the ``previous`` pass other than its host cluster's
+    (``host_before``); ``record["found_before"]`` then names it."""
+    if previous is None:
+        return settings.min_coherence
+    before = _mode(previous[region])
+    if before == host_before or np.mean(previous[region] == before) < KEPT_SHARE:
+        return settings.min_coherence
+    record["found_before"] = before
+    return max(0.0, settings.min_coherence - settings.keep_coherence_margin)
+
+
+def _mode(values: np.ndarray) -> int:
+    """The most common of the non-negative ints ``values`` (the smallest on a tie)."""
+    return int(np.argmax(np.bincount(np.asarray(values, np.int64))))
 
 
 def region_size_floor(min_cluster_vertices: int) -> float:
@@ -470,7 +501,7 @@ def _merge_while(centres: np.ndarray, is_region: np.ndarray, find, merges: list)
 
 
 def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings = AugmentSettings(),
-                      seed: int = 0, vertices=None) -> Clustering:
+                      seed: int = 0, vertices=None, previous_labels=None) -> Clustering:
     """Material clusters of N vertices from their fitted eta (N,), rho_d (N, 3), status (N,) and confidence (N,).
 
     The vertices with status fitted and confidence >= ``min_confidence`` (a seeded subsample of at
@@ -484,11 +515,18 @@ def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings 
     becomes a cluster of its own (:func:`_region_centres`), which that test then leaves (it passed it as a group).
     Last, two clusters that are one material cut along its eta (:func:`find_eta_cut`) are merged, closest first. Every
     vertex, also unfitted ones, is labelled with its nearest centre; labels are ordered by cluster size (0 the
-    largest).
+    largest). ``previous_labels`` (N,) int: the previous pass's clusters of the same vertices (None: none): a region
+    that was a material there is kept on less coherence (hysteresis, ``keep_coherence_margin``).
     Long: the merge rules' finders are closures over the features and the pool; the driver is :func:`_merge_while`.
     """
     rng = np.random.default_rng(seed)
     features = cluster_features(eta, rho_d)
+    previous = None
+    if previous_labels is not None:
+        previous = np.asarray(previous_labels, np.int64)
+        if previous.shape != (len(features),) or (previous < 0).any():
+            raise ValueError(f"previous_labels must be {len(features)} cluster labels >= 0 (one per vertex), got "
+                             f"shape {previous.shape}")
     used = (np.asarray(status) == records.STATUS_FITTED) & (np.asarray(confidence) >= settings.min_confidence)
     # no eta to cluster on: dark_noisy's vertices at 1.05 were a cluster of their own
     used &= ~parameterization.eta_at_bound(eta)
@@ -548,7 +586,7 @@ def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings 
     near = nearest_vertices(vertices, settings.coherence_neighbours) if coherent else None
     regions, notes = [], []
     if near is not None:
-        centres, regions, notes = _region_centres(features, used, centres, near, settings, rng)
+        centres, regions, notes = _region_centres(features, used, centres, near, settings, rng, previous)
         # A region passed the coherence test as a group. As a cluster its centre also takes vertices of a similar
         # albedo elsewhere and its coherence can fall (the demo's eyes with 24 views: the group 0.65, its cluster
         # 0.43): the coherence test skips regions.
@@ -563,7 +601,7 @@ def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings 
             # the rules after it draw what they drew before). The demo's eyes: 54 vertices at coherence 0.44,
             # merged at 2 of 7 passes on another CPU (issue #49; docs/reproducibility.md).
             centres, again, more_notes = _region_centres(features, used, centres, near, settings,
-                                                         np.random.default_rng([seed, 1]))
+                                                         np.random.default_rng([seed, 1]), previous)
             regions += [{**record, "after_merges": True} for record in again]
             notes += [note for note in more_notes if note not in notes]
         centres, _ = _merge_while(centres, np.zeros(len(centres), bool), eta_cut, merges)
@@ -573,68 +611,3 @@ def cluster_materials(eta, rho_d, status, confidence, settings: AugmentSettings 
     labels = np.argmin(squared_distances(features, centres), 1).astype(np.int32)
     return Clustering(labels=labels, centres=centres, bic=values, merges=merges, used=used, regions=tuple(regions),
                       notes=tuple(notes))
-
-
-
-
-# --- support: how often the data give the same clusters -------------------------------------------
-
-def cluster_support(reference, labels, used) -> tuple[np.ndarray, np.ndarray]:
-    """Whether each cluster of ``reference`` (N,) int labels came out again in ``labels`` (N,) (another clustering
-    of the same vertices), over the vertices ``used`` (N,) bool: (recovered (K,) bool, into (K,) int).
-
-    A reference cluster is recovered when some cluster of ``labels`` shares at least :data:`RECOVERED_JACCARD` of
-    their union with it (on ``used``). When not, ``into`` is the other reference cluster that the cluster of
-    ``labels`` holding most of its vertices shares most vertices with (it was merged into that one); -1 where that
-    cluster holds no other reference cluster's vertices (it was cut up, or is new), and where recovered."""
-    reference, labels, used = np.asarray(reference, np.int64), np.asarray(labels, np.int64), np.asarray(used, bool)
-    k = int(reference.max()) + 1 if reference.size else 0
-    ref, rep = reference[used], labels[used]
-    overlap = np.zeros((k, int(rep.max()) + 1 if rep.size else 1), np.int64)
-    np.add.at(overlap, (ref, rep), 1)
-    size_ref, size_rep = overlap.sum(1), overlap.sum(0)
-    recovered, into = np.zeros(k, bool), np.full(k, -1, np.int64)
-    for c in np.flatnonzero(size_ref):
-        r = int(np.argmax(overlap[c]))
-        if overlap[c, r] >= RECOVERED_JACCARD * (size_ref[c] + size_rep[r] - overlap[c, r]):
-            recovered[c] = True
-            continue
-        others = overlap[:, r].copy()
-        others[c] = 0
-        if others.max() > 0:
-            into[c] = int(np.argmax(others))
-    return recovered, into
-
-
-def clustering_support(eta, rho_d, status, confidence, clustering: Clustering, settings: AugmentSettings,
-                       seed: int = 0, vertices=None, resamples: int | None = None) -> dict:
-    """How often ``clustering`` (:func:`cluster_materials` of these inputs) comes out again: ``resamples`` (default
-    ``settings.stability_resamples``) repeats, repeat r on a seeded :data:`SUPPORT_KEEP` share of the clustered
-    vertices (the others' confidence set to 0: still labelled and still neighbours) with seed ``seed + 1 + r``;
-    each cluster is matched by :func:`cluster_support` on the vertices both clusterings used.
-
-    Returns {resamples, keep, k: {K: count}, clusters: [{cluster, support, alternative, alternative_share}]}: per
-    cluster the share of repeats that recovered it, the cluster it was merged into most often otherwise (-1: none
-    or never lost) and the share of repeats where that happened. A decision the data settle has support 1; the demo's
-    eyes before the second region search (docs/reproducibility.md): lost to the plumage in some repeats."""
-    resamples = settings.stability_resamples if resamples is None else int(resamples)
-    k = len(clustering.centres)
-    counts, recovered, into = Counter(), np.zeros(k), [Counter() for _ in range(k)]
-    confidence = np.asarray(confidence, np.float64)
-    for r in range(resamples):
-        rng = np.random.default_rng([seed, 49, r])
-        kept = np.where(rng.random(len(confidence)) < SUPPORT_KEEP, confidence, 0.0)
-        again = cluster_materials(eta, rho_d, status, kept, settings, seed + 1 + r, vertices)
-        counts[len(again.centres)] += 1
-        found, merged = cluster_support(clustering.labels, again.labels, clustering.used & again.used)
-        recovered += found
-        for c in np.flatnonzero(~found):
-            into[c][int(merged[c])] += 1
-    rows = []
-    for c in range(k):
-        alternative, times = into[c].most_common(1)[0] if into[c] else (-1, 0)
-        rows.append({"cluster": c, "support": float(recovered[c] / resamples) if resamples else None,
-                     "alternative": int(alternative), "alternative_share": float(times / resamples) if resamples
-                     else 0.0})
-    return {"resamples": resamples, "keep": SUPPORT_KEEP, "k": {str(key): v for key, v in sorted(counts.items())},
-            "clusters": rows}

@@ -174,7 +174,7 @@ def _selection_margins(clusters: Path, cluster: np.ndarray, k: int) -> tuple[np.
 
 def vertex_cluster_support(clusters: Path, cluster: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Per vertex, its cluster's support and the cluster it became otherwise (NaN, -1: not measured) from
-    ``clusters/clusters.json``'s ``support`` (:func:`sellip.fit.clusters.clustering_support`)."""
+    ``clusters/clusters.json``'s ``support`` (:func:`sellip.fit.cluster_support.clustering_support`)."""
     import json
 
     path = clusters / "clusters.json"

@@ -74,6 +74,21 @@ def read_lobes(directory: Path):
 
 
 
+def read_labels(directory: Path, count: int | None = None) -> np.ndarray | None:
+    """``labels.npy`` of a cluster-lobes directory: (N,) int64, the cluster of every vertex; None where ``count`` is
+    given and it labels another number of vertices (another mesh: a caller then goes without)."""
+    labels = np.load(Path(directory) / "labels.npy").astype(np.int64)
+    return None if count is not None and labels.shape != (count,) else labels
+
+
+def previous_labels(run: Path, iteration: int) -> np.ndarray | None:
+    """The clusters of pass ``iteration - 1`` of the results folder ``run`` (``iter/N-1/clusters/labels.npy``), as the
+    workflow gives cluster_lobes (the hysteresis of :func:`sellip.fit.clusters.cluster_materials`); None at pass 0
+    or where that directory is missing."""
+    directory = Path(run) / "iter" / str(int(iteration) - 1) / "clusters"
+    return read_labels(directory) if iteration > 0 and (directory / "labels.npy").is_file() else None
+
+
 def read_models(directory: Path, count: int | None = None) -> np.ndarray:
     """The model of every vertex (N,) uint8 (``models.npy``) of a ``cluster-lobes`` output directory.
     ValueError naming the file when it is missing, not (N,) codes of :data:`sellip.model.params.MODEL_NAMES`,

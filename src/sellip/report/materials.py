@@ -40,8 +40,9 @@ confidence > 0, whose own eta is not pinned at a bound of the fit, :func:`sellip
   pass scored no candidates (or the store predates them). Below 0.5 the vertices' ``confidence`` is lowered
   (:func:`sellip.fit.selection.margin_confidence`): a fragile lobe choice says so in both places.
 - ``cluster_support``, ``cluster_alternative``: the share of repeats of the final pass's clustering on resampled
-  vertices (:func:`sellip.fit.clusters.clustering_support`, config ``augment.stability_resamples``) that found this
-  material again, and the material it was merged into most often in the others (-1: none, or never lost); NaN and
+  vertices (:func:`sellip.fit.cluster_support.clustering_support`, config ``augment.stability_resamples``) that
+  found this material again whole (nothing split off it), and the material it was merged into most often in the
+  others (-1: none, never lost, or a material split off it); NaN and
   -1 where not measured. Below 1 the data do not settle whether this material is one of its own: a fragile
   material says so here, with its alternative.
 - ``area_share``: the cluster's share of the surface, each vertex carrying a third of its triangles' area.

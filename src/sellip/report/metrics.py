@@ -277,7 +277,7 @@ def _timings(benchmarks, timings_plot, reasons: dict) -> dict | None:
 def material_support(params_path, reasons: dict | None = None) -> dict | None:
     """Per material cluster of the final store ``params_path``: how often repeats of the final clustering on
     resampled vertices found it again (``support``) and what it became in the others (``alternative``: the cluster
-    it was merged into most often, -1 none; :func:`sellip.fit.clusters.clustering_support`), and ``fragile``: the
+    it was merged into most often, -1 none; :func:`sellip.fit.cluster_support.clustering_support`), and ``fragile``: the
     clusters with support below 1. None without a store or where the support was not measured (said in ``reasons``)."""
     from sellip.model.params import read_params
 

@@ -6,6 +6,7 @@
                          [--augment-settings '{"k_max": 8, "min_coherence": 0.5}'] [--stability-resamples 10]
                          [--settings '{"lambda_psi": 100}'] [--model-selection '{"folds": 4}']
                          [--job-settings '{"compilation_cache": DIR}'] [--inherit-models]
+                         [--previous-clusters results/NAME/iter/N-1/clusters]
 
 Writes the directory ``--output`` (built under a temporary name, then renamed) with
 
@@ -15,7 +16,7 @@ Writes the directory ``--output`` (built under a temporary name, then renamed) w
   sigma_ss, rho_s, rho_ss_r, rho_ss_g, rho_ss_b, samples, loss, model;
 - ``lobes.png``: each cluster's lobe against its samples as a function of theta_h (paper Fig. 7b);
 - ``clusters.json``: K, the BIC per K, the merges, the regions added (:func:`sellip.fit.clusters.cluster_materials`),
-  ``support`` (with ``--stability-resamples``; :func:`sellip.fit.clusters.clustering_support`): per cluster the
+  ``support`` (with ``--stability-resamples``; :func:`sellip.fit.cluster_support.clustering_support`): per cluster the
   share of repeats on resampled vertices that found it again, and what it became otherwise;
   ``degenerate``: what could not be computed on these data and what was done instead (a cluster without a
   confident vertex or a usable sample, albedos without spread; the run goes on, lower in confidence),
@@ -28,6 +29,9 @@ Model selection (docs/design.md §7, :mod:`sellip.fit.selection`; ``--model-sele
 the simplest model whose held-out loss is within the tolerance of the best; the cluster's lobe is
 then fitted with that model. Without it every cluster gets the model of the fit settings (3, or 2
 with the settings' ``sigma_ss_fixed``). The fit settings (``--settings``) are also the most complex model allowed.
+With ``--previous-clusters`` (every pass after the first, in the workflow) a region of another albedo that was a
+material of its own at the previous pass is split off on ``keep_coherence_margin`` less coherence: hysteresis, so
+that a material found is not lost on weaker evidence than found it (docs/reproducibility.md).
 With ``--inherit-models`` (iterations between selections, config ``model_selection.every``) no candidate
 is fitted: each cluster takes the model most of its vertices have in ``--params`` (their ``model``, from
 the previous iteration), capped by what the settings allow; a store without models selects as usual.
@@ -72,6 +76,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     add_renamed_argument(parser, "--fixed-sigma-ss", "--model-selection '{\"model2_sigma_ss\": ...}'")
     parser.add_argument("--inherit-models", action="store_true",
                         help="no candidate fits: each cluster takes its vertices' most common model in --params")
+    parser.add_argument("--previous-clusters", type=Path, default=None,
+                        help="the previous pass's clusters directory: a material found there is kept on less "
+                             "coherence (augment keep_coherence_margin; docs/reproducibility.md)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -81,7 +88,8 @@ def main(args: argparse.Namespace) -> int:
     try:
         settings = dataclasses.replace(args.augment_settings, stability_resamples=args.stability_resamples)
         cluster_and_fit_lobes(args.params, args.observations, args.output, args.seed, settings, args.settings,
-                              args.job_settings.compilation_cache, args.model_selection, args.inherit_models)
+                              args.job_settings.compilation_cache, args.model_selection, args.inherit_models,
+                              args.previous_clusters)
     except (ObserveError, ParamsError, ValueError) as error:
         log.error("%s", error)
         return 1

@@ -15,8 +15,8 @@ unchanged: an independent renderer for the validation set (docs/synthetic.md). `
 with a described device (device.yaml, or ``sellip synth-calibration``'s truth.yaml): its sensor, lens, colour
 matrix and flash, as the calibration set of that device was (docs/calibration.md, "The synthetic example").
 The defaults of ``--scene``, ``--renderer``, ``--views``, ``--width``, ``--height``, ``--seed``, ``--noise-scale`` and
-``--noise-seed`` are the declarations of :class:`sellip.capture.synthetic.DemoSettings` (config ``demo``; rule ``synth_capture``
-passes the keys the config sets).
+``--noise-seed`` are the declarations of :class:`sellip.capture.synthetic.DemoSettings` (config ``demo``; rule
+``synth_capture`` passes the keys the config sets).
 """
 
 from __future__ import annotations
