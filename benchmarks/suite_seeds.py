@@ -25,7 +25,7 @@ def main(argv=None) -> int:
     import argparse
 
     from sellip.bench import stability
-    from sellip.bench.noise_seeds import decision_agreement, seed_row
+    from sellip.bench.noise_seeds import decision_agreement, with_figures
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, required=True, help="work folder (one suite folder per seed)")
@@ -50,9 +50,7 @@ def main(argv=None) -> int:
             row = {"noise_seed": seed, "wall_s": recorded.get("wall_s")}
             if recorded.get("error"):
                 row["error"] = recorded["error"]
-            else:
-                row.update(seed_row(workdir / "results" / case.name))
-            rows.append(row)
+            rows.append(with_figures(row, workdir / "results" / case.name))
         report[case.name] = {"rows": rows, "agreement": decision_agreement(rows)}
         print(f"{case.name}: {json.dumps(report[case.name]['agreement'], indent=1)}", flush=True)
     if args.json:

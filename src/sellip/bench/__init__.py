@@ -27,8 +27,8 @@ Modules and what they export (each name is importable from here too)::
     noise_seeds: Whole runs over sensor-noise seeds and core counts (issue #49): the demo over seeds x 1 and 2 cores
       against its targets (``benchmarks/demo_seeds.py``), the suite's scenes' decisions over seeds
       (``benchmarks/suite_seeds.py``; docs/reproducibility.md)
-        TARGETS, demo_overrides, seed_run_config, seed_captures, run_name, run_seed, seed_row, seed_summary,
-        decision_agreement
+        TARGETS, demo_overrides, seed_run_config, seed_captures, run_name, run_seed, seed_row, with_figures,
+        seed_summary, decision_agreement
     renderers: Both renderers side by side (issue #36): the figures of runs on captures of the same scenes rendered by
       sellip and by Mitsuba 3 (stability-suite cases, :mod:`sellip.bench.stability`), with the share of vertices that
       got a single-scattering lobe their ground truth does not have
@@ -88,7 +88,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "coverage", "CORRELATION_EDGES", "residual_correlation"),
     "ladder": ("render_hdr", "fit_true_mesh", "figures", "resampled_truth", "psnr_ceiling"),
     "noise_seeds": ("TARGETS", "demo_overrides", "seed_run_config", "seed_captures", "run_name", "run_seed",
-           "seed_row", "seed_summary", "decision_agreement"),
+           "seed_row", "with_figures", "seed_summary", "decision_agreement"),
     "renderers": ("single_scattering_shares", "false_single_scattering", "renderer_markdown"),
     "replay": ("replay_parser", "ignore_snakemake_zarr_warnings", "clustering_overrides_and_truth"),
     "reproducibility": ("KINDS", "perturbed_inputs", "replay", "decisions", "summarise", "merge_rule"),

@@ -14,6 +14,7 @@ Public API::
     seed_captures(out, noise_seeds, workers=2) -> {seed: capture folder}
     run_seed(out, capture, noise_seed, cores, snakefile, cpu=None, ...) -> dict   # one run's row (resumable)
     seed_row(results) -> dict                     # the figures and decisions of a finished run
+    with_figures(row, results) -> dict            # a recorded row (seed, wall time, error) with seed_row's figures
     seed_summary(rows) -> dict                    # each target over the runs, and what missed it
     decision_agreement(rows) -> dict              # one scene's decisions over noise seeds (the suite's scenes)
 
@@ -93,7 +94,7 @@ def run_seed(out: str | Path, capture: str | Path, noise_seed: int, cores: int, 
     workdir = Path(out) / name
     row_path = workdir / "row.json"
     if row_path.is_file():
-        return _with_figures(json.loads(row_path.read_text()), workdir / "results" / name)
+        return with_figures(json.loads(row_path.read_text()), workdir / "results" / name)
     if workdir.exists():
         shutil.rmtree(workdir)
     workdir.mkdir(parents=True)
@@ -115,10 +116,10 @@ def run_seed(out: str | Path, capture: str | Path, noise_seed: int, cores: int, 
     if error is not None:
         row["error"] = error
     row_path.write_text(json.dumps(row, indent=1, allow_nan=False))
-    return _with_figures(row, workdir / "results" / name)
+    return with_figures(row, workdir / "results" / name)
 
 
-def _with_figures(row: dict, results: Path) -> dict:
+def with_figures(row: dict, results: Path) -> dict:
     """``row`` (what the run recorded: seed, cores, wall time, error) with the figures read from its results now."""
     return row if "error" in row else {**row, **seed_row(results)}
 
