@@ -357,6 +357,23 @@ def test_failure_reason_names_the_rule_and_its_log_line(tmp_path):
     assert reason.startswith("Error in rule merge_hdr: ") and reason.endswith("no view has a frame left to merge")
 
 
+
+def test_run_failure_turns_a_failed_or_slow_command_into_its_reason(tmp_path):
+    import sys
+
+    log_path = tmp_path / "snakemake.log"
+    fails = [sys.executable, "-c", "import sys; print('Error in rule fit_pbrdf:'); sys.exit(1)"]
+    reason = stability.run_failure(lambda: stability.run_snakemake(fails, tmp_path, log_path, 60.0), 60.0)
+    assert reason is not None and "fit_pbrdf" in reason
+    slow = [sys.executable, "-c", "import time; time.sleep(30)"]
+    assert stability.run_failure(lambda: stability.run_snakemake(slow, tmp_path, log_path, 1.0), 1.0) == \
+        "timed out after 1 s"
+    assert stability.run_failure(lambda: stability.run_snakemake([sys.executable, "-c", "pass"], tmp_path, log_path,
+                                                                  60.0), 60.0) is None
+    stability.write_row(tmp_path, {"case": "x", "error": reason})
+    assert json.loads((tmp_path / "row.json").read_text()) == {"case": "x", "error": reason}
+    assert log_path.read_text().count("$ ") == 3  # each command logged before its output
+
 # --------------------------------------------------------------------------- configuration and the suite
 
 

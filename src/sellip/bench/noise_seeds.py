@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
 import time
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
@@ -88,7 +87,7 @@ def run_seed(out: str | Path, capture: str | Path, noise_seed: int, cores: int, 
     ``row.json`` exists is not run again (the benchmark resumes); a failed run's row has ``error``."""
     import yaml
 
-    from sellip.bench.stability import StabilityError, run_snakemake, snakemake_command
+    from sellip.bench.stability import run_failure, run_snakemake, snakemake_command, write_row
 
     name = run_name(noise_seed, cores)
     workdir = Path(out) / name
@@ -105,17 +104,13 @@ def run_seed(out: str | Path, capture: str | Path, noise_seed: int, cores: int, 
     override.write_text(yaml.safe_dump(seed_run_config(capture, name, overrides, cache), sort_keys=False))
     command = snakemake_command(snakefile, workdir, override, "--cores", str(int(cores)))
     started = time.perf_counter()
-    error = None
-    try:
-        run_snakemake(command, workdir, workdir / "snakemake.log", timeout_s,
-                       cpus=None if cpu is None else {int(cpu)})
-    except (StabilityError, subprocess.TimeoutExpired) as exc:
-        error = str(exc) if isinstance(exc, StabilityError) else f"timed out after {timeout_s:.0f} s"
+    error = run_failure(lambda: run_snakemake(command, workdir, workdir / "snakemake.log", timeout_s,
+                                              cpus=None if cpu is None else {int(cpu)}), timeout_s)
     wall_s = time.perf_counter() - started
     row = {"noise_seed": int(noise_seed), "cores": int(cores), "wall_s": round(wall_s, 1)}
     if error is not None:
         row["error"] = error
-    row_path.write_text(json.dumps(row, indent=1, allow_nan=False))
+    write_row(workdir, row)
     return with_figures(row, workdir / "results" / name)
 
 

@@ -26,6 +26,8 @@ Public API::
     stability_markdown(table) -> str
     run_case(case, workdir, snakefile, cores=2, ...) -> dict
     run_snakemake(command, workdir, log_path, timeout_s, cpus=None) -> None   # StabilityError with the reason
+    run_failure(steps, timeout_s) -> str | None          # why a run's Snakemake calls failed (None: they did not)
+    write_row(workdir, row)                               # workdir/row.json, atomically (a resumed run reads it)
     missing_packages(case) -> list[str]                  # the packages of case.needs not installed (case skipped)
     run_suite(cases, out, snakefile, cores=2, ...) -> DataFrame       # writes stability.csv / .md
 
@@ -321,8 +323,22 @@ def _children_cpu_s() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def _write_row(workdir: Path, row: Mapping) -> None:
+def write_row(workdir: Path, row: Mapping) -> None:
+    """Write a run's table row to ``workdir/row.json`` (atomically: a benchmark that resumes never reads half a row)."""
     _write_atomic(workdir / "row.json", lambda tmp: tmp.write_text(json.dumps(row, indent=1, allow_nan=False)))
+
+
+def run_failure(steps: Callable[[], None], timeout_s: float) -> str | None:
+    """Call ``steps`` (a run's Snakemake calls, :func:`run_snakemake`); None when they succeed, else why they failed:
+    the :class:`StabilityError` reason or "timed out after <timeout_s> s". A benchmark's failed run is a row, not a
+    crash."""
+    try:
+        steps()
+    except StabilityError as exc:
+        return str(exc)
+    except subprocess.TimeoutExpired:
+        return f"timed out after {timeout_s:.0f} s"
+    return None
 
 
 def run_case(case: Case, workdir: str | Path, snakefile: str | Path, cores: int = 2, iterations: int = 2,
@@ -346,8 +362,7 @@ def run_case(case: Case, workdir: str | Path, snakefile: str | Path, cores: int 
     log_path = workdir / "snakemake.log"
     scene = config["demo"]["scene"]
     started, cpu_started = time.perf_counter(), _children_cpu_s()
-    error = None
-    try:
+    def steps() -> None:
         def snakemake(*args: str) -> None:
             run_snakemake(snakemake_command(Path(snakefile), workdir, override, "--cores", str(cores), *args),
                            workdir, log_path, timeout_s)
@@ -367,11 +382,11 @@ def run_case(case: Case, workdir: str | Path, snakefile: str | Path, cores: int 
             perturb_mesh_file(workdir / mesh, case.perturb_m, PERTURB_SEED)
             log.info("%s: initial mesh perturbed along its normals by %.2f mm RMS", case.name, 1000 * case.perturb_m)
         snakemake()
-    except (StabilityError, subprocess.TimeoutExpired) as exc:
-        error = str(exc) if isinstance(exc, StabilityError) else f"timed out after {timeout_s:.0f} s"
+
+    error = run_failure(steps, timeout_s)
     wall_s, cpu_s = time.perf_counter() - started, _children_cpu_s() - cpu_started
     row = case_row(case, workdir, wall_s, error, cpu_s)
-    _write_row(workdir, row)
+    write_row(workdir, row)
     return row
 
 
@@ -413,7 +428,7 @@ def run_suite(cases: Sequence[Case], out: str | Path, snakefile: str | Path, cor
         if keep and previous.is_file():
             kept = json.loads(previous.read_text())
             row = case_row(case, workdir, kept["wall_s"], kept.get("error") or None, kept.get("cpu_s"))
-            _write_row(workdir, row)
+            write_row(workdir, row)
             rows.append(row)
             log.info("[%d/%d] %s: kept the earlier run (%s)", index, len(cases), case.name, previous)
             continue
