@@ -25,6 +25,7 @@ decision came out the same.
 
 from __future__ import annotations
 
+import copy
 import json
 import shutil
 import time
@@ -51,7 +52,7 @@ def demo_overrides(config_yaml: str | Path) -> dict:
 def seed_run_config(capture: str | Path, name: str, overrides: Mapping, compilation_cache: str | Path) -> dict:
     """The config override of one run: the demo's ``overrides`` given as settings (a capture that is not the built-in
     demo gets the defaults otherwise), the ``capture`` folder, the results ``name`` and the XLA compilation cache."""
-    config = json.loads(json.dumps(dict(overrides)))  # a deep copy
+    config = copy.deepcopy(dict(overrides))
     config.update(capture=str(Path(capture).resolve()), name=str(name))
     config.setdefault("fit", {})["compilation_cache"] = str(Path(compilation_cache).resolve())
     return config
