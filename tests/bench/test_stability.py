@@ -289,6 +289,15 @@ def _fake_run(workdir: Path, case: stability_table.Case, nan: bool = False, fold
                "psnr_held_out": {"mean_db": 25.0}, "psnr_new_light": None,
                "geometry_iterations": [{"mesh": it, "self_intersecting_pairs": folds, "flipped_triangles": 0,
                                         "degenerate_triangles": 0} for it, folds in enumerate(folds)]}
+    # Two passes of the clustering (as sellip.fit.augment_pass writes clusters.json): three clusters, then three with
+    # one region kept as found before; the final clusters' support with one fragile.
+    metrics["eta_per_material"]["materials"] = {"0": {"error_pct": 0.3}, "1": {"error_pct": 0.8}}
+    metrics["material_support"] = {"clusters": {"0": {"support": 1.0}, "1": {"support": 1.0}, "2": {"support": 0.7}},
+                                   "fragile": [2]}
+    for it, regions in ((0, []), (1, [{"inside": 0, "vertices": 60, "coherence": 0.45, "found_before": 2}])):
+        (results / "iter" / str(it) / "clusters").mkdir(parents=True)
+        (results / "iter" / str(it) / "clusters" / "clusters.json").write_text(
+            json.dumps({"k": 3, "merges": [], "regions": regions}))
     (results / "metrics.json").write_text(json.dumps(metrics))
 
 
@@ -306,6 +315,10 @@ def test_case_row_reads_the_figures_the_flagging_and_finiteness(tmp_path):
     assert row["flagged_bad"] == 1.0 and row["auc"] > 0.9 and row["worst_auc"] > 0.8
     assert row["eta_bad_share"] == 0.0 and row["eta_auc"] is None and row["eta_worst_auc"] is None  # all tied
     assert row["truth_far_share"] == 0.02 and row["folds_max"] == 0 and row["fold_first_mesh"] is None
+    assert row["true_materials"] == 2 and row["clusters_per_pass"] == "3 3" and row["found_before"] == 1
+    assert row["fragile"] == "2 (0.7)"
+    assert "| baseline | 2 | 3 3 | 1 | 2 (0.7) |" in stability_table.stability_markdown(
+        stability_table.validate_table([row]))
 
     # A fold at any mesh of the loop fails the case, naming the mesh.
     _fake_run(tmp_path / "folded", case, folds=(0, 3, 0))
@@ -422,7 +435,7 @@ def test_suite_writes_validated_tables_and_keeps_going_after_a_failure(tmp_path)
     assert "**failed**: Error in rule fit_pbrdf: exploded" in markdown
     tables = [[line for line in block.splitlines() if line.startswith("|")] for block in markdown.split("\n\n")]
     tables = [t for t in tables if t]
-    assert [len(t) for t in tables] == [5, 5]  # header, rule, three cases
+    assert [len(t) for t in tables] == [5, 5, 5]  # header, rule, three cases
     for t in tables:
         assert all(line.count(" | ") == t[0].count(" | ") for line in t[2:])
         assert t[1].count("---") == len(t[0].split(" | "))

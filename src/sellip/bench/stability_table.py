@@ -184,6 +184,7 @@ COLUMNS: dict[str, str] = {
     "rho_d_rmse": "float", "sigma_s_median_err": "float",
     "chamfer_mm": "float", "hausdorff_mm": "float", "truth_far_share": "float", "folds_max": "float",
     "fold_first_mesh": "float", "psnr_held_out_db": "float", "psnr_new_light_db": "float",
+    "true_materials": "float", "clusters_per_pass": "str", "fragile": "str", "found_before": "float",
     "outputs_finite": "bool", "nonfinite": "str",
     "confidence_median": "float", "bad_share": "float", "flagged_share": "float", "bad_flagged": "float",
     "flagged_bad": "float", "auc": "float", "worst_auc": "float", "eta_bad_share": "float",
@@ -204,6 +205,29 @@ def geometry_folds(iterations: Sequence[Mapping]) -> tuple[int, int | None, str]
     account = "; ".join(f"mesh {row['mesh']}: {row['self_intersecting_pairs']} self-intersecting pairs, "
                         f"{row.get('flipped_triangles') or 0} flipped" for row, count in zip(counted, folds) if count)
     return max(folds), first, account
+
+
+def cluster_decisions(results: str | Path, metrics: Mapping | None = None) -> dict:
+    """The clustering's decisions of the finished run ``results`` (``results/<name>``): ``clusters_per_pass`` (K of
+    each pass, ``iter/<it>/clusters/clusters.json``, in order: "2 3 2"), ``found_before`` (regions kept by the
+    hysteresis over all passes: their records say ``found_before``; docs/reproducibility.md), ``true_materials``
+    (the truth's materials in metrics.json's ``eta_per_material``) and ``fragile`` (the final clusters whose support is
+    below 1, each with its support: "2 (0.9), 4 (0.7)"; metrics.json's ``material_support``). Missing parts are
+    None or ""."""
+    results = Path(results)
+    passes = sorted(results.glob("iter/*/clusters/clusters.json"), key=lambda path: int(path.parent.parent.name))
+    records = [json.loads(path.read_text()) for path in passes]
+    out = {"clusters_per_pass": " ".join(str(int(r["k"])) for r in records if "k" in r),
+           "found_before": float(sum("found_before" in region for r in records for region in r.get("regions") or []))
+           if records else None, "true_materials": None, "fragile": ""}
+    if metrics:
+        materials = _get(metrics, "eta_per_material", "materials")
+        out["true_materials"] = float(len(materials)) if materials else None
+        support = metrics.get("material_support") or {}
+        clusters = support.get("clusters") or {}
+        out["fragile"] = ", ".join(f"{k} ({clusters.get(str(k), {}).get('support', float('nan')):.1f})"
+                                   for k in support.get("fragile") or [])
+    return out
 
 
 def empty_row(case: Case) -> dict:
@@ -252,6 +276,7 @@ def case_row(case: Case, workdir: str | Path, wall_s: float, error: str | None =
             truth_far_share=_get(m, "geometry", "truth_farther_than_1mm"),
             psnr_held_out_db=_get(m, "psnr_held_out", "mean_db"),
             psnr_new_light_db=_get(m, "psnr_new_light", "mean_db"))
+        row.update(cluster_decisions(results, m))
         folds = geometry_folds(m.get("geometry_iterations") or [])
         if folds is not None:
             row.update(folds_max=float(folds[0]), fold_first_mesh=None if folds[1] is None else float(folds[1]))
@@ -327,9 +352,10 @@ def _markdown(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]
 
 
 def stability_markdown(table) -> str:
-    """The suite's tables in Markdown: the figures of merit per case, then finiteness and confidence flagging."""
+    """The suite's tables in Markdown: the figures of merit per case, then finiteness and confidence flagging, then
+    the clustering's decisions (:func:`cluster_decisions`)."""
     records = table.to_dict("records")
-    merit, flags = [], []
+    merit, flags, decisions = [], [], []
     for row in records:
         status = "ok" if row["status"] == "ok" else f"**failed**: {row['error'][:160]}"
         merit.append([
@@ -353,6 +379,8 @@ def stability_markdown(table) -> str:
             f"{_share_count(row['eta_bad_share'], row['vertices'])} / "
             + " / ".join(format_cell(row[k], percent=True) for k in ("eta_bad_flagged", "eta_flagged_bad")),
             format_cell(row["eta_auc"], 2), format_cell(row["eta_worst_auc"], 2)])
+        decisions.append([row["case"], format_cell(row["true_materials"], 0), row["clusters_per_pass"] or "–",
+                          format_cell(row["found_before"], 0), row["fragile"] or "–"])
     lines = ["Figures of merit (metrics.json of each run):", ""]
     lines += _markdown(["case", "broken", "status", "views", "vertices", "normal mean / median / p90 (°)",
                         "η per vertex, median (%)", "η per material, mean / worst (%)", "ρ_d rel. RMSE",
@@ -365,6 +393,9 @@ def stability_markdown(table) -> str:
     lines += _markdown(["case", "outputs finite", "confidence > 0", "median confidence", "flagged",
                         "normal bad (vertices) / bad flagged / flagged bad", "normal AUC", "normal worst-10 % AUC",
                         "η bad (vertices) / bad flagged / flagged bad", "η AUC", "η worst-10 % AUC"], flags)
+    lines += ["", "The clustering's decisions (clusters.json of each pass; support: materials.csv):", ""]
+    lines += _markdown(["case", "true materials", "clusters at each pass", "kept as found before (hysteresis)",
+                        "fragile clusters (support)"], decisions)
     return "\n".join(lines) + "\n"
 
 
