@@ -235,6 +235,39 @@ def test_the_pristine_merge_passes_the_flash_check(pristine, tmp_path):
     assert main(["merge-hdr", "--linear", str(tmp_path / "linear.zarr"), "--output", str(tmp_path / "hdr.zarr")]) == 0
 
 
+def test_a_dark_noisy_capture_passes_the_flash_check_and_a_mislabel_on_it_does_not(tmp_path, caplog):
+    """The stability case dark_noisy (scene tiny_dark, rho_d 0.02-0.05, sensor noise x4; 4 of its views at its
+    320x256): the frames' measured brightness ratios lie within 10 % of their labels (1, 1/2, 1/4), where choosing
+    the samples on the measured frame's own values kept those its noise lifted above the floor (0.62 for 1/2, 0.50
+    for 1/4: merge_hdr stopped the case); the same capture with one view's flash levels all labelled alike still
+    stops the merge."""
+    import zarr
+
+    from sellip.capture import ingest
+    from sellip.capture.synthetic import synthesize_capture
+
+    capture = synthesize_capture("tiny_dark", tmp_path / "capture", views=4, width=320, height=256, seed=3,
+                                 supersample=1, noise_scale=4.0, progress=False)
+    assert linearize(capture, tmp_path / "linear.zarr") == 0
+    group = zarr.open_group(str(tmp_path / "linear.zarr"), mode="r")
+    attrs = dict(group.attrs)
+    for view in dict.fromkeys(attrs["view_id"]):
+        rows = [i for i, v in enumerate(attrs["view_id"]) if v == view]
+        _, measured, labelled = ingest.brightness_ratios([np.asarray(group["linear"][i]) for i in rows],
+                                                         [attrs["flash_level"][i] * attrs["exposure_s"][i]
+                                                          for i in rows])
+        assert np.isfinite(measured).all() and np.all(np.abs(np.log(measured / labelled)) < np.log(1.1)), \
+            (view, measured, labelled)
+    assert main(["merge-hdr", "--linear", str(tmp_path / "linear.zarr"), "--output", str(tmp_path / "hdr.zarr")]) == 0
+    edit_csv("frames.csv", lambda t: t.assign(flash_level=t["flash_level"].where(t["view_id"] != "v002",
+                                                                                 "0.125")))(capture)
+    assert linearize(capture, tmp_path / "mislabelled.zarr") == 0
+    with caplog.at_level(logging.INFO):
+        assert main(["merge-hdr", "--linear", str(tmp_path / "mislabelled.zarr"), "--output",
+                     str(tmp_path / "mislabelled_hdr.zarr")]) == 1
+    assert "view 'v002'" in caplog.text and not (tmp_path / "mislabelled_hdr.zarr").exists()
+
+
 @pytest.mark.parametrize("case", ["raw frame missing", "raw frame truncated", "raw frame not a raw file"])
 def test_bad_frames_skip_leaves_the_frame_out_with_a_warning(pristine, tmp_path, case, caplog):
     capture = tmp_path / "capture"

@@ -608,20 +608,31 @@ RATIO_MIN_SAMPLES = 50
 def brightness_ratios(frames, gains) -> tuple[int, np.ndarray, np.ndarray]:
     """Each frame's brightness measured against one reference frame of the same view, and as labelled.
 
-    frames: F arrays (..., 4, C) float32 linear values (NaN where invalid) of one view; gains: F labels
-    flash_level * exposure_s. The reference is the frame with the most samples valid and above RATIO_FLOOR.
-    Returns ``(reference, measured, labelled)``: measured (F,) the median over samples valid and above RATIO_FLOOR
-    in both frames of frame / reference (NaN where fewer than RATIO_MIN_SAMPLES), labelled (F,) gain / gain of the
-    reference. Both are 1 at the reference."""
+    frames: F arrays (..., 4, C) float32 linear values (analyzers I0, I45, I90, I135; NaN where invalid) of one view;
+    gains: F labels flash_level * exposure_s. The reference is the frame with the most samples valid and above
+    RATIO_FLOOR. Each analyzer pair measures the intensity (I0 + I90 = I45 + I135): the samples are chosen where the
+    reference's (I0 + I90) / 2 is above RATIO_FLOOR, and the ratio is measured on the other pair, (I45 + I135) / 2,
+    of frame and reference, valid in both. Choosing on the pair that is measured would keep the dim frame's samples
+    that its noise lifted above the floor (a very dark capture at 4x noise measured 0.62 for a frame labelled 0.5,
+    0.50 for one labelled 0.25: docs/reliability.md); the two pairs' noise is independent.
+    Returns ``(reference, measured, labelled)``: measured (F,) the median of frame / reference over those samples (NaN
+    where fewer than RATIO_MIN_SAMPLES), labelled (F,) gain / gain of the reference. Both are 1 at the reference."""
     frames = [np.asarray(f, np.float32) for f in frames]
+    if any(f.ndim < 2 or f.shape[-2] != 4 for f in frames):
+        raise IngestError(f"brightness ratios need frames of shape (..., 4, C) (four analyzers), got "
+                          f"{[f.shape for f in frames]}")
     gains = np.asarray(list(gains), np.float64)
-    lit = [np.nan_to_num(f, nan=0.0) > RATIO_FLOOR for f in frames]
+    chooses = [(f[..., 0, :] + f[..., 2, :]) / 2 for f in frames]
+    measures = [(f[..., 1, :] + f[..., 3, :]) / 2 for f in frames]
+    lit = [np.nan_to_num(c, nan=0.0) > RATIO_FLOOR for c in chooses]
     reference = int(np.argmax([m.sum() for m in lit]))
+    base = measures[reference]
+    chosen = lit[reference] & np.isfinite(base) & (base > 0)
     measured = np.full(len(frames), np.nan)
-    for f, frame in enumerate(frames):
-        both = lit[f] & lit[reference]
+    for f, value in enumerate(measures):
+        both = chosen & np.isfinite(value)
         if both.sum() >= RATIO_MIN_SAMPLES:
-            measured[f] = float(np.median(frame[both] / frames[reference][both]))
+            measured[f] = float(np.median(value[both] / base[both]))
     return reference, measured, gains / gains[reference]
 
 
