@@ -29,7 +29,7 @@ Modules and what they export (each name is importable from here too)::
         BLACK_LEVEL_SOURCES, BAD_FRAME_POLICIES, IngestSettings, CELL, DEFAULT_SATURATION, HDR_WEIGHT_FLOOR,
         IngestError, black_level_map, rawpy_black_level, linearize, make_demosaic_plan, demosaic, apply_color_matrix,
         output_intrinsics, source_positions, remap, make_ingest_plan, process_frame, analyzer_plan, develop,
-        hdr_weight, merge_hdr, FLASH_RATIO_TOLERANCE
+        hdr_weight, merge_hdr, FLASH_RATIO_TOLERANCE, brightness_ratios, mislabelled_frames
     linearize: Linearize a capture's raw frames (docs/design.md §2 linearize; docs/ingest.md): black and white level,
       saturation mask, demosaic into the four analyzer images, colour matrix, undistortion, one store for all frames
       (:func:`linearize_capture`); a bad frame stops with its file and row, or is left out with ``bad_frames: skip``
@@ -79,7 +79,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "HDR_WEIGHT_FLOOR", "IngestError", "black_level_map", "rawpy_black_level", "linearize",
            "make_demosaic_plan", "demosaic", "apply_color_matrix", "output_intrinsics", "source_positions", "remap",
            "make_ingest_plan", "process_frame", "analyzer_plan", "develop", "hdr_weight", "merge_hdr",
-           "FLASH_RATIO_TOLERANCE"),
+           "FLASH_RATIO_TOLERANCE", "brightness_ratios", "mislabelled_frames"),
     "linearize": ("linearize_capture",),
     "mitsuba_capture": ("PPlasticError", "mitsuba_available", "choose_variant", "pplastic_materials", "mesh_shape",
                         "flash_scene", "render_stokes", "render_in_subprocess"),

@@ -612,9 +612,8 @@ def brightness_ratios(frames, gains) -> tuple[int, np.ndarray, np.ndarray]:
     gains: F labels flash_level * exposure_s. The reference is the frame with the most samples valid and above
     RATIO_FLOOR. Each analyzer pair measures the intensity (I0 + I90 = I45 + I135): the samples are chosen where the
     reference's (I0 + I90) / 2 is above RATIO_FLOOR, and the ratio is measured on the other pair, (I45 + I135) / 2,
-    of frame and reference, valid in both. Choosing on the pair that is measured would keep the dim frame's samples
-    that its noise lifted above the floor (a very dark capture at 4x noise measured 0.62 for a frame labelled 0.5,
-    0.50 for one labelled 0.25: docs/reliability.md); the two pairs' noise is independent.
+    of frame and reference, valid in both: choosing on the measured pair kept a dim frame's samples that its noise
+    lifted above the floor (docs/reliability.md, "Flash levels"); the two pairs' noise is independent.
     Returns ``(reference, measured, labelled)``: measured (F,) the median of frame / reference over those samples (NaN
     where fewer than RATIO_MIN_SAMPLES), labelled (F,) gain / gain of the reference. Both are 1 at the reference."""
     frames = [np.asarray(f, np.float32) for f in frames]
