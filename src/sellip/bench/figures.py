@@ -235,10 +235,12 @@ def measured(figure: Figure, results: Path) -> list[float]:
             raise FiguresError(f"{metrics}: {path} is null (the run has no such figure)")
         return [float(value)]
     if kind == "clusters":
-        records = sorted(folder.glob("iter/*/clusters/clusters.json"), key=lambda p: int(p.parent.parent.name))
+        from sellip.fit.lobe_store import pass_clusters
+
+        records = pass_clusters(folder)
         if not records:
             raise FiguresError(f"{folder}/iter/*/clusters/clusters.json: none; run `{run.command}` first")
-        return [float(_dig(json.loads(p.read_text()), path, p)) for p in records]
+        return [float(_dig(record, path, p)) for p, record in records]
     raise FiguresError(f"{figure.name}: unknown source {figure.source!r} (metrics:<key path> or clusters:<key>)")
 
 

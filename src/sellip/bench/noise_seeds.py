@@ -132,12 +132,12 @@ def seed_row(results: str | Path) -> dict:
     import pandas as pd
 
     from sellip.bench.reproducibility import merge_rule
+    from sellip.fit.lobe_store import pass_clusters
 
     results = Path(results)
     metrics = json.loads((results / "metrics.json").read_text())
-    records = sorted(results.glob("iter/*/clusters/clusters.json"), key=lambda p: int(p.parent.parent.name))
     support = metrics.get("material_support") or {}
-    clusters = [json.loads(p.read_text()) for p in records]
+    clusters = [record for _, record in pass_clusters(results)]
     table = pd.read_csv(results / "final" / "materials.csv")
     covered = (table["eta_ci_low"] <= table["gt_eta"]) & (table["gt_eta"] <= table["eta_ci_high"])
     width = 100 * (table["eta_ci_high"] - table["eta_ci_low"]) / table["eta"]

@@ -214,10 +214,10 @@ def cluster_decisions(results: str | Path, metrics: Mapping | None = None) -> di
     (the truth's materials in metrics.json's ``eta_per_material``) and ``fragile`` (the final clusters whose support is
     below 1, each with its support: "2 (0.9), 4 (0.7)"; metrics.json's ``material_support``). Missing parts are
     None or ""."""
-    results = Path(results)
-    passes = sorted(results.glob("iter/*/clusters/clusters.json"), key=lambda path: int(path.parent.parent.name))
-    records = [json.loads(path.read_text()) for path in passes]
-    out = {"clusters_per_pass": " ".join(str(int(r["k"])) for r in records if "k" in r),
+    from sellip.fit.lobe_store import pass_clusters
+
+    records = [record for _, record in pass_clusters(Path(results))]
+    out = {"clusters_per_pass": " ".join(str(int(r["k"])) for r in records),
            "found_before": float(sum("found_before" in region for r in records for region in r.get("regions") or []))
            if records else None, "true_materials": None, "fragile": ""}
     if metrics:

@@ -612,8 +612,7 @@ def brightness_ratios(frames, gains) -> tuple[int, np.ndarray, np.ndarray]:
     gains: F labels flash_level * exposure_s. The reference is the frame with the most samples valid and above
     RATIO_FLOOR. Each analyzer pair measures the intensity (I0 + I90 = I45 + I135): the samples are chosen where the
     reference's (I0 + I90) / 2 is above RATIO_FLOOR, and the ratio is measured on the other pair, (I45 + I135) / 2,
-    of frame and reference, valid in both: choosing on the measured pair kept a dim frame's samples that its noise
-    lifted above the floor (docs/reliability.md, "Flash levels"); the two pairs' noise is independent.
+    of frame and reference (valid in both; independent noise: docs/reliability.md, "Flash levels").
     Returns ``(reference, measured, labelled)``: measured (F,) the median of frame / reference over those samples (NaN
     where fewer than RATIO_MIN_SAMPLES), labelled (F,) gain / gain of the reference. Both are 1 at the reference."""
     frames = [np.asarray(f, np.float32) for f in frames]
@@ -621,8 +620,9 @@ def brightness_ratios(frames, gains) -> tuple[int, np.ndarray, np.ndarray]:
         raise IngestError(f"brightness ratios need frames of shape (..., 4, C) (four analyzers), got "
                           f"{[f.shape for f in frames]}")
     gains = np.asarray(list(gains), np.float64)
-    chooses = [(f[..., 0, :] + f[..., 2, :]) / 2 for f in frames]
-    measures = [(f[..., 1, :] + f[..., 3, :]) / 2 for f in frames]
+    a0, a45, a90, a135 = (ANALYZER_ANGLES_DEG.index(angle) for angle in (0, 45, 90, 135))
+    chooses = [(f[..., a0, :] + f[..., a90, :]) / 2 for f in frames]
+    measures = [(f[..., a45, :] + f[..., a135, :]) / 2 for f in frames]
     lit = [np.nan_to_num(c, nan=0.0) > RATIO_FLOOR for c in chooses]
     reference = int(np.argmax([m.sum() for m in lit]))
     base = measures[reference]

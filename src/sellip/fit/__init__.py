@@ -38,8 +38,8 @@ Modules and what they export (each name is importable from here too)::
         code_version, enable, kernel
     lobe_store: The cluster-lobes output directory (``labels.npy``, ``models.npy``, ``lobes.csv``, ``lobes.png``,
       ``clusters.json``): its schema, readers, the settings it records, and the lobe plot (paper Fig. 7b)
-        LOBE_COLUMNS, read_lobes, read_labels, previous_labels, read_models, recorded_fit_settings, clustering_settings,
-        load_rows
+        LOBE_COLUMNS, read_lobes, read_labels, previous_labels, pass_clusters, read_models, recorded_fit_settings,
+        clustering_settings, load_rows
     lobes: Per-cluster specular lobes and virtual samples (paper §4.3 "Specular and single scattering loss", Eqs.
       24-25): a cluster's eta, sigma_s, sigma_ss, rho_s, rho_ss fitted to the pooled observations of its vertices with a
       per-sample half-angle error Delta theta_h and the regularizer lambda_theta Delta theta_h^2; per vertex, M virtual
@@ -104,7 +104,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
     "geometry_jobs": ("GeometryUpdateSettings", "raw_camera", "predicted_diffuse", "measure_silhouettes",
                       "iteration_model", "refine_geometry", "refine_poses"),
     "kernels": ("code_version", "enable", "kernel"),
-    "lobe_store": ("LOBE_COLUMNS", "read_lobes", "read_labels", "previous_labels", "read_models",
+    "lobe_store": ("LOBE_COLUMNS", "read_lobes", "read_labels", "previous_labels", "pass_clusters", "read_models",
            "recorded_fit_settings", "clustering_settings", "load_rows"),
     "lobes": ("ClusterLobe", "fit_cluster_lobe", "virtual_samples", "cluster_medians", "material_or_own"),
     "observe": ("MISSING_POSES", "ObserveError", "ObserveSettings", "ObserveMesh", "read_mesh", "bilinear_sample",

@@ -89,6 +89,15 @@ def previous_labels(run: Path, iteration: int) -> np.ndarray | None:
     return read_labels(directory) if iteration > 0 and (directory / "labels.npy").is_file() else None
 
 
+def pass_clusters(run: Path) -> list[tuple[Path, dict]]:
+    """Every pass's ``iter/<it>/clusters/clusters.json`` of the results folder ``run``, in pass order: (path, its
+    parsed record); empty where no pass has clustered yet."""
+    import json
+
+    paths = sorted(Path(run).glob("iter/*/clusters/clusters.json"), key=lambda path: int(path.parent.parent.name))
+    return [(path, json.loads(path.read_text())) for path in paths]
+
+
 def read_models(directory: Path, count: int | None = None) -> np.ndarray:
     """The model of every vertex (N,) uint8 (``models.npy``) of a ``cluster-lobes`` output directory.
     ValueError naming the file when it is missing, not (N,) codes of :data:`sellip.model.params.MODEL_NAMES`,
