@@ -68,11 +68,13 @@ class Figure:
 # kind -> (tolerance, unit, what it is), absolute, but relative where the unit is "%" (the vertex count, which the
 # documents round to hundreds or thousands). η per material: a material's median η moved 0.05 points between
 # two machines (plumage 0.09 / 0.14 %) and 0.4 points between runs of one setting (docs/benchmarks.md, the sweep's
-# noise); a small material (the demo's eyes, 54 vertices) moves more: 1.76-2.29 % over runs and replays.
+# noise); a small material (the demo's eyes, 54 vertices) moves more: 1.76-2.29 % over runs and replays, and
+# the README's own capture gave 1.47 % on an AMD EPYC and 0.31 % on an Intel Xeon (1.19 points apart, the same code;
+# each inside the other's 95 % interval, about ±2.1 % of eta: docs/reproducibility.md).
 # Normals 0.730 / 0.733 deg, held-out PSNR 31.6-31.73 dB and Chamfer 0.063-0.064 mm across machines and versions.
 TOLERANCES: dict[str, tuple[float, str, str]] = {
     "eta_pct": (0.5, "points", "η per material"),
-    "eta_small_pct": (1.0, "points", "η of a small material (the demo's eyes, 54 vertices)"),
+    "eta_small_pct": (2.0, "points", "η of a small material (the demo's eyes, 54 vertices)"),
     "normal_deg": (0.05, "°", "normals (median)"),
     "psnr_db": (0.3, "dB", "held-out PSNR"),
     "chamfer_mm": (0.005, "mm", "Chamfer"),
