@@ -19,7 +19,8 @@ score at best), in ``ceiling.json``.
 
 Prints one table row per rung: eta per material (mean and worst error of the per-material medians),
 eta per vertex (median, p90), normal error (median, p90), and for the workflow rungs the held-out
-PSNR; writes ``ladder.json`` and ``ladder.md`` in the workdir.
+PSNR; then, for the true-mesh rungs, the eta of each material with a few true albedos (a checker texture) per
+albedo (``sellip.bench.ladder.eta_by_albedo_mode``); writes ``ladder.json`` and ``ladder.md`` in the workdir.
 """
 
 from __future__ import annotations
@@ -144,6 +145,12 @@ def main(argv=None) -> int:
                      f"| {'–' if psnr is None else f'{psnr:.1f}'} |")
     table = "\n".join(lines)
     print(f"{tag}\n{table}")
+    for rung, f in rows.items():  # a checker-textured material's eta per albedo mode (the fit's albedo dependence)
+        for material, modes in (f.get("eta_by_albedo_mode") or {}).items():
+            if len(modes) > 1:
+                print(f"{rung}, material {material} by true albedo: " + "; ".join(
+                    f"rho_d ({', '.join(f'{v:.3f}' for v in mode['rho_d'])}) {mode['vertices']} vertices "
+                    f"eta {mode['eta']:.4f} ({mode['error_pct']:+.2f} %)" for mode in modes))
     (work / "ladder.json").write_text(json.dumps(rows, indent=2))
     (work / "ladder.md").write_text(f"{tag}\n\n{table}\n")
     return 0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sellip.bench.ladder import figures
+from sellip.bench.ladder import eta_by_albedo_mode, figures
 from sellip.capture.scenes import build_scene
 from sellip.fit.records import STATUS_FITTED, STATUS_TOO_FEW_VIEWS
 
@@ -25,6 +25,28 @@ def test_figures_of_a_fit_on_the_true_mesh():
     assert biased["eta_vertex_p90_pct"] == pytest.approx(2.0)
     with pytest.raises(ValueError, match="no vertex"):
         figures({"status": np.full(n, STATUS_TOO_FEW_VIEWS), "eta": eta, "normal": truth.normals}, truth)
+
+
+
+def test_eta_by_albedo_mode_splits_a_checker_material_by_its_true_albedo():
+    """tiny's two materials each have a checker of two gains: each gets its two albedos, darkest first, with the
+    signed error of their vertices' median eta; a material of many albedos (a photographed texture) gets none."""
+    truth = build_scene("tiny").mesh
+    material = np.asarray(truth.material)
+    rho_d = np.asarray(truth.params.rho_d, np.float64)
+    eta_true = np.asarray(truth.params.eta, np.float64)
+    total = rho_d.sum(1)
+    bright = total > np.array([np.ptp(total[material == m]) / 2 + total[material == m].min() for m in (0, 1)])[material]
+    eta = eta_true * np.where(bright, 0.99, 1.02)  # the dark mode reads 2 % high, the bright 1 % low
+    modes = eta_by_albedo_mode(eta, eta_true, material, rho_d)
+    assert sorted(modes) == ["0", "1"]
+    for m, rows in modes.items():
+        assert len(rows) == 2 and sum(r["vertices"] for r in rows) == np.sum(material == int(m))
+        assert np.sum(rows[0]["rho_d"]) < np.sum(rows[1]["rho_d"])
+        assert rows[0]["error_pct"] == pytest.approx(2.0) and rows[1]["error_pct"] == pytest.approx(-1.0)
+    speckled = rho_d * np.random.default_rng(0).uniform(0.5, 1.5, (len(rho_d), 1))
+    assert eta_by_albedo_mode(eta, eta_true, material, speckled) == {}
+    assert eta_by_albedo_mode(eta, eta_true, None, rho_d) == {}
 
 
 @pytest.mark.slow

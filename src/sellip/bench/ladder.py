@@ -17,6 +17,7 @@ Public API::
     render_hdr(capture, hdr, output, supersample=2, renderer='sellip') -> Path  # noise-free HDR of the truth
     fit_true_mesh(capture, hdr, workdir, observe_settings) -> dict  # observe + fit on the true mesh
     figures(fit, truth) -> dict                                     # eta per material / vertex, normals
+    eta_by_albedo_mode(eta, eta_true, material, true_rho_d) -> dict # eta per true material and its albedo modes
     psnr_ceiling(capture, hdr, views, vertices=None) -> dict        # held-out PSNR of the truth (resampled)
 
 :func:`psnr_ceiling` says what a per-vertex model can score at all: the true mesh and parameters, or the truth
@@ -129,8 +130,38 @@ def figures(fit: dict, truth) -> dict:
     material = None if truth.material is None else np.asarray(truth.material)[fitted]
     return {"fitted": int(fitted.sum()), "vertices": len(fitted),
             "eta_per_material": eta_per_material(eta, eta_true, material),
+            "eta_by_albedo_mode": eta_by_albedo_mode(eta, eta_true, material,
+                                                     np.asarray(truth.params.rho_d, np.float64)[fitted]),
             "eta_vertex_median_pct": float(np.median(error)), "eta_vertex_p90_pct": float(np.percentile(error, 90)),
             "normal_median_deg": float(np.median(normal)), "normal_p90_deg": float(np.percentile(normal, 90))}
+
+
+def eta_by_albedo_mode(eta, eta_true, material, true_rho_d, max_modes: int = 4) -> dict:
+    """Eta of each true material split by its true albedo: for a material whose vertices have at most ``max_modes``
+    distinct true rho_d (a checker texture's two gains; not a photographed texture), one row per albedo with its
+    vertices, the median eta and its error (%). eta, eta_true (N,), material (N,) int or None, true_rho_d (N, 3), over
+    the same vertices. Returns {material: [{"rho_d", "vertices", "eta", "error_pct"}, ...]} (darkest first); a
+    material with more albedos, or a truth without labels, has no entry. Two albedo modes of one material whose etas
+    differ say how much the fit's eta depends on the albedo (docs/reproducibility.md)."""
+    if material is None:
+        return {}
+    eta, eta_true = np.asarray(eta, np.float64), np.asarray(eta_true, np.float64)
+    material, true_rho_d = np.asarray(material), np.asarray(true_rho_d, np.float64)
+    modes = {}
+    for m in np.unique(material):
+        members = material == m
+        albedos, which = np.unique(np.round(true_rho_d[members], 6), axis=0, return_inverse=True)
+        if len(albedos) > max_modes:
+            continue
+        rows = []
+        for a in np.argsort(albedos.sum(1)):
+            chosen = np.flatnonzero(members)[which.ravel() == a]
+            median = float(np.median(eta[chosen]))
+            truth = float(np.median(eta_true[chosen]))
+            rows.append({"rho_d": [float(v) for v in albedos[a]], "vertices": int(chosen.size), "eta": median,
+                         "error_pct": 100 * (median - truth) / truth})
+        modes[str(int(m))] = rows
+    return modes
 
 
 def resampled_truth(truth, vertices: int):
