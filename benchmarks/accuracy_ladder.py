@@ -4,7 +4,8 @@
         [--rungs render sensor mesh hull] [--iterations 1] [--workdir results/bench/ladder] [--cores 2]
         [--ceiling-vertices 6000 30000] [--max-vertices 6000]
 
-Rungs (each resumable: a rung whose result file exists is not run again):
+Rungs (each resumable: a rung whose result file exists is not run again; ``--edge-margin``, ``--max-slope`` and
+``--min-cos`` other than their defaults give every rung a result of its own, e.g. ``render_slope0.4.json``):
 
 - ``render``: the true mesh observed in noise-free images rendered at the HDR grid by the capture's renderer
   (sellip.bench.ladder);
@@ -62,6 +63,7 @@ def main(argv=None) -> int:
     parser.add_argument("--iterations", type=int, default=1, help="outer iterations of the workflow rungs")
     parser.add_argument("--edge-margin", type=float, default=2.0, help="observe.edge_margin of every rung")
     parser.add_argument("--max-slope", type=float, default=0.0, help="observe.max_slope of every rung (0: off)")
+    parser.add_argument("--min-cos", type=float, default=0.0, help="observe.min_cos of every rung")
     parser.add_argument("--workdir", type=Path, default=ROOT / "results/bench/ladder")
     parser.add_argument("--cores", type=int, default=2)
     parser.add_argument("--max-vertices", type=int, default=None,
@@ -89,25 +91,30 @@ def main(argv=None) -> int:
     if not hdr.exists():
         linearize_capture(capture, work / "linear.zarr", threads=args.cores)
         merge_capture(work / "linear.zarr", hdr, threads=args.cores)
-    observe = ObserveSettings(edge_margin=args.edge_margin, max_slope=args.max_slope, threads=args.cores)
+    observe = ObserveSettings(edge_margin=args.edge_margin, max_slope=args.max_slope, min_cos=args.min_cos,
+                              threads=args.cores)
+    # Observation settings other than the ladder's defaults make every rung a run of its own (its own result file).
+    observed = ((f"_edge{args.edge_margin:g}" if args.edge_margin != parser.get_default("edge_margin") else "")
+                + (f"_slope{args.max_slope:g}" if args.max_slope else "")
+                + (f"_mincos{args.min_cos:g}" if args.min_cos else ""))
     cache = str(work / "jax_cache")
     rows = {}
     for rung in args.rungs:
-        # A workflow rung with other iterations, its own vertex count or a slope test is a run of its own (render
-        # and sensor fit the true mesh once).
-        suffix = ""
+        # A workflow rung with other iterations or its own vertex count is a run of its own (render and sensor fit
+        # the true mesh once per observation settings).
+        suffix = observed
         if rung in ("mesh", "hull"):
-            suffix = (f"_{args.iterations}it" + (f"_{args.max_vertices}v" if args.max_vertices else "")
-                      + (f"_slope{args.max_slope:g}" if args.max_slope else ""))
+            suffix = f"_{args.iterations}it" + (f"_{args.max_vertices}v" if args.max_vertices else "") + observed
         out = work / f"{rung}{suffix}.json"
         if not out.is_file():
             if rung == "render":
                 clean = render_hdr(capture, hdr, work / "render_hdr.zarr", renderer=args.renderer)
-                figures = fit_true_mesh(capture, clean, work / "render", observe, cache)
+                figures = fit_true_mesh(capture, clean, work / f"render{suffix}", observe, cache)
             elif rung == "sensor":
-                figures = fit_true_mesh(capture, hdr, work / "sensor", observe, cache)
+                figures = fit_true_mesh(capture, hdr, work / f"sensor{suffix}", observe, cache)
             else:
-                overrides = {"observe": {"edge_margin": args.edge_margin, "max_slope": args.max_slope},
+                overrides = {"observe": {"edge_margin": args.edge_margin, "max_slope": args.max_slope,
+                                         "min_cos": args.min_cos},
                              "evaluate": {"held_out_views": held_out_views(args.views, 4)}}
                 if args.max_vertices:
                     overrides["init"] = {"max_vertices": args.max_vertices}
