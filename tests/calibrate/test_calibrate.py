@@ -366,12 +366,18 @@ def test_flash_on_the_board_within_2_mm_at_half_size(board_flash):
 
 @pytest.mark.slow
 def test_flash_on_the_board_one_sigma_covers_the_error_over_seeds(board_flash):
-    """Five more synthetic sets (6 layouts of 3 spheres on the board, 612x512, the true intrinsics): the flash is
-    within 3 of its reported sigma on every axis in each (at this size up to 11 mm off in depth, sigma 4-5 mm)."""
+    """Five more synthetic sets (6 layouts of 3 spheres on the board, 612x512, the true intrinsics): over the 15
+    axis errors the reported sigma is the error's scale (their RMS in sigmas at most 1.5) and none is beyond 3.5
+    sigma (at this size up to 13 mm off in depth, sigma 4-5 mm). Every error within 3 sigma failed on an Intel Xeon:
+    seed 5's depth 12.9 mm against 3 x 4.25 mm (3.02 sigma; 11 mm on an AMD EPYC): one draw in 15 past 3 sigma is
+    what a right sigma gives about once in 25 runs."""
+    scaled = []
     for seed in range(1, 6):
         result, error = board_flash(W, H, seed)
         assert len(result.highlights) >= 15, (seed, result.left_out)
-        assert np.all(np.abs(error) <= 3 * result.std_m), (seed, error, result.std_m)
+        scaled.append(np.abs(error) / result.std_m)
+        assert np.all(scaled[-1] <= 3.5), (seed, error, result.std_m)
+    assert np.sqrt(np.mean(np.square(scaled))) <= 1.5, np.round(scaled, 2)
 
 
 def _mirror_point(centre: np.ndarray, radius: float, light: np.ndarray) -> np.ndarray:
