@@ -72,7 +72,7 @@ def main(argv=None) -> int:
                         help="also score the truth resampled on meshes of these vertex counts at the held-out views")
     args = parser.parse_args(argv)
 
-    from sellip.bench.ladder import fit_true_mesh, psnr_ceiling, render_hdr
+    from sellip.bench.ladder import albedo_mode_text, fit_true_mesh, psnr_ceiling, render_hdr
     from sellip.bench.stability import held_out_views
     from sellip.capture.files import GROUND_TRUTH_MESH
     from sellip.capture.hdr import merge_capture
@@ -155,9 +155,7 @@ def main(argv=None) -> int:
     for rung, f in rows.items():  # a checker-textured material's eta per albedo mode (the fit's albedo dependence)
         for material, modes in (f.get("eta_by_albedo_mode") or {}).items():
             if len(modes) > 1:
-                print(f"{rung}, material {material} by true albedo: " + "; ".join(
-                    f"rho_d ({', '.join(f'{v:.3f}' for v in mode['rho_d'])}) {mode['vertices']} vertices "
-                    f"eta {mode['eta']:.4f} ({mode['error_pct']:+.2f} %)" for mode in modes))
+                print(f"{rung}, material {material} by true albedo: {albedo_mode_text(modes)}")
     (work / "ladder.json").write_text(json.dumps(rows, indent=2))
     (work / "ladder.md").write_text(f"{tag}\n\n{table}\n")
     return 0

@@ -52,7 +52,7 @@ def main(argv=None) -> int:
     import numpy as np
     from scipy.spatial import cKDTree
 
-    from sellip.bench.ladder import eta_by_albedo_mode
+    from sellip.bench.ladder import albedo_mode_text, eta_by_albedo_mode
     from sellip.fit import clusters as fit_clusters
     from sellip.fit import lobes
     from sellip.report.figures_of_merit import eta_per_material
@@ -90,9 +90,7 @@ def main(argv=None) -> int:
     true_rho_d = np.asarray(truth.params.rho_d, np.float64)[nearest]
     for kind, modes in eta_by_albedo_mode(eta[used], eta_true[used], material[used], true_rho_d[used]).items():
         if len(modes) > 1:  # a checker-textured material: its vertices' own eta per true albedo
-            print(f"  material {kind} by true albedo (its vertices' own eta): " + "; ".join(
-                f"rho_d ({', '.join(f'{v:.3f}' for v in mode['rho_d'])}) {mode['vertices']} vertices "
-                f"eta {mode['eta']:.4f} ({mode['error_pct']:+.2f} %)" for mode in modes))
+            print(f"  material {kind} by true albedo (its vertices' own eta): {albedo_mode_text(modes)}")
     return 0
 
 

@@ -23,7 +23,8 @@ Modules and what they export (each name is importable from here too)::
         ROW_COLUMNS, run_renderer, capture_of, material_rows, intervals, fit_shared_factor, coverage,
         CORRELATION_EDGES, residual_correlation
     ladder: The accuracy ladder (docs/accuracy.md): where the error of a reconstruction enters, rung by rung
-        render_hdr, fit_true_mesh, figures, eta_by_albedo_mode, resampled_truth, psnr_ceiling
+        render_hdr, fit_true_mesh, figures, eta_by_albedo_mode, albedo_mode_text, resampled_truth,
+        psnr_ceiling
     noise_seeds: Whole runs over sensor-noise seeds and core counts (issue #49): the demo over seeds x 1 and 2 cores
       against its targets (``benchmarks/demo_seeds.py``), the suite's scenes' decisions over seeds
       (``benchmarks/suite_seeds.py``; docs/reproducibility.md)
@@ -86,7 +87,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, globals(), {
            "document_problems", "check", "report_lines", "provenance", "record"),
     "intervals": ("ROW_COLUMNS", "run_renderer", "capture_of", "material_rows", "intervals", "fit_shared_factor",
            "coverage", "CORRELATION_EDGES", "residual_correlation"),
-    "ladder": ("render_hdr", "fit_true_mesh", "figures", "eta_by_albedo_mode", "resampled_truth", "psnr_ceiling"),
+    "ladder": ("render_hdr", "fit_true_mesh", "figures", "eta_by_albedo_mode", "albedo_mode_text", "resampled_truth",
+           "psnr_ceiling"),
     "noise_seeds": ("TARGETS", "demo_overrides", "seed_run_config", "seed_captures", "run_name", "run_seed",
            "seed_row", "with_figures", "seed_summary", "decision_agreement"),
     "renderers": ("single_scattering_shares", "false_single_scattering", "renderer_markdown"),

@@ -18,6 +18,7 @@ Public API::
     fit_true_mesh(capture, hdr, workdir, observe_settings) -> dict  # observe + fit on the true mesh
     figures(fit, truth) -> dict                                     # eta per material / vertex, normals
     eta_by_albedo_mode(eta, eta_true, material, true_rho_d) -> dict # eta per true material and its albedo modes
+    albedo_mode_text(modes) -> str                                  # one material's modes as one line of text
     psnr_ceiling(capture, hdr, views, vertices=None) -> dict        # held-out PSNR of the truth (resampled)
 
 :func:`psnr_ceiling` says what a per-vertex model can score at all: the true mesh and parameters, or the truth
@@ -162,6 +163,12 @@ def eta_by_albedo_mode(eta, eta_true, material, true_rho_d, max_modes: int = 4) 
                          "error_pct": 100 * (median - truth) / truth})
         modes[str(int(m))] = rows
     return modes
+
+
+def albedo_mode_text(modes: list) -> str:
+    """One material's rows of :func:`eta_by_albedo_mode` as one line: albedo, vertices, eta and its signed error."""
+    return "; ".join(f"rho_d ({', '.join(f'{v:.3f}' for v in mode['rho_d'])}) {mode['vertices']} vertices "
+                     f"eta {mode['eta']:.4f} ({mode['error_pct']:+.2f} %)" for mode in modes)
 
 
 def resampled_truth(truth, vertices: int):
