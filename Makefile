@@ -60,7 +60,7 @@ lint: $(STAMP)
 
 # The README's accuracy table regenerated and compared, number by number, within the README's tolerances
 # (docs/benchmarks.md, "Paper figures by one command"). FIGURES=small: the demo (minutes on 2 cores; CI runs it);
-# FIGURES=all: the two sphere_ior rows too (about 1.5 h more). The comparison, commit and versions: results/figures.json.
+# FIGURES=all: the sphere_ior and painted cow rows too (about 2 h more). The comparison, commit and versions: results/figures.json.
 FIGURES ?= small
 figures: $(STAMP)
 	$(BIN)/sellip figures run --size $(FIGURES) --record results/figures.json

@@ -2,7 +2,7 @@
 
     python benchmarks/accuracy_ladder.py --scene sphere_ior --views 24 --width 612 --height 512 [--renderer mitsuba] \
         [--rungs render sensor mesh hull] [--iterations 1] [--workdir results/bench/ladder] [--cores 2]
-        [--ceiling-vertices 6000 30000] [--max-vertices 6000]
+        [--ceiling-vertices 6000 30000] [--max-vertices 6000] [--hull-resolution 128] [--seed 3]
 
 Rungs (each resumable: a rung whose result file exists is not run again; ``--edge-margin``, ``--max-slope`` and
 ``--min-cos`` other than their defaults give every rung a result of its own, e.g. ``render_slope0.4.json``):
@@ -11,7 +11,8 @@ Rungs (each resumable: a rung whose result file exists is not run again; ``--edg
   (sellip.bench.ladder);
 - ``sensor``: the true mesh observed in the capture's HDR images (sensor noise, mosaic, ingest);
 - ``mesh``: the whole workflow (``snakemake``) with ``init.mode: mesh`` from the true mesh;
-- ``hull``: the whole workflow from the visual hull (the default).
+- ``hull``: the whole workflow from the visual hull (the default);
+- ``sfm``: the same without the capture's poses (``sfm.mode: sfm``: SfM's cameras, then refined against the object).
 
 The workflow rungs hold four views out of the fit (spread evenly over the capture) for the held-out PSNR.
 ``--ceiling-vertices N ...`` also scores the held-out PSNR's ceilings (sellip.bench.ladder.psnr_ceiling): the ground
@@ -58,8 +59,10 @@ def main(argv=None) -> int:
     parser.add_argument("--views", type=int, default=24)
     parser.add_argument("--width", type=int, default=612)
     parser.add_argument("--height", type=int, default=512)
+    parser.add_argument("--seed", type=int, default=None,
+                        help="the capture's seed (orbit and sensor noise; sellip synth --seed); default: the demo's")
     parser.add_argument("--rungs", nargs="+", default=["render", "sensor", "mesh", "hull"],
-                        choices=["render", "sensor", "mesh", "hull"])
+                        choices=["render", "sensor", "mesh", "hull", "sfm"])
     parser.add_argument("--iterations", type=int, default=1, help="outer iterations of the workflow rungs")
     parser.add_argument("--edge-margin", type=float, default=2.0, help="observe.edge_margin of every rung")
     parser.add_argument("--max-slope", type=float, default=0.0, help="observe.max_slope of every rung (0: off)")
@@ -68,27 +71,37 @@ def main(argv=None) -> int:
     parser.add_argument("--cores", type=int, default=2)
     parser.add_argument("--max-vertices", type=int, default=None,
                         help="init.max_vertices of the workflow rungs (default: config.yaml's)")
+    parser.add_argument("--hull-resolution", type=int, default=None,
+                        help="init.hull_resolution of the workflow rungs, voxels (default: config.yaml's)")
     parser.add_argument("--ceiling-vertices", type=int, nargs="*", default=[],
                         help="also score the truth resampled on meshes of these vertex counts at the held-out views")
     args = parser.parse_args(argv)
 
-    from sellip.bench.ladder import albedo_mode_text, fit_true_mesh, psnr_ceiling, render_hdr
+    from sellip.bench.ladder import (
+        WORKFLOW_RUNGS,
+        albedo_mode_text,
+        capture_tag,
+        fit_true_mesh,
+        psnr_ceiling,
+        render_hdr,
+        workflow_run_name,
+    )
     from sellip.bench.stability import held_out_views
     from sellip.capture.files import GROUND_TRUTH_MESH
     from sellip.capture.hdr import merge_capture
     from sellip.capture.linearize import linearize_capture
-    from sellip.capture.synthetic import synthesize_capture
+    from sellip.capture.synthetic import DemoSettings, synthesize_capture
     from sellip.fit.observe import ObserveSettings
 
-    tag = (f"{args.scene}_{args.views}v_{args.width}x{args.height}"
-           + ("" if args.renderer == "sellip" else f"_{args.renderer}"))
+    seed = DemoSettings.seed if args.seed is None else args.seed
+    tag = capture_tag(args.scene, args.views, args.width, args.height, args.renderer, args.seed)
     work = (args.workdir / tag).resolve()
     capture = work / "capture"
     if not (capture / "capture.yaml").is_file():
         synthesize_capture(args.scene, capture, views=args.views, width=args.width, height=args.height, progress=False,
-                           renderer=args.renderer)
-    hdr = work / "hdr.zarr"
-    if not hdr.exists():
+                           renderer=args.renderer, seed=seed)
+    hdr = work / "hdr.zarr"  # the true-mesh rungs' and the ceilings' own ingest (the workflow rungs ingest in the run)
+    if not hdr.exists() and (args.ceiling_vertices or {"render", "sensor"} & set(args.rungs)):
         linearize_capture(capture, work / "linear.zarr", threads=args.cores)
         merge_capture(work / "linear.zarr", hdr, threads=args.cores)
     observe = ObserveSettings(edge_margin=args.edge_margin, max_slope=args.max_slope, min_cos=args.min_cos,
@@ -103,8 +116,9 @@ def main(argv=None) -> int:
         # A workflow rung with other iterations or its own vertex count is a run of its own (render and sensor fit
         # the true mesh once per observation settings).
         suffix = observed
-        if rung in ("mesh", "hull"):
-            suffix = f"_{args.iterations}it" + (f"_{args.max_vertices}v" if args.max_vertices else "") + observed
+        if rung in WORKFLOW_RUNGS:
+            name = workflow_run_name(tag, rung, args.iterations, args.max_vertices, args.hull_resolution, observed)
+            suffix = name[len(f"{tag}_{rung}"):]
         out = work / f"{rung}{suffix}.json"
         if not out.is_file():
             if rung == "render":
@@ -116,13 +130,14 @@ def main(argv=None) -> int:
                 overrides = {"observe": {"edge_margin": args.edge_margin, "max_slope": args.max_slope,
                                          "min_cos": args.min_cos},
                              "evaluate": {"held_out_views": held_out_views(args.views, 4)}}
-                if args.max_vertices:
-                    overrides["init"] = {"max_vertices": args.max_vertices}
+                overrides["init"] = {key: value for key, value in (("max_vertices", args.max_vertices),
+                                                                   ("hull_resolution", args.hull_resolution)) if value}
+                if rung == "sfm":
+                    overrides["sfm"] = {"mode": "sfm"}
                 if rung == "mesh":
                     overrides["init"] = {**overrides.get("init", {}), "mode": "mesh",
                                          "mesh_path": str(capture / GROUND_TRUTH_MESH)}
-                figures = workflow_rung(capture, f"{tag}_{rung}{suffix}", work / "results", args.iterations, args.cores,
-                                        overrides)
+                figures = workflow_rung(capture, name, work / "results", args.iterations, args.cores, overrides)
             out.write_text(json.dumps(figures, indent=2))
         rows[rung] = json.loads(out.read_text())
 

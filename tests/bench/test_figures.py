@@ -76,7 +76,7 @@ def test_every_registered_figure_reads_back_from_the_current_documents():
         assert (f"{value / figure.scale:g}" in cell) or figure.kind == "materials", (figure.name, cell)
     assert _documented(readme)["demo: materials at every iteration"] == 3  # "three materials at every iteration"
     covered = {figure.run for figure in figures.FIGURES}
-    assert covered == {run.name for run in figures.RUNS} and len(figures.FIGURES) == 20
+    assert covered == {run.name for run in figures.RUNS} and len(figures.FIGURES) == 36
 
 
 def test_a_demo_run_within_tolerance_passes_and_one_outside_fails_with_its_difference(tmp_path):
@@ -150,3 +150,45 @@ def test_a_missing_run_says_which_command_makes_it(tmp_path):
     with pytest.raises(figures.FiguresError, match="no registered run 'owl'"):
         figures.select(["owl"])
     assert figures.select(size="small") == (DEMO,)
+
+
+def test_a_known_and_sfm_row_reads_each_value_from_its_own_rung(tmp_path):
+    """The painted cow's row is one accuracy-ladder command with two workflow rungs: "known / SfM" in each cell, the
+    first read from the ``hull`` rung's metrics.json, the second from the ``sfm`` rung's; a wrong SfM value fails
+    only the SfM figure."""
+    readme = (ROOT / "README.md").read_text()
+    run = figures.run_named("cow_painted_mitsuba")
+    line, row = figures.table_row(readme, run.command)
+    assert "--renderer mitsuba" in run.command and "--rungs hull sfm" in run.command
+    cow = [figure for figure in figures.FIGURES if figure.run == run.name]
+    assert len(cow) == 8 and {figure.folder.split("_")[-4] for figure in cow} == {"hull", "sfm"}
+
+    def write(folder: str, values: dict[str, float]) -> None:
+        metrics = {"eta_per_material": {"mean_error_pct": values["η (%)"]},
+                   "normal_error_deg": {"all": {"median": values["normals median (°)"]}},
+                   "psnr_held_out": {"mean_db": values["held-out PSNR (dB)"]},
+                   "geometry": {"chamfer_mm": values["Chamfer (mm)"]}}
+        write_text(json.dumps(metrics), tmp_path / run.results / folder / "metrics.json")
+
+    def documented_by_rung(shift: float = 0.0) -> dict[str, dict[str, float]]:
+        by = {}
+        for figure in cow:
+            what = figure.name.split(": ", 1)[1]
+            value = figures.documented(figure, readme)
+            by.setdefault(figure.folder, {})[what] = value + shift * figures.tolerance_of(figure, value)
+        return by
+
+    for folder, values in documented_by_rung(0.8).items():
+        write(folder, values)
+    comparisons = figures.check(ROOT, tmp_path, (run,))
+    assert [c.status for c in comparisons] == ["PASS"] * 8
+    known = next(c for c in comparisons if c.figure.name == f"{run.name}, known poses: normals median (°)")
+    sfm = next(c for c in comparisons if c.figure.name == f"{run.name}, SfM: normals median (°)")
+    assert known.documented == float(row["normals (median)"].split("°")[0]) != sfm.documented
+
+    sfm_folder = sfm.figure.folder
+    values = documented_by_rung()[sfm_folder]
+    values["normals median (°)"] += 0.2
+    write(sfm_folder, values)
+    failed = [c.figure.name for c in figures.check(ROOT, tmp_path, (run,)) if c.status != "PASS"]
+    assert failed == [f"{run.name}, SfM: normals median (°)"]

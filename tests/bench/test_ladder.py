@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sellip.bench.ladder import eta_by_albedo_mode, figures
+from sellip.bench.ladder import WORKFLOW_RUNGS, capture_tag, eta_by_albedo_mode, figures, workflow_run_name
 from sellip.capture.scenes import build_scene
 from sellip.fit.records import STATUS_FITTED, STATUS_TOO_FEW_VIEWS
 
@@ -103,3 +103,18 @@ def test_render_rung_of_both_renderers_agrees_on_a_mitsuba_capture(tmp_path):
         assert np.median(difference) < 0.002 and np.percentile(difference, 99) < 0.03, v
     with pytest.raises(ValueError, match="renderer"):
         render_hdr(capture, hdr, tmp_path / "other.zarr", renderer="blender")
+
+
+def test_a_workflow_rung_with_other_settings_is_a_run_of_its_own():
+    """Each setting other than its default names its own results folder, so a rung never reuses a cached run of
+    other settings; the README's figures (sellip.bench.figures) find the runs by the same names."""
+    tag = capture_tag("cow_painted", 72, 1224, 1024, "mitsuba", 3)
+    assert tag == "cow_painted_72v_1224x1024_mitsuba_seed3"
+    assert capture_tag("sphere_ior", 72, 1224, 1024) == "sphere_ior_72v_1224x1024"
+    names = {workflow_run_name(tag, rung, iterations, vertices, hull)
+             for rung in WORKFLOW_RUNGS for iterations in (1, 3) for vertices in (None, 10000) for hull in (None, 128)}
+    assert len(names) == 3 * 2 * 2 * 2
+    assert workflow_run_name("s", "hull", 3, 30000) == "s_hull_3it_30000v"  # the sphere_ior row's folder
+    assert workflow_run_name("s", "sfm", 3, 10000, 128, "_slope0.4") == "s_sfm_3it_10000v_hull128_slope0.4"
+    with pytest.raises(ValueError, match="not a workflow rung"):
+        workflow_run_name("s", "render", 1)

@@ -21,6 +21,8 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+from sellip.bench.ladder import capture_tag, workflow_run_name
+
 README = "README.md"
 
 
@@ -52,7 +54,8 @@ class Figure:
 
     ``source``: where the run's output holds it: ``metrics:<dotted.key.path>`` in its metrics.json (list items and
     dict keys alike), or ``clusters:k`` (every iteration's ``iter/<it>/clusters/clusters.json`` ``k``: each must
-    match). ``kind``: the key of its tolerance in :data:`TOLERANCES`."""
+    match), in the run's results folder, or in its sub-folder ``folder`` where one command makes several workflow
+    runs (the accuracy ladder's rungs). ``kind``: the key of its tolerance in :data:`TOLERANCES`."""
 
     name: str
     run: str
@@ -63,6 +66,7 @@ class Figure:
     group: int = 1
     scale: float = 1.0
     doc: str = README
+    folder: str = ""
 
 
 # kind -> (tolerance, unit, what it is), absolute, but relative where the unit is "%" (the vertex count, which the
@@ -92,6 +96,12 @@ RUNS: tuple[Run, ...] = (
         "--height 1024 --rungs hull --iterations 3 --max-vertices 30000",
         "bench/ladder/sphere_ior_72v_1224x1024_mitsuba/results/sphere_ior_72v_1224x1024_mitsuba_hull_3it_30000v",
         "large", 25, "seed 0; the capture's seed 0 (sellip.capture.synthetic.synthesize_capture default)"),
+    *(Run(f"cow_painted_{renderer}",
+          f"python benchmarks/accuracy_ladder.py --scene cow_painted{flag} --views 72 --width 1224 --height 1024 "
+          "--seed 3 --rungs hull sfm --iterations 3 --max-vertices 10000 --hull-resolution 128",
+          f"bench/ladder/{capture_tag('cow_painted', 72, 1224, 1024, renderer, 3)}/results", "large", minutes,
+          "seed 0; the capture's seed 3 (orbit and sensor noise)")
+      for renderer, flag, minutes in (("sellip", "", 21), ("mitsuba", " --renderer mitsuba", 19))),
 )
 
 _ETA = "η per material"
@@ -122,6 +132,25 @@ def _sphere(run: str) -> tuple[Figure, ...]:
             *_headline(run))
 
 
+def _known_and_sfm(run: str) -> tuple[Figure, ...]:
+    """A row of two rungs of one accuracy-ladder command, "known / SfM" in each cell: the run from the capture's
+    poses (rung ``hull``) and the run from SfM's (rung ``sfm``), each in its own results folder."""
+    tag = Path(next(r.results for r in RUNS if r.name == run)).parent.name
+    out = []
+    for group, rung in ((1, "hull"), (2, "sfm")):
+        folder = workflow_run_name(tag, rung, iterations=3, max_vertices=10000, hull_resolution=128)
+        poses = ("known poses", "SfM")[group - 1]
+        out += [Figure(f"{run}, {poses}: η (%)", run, _ETA, r"([\d.]+) / ([\d.]+) %",
+                       "metrics:eta_per_material.mean_error_pct", "eta_pct", group=group, folder=folder),
+                Figure(f"{run}, {poses}: normals median (°)", run, "normals (median)", r"([\d.]+)° / ([\d.]+)°",
+                       "metrics:normal_error_deg.all.median", "normal_deg", group=group, folder=folder),
+                Figure(f"{run}, {poses}: held-out PSNR (dB)", run, "held-out PSNR", r"([\d.]+) / ([\d.]+) dB",
+                       "metrics:psnr_held_out.mean_db", "psnr_db", group=group, folder=folder),
+                Figure(f"{run}, {poses}: Chamfer (mm)", run, "surface", r"Chamfer ([\d.]+) / ([\d.]+) mm",
+                       "metrics:geometry.chamfer_mm", "chamfer_mm", group=group, folder=folder)]
+    return tuple(out)
+
+
 # The demo's η per material: its true materials' labels are 0 plumage (η 1.48), 1 facial disc (1.36), 2 eyes and
 # beak (1.62) (sellip.capture.scenes), the README's order.
 FIGURES: tuple[Figure, ...] = (
@@ -134,13 +163,12 @@ FIGURES: tuple[Figure, ...] = (
     *_headline("demo"),
     *_sphere("sphere_ior_scale"),
     *_sphere("sphere_ior_mitsuba"),
+    *_known_and_sfm("cow_painted_sellip"),
+    *_known_and_sfm("cow_painted_mitsuba"),
 )
 
 # Documented figures without a registered command, and why (docs/benchmarks.md, "Paper figures by one command").
 NOT_COVERED: dict[str, str] = {
-    "README: the painted cow's rows (sellip's renderer and Mitsuba 3)":
-        "no single recorded command: the runs are the stability suite's cow overrides at 72 x 1224x1024 with "
-        "iterations 3 and sfm.mode sfm, run from another run's ingest, poses and hull",
     "README: the stability suite's row": "a pointer to docs/benchmarks.md, not a number",
     "README: views, sizes, iterations and run times in a row's first cell":
         "settings of the recorded command, or the machine's time (not a figure of the method)",
@@ -226,7 +254,7 @@ def measured(figure: Figure, results: Path) -> list[float]:
     """``figure``'s measured value(s) in the finished run under ``results`` (the results root): one value, or one
     per iteration (``clusters:k``). Raises :class:`FiguresError` naming the missing file and the command."""
     run = run_named(figure.run)
-    folder = Path(results) / run.results
+    folder = Path(results) / run.results / figure.folder
     kind, _, path = figure.source.partition(":")
     if kind == "metrics":
         metrics = folder / "metrics.json"

@@ -6,14 +6,16 @@ Each rung adds one source of error to the one before, on the same synthetic capt
   (no sensor, no mosaic, no ingest): what sampling images at the vertices costs;
 - ``sensor``: the true mesh observed in the capture's own HDR images (sensor noise, the polarization
   and colour mosaic, demosaicing, HDR merge);
-- ``mesh`` / ``hull`` (benchmarks/accuracy_ladder.py): the whole workflow from the true mesh
-  (``init.mode: mesh``) or from the visual hull.
+- ``mesh`` / ``hull`` / ``sfm`` (benchmarks/accuracy_ladder.py): the whole workflow from the true mesh
+  (``init.mode: mesh``), from the visual hull, or from the visual hull without the capture's poses (SfM's).
 
 The first two rungs are one observe + one fit pass (no augmentation, no iterations) on the true
 mesh's vertices; their figures are those of :func:`figures`.
 
 Public API::
 
+    capture_tag(scene, views, width, height, renderer, seed) -> str  # the ladder's folder of one capture
+    workflow_run_name(tag, rung, iterations, ...) -> str            # a workflow rung's run (results folder) name
     render_hdr(capture, hdr, output, supersample=2, renderer='sellip') -> Path  # noise-free HDR of the truth
     fit_true_mesh(capture, hdr, workdir, observe_settings) -> dict  # observe + fit on the true mesh
     figures(fit, truth) -> dict                                     # eta per material / vertex, normals
@@ -36,6 +38,27 @@ import numpy as np
 from sellip.capture.files import GROUND_TRUTH_MESH
 from sellip.capture.reader import read_capture
 from sellip.model.ply import read_param_mesh, write_param_mesh
+
+WORKFLOW_RUNGS = ("mesh", "hull", "sfm")
+
+
+def capture_tag(scene: str, views: int, width: int, height: int, renderer: str = "sellip",
+                seed: int | None = None) -> str:
+    """The name of the ladder's folder for one synthetic capture: scene, views, size, the renderer unless sellip's,
+    the capture's seed unless the default (``None``), e.g. ``cow_painted_72v_1224x1024_mitsuba_seed3``."""
+    return (f"{scene}_{views}v_{width}x{height}" + ("" if renderer == "sellip" else f"_{renderer}")
+            + ("" if seed is None else f"_seed{seed}"))
+
+
+def workflow_run_name(tag: str, rung: str, iterations: int, max_vertices: int | None = None,
+                      hull_resolution: int | None = None, observed: str = "") -> str:
+    """The workflow run (its ``name``, the results folder) of a workflow rung (one of :data:`WORKFLOW_RUNGS`) of
+    the capture ``tag``: every setting other than its default gives the run a name of its own (``observed``: the
+    observation settings' own suffix), so a rerun with other settings never reuses a cached result."""
+    if rung not in WORKFLOW_RUNGS:
+        raise ValueError(f"rung {rung!r} is not a workflow rung ({', '.join(WORKFLOW_RUNGS)})")
+    return (f"{tag}_{rung}_{iterations}it" + (f"_{max_vertices}v" if max_vertices else "")
+            + (f"_hull{hull_resolution}" if hull_resolution else "") + observed)
 
 
 def render_hdr(capture: str | Path, hdr: str | Path, output: str | Path, supersample: int = 2,

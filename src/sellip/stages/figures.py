@@ -7,8 +7,9 @@
 (:data:`sellip.bench.figures.FIGURES`), the value its document's table shows, the measured one, the tolerance, the
 difference and PASS / FAIL / MISSING (no finished run: the line says which command makes it). ``run`` first runs
 each selected run's recorded command from the repository root (they write under ``results/``), then checks. The
-runs: ``demo`` (small: ``make demo``, minutes on 2 cores), ``sphere_ior_scale`` and ``sphere_ior_mitsuba`` (large:
-about an hour each). ``--record`` writes the comparison as JSON with the commit, package versions, machine and seeds.
+runs: ``demo`` (small: ``make demo``, minutes on 2 cores); ``sphere_ior_scale``, ``sphere_ior_mitsuba``,
+``cow_painted_sellip`` and ``cow_painted_mitsuba`` (large: 19-58 min each). ``--record`` writes the comparison as
+JSON with the commit, package versions, machine and seeds.
 Exit status 0 when every figure passed, 1 otherwise (a figure outside its tolerance, a missing run, a document row
 that no longer parses, a command of ``run`` that failed).
 """
