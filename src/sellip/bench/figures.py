@@ -86,6 +86,9 @@ TOLERANCES: dict[str, tuple[float, str, str]] = {
     "materials": (0, "", "the number of materials"),
 }
 
+# The painted cow's workflow rungs: the settings of its command and of its results folders (one declaration).
+_COW_RUNS = {"iterations": 3, "max_vertices": 10000, "hull_resolution": 128}
+
 RUNS: tuple[Run, ...] = (
     Run("demo", "make demo", "demo", "small", 7, "seed 0, demo.seed 0 (the capture's sensor noise)"),
     Run("sphere_ior_scale", "python benchmarks/scale.py --sizes 72x1224x1024:100000:10",
@@ -98,7 +101,8 @@ RUNS: tuple[Run, ...] = (
         "large", 25, "seed 0; the capture's seed 0 (sellip.capture.synthetic.synthesize_capture default)"),
     *(Run(f"cow_painted_{renderer}",
           f"python benchmarks/accuracy_ladder.py --scene cow_painted{flag} --views 72 --width 1224 --height 1024 "
-          "--seed 3 --rungs hull sfm --iterations 3 --max-vertices 10000 --hull-resolution 128",
+          f"--seed 3 --rungs hull sfm --iterations {_COW_RUNS['iterations']} --max-vertices "
+          f"{_COW_RUNS['max_vertices']} --hull-resolution {_COW_RUNS['hull_resolution']}",
           f"bench/ladder/{capture_tag('cow_painted', 72, 1224, 1024, renderer, 3)}/results", "large", minutes,
           "seed 0; the capture's seed 3 (orbit and sensor noise)")
       for renderer, flag, minutes in (("sellip", "", 21), ("mitsuba", " --renderer mitsuba", 19))),
@@ -138,7 +142,7 @@ def _known_and_sfm(run: str) -> tuple[Figure, ...]:
     tag = Path(next(r.results for r in RUNS if r.name == run)).parent.name
     out = []
     for group, rung in ((1, "hull"), (2, "sfm")):
-        folder = workflow_run_name(tag, rung, iterations=3, max_vertices=10000, hull_resolution=128)
+        folder = workflow_run_name(tag, rung, **_COW_RUNS)
         poses = ("known poses", "SfM")[group - 1]
         out += [Figure(f"{run}, {poses}: η (%)", run, _ETA, r"([\d.]+) / ([\d.]+) %",
                        "metrics:eta_per_material.mean_error_pct", "eta_pct", group=group, folder=folder),
